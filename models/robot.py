@@ -1,0 +1,422 @@
+"""Robot descriptions: the YAML files of ``configs/robots/`` loaded and validated.
+
+A description holds everything the rest of vslab needs to know about one physical arm: its kinematic chain
+(with the pseudo-rigid-body virtual joints of its soft links), masses, joint limits, the stiffness and damping
+tables of the links versus pressure, hysteresis, servo/stepper/pneumatic behaviour, sensor noise, device
+clocks, the tracker placement and the device ports. Values are SI; the unit is in every field name.
+A bad file raises :class:`RobotDescriptionError` with one message naming the file, the field and the reason.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "robots"
+TIP_FRAME = "tip"
+
+PositiveFloat = Annotated[float, Field(gt=0)]
+NonNegFloat = Annotated[float, Field(ge=0)]
+
+
+class RobotDescriptionError(ValueError):
+    """A robot description file is missing, unreadable or invalid."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# ---------------------------------------------------------------------------------------------- kinematics
+class AnthropomorphicKinematics(_Model):
+    """The 3-DoF arm of seed 000, eq. (1): J1 about z, J2/J3 in the vertical plane."""
+
+    type: Literal["anthropomorphic"]
+    l1_m: PositiveFloat
+    l2_m: PositiveFloat
+    l3_m: PositiveFloat
+
+
+class DHRowSpec(_Model):
+    """One standard D-H row, T = Rz(θ) Tz(d) Tx(a) Rx(α), with θ = joint variable + offset."""
+
+    a_m: float
+    alpha_rad: float
+    d_m: float
+    joint: str
+    offset_rad: float = 0.0
+
+
+class DHKinematics(_Model):
+    """A general D-H chain; joints named q* are actuated, the others are virtual (link bending)."""
+
+    type: Literal["dh"]
+    rows: list[DHRowSpec] = Field(min_length=1)
+
+    @field_validator("rows")
+    @classmethod
+    def _unique_joints(cls, rows: list[DHRowSpec]) -> list[DHRowSpec]:
+        names = [r.joint for r in rows]
+        dupes = sorted({n for n in names if names.count(n) > 1})
+        if dupes:
+            raise ValueError(f"joint names must be unique, repeated: {dupes}")
+        return rows
+
+
+# ----------------------------------------------------------------------------------------------- links
+class PressureTable(_Model):
+    """A link property tabulated against gauge pressure; linear interpolation in between."""
+
+    pressure_pa: list[NonNegFloat] = Field(min_length=2)
+    stiffness_nm_per_rad: list[PositiveFloat]
+    damping_nms_per_rad: list[NonNegFloat]
+
+    @model_validator(mode="after")
+    def _consistent(self) -> PressureTable:
+        n = len(self.pressure_pa)
+        if len(self.stiffness_nm_per_rad) != n or len(self.damping_nms_per_rad) != n:
+            raise ValueError(
+                f"pressure_pa has {n} entries but stiffness_nm_per_rad has {len(self.stiffness_nm_per_rad)}"
+                f" and damping_nms_per_rad has {len(self.damping_nms_per_rad)}"
+            )
+        if any(b <= a for a, b in zip(self.pressure_pa, self.pressure_pa[1:], strict=False)):
+            raise ValueError("pressure_pa must be strictly increasing")
+        return self
+
+    def scaled(self, factor: float) -> PressureTable:
+        """The same table with stiffness and damping multiplied by ``factor``."""
+        return PressureTable(
+            pressure_pa=self.pressure_pa,
+            stiffness_nm_per_rad=[k * factor for k in self.stiffness_nm_per_rad],
+            damping_nms_per_rad=[c * factor for c in self.damping_nms_per_rad],
+        )
+
+
+class ScaledTable(_Model):
+    """A table taken from another link and scaled (e.g. by the ratio of second moments of area)."""
+
+    from_link: str
+    factor: PositiveFloat
+
+
+class Hysteresis(_Model):
+    """Bouc–Wen offset on the link angle: loop width ≈ 2·delta_h_rad once |τ| ≫ tau_y_nm."""
+
+    delta_h_rad: NonNegFloat
+    tau_y_nm: PositiveFloat
+
+
+class LinkSpec(_Model):
+    """A soft (or rigid-but-compliant) link modelled as a pseudo-rigid body with virtual joints."""
+
+    name: str
+    virtual_joints: list[str] = Field(min_length=1)
+    after_joint: str | None = None  # anthropomorphic arm: the actuated joint this link follows (q2 or q3)
+    radius_m: PositiveFloat | None = None
+    hinge_fraction: Annotated[float, Field(ge=0, lt=1)] = 0.15
+    table: PressureTable | ScaledTable
+    hysteresis: Hysteresis
+    pressure_channel: int | None = Field(default=None, ge=0)
+
+
+class PointMass(_Model):
+    """A point mass at ``position_m`` in the output frame of the row driven by ``frame`` (or 'tip')."""
+
+    name: str
+    mass_kg: NonNegFloat
+    frame: str
+    position_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    inertia_kgm2: NonNegFloat = 0.0  # about its own centre, for any axis through it (a rod's mL²/12)
+
+
+class JointSpec(_Model):
+    name: str
+    lower_rad: float
+    upper_rad: float
+    drive: Literal["servo", "stepper", "motor"]
+
+    @model_validator(mode="after")
+    def _ordered(self) -> JointSpec:
+        if self.lower_rad >= self.upper_rad:
+            raise ValueError(f"lower_rad ({self.lower_rad}) must be below upper_rad ({self.upper_rad})")
+        return self
+
+
+# -------------------------------------------------------------------------------------------- actuators
+class ServoSpec(_Model):
+    """Position-controlled joint drive (Dynamixel-like): profile, finite P-gain, backlash, current model.
+    Also used for POPUP's geared brushless motors ('motor' drive)."""
+
+    model: str = "XM430-W350-T"
+    p_gain: PositiveFloat
+    stiffness_per_p_gain_nm_per_rad: PositiveFloat
+    loop_time_constant_s: PositiveFloat
+    backlash_rad: NonNegFloat
+    torque_constant_nm_per_a: PositiveFloat
+    idle_current_a: NonNegFloat
+    friction_current_a: NonNegFloat
+    rotor_inertia_kgm2: NonNegFloat
+    profile_velocity_rad_s: NonNegFloat
+    profile_acceleration_rad_s2: NonNegFloat
+    zero_count: int = 2048
+
+    @property
+    def stiffness_nm_per_rad(self) -> float:
+        return self.p_gain * self.stiffness_per_p_gain_nm_per_rad
+
+
+class StepperSpec(_Model):
+    steps_per_rev: int = Field(gt=0)
+    microsteps: int = Field(gt=0)
+    gear_ratio: PositiveFloat
+    max_speed_rad_s: PositiveFloat
+    acceleration_rad_s2: PositiveFloat
+
+    @property
+    def rad_per_microstep(self) -> float:
+        return 2 * math.pi / (self.steps_per_rev * self.microsteps * self.gear_ratio)
+
+
+class PneumaticsSpec(_Model):
+    """Regulators (first-order lag + dead time), valves that hold with a slow leak, safety limits."""
+
+    channels: int = Field(gt=0)
+    regulator_time_constant_s: PositiveFloat
+    regulator_dead_time_s: NonNegFloat
+    regulator_max_pa: PositiveFloat
+    leak_time_constant_s: PositiveFloat
+    min_operating_pa: NonNegFloat
+    max_operating_pa: PositiveFloat
+
+    @model_validator(mode="after")
+    def _limits(self) -> PneumaticsSpec:
+        if self.min_operating_pa >= self.max_operating_pa:
+            raise ValueError("min_operating_pa must be below max_operating_pa")
+        if self.max_operating_pa > self.regulator_max_pa:
+            raise ValueError("max_operating_pa exceeds regulator_max_pa")
+        return self
+
+
+# ---------------------------------------------------------------------------------------------- sensors
+class PressureSensorSpec(_Model):
+    full_scale_pa: PositiveFloat
+    v_min: float
+    v_max: float
+    adc_lsb_v: PositiveFloat
+    adc_noise_v: NonNegFloat
+    sample_rate_hz: PositiveFloat
+
+
+class ServoSensorSpec(_Model):
+    current_noise_counts: NonNegFloat
+    velocity_noise_counts: NonNegFloat
+
+
+class TrackerSpec(_Model):
+    """Aurora-like tracker: placement of its field generator relative to the robot base (unknown to the
+    pipeline), noise, field volume (box in tracker coordinates) and frame rate."""
+
+    base_to_tracker_rpy_rad: tuple[float, float, float]
+    base_to_tracker_translation_m: tuple[float, float, float]
+    noise_m: NonNegFloat
+    rms_error_mm: NonNegFloat
+    field_min_m: tuple[float, float, float]
+    field_max_m: tuple[float, float, float]
+    frame_rate_hz: PositiveFloat
+
+    @model_validator(mode="after")
+    def _box(self) -> TrackerSpec:
+        if any(lo >= hi for lo, hi in zip(self.field_min_m, self.field_max_m, strict=True)):
+            raise ValueError("field_min_m must be below field_max_m on every axis")
+        return self
+
+
+class SensorsSpec(_Model):
+    servo: ServoSensorSpec | None = None
+    pressure: PressureSensorSpec
+    tracker: TrackerSpec
+
+
+class ClockSpecModel(_Model):
+    tick_s: PositiveFloat
+    wrap: int | None = Field(default=None, gt=1)
+    drift_ppm_sigma: NonNegFloat
+    offset_max_s: NonNegFloat
+
+
+class HostLinkModel(_Model):
+    latency_s: NonNegFloat
+    jitter_s: NonNegFloat
+    kind: Literal["exponential", "uniform"] = "uniform"
+
+
+class DeviceSpec(_Model):
+    """One device: where it is plugged in, its clock and its USB link to the host."""
+
+    port: str = "auto"
+    baud: int = Field(default=1_000_000, gt=0)
+    ids: dict[str, int] = Field(default_factory=dict)
+    clock: ClockSpecModel
+    host_link: HostLinkModel
+
+
+# ------------------------------------------------------------------------------------------- the robot
+class RobotDescription(_Model):
+    """A validated robot description; use :func:`load_robot` to read one."""
+
+    name: str
+    description: str
+    kinematics: AnthropomorphicKinematics | DHKinematics = Field(discriminator="type")
+    joints: list[JointSpec] = Field(min_length=1)
+    links: list[LinkSpec]
+    masses: list[PointMass]
+    tool_offset_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    servo: ServoSpec | None = None
+    stepper: StepperSpec | None = None
+    pneumatics: PneumaticsSpec
+    sensors: SensorsSpec
+    devices: dict[str, DeviceSpec]
+    gravity_m_s2: tuple[float, float, float] = (0.0, 0.0, -9.81)
+
+    @model_validator(mode="after")
+    def _cross_checks(self) -> RobotDescription:
+        if isinstance(self.kinematics, AnthropomorphicKinematics):
+            for link in self.links:
+                if link.after_joint not in ("q2", "q3") or len(link.virtual_joints) != 1:
+                    raise ValueError(
+                        f"link {link.name!r}: on an anthropomorphic arm a link needs after_joint q2 or q3"
+                        " and exactly one virtual joint (in-plane bending)"
+                    )
+        rows = self.dh_rows()
+        row_joints = [r.joint for r in rows]
+        actuated = [j for j in row_joints if j.startswith("q")]
+        declared = [j.name for j in self.joints]
+        if declared != actuated:
+            raise ValueError(f"joints {declared} must list the chain's actuated joints in order: {actuated}")
+        link_names = [link.name for link in self.links]
+        for link in self.links:
+            missing = [v for v in link.virtual_joints if v not in row_joints]
+            if missing:
+                raise ValueError(f"link {link.name!r}: virtual joints {missing} are not in the chain")
+            if isinstance(link.table, ScaledTable) and link.table.from_link not in link_names:
+                raise ValueError(f"link {link.name!r}: from_link {link.table.from_link!r} is not a link")
+            if link.pressure_channel is not None and link.pressure_channel >= self.pneumatics.channels:
+                raise ValueError(f"link {link.name!r}: pressure_channel exceeds pneumatics.channels")
+        frames = {*row_joints, TIP_FRAME}
+        for m in self.masses:
+            if m.frame not in frames:
+                raise ValueError(f"mass {m.name!r}: frame {m.frame!r} is not one of {sorted(frames)}")
+        drives = {j.drive for j in self.joints}
+        if drives & {"servo", "motor"} and self.servo is None:
+            raise ValueError("joints use a position-controlled drive ('servo'/'motor') but there is no servo section")
+        if "stepper" in drives and self.stepper is None:
+            raise ValueError("joints use drive 'stepper' but there is no stepper section")
+        return self
+
+    # ------------------------------------------------------------------ derived, plain-number views
+    def dh_rows(self) -> list[DHRowSpec]:
+        """The full chain including virtual joints (for the anthropomorphic arm: generated from L1–L3)."""
+        kin = self.kinematics
+        if isinstance(kin, DHKinematics):
+            return list(kin.rows)
+        hinge = {v: link.hinge_fraction for link in self.links for v in link.virtual_joints}
+        rows = [DHRowSpec(a_m=0.0, alpha_rad=math.pi / 2, d_m=kin.l1_m, joint="q1")]
+        for q, length in (("q2", kin.l2_m), ("q3", kin.l3_m)):
+            virtual = [v for link in self.links if link.after_joint == q for v in link.virtual_joints]
+            if not virtual:
+                rows.append(DHRowSpec(a_m=length, alpha_rad=0.0, d_m=0.0, joint=q))
+                continue
+            frac = hinge[virtual[0]]
+            rows.append(DHRowSpec(a_m=frac * length, alpha_rad=0.0, d_m=0.0, joint=q))
+            rows.append(DHRowSpec(a_m=(1 - frac) * length, alpha_rad=0.0, d_m=0.0, joint=virtual[0]))
+        return rows
+
+    @property
+    def actuated_joints(self) -> list[str]:
+        return [j.name for j in self.joints]
+
+    @property
+    def virtual_joints(self) -> list[str]:
+        """Virtual joint names in chain order."""
+        return [r.joint for r in self.dh_rows() if not r.joint.startswith("q")]
+
+    def link_of(self, virtual_joint: str) -> LinkSpec:
+        """The link a virtual joint belongs to."""
+        for link in self.links:
+            if virtual_joint in link.virtual_joints:
+                return link
+        raise KeyError(f"robot {self.name!r} has no virtual joint {virtual_joint!r}")
+
+    def link_table(self, link_name: str) -> PressureTable:
+        """The resolved pressure table of a link (following ``from_link`` scaling)."""
+        link = self._link(link_name)
+        if isinstance(link.table, ScaledTable):
+            return self.link_table(link.table.from_link).scaled(link.table.factor)
+        return link.table
+
+    def joint_limits(self) -> np.ndarray:
+        """(n_actuated, 2) lower/upper limits in rad."""
+        return np.array([[j.lower_rad, j.upper_rad] for j in self.joints])
+
+    def _link(self, name: str) -> LinkSpec:
+        for link in self.links:
+            if link.name == name:
+                return link
+        raise KeyError(f"robot {self.name!r} has no link {name!r}")
+
+
+# ------------------------------------------------------------------------------------------- loading
+def robot_path(name_or_path: str | Path) -> Path:
+    """A robot name ('vsl', 'popup', …) resolves to ``configs/robots/<name>.yaml``; a path is kept."""
+    p = Path(name_or_path)
+    if p.suffix in {".yaml", ".yml"} or p.exists():
+        return p
+    return CONFIG_DIR / f"{name_or_path}.yaml"
+
+
+def load_robot(name_or_path: str | Path) -> RobotDescription:
+    """Read and validate a robot description; every problem ends in one :class:`RobotDescriptionError`."""
+    path = robot_path(name_or_path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        known = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
+        raise RobotDescriptionError(f"{path}: no such robot description (known robots: {known})") from None
+    except OSError as exc:
+        raise RobotDescriptionError(f"{path}: cannot read: {exc.strerror}") from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}" if mark is not None else ""
+        raise RobotDescriptionError(f"{path}:{where}: not valid YAML: {exc}") from exc
+    if not isinstance(data, dict):
+        raise RobotDescriptionError(f"{path}: expected a mapping of fields at the top level")
+    try:
+        return RobotDescription.model_validate(data)
+    except ValidationError as exc:
+        raise RobotDescriptionError(_format_errors(path, exc)) from None
+
+
+def _format_errors(path: Path, exc: ValidationError) -> str:
+    lines = []
+    for err in exc.errors():
+        loc = ".".join(str(part) for part in err["loc"] if not _is_union_tag(part)) or "(top level)"
+        lines.append(f"{path}: {loc}: {err['msg']}")
+    return "\n".join(lines)
+
+
+_KINEMATICS_TAGS = {"anthropomorphic", "dh"}
+
+
+def _is_union_tag(part: object) -> bool:
+    """Pydantic puts the tried union member (class name or discriminator tag) into locations; users never
+    typed those, so they are left out of the field path."""
+    return isinstance(part, str) and (
+        part[:1].isupper() or part.startswith("function-") or part in _KINEMATICS_TAGS
+    )
