@@ -1,0 +1,197 @@
+"""Sensor models: true SI values in, what the device would report out (quantised, noisy, in its units).
+
+Dynamixel XM430 registers (devices.md), the pressure transducer + ADS1115 chain, and an NDI Aurora-like
+tracker (pose of the tip coil in the field generator's frame, MISSING outside the field volume). Vectorised;
+noise comes from the generator passed in.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+POSITION_COUNTS_PER_REV = 4096
+CURRENT_A_PER_COUNT = 2.69e-3
+VELOCITY_RAD_S_PER_COUNT = 0.229 * 2 * np.pi / 60  # 0.229 rpm
+CURRENT_LIMIT_COUNTS = 1193  # XM430 Current Limit (address 38) default
+
+# NDI port status bits (devices.md)
+PORT_OCCUPIED = 0x01
+PORT_INITIALIZED = 0x10
+PORT_ENABLED = 0x20
+PORT_OUT_OF_VOLUME = 0x40
+
+
+# ----------------------------------------------------------------------------------------- Dynamixel
+def encoder_counts(angle_rad: np.ndarray, zero_count: int = 2048) -> np.ndarray:
+    """Present Position counts of a joint angle (4096 per turn, ``zero_count`` at angle 0), nearest count."""
+    return (
+        np.rint(np.asarray(angle_rad) * POSITION_COUNTS_PER_REV / (2 * np.pi)).astype(np.int64) + zero_count
+    )
+
+
+def encoder_angle(counts: np.ndarray, zero_count: int = 2048) -> np.ndarray:
+    """Joint angle (rad) of Present Position counts."""
+    return (np.asarray(counts, dtype=float) - zero_count) * (2 * np.pi / POSITION_COUNTS_PER_REV)
+
+
+def current_counts(current_a: np.ndarray, noise_counts_sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """Present Current counts (2.69 mA each) with Gaussian noise, clipped to the current limit."""
+    counts = np.asarray(current_a) / CURRENT_A_PER_COUNT
+    counts = (
+        counts + rng.normal(0.0, noise_counts_sigma, size=counts.shape) if noise_counts_sigma > 0 else counts
+    )
+    return np.clip(np.rint(counts), -CURRENT_LIMIT_COUNTS, CURRENT_LIMIT_COUNTS).astype(np.int64)
+
+
+def velocity_counts(
+    velocity_rad_s: np.ndarray, rng: np.random.Generator | None = None, noise_counts_sigma: float = 0.0
+) -> np.ndarray:
+    """Present Velocity counts (0.229 rpm each), optionally noisy."""
+    counts = np.asarray(velocity_rad_s) / VELOCITY_RAD_S_PER_COUNT
+    if rng is not None and noise_counts_sigma > 0:
+        counts = counts + rng.normal(0.0, noise_counts_sigma, size=counts.shape)
+    return np.rint(counts).astype(np.int64)
+
+
+def to_signed(raw: np.ndarray, nbytes: int) -> np.ndarray:
+    """Signed value of an unsigned register read (the SDK returns signed items as unsigned)."""
+    raw = np.asarray(raw, dtype=np.int64)
+    bits = 8 * nbytes
+    return np.where(raw >= 1 << (bits - 1), raw - (1 << bits), raw)
+
+
+# ------------------------------------------------------------------------------ pressure transducer
+@dataclass(frozen=True)
+class PressureSensorSpec:
+    """Linear transducer (0…full scale → v_min…v_max) read by a 16-bit ADC with voltage noise."""
+
+    full_scale_pa: float
+    v_min: float
+    v_max: float
+    adc_lsb_v: float
+    adc_noise_v: float
+
+
+def pressure_to_adc_counts(pressure_pa: np.ndarray, spec: PressureSensorSpec, rng: np.random.Generator):
+    """ADS1115 counts of a gauge pressure: transducer range clipped, voltage noise, LSB quantisation."""
+    p = np.clip(np.asarray(pressure_pa, dtype=float), 0.0, spec.full_scale_pa)
+    volts = spec.v_min + p / spec.full_scale_pa * (spec.v_max - spec.v_min)
+    if spec.adc_noise_v > 0:
+        volts = volts + rng.normal(0.0, spec.adc_noise_v, size=volts.shape)
+    return np.clip(np.rint(volts / spec.adc_lsb_v), -32768, 32767).astype(np.int64)
+
+
+def adc_counts_to_pressure(counts: np.ndarray, spec: PressureSensorSpec) -> np.ndarray:
+    """Gauge pressure (Pa) of ADS1115 counts (inverse of the transducer line)."""
+    volts = np.asarray(counts, dtype=float) * spec.adc_lsb_v
+    return (volts - spec.v_min) / (spec.v_max - spec.v_min) * spec.full_scale_pa
+
+
+# --------------------------------------------------------------------------------------- rotations
+def rotation_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """R = Rz(yaw) · Ry(pitch) · Rx(roll)."""
+    cr, sr, cp, sp, cy, sy = (
+        np.cos(roll),
+        np.sin(roll),
+        np.cos(pitch),
+        np.sin(pitch),
+        np.cos(yaw),
+        np.sin(yaw),
+    )
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+def make_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+    """4×4 homogeneous transform p' = R p + t."""
+    out = np.eye(4)
+    out[:3, :3] = rotation
+    out[:3, 3] = translation
+    return out
+
+
+def rotation_to_quaternion(rot: np.ndarray) -> np.ndarray:
+    """Unit quaternions (q0, qx, qy, qz), q0 ≥ 0, of rotation matrices (..., 3, 3) (Shepperd's method)."""
+    rot = np.asarray(rot, dtype=float)
+    m00, m11, m22 = rot[..., 0, 0], rot[..., 1, 1], rot[..., 2, 2]
+    trace = m00 + m11 + m22
+    # four candidate formulas; pick the best-conditioned per matrix
+    cand = np.stack(
+        [
+            np.stack([1 + trace, rot[..., 2, 1] - rot[..., 1, 2], rot[..., 0, 2] - rot[..., 2, 0],
+                      rot[..., 1, 0] - rot[..., 0, 1]], -1),
+            np.stack([rot[..., 2, 1] - rot[..., 1, 2], 1 + m00 - m11 - m22, rot[..., 0, 1] + rot[..., 1, 0],
+                      rot[..., 0, 2] + rot[..., 2, 0]], -1),
+            np.stack([rot[..., 0, 2] - rot[..., 2, 0], rot[..., 0, 1] + rot[..., 1, 0], 1 - m00 + m11 - m22,
+                      rot[..., 1, 2] + rot[..., 2, 1]], -1),
+            np.stack([rot[..., 1, 0] - rot[..., 0, 1], rot[..., 0, 2] + rot[..., 2, 0],
+                      rot[..., 1, 2] + rot[..., 2, 1], 1 - m00 - m11 + m22], -1),
+        ],
+        axis=-2,
+    )  # fmt: skip
+    best = np.argmax(np.stack([trace, m00, m11, m22], -1), axis=-1)
+    q = np.take_along_axis(cand, best[..., None, None], axis=-2)[..., 0, :]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices of (normalised) quaternions (q0, qx, qy, qz)."""
+    q = np.asarray(q, dtype=float)
+    w, x, y, z = np.moveaxis(q / np.linalg.norm(q, axis=-1, keepdims=True), -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
+            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
+            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+
+
+# ------------------------------------------------------------------------------------------ tracker
+@dataclass(frozen=True)
+class TrackerSpec:
+    """Where the field generator sits (base → tracker transform), noise, field volume, reported RMS."""
+
+    base_to_tracker: np.ndarray
+    noise_m: float
+    field_min_m: np.ndarray
+    field_max_m: np.ndarray
+    rms_error_mm_mean: float
+
+
+@dataclass(frozen=True)
+class TrackerReading:
+    position_m: np.ndarray  # (..., 3) tracker frame; NaN when missing
+    quaternion: np.ndarray  # (..., 4) q0 qx qy qz; NaN when missing
+    rms_error: np.ndarray  # (...,) mm as the Aurora reports it; NaN when missing
+    missing: np.ndarray  # (...,) bool
+    port_status: np.ndarray  # (...,) int NDI port status bits
+
+
+def tracker_measurement(
+    tip_pos_base: np.ndarray, tip_rot_base: np.ndarray, spec: TrackerSpec, rng: np.random.Generator
+) -> TrackerReading:
+    """The tip coil as the tracker reports it: pose in the tracker frame with noise, MISSING out of volume."""
+    rot, trans = spec.base_to_tracker[:3, :3], spec.base_to_tracker[:3, 3]
+    pos = np.asarray(tip_pos_base) @ rot.T + trans
+    missing = np.any((pos < spec.field_min_m) | (pos > spec.field_max_m), axis=-1)
+    pos = pos + rng.normal(0.0, spec.noise_m, size=pos.shape)
+    quat = rotation_to_quaternion(rot @ np.asarray(tip_rot_base))
+    rms = np.abs(rng.normal(spec.rms_error_mm_mean, 0.1 * spec.rms_error_mm_mean, size=missing.shape))
+    status = np.where(missing, PORT_OUT_OF_VOLUME, 0) | PORT_OCCUPIED | PORT_INITIALIZED | PORT_ENABLED
+    return TrackerReading(
+        position_m=np.where(missing[..., None], np.nan, pos),
+        quaternion=np.where(missing[..., None], np.nan, quat),
+        rms_error=np.where(missing, np.nan, rms),
+        missing=missing,
+        port_status=status.astype(np.int64),
+    )

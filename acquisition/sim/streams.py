@@ -1,0 +1,134 @@
+"""What the devices report: the twin's true trace sampled at each device's own instants.
+
+A device samples on its own clock (the pressure board's ADC conversions, the tracker's frames) or when the
+host polls it (the servo bus). Each sample carries the device's stamp (wrapping counter), a sequence or frame
+number, the host receive time (int64 ns, after USB latency and jitter) and the device's quantised, noisy
+reading. Streams are column tables (dict of equal-length arrays) with a ``robot`` column for the batch index.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from acquisition.sim import sensors
+from acquisition.sim.clocks import DeviceClocks, HostLinkSpec, host_receive_ns
+from acquisition.sim.kernel import Trace
+from models.robot import RobotDescription
+
+Stream = dict[str, np.ndarray]
+
+
+def device_sample_instants(clocks: DeviceClocks, period_s: float, t0: float, t1: float):
+    """True times in (t0, t1] at which each robot's device fires at multiples of ``period_s`` of its own
+    clock. Returns (robot index, sample number k, true time), all flat and ordered by robot then time."""
+    rate = 1.0 + clocks.drift_ppm * 1e-6
+    k0 = np.floor((rate * t0 + clocks.offset_s) / period_s).astype(np.int64) + 1
+    k1 = np.floor((rate * t1 + clocks.offset_s) / period_s).astype(np.int64)
+    counts = np.maximum(k1 - k0 + 1, 0)
+    robot = np.repeat(np.arange(len(counts)), counts)
+    k = np.repeat(k0, counts) + (np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts))
+    t = (k * period_s - clocks.offset_s[robot]) / rate[robot]
+    return robot, k, t
+
+
+def host_poll_instants(batch: int, period_s: float, t0: float, t1: float):
+    """Host-driven polling (e.g. Sync Read) on the host clock, taken as true time: same layout as above."""
+    k = np.arange(np.floor(t0 / period_s) + 1, np.floor(t1 / period_s) + 1, dtype=np.int64)
+    robot = np.repeat(np.arange(batch), len(k))
+    kk = np.tile(k, batch)
+    return robot, kk, kk * period_s
+
+
+def _step_index(trace: Trace, t: np.ndarray, dt: float) -> np.ndarray:
+    """The trace step whose state holds at true time t (the last step that ended at or before t)."""
+    first = trace.t[0] - dt
+    return np.clip(np.floor((t - first) / dt + 1e-9).astype(np.int64) - 1, 0, len(trace.t) - 1)
+
+
+def _host(link, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    spec = HostLinkSpec(latency_s=link.latency_s, jitter_s=link.jitter_s, kind=link.kind)
+    return host_receive_ns(t, spec, rng)
+
+
+def servo_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float, rate_hz: float,
+                 rng: np.random.Generator) -> Stream:  # fmt: skip
+    """Sync Reads of every position-controlled joint polled at ``rate_hz``: counts as the XM430 reports."""
+    servo, noise = robot.servo, robot.sensors.servo
+    joints = [i for i, j in enumerate(robot.joints) if j.drive != "stepper"]
+    batch = trace.q.shape[0]
+    r, k, t = host_poll_instants(batch, 1.0 / rate_hz, trace.t[0] - dt, trace.t[-1])
+    idx = _step_index(trace, t, dt)
+    q = trace.q[r, idx][:, joints]
+    qd = trace.qd[r, idx][:, joints]
+    torque = trace.torque[r, idx][:, joints]
+    amps = (
+        torque / servo.torque_constant_nm_per_a
+        + servo.idle_current_a * np.sign(torque)
+        + servo.friction_current_a * np.tanh(qd / 0.02)
+    )
+    device = robot.devices.get("servo_bus") or robot.devices.get("main_board")
+    return {
+        "robot": r,
+        "seq": k,
+        "t_true": t,
+        "host_ns": _host(device.host_link, t, rng),
+        "tick": clocks.ticks_at(r, t),
+        "position": sensors.encoder_counts(q, servo.zero_count),
+        "velocity": sensors.velocity_counts(qd, rng, noise.velocity_noise_counts),
+        "current": sensors.current_counts(amps, noise.current_noise_counts, rng),
+    }
+
+
+def pressure_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float,
+                    rng: np.random.Generator) -> Stream:  # fmt: skip
+    """ADS1115 conversions of every channel, on the board's own (drifting) clock."""
+    spec = robot.sensors.pressure
+    r, k, t = device_sample_instants(clocks, 1.0 / spec.sample_rate_hz, trace.t[0] - dt, trace.t[-1])
+    idx = _step_index(trace, t, dt)
+    adc = sensors.PressureSensorSpec(
+        full_scale_pa=spec.full_scale_pa, v_min=spec.v_min, v_max=spec.v_max, adc_lsb_v=spec.adc_lsb_v,
+        adc_noise_v=spec.adc_noise_v,
+    )  # fmt: skip
+    device = robot.devices.get("pressure_board") or robot.devices.get("main_board")
+    return {
+        "robot": r,
+        "seq": k,
+        "t_true": t,
+        "host_ns": _host(device.host_link, t, rng),
+        "micros": clocks.ticks_at(r, t),
+        "counts": sensors.pressure_to_adc_counts(trace.pressure[r, idx], adc, rng),
+    }
+
+
+def tracker_spec(robot: RobotDescription) -> sensors.TrackerSpec:
+    """The sensor model's view of the configured tracker."""
+    tr = robot.sensors.tracker
+    transform = sensors.make_transform(
+        sensors.rotation_from_rpy(*tr.base_to_tracker_rpy_rad), np.asarray(tr.base_to_tracker_translation_m)
+    )
+    return sensors.TrackerSpec(
+        base_to_tracker=transform, noise_m=tr.noise_m, field_min_m=np.asarray(tr.field_min_m),
+        field_max_m=np.asarray(tr.field_max_m), rms_error_mm_mean=tr.rms_error_mm,
+    )  # fmt: skip
+
+
+def tracker_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float,
+                   rng: np.random.Generator) -> Stream:  # fmt: skip
+    """Aurora-like frames at the tracker's own frame rate: pose of the tip coil in the tracker's frame."""
+    period = 1.0 / robot.sensors.tracker.frame_rate_hz
+    r, k, t = device_sample_instants(clocks, period, trace.t[0] - dt, trace.t[-1])
+    idx = _step_index(trace, t, dt)
+    reading = sensors.tracker_measurement(
+        trace.tip_pos[r, idx], trace.tip_rot[r, idx], tracker_spec(robot), rng
+    )
+    return {
+        "robot": r,
+        "frame": k,
+        "t_true": t,
+        "host_ns": _host(robot.devices["tracker"].host_link, t, rng),
+        "position": reading.position_m,
+        "quaternion": reading.quaternion,
+        "rms_error": reading.rms_error,
+        "missing": reading.missing,
+        "port_status": reading.port_status,
+    }
