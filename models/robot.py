@@ -313,7 +313,9 @@ class RobotDescription(_Model):
                 raise ValueError(f"mass {m.name!r}: frame {m.frame!r} is not one of {sorted(frames)}")
         drives = {j.drive for j in self.joints}
         if drives & {"servo", "motor"} and self.servo is None:
-            raise ValueError("joints use a position-controlled drive ('servo'/'motor') but there is no servo section")
+            raise ValueError(
+                "joints use a position-controlled drive ('servo'/'motor') but there is no servo section"
+            )
         if "stepper" in drives and self.stepper is None:
             raise ValueError("joints use drive 'stepper' but there is no stepper section")
         return self

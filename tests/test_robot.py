@@ -70,7 +70,11 @@ BAD_FILES = [
     # (edit, field named in the message, words of the reason)
     (_set(["masses", 0, "mass_kg"], -0.1), "masses.0.mass_kg", "greater than or equal to 0"),
     (_set(["kinematics", "l2_m"], "long"), "kinematics.l2_m", "valid number"),
-    (_delete(["pneumatics", "regulator_time_constant_s"]), "pneumatics.regulator_time_constant_s", "Field required"),
+    (
+        _delete(["pneumatics", "regulator_time_constant_s"]),
+        "pneumatics.regulator_time_constant_s",
+        "Field required",
+    ),
     (_set(["servo", "p_gian"], 800), "servo.p_gian", "Extra inputs are not permitted"),
     (
         _set(["links", 0, "table", "pressure_pa"], [50000, 10000, 100000, 150000, 200000, 250000]),
@@ -122,7 +126,7 @@ def test_top_level_must_be_a_mapping(tmp_path):
 
 
 def test_every_assumed_value_is_commented():
-    """Each robot file marks its provenance: a numeric line without a comment must sit in a commented block."""
+    """Each robot file marks provenance: a numeric line without a comment must sit in a commented block."""
     for path in CONFIG_DIR.glob("*.yaml"):
         lines = path.read_text().splitlines()
         for i, line in enumerate(lines):
@@ -132,4 +136,6 @@ def test_every_assumed_value_is_commented():
             # walk up to the enclosing block: some line above at lower-or-equal indent must carry a comment
             indent = len(line) - len(line.lstrip())
             above = [ln for ln in lines[max(0, i - 6) : i] if "#" in ln]
-            assert above, f"{path.name}:{i + 1}: value without a provenance comment: {line.strip()} ({indent})"
+            assert above, (
+                f"{path.name}:{i + 1}: value without a provenance comment: {line.strip()} ({indent})"
+            )

@@ -1,0 +1,162 @@
+"""Timed set-points: Algorithms 1–2 and Experiment 1's trajectories of seed 000, the velocity law of seed 001.
+
+A plan is a ``SetPoints``: times t (N,), Cartesian targets x (N, 3), joint set-points q from the IK (N, 3)
+and joint velocities q̇ = J⁻¹(q) ẋ (N, 3), which the paper's Move(q, q̇) sends as profile velocities.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from models.kinematics import ArmLengths, inverse_jacobian_velocity, vsl_ik, vsl_jacobian
+
+Array = NDArray[np.float64]
+
+# seed 000, section V.A (mm, y = 0)
+EXPERIMENT1_POINTS_MM = {
+    "linear": {"x0": (300, 0, 50), "xg": (300, 0, 350)},
+    "curve": {
+        "arcs": (
+            {"x0": (300, 0, 50), "xg": (400, 0, 150), "xc": (300, 0, 150)},
+            {"x0": (400, 0, 150), "xg": (300, 0, 50), "xc": (400, 0, 50)},
+        )
+    },
+    "square": {"corners": ((350, 0, 50), (250, 0, 50), (250, 0, 150), (350, 0, 150))},
+}
+EXPERIMENT1_NAMES = tuple(EXPERIMENT1_POINTS_MM)
+
+
+@dataclass(frozen=True)
+class SetPoints:
+    """Timed set-points of one trajectory (SI units)."""
+
+    t: Array
+    x: Array
+    q: Array
+    qd: Array
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def concat(self, other: SetPoints) -> SetPoints:
+        """``other`` appended, its clock continuing one of its own first steps after self's last point."""
+        first_step = other.t[1] - other.t[0] if len(other) > 1 else 0.0
+        shift = self.t[-1] + first_step - other.t[0]
+        return SetPoints(
+            np.concatenate([self.t, other.t + shift]),
+            np.concatenate([self.x, other.x]),
+            np.concatenate([self.q, other.q]),
+            np.concatenate([self.qd, other.qd]),
+        )
+
+
+def _plan(t: Array, x: Array, xdot: Array, lengths: ArmLengths, elbow: int) -> SetPoints:
+    q = vsl_ik(x, lengths, elbow)
+    qd = inverse_jacobian_velocity(vsl_jacobian(q, lengths), xdot)
+    return SetPoints(t, x, q, qd)
+
+
+def linear(
+    x0: ArrayLike, xg: ArrayLike, speed: float, n: int, lengths: ArmLengths, elbow: int = 1
+) -> SetPoints:
+    """Algorithm 1: N equal steps from x0 to xg at constant Cartesian speed (N + 1 points, x0 first)."""
+    x0, xg = np.asarray(x0, float), np.asarray(xg, float)
+    length = np.linalg.norm(xg - x0)
+    if length == 0 or speed <= 0 or n < 1:
+        raise ValueError("a linear trajectory needs distinct end points, speed > 0 and n ≥ 1")
+    s = np.arange(n + 1) / n
+    x = x0 + s[:, None] * (xg - x0)
+    xdot = np.broadcast_to(speed * (xg - x0) / length, x.shape)
+    return _plan(s * length / speed, x, xdot, lengths, elbow)
+
+
+def _arc_angle(x: Array, xc: Array) -> float:
+    """Angle φ of x on a circle about xc in the XZ plane, with x = xc + r [sin φ, 0, −cos φ]."""
+    return float(np.arctan2(x[0] - xc[0], -(x[2] - xc[2])))
+
+
+def circular(x0: ArrayLike, xg: ArrayLike, xc: ArrayLike, speed: float, n: int, lengths: ArmLengths,
+             elbow: int = 1) -> SetPoints:  # fmt: skip
+    """Algorithm 2 generalised: the shorter arc about xc from x0 to xg in the XZ plane, N steps.
+
+    The paper's loop x_{k+1} = [xc1 + r sin(αk), 0, xc3 − r cos(αk)], α = π/(2N), is the case of x0 directly
+    below xc and a quarter turn; here the start and end angles come from x0 and xg.
+    """
+    x0, xg, xc = (np.asarray(v, float) for v in (x0, xg, xc))
+    r0, rg = np.linalg.norm(x0 - xc), np.linalg.norm(xg - xc)
+    if abs(r0 - rg) > 1e-6:
+        raise ValueError(
+            f"x0 and xg are not on one circle about xc (radii {r0 * 1e3:.3f} and {rg * 1e3:.3f} mm)"
+        )
+    if np.any(np.abs([x0[1], xg[1], xc[1]]) > 1e-12):
+        raise ValueError("circular trajectories lie in the XZ plane: y must be 0")
+    if speed <= 0 or n < 1:
+        raise ValueError("a circular trajectory needs speed > 0 and n ≥ 1")
+    phi0 = _arc_angle(x0, xc)
+    sweep = (_arc_angle(xg, xc) - phi0 + np.pi) % (2 * np.pi) - np.pi
+    phi = phi0 + sweep * np.arange(n + 1) / n
+    x = np.stack([xc[0] + r0 * np.sin(phi), np.zeros_like(phi), xc[2] - r0 * np.cos(phi)], -1)
+    direction = np.sign(sweep)
+    xdot = speed * direction * np.stack([np.cos(phi), np.zeros_like(phi), np.sin(phi)], -1)
+    t = np.abs(phi - phi0) * r0 / speed
+    return _plan(t, x, xdot, lengths, elbow)
+
+
+def experiment1(name: str, lengths: ArmLengths, speed: float = 0.02, n_per_segment: int = 50,
+                elbow: int = 1) -> SetPoints:  # fmt: skip
+    """One of Experiment 1's trajectories ('linear', 'curve', 'square') with the paper's points."""
+    if name not in EXPERIMENT1_POINTS_MM:
+        raise ValueError(
+            f"unknown Experiment 1 trajectory {name!r}; choose one of {', '.join(EXPERIMENT1_NAMES)}"
+        )
+    spec = EXPERIMENT1_POINTS_MM[name]
+    mm = 1e-3
+    if name == "linear":
+        return linear(
+            np.multiply(spec["x0"], mm), np.multiply(spec["xg"], mm), speed, n_per_segment, lengths, elbow
+        )
+    if name == "curve":
+        arcs = [
+            circular(
+                np.multiply(a["x0"], mm),
+                np.multiply(a["xg"], mm),
+                np.multiply(a["xc"], mm),
+                speed,
+                n_per_segment,
+                lengths,
+                elbow,
+            )
+            for a in spec["arcs"]
+        ]
+        return _join(arcs)
+    corners = np.asarray(spec["corners"], float) * mm
+    sides = [
+        linear(corners[i], corners[(i + 1) % 4], speed, n_per_segment, lengths, elbow) for i in range(4)
+    ]  # closed: four sides back to the first corner
+    return _join(sides)
+
+
+def _join(parts: list[SetPoints]) -> SetPoints:
+    """Concatenate segments, dropping each later segment's first point (it repeats the previous end)."""
+    out = parts[0]
+    for part in parts[1:]:
+        tail = SetPoints(part.t[1:], part.x[1:], part.q[1:], part.qd[1:])
+        shift = out.t[-1] - part.t[0]
+        out = SetPoints(
+            np.concatenate([out.t, tail.t + shift]),
+            np.concatenate([out.x, tail.x]),
+            np.concatenate([out.q, tail.q]),
+            np.concatenate([out.qd, tail.qd]),
+        )
+    return out
+
+
+def velocity_law(d: ArrayLike, t: ArrayLike, v0: float, a0: float) -> Array:
+    """Seed 001 eq. (3): v = min(a0 t, v0, √(2 a0 |d|)) · d/|d| (zero at |d| = 0)."""
+    d = np.asarray(d, dtype=float)
+    dist = np.linalg.norm(d, axis=-1, keepdims=True)
+    speed = np.minimum(np.minimum(a0 * np.asarray(t, dtype=float)[..., None], v0), np.sqrt(2 * a0 * dist))
+    return np.divide(speed * d, dist, out=np.zeros_like(d), where=dist > 0)

@@ -1,0 +1,54 @@
+"""The `vslab` command: every command has --help; user errors end in one clear message, no traceback."""
+
+import pytest
+from typer.testing import CliRunner
+
+from vslab.cli import app
+
+runner = CliRunner()
+
+
+@pytest.mark.parametrize(
+    "args", [[], ["robots"], ["robots", "list"], ["robots", "show"], ["twin"], ["twin", "survey"], ["demo"]]
+)
+def test_every_command_has_help(args):
+    result = runner.invoke(app, [*args, "--help"])
+    assert result.exit_code == 0, result.output
+    assert "Usage" in result.output
+
+
+def test_robots_list_shows_the_three_descriptions():
+    result = runner.invoke(app, ["robots", "list"])
+    assert result.exit_code == 0, result.output
+    for name in ("vsl", "vsl_rigid", "popup"):
+        assert name in result.output
+
+
+def test_robots_show_prints_si_json():
+    result = runner.invoke(app, ["robots", "show", "vsl"])
+    assert result.exit_code == 0, result.output
+    assert '"l2_m": 0.25' in result.output
+
+
+def test_bad_robot_is_one_clear_message(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\n")
+    result = runner.invoke(app, ["robots", "show", str(bad)])
+    assert result.exit_code == 2
+    assert "bad.yaml" in result.output and "Field required" in result.output
+    assert "Traceback" not in result.output
+
+
+def test_unknown_robot_lists_known_ones():
+    result = runner.invoke(app, ["robots", "show", "scara"])
+    assert result.exit_code == 2
+    assert "known robots" in result.output
+
+
+def test_survey_writes_its_grid_to_the_lab(tmp_path):
+    result = runner.invoke(
+        app, ["--lab", str(tmp_path), "twin", "survey", "--robot", "vsl", "--trajectory", "linear"]
+    )
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "twin" / "survey_vsl_linear.json").exists()
+    assert "0.5 bar" in result.output

@@ -1,0 +1,135 @@
+"""Rigid kinematics of the VSL arm (seed 000 eqs. 1–8) and the POPUP D-H chain with virtual joints."""
+
+import numpy as np
+import pytest
+
+from models.kinematics import (
+    POPUP_TABLE2_MM,
+    ArmLengths,
+    DHChain,
+    DHRow,
+    SingularityError,
+    UnreachableError,
+    dh_chain_from_table,
+    inverse_jacobian_velocity,
+    vsl_fk,
+    vsl_fk_transform,
+    vsl_ik,
+    vsl_jacobian,
+)
+
+L = ArmLengths(0.100, 0.250, 0.250)
+
+
+def _reachable_points(rng, n):
+    """Points strictly inside the reachable shell, all around the arm (off the XZ plane too)."""
+    r3 = rng.uniform(0.02, 0.49, n)  # distance from the J2 axis (|L2 − L3| = 0, L2 + L3 = 0.5)
+    elev = rng.uniform(-np.pi / 2 + 0.05, np.pi / 2 - 0.05, n)
+    azim = rng.uniform(-np.pi, np.pi, n)
+    r1 = r3 * np.cos(elev)
+    return np.stack([r1 * np.cos(azim), r1 * np.sin(azim), L.l1 + r3 * np.sin(elev)], -1)
+
+
+@pytest.mark.parametrize("elbow", [1, -1])
+def test_fk_of_ik_returns_the_target(elbow):
+    x = _reachable_points(np.random.default_rng(0), 10_000)
+    q = vsl_ik(x, L, elbow)
+    assert np.abs(vsl_fk(q, L) - x).max() < 1e-9
+    assert np.all((q[:, 2] > -np.pi) & (q[:, 2] <= np.pi))
+
+
+@pytest.mark.parametrize("elbow", [1, -1])
+def test_ik_of_fk_recovers_the_branch(elbow):
+    rng = np.random.default_rng(1)
+    q = np.stack([rng.uniform(-3, 3, 2000), rng.uniform(-1.4, 1.4, 2000), rng.uniform(0.1, 3.0, 2000)], -1)
+    q[:, 2] *= -elbow  # elbow up bends J3 negative
+    # eqs. (2)–(7) give the front solution (r1 = √(X² + Y²) ≥ 0): keep poses that reach forward
+    q = q[L.l2 * np.cos(q[:, 1]) + L.l3 * np.cos(q[:, 1] + q[:, 2]) > 0.01]
+    assert len(q) > 500
+    back = vsl_ik(vsl_fk(q, L), L, elbow)
+    np.testing.assert_allclose(back, q, atol=1e-7)
+
+
+def test_transform_position_matches_fk_and_rotation_is_orthonormal():
+    q = np.random.default_rng(2).uniform(-2, 2, (100, 3))
+    t = vsl_fk_transform(q, L)
+    np.testing.assert_allclose(t[:, :3, 3], vsl_fk(q, L), atol=1e-15)
+    rot = t[:, :3, :3]
+    np.testing.assert_allclose(
+        rot @ np.swapaxes(rot, 1, 2), np.broadcast_to(np.eye(3), rot.shape), atol=1e-12
+    )
+
+
+def test_jacobian_matches_central_differences():
+    q = np.random.default_rng(3).uniform(-3, 3, (500, 3))
+    h = 1e-6
+    numeric = np.stack([(vsl_fk(q + h * e, L) - vsl_fk(q - h * e, L)) / (2 * h) for e in np.eye(3)], -1)
+    assert np.abs(vsl_jacobian(q, L) - numeric).max() < 1e-6
+
+
+def test_unreachable_target_raises_a_clear_error():
+    with pytest.raises(
+        UnreachableError, match=r"1 target\(s\) unreachable, first at \[700\.0, 0\.0, 100\.0\] mm"
+    ):
+        vsl_ik(np.array([[0.3, 0, 0.2], [0.7, 0, 0.1]]), L)
+    with pytest.raises(ValueError, match="elbow"):
+        vsl_ik(np.array([0.3, 0, 0.2]), L, elbow=0)
+
+
+def test_inverse_jacobian_velocity_and_singularity():
+    q = np.array([0.1, 0.5, -1.0])
+    xdot = np.array([0.01, 0.0, -0.02])
+    qd = inverse_jacobian_velocity(vsl_jacobian(q, L), xdot)
+    np.testing.assert_allclose(vsl_jacobian(q, L) @ qd, xdot, atol=1e-12)
+    with pytest.raises(SingularityError):
+        inverse_jacobian_velocity(vsl_jacobian(np.array([0.0, 0.3, 0.0]), L), xdot)  # arm stretched out
+
+
+def test_vsl_as_a_dh_chain_equals_eq1():
+    chain = DHChain(
+        [DHRow(0.0, np.pi / 2, L.l1, "q1"), DHRow(L.l2, 0.0, 0.0, "q2"), DHRow(L.l3, 0.0, 0.0, "q3")]
+    )
+    q = np.random.default_rng(4).uniform(-3, 3, (300, 3))
+    np.testing.assert_allclose(chain.fk(q), vsl_fk_transform(q, L), atol=1e-14)
+    np.testing.assert_allclose(chain.jacobian(q), vsl_jacobian(q, L), atol=1e-14)
+
+
+def test_popup_chain_with_zero_deflection_matches_the_rigid_model():
+    chain = dh_chain_from_table(POPUP_TABLE2_MM)
+    assert chain.actuated == ("q1", "q2", "q3")
+    assert chain.virtual == ("d11", "d12", "d21", "d22")
+    q = np.random.default_rng(5).uniform(-3, 3, (1000, 3))
+    np.testing.assert_allclose(chain.fk(q), chain.rigid().fk(q), atol=1e-12)
+    np.testing.assert_allclose(chain.fk(q, np.zeros(4)), chain.fk(q), atol=0)
+
+
+def test_popup_virtual_joints_move_the_end_effector_as_expected():
+    chain = dh_chain_from_table(POPUP_TABLE2_MM)
+    q = np.deg2rad([0.0, 60.0, -120.0])
+    frames = chain.frames(q)
+    tip = frames[-1, :3, 3]
+    eps = 1e-4
+    for name in chain.virtual:
+        delta = np.zeros(4)
+        delta[chain.virtual.index(name)] = eps
+        moved = chain.position(q, delta) - tip
+        row = [r.joint for r in chain.rows].index(name)
+        axis, origin = frames[row, :3, 2], frames[row, :3, 3]
+        expected = eps * np.cross(axis, tip - origin)  # small rotation about the virtual axis
+        np.testing.assert_allclose(moved, expected, atol=eps**2)  # up to second order
+        assert np.linalg.norm(moved) > 0
+    # δ22 bends the last 590 mm body: the tip moves ≈ 0.590 m × δ
+    delta = np.array([0, 0, 0, eps])
+    assert np.linalg.norm(chain.position(q, delta) - tip) == pytest.approx(0.590 * eps, rel=1e-3)
+
+
+def test_dh_chain_jacobian_matches_central_differences():
+    chain = dh_chain_from_table(POPUP_TABLE2_MM)
+    rng = np.random.default_rng(6)
+    q, delta = rng.uniform(-2, 2, (200, 3)), rng.uniform(-0.05, 0.05, (200, 4))
+    h = 1e-6
+    numeric = np.stack(
+        [(chain.position(q + h * e, delta) - chain.position(q - h * e, delta)) / (2 * h) for e in np.eye(3)],
+        -1,
+    )
+    assert np.abs(chain.jacobian(q, delta) - numeric).max() < 1e-6

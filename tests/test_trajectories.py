@@ -1,0 +1,84 @@
+"""Algorithms 1–2, Experiment 1's trajectories (seed 000) and the velocity law eq. (3) (seed 001)."""
+
+import numpy as np
+import pytest
+
+from models.kinematics import ArmLengths, vsl_fk, vsl_jacobian
+from models.trajectories import EXPERIMENT1_NAMES, circular, experiment1, linear, velocity_law
+
+L = ArmLengths(0.100, 0.250, 0.250)
+
+
+def _consistent(plan, speed):
+    np.testing.assert_allclose(vsl_fk(plan.q, L), plan.x, atol=1e-9)
+    xdot = np.einsum("nij,nj->ni", vsl_jacobian(plan.q, L), plan.qd)
+    np.testing.assert_allclose(np.linalg.norm(xdot, axis=-1), speed, rtol=1e-9)
+
+
+def test_linear_is_algorithm1():
+    x0, xg = np.array([0.3, 0, 0.05]), np.array([0.3, 0, 0.35])
+    plan = linear(x0, xg, speed=0.02, n=30, lengths=L)
+    assert len(plan) == 31
+    np.testing.assert_allclose(plan.x[[0, -1]], [x0, xg], atol=1e-15)
+    steps = np.diff(plan.x, axis=0)
+    np.testing.assert_allclose(steps, np.broadcast_to(steps[0], steps.shape), atol=1e-15)  # evenly, collinear
+    assert plan.t[-1] == pytest.approx(0.3 / 0.02)
+    _consistent(plan, 0.02)
+
+
+def test_circular_reproduces_the_papers_loop():
+    n, speed = 40, 0.02
+    x0, xg, xc = np.array([0.3, 0, 0.05]), np.array([0.4, 0, 0.15]), np.array([0.3, 0, 0.15])
+    plan = circular(x0, xg, xc, speed, n, L)
+    r, alpha, k = 0.1, np.pi / (2 * n), np.arange(n + 1)
+    paper = np.stack([xc[0] + r * np.sin(alpha * k), np.zeros(n + 1), xc[2] - r * np.cos(alpha * k)], -1)
+    np.testing.assert_allclose(plan.x, paper, atol=1e-15)
+    np.testing.assert_allclose(np.linalg.norm(plan.x - xc, axis=-1), r, atol=1e-15)
+    _consistent(plan, speed)
+    # Algorithm 2's velocity: [V cos(αk), 0, V sin(αk)]
+    xdot = np.einsum("nij,nj->ni", vsl_jacobian(plan.q, L), plan.qd)
+    np.testing.assert_allclose(xdot[:, [0, 2]], speed * np.stack([np.cos(alpha * k), np.sin(alpha * k)], -1),
+                               atol=1e-12)  # fmt: skip
+
+
+def test_circular_rejects_points_off_the_circle():
+    with pytest.raises(ValueError, match="not on one circle"):
+        circular([0.3, 0, 0.05], [0.45, 0, 0.15], [0.3, 0, 0.15], 0.02, 10, L)
+
+
+def test_curve_is_two_arcs_back_to_the_start():
+    plan = experiment1("curve", L, n_per_segment=25)
+    np.testing.assert_allclose(plan.x[0], [0.3, 0, 0.05], atol=1e-15)
+    np.testing.assert_allclose(plan.x[25], [0.4, 0, 0.15], atol=1e-15)
+    np.testing.assert_allclose(plan.x[-1], plan.x[0], atol=1e-15)
+    assert np.all(np.diff(plan.t) > 0)
+    _consistent(plan, 0.02)
+
+
+def test_square_visits_the_papers_corners_in_order():
+    plan = experiment1("square", L, n_per_segment=10)
+    corners = np.array([[350, 0, 50], [250, 0, 50], [250, 0, 150], [350, 0, 150], [350, 0, 50]]) * 1e-3
+    np.testing.assert_allclose(plan.x[::10], corners, atol=1e-15)
+    assert np.all(np.diff(plan.t) > 0)
+
+
+def test_every_experiment1_trajectory_is_reachable_and_unknown_names_fail():
+    for name in EXPERIMENT1_NAMES:
+        assert len(experiment1(name, L)) > 50
+    with pytest.raises(ValueError, match="linear, curve, square"):
+        experiment1("zigzag", L)
+
+
+def test_velocity_law():
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(500, 3))
+    t = rng.uniform(0, 10, 500)
+    v0, a0 = 0.1, 0.05
+    v = velocity_law(d, t, v0, a0)
+    speed = np.linalg.norm(v, axis=-1)
+    assert np.all(speed <= v0 + 1e-15)
+    assert np.all(speed <= np.sqrt(2 * a0 * np.linalg.norm(d, axis=-1)) + 1e-15)
+    np.testing.assert_allclose(np.cross(v, d), 0, atol=1e-15)
+    assert np.all(np.einsum("ni,ni->n", v, d) >= 0)
+    np.testing.assert_array_equal(velocity_law(d, np.zeros(500), v0, a0), 0)
+    np.testing.assert_array_equal(velocity_law(np.zeros(3), 1.0, v0, a0), 0)

@@ -1,0 +1,139 @@
+"""The `vslab` command: wiring only — parse options, call the packages, show results."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from models.robot import CONFIG_DIR, RobotDescriptionError, load_robot
+
+app = typer.Typer(
+    help="vslab: log, train and plot for soft variable-stiffness-link robots.", no_args_is_help=True
+)
+robots_app = typer.Typer(help="Robot descriptions in configs/robots/.", no_args_is_help=True)
+twin_app = typer.Typer(help="The digital twin.", no_args_is_help=True)
+app.add_typer(robots_app, name="robots")
+app.add_typer(twin_app, name="twin")
+
+console = Console()
+
+
+class Settings:
+    """Options every command shares (set by the top-level callback)."""
+
+    lab: Path = Path("lab")
+    quiet: bool = False
+
+
+@app.callback()
+def main(
+    lab: Annotated[
+        Path, typer.Option(help="Lab directory (sessions, datasets, models, figures).", envvar="VSLAB_LAB")
+    ] = Path("lab"),
+    quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
+) -> None:
+    """Options shared by every command."""
+    Settings.lab = lab
+    Settings.quiet = quiet
+    logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="%(levelname)s %(message)s")
+
+
+def _fail(message: str) -> None:
+    console.print(f"[red]error:[/red] {message}", soft_wrap=True, highlight=False)
+    raise typer.Exit(code=2)
+
+
+def _robot(name: str):
+    try:
+        return load_robot(name)
+    except RobotDescriptionError as exc:
+        _fail(str(exc))
+
+
+@robots_app.command("list")
+def robots_list() -> None:
+    """List the robot descriptions shipped in configs/robots/."""
+    table = Table("name", "description", "actuated", "virtual joints")
+    for path in sorted(CONFIG_DIR.glob("*.yaml")):
+        robot = _robot(str(path))
+        table.add_row(
+            robot.name, robot.description, " ".join(robot.actuated_joints), " ".join(robot.virtual_joints)
+        )
+    console.print(table)
+
+
+@robots_app.command("show")
+def robots_show(name: Annotated[str, typer.Argument(help="Robot name or path to a YAML file.")]) -> None:
+    """Validate a robot description and print it as JSON (SI units)."""
+    robot = _robot(name)
+    console.print_json(robot.model_dump_json())
+
+
+@twin_app.command("survey")
+def twin_survey(
+    robot: Annotated[str, typer.Option(help="Robot description.")] = "vsl",
+    trajectory: Annotated[
+        str, typer.Option(help="Experiment 1 trajectory: linear, curve or square.")
+    ] = "curve",
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+) -> None:
+    """Experiment 1 on the twin: mean tip error (mm) per pressure × payload."""
+    from acquisition.sim.survey import experiment1_survey
+
+    desc = _robot(robot)
+    try:
+        grid = experiment1_survey(desc, trajectory=trajectory, seed=seed)
+    except ValueError as exc:
+        _fail(str(exc))
+    _print_grid(grid, f"{desc.name}: mean tip error (mm), true tip vs rigid FK of the encoders, {trajectory}")
+    out = Settings.lab / "twin" / f"survey_{desc.name}_{trajectory}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(grid.to_dict(), indent=2))
+    if not Settings.quiet:
+        console.print(f"written: {out}")
+
+
+@app.command()
+def demo(seed: Annotated[int, typer.Option(help="Random seed.")] = 0) -> None:
+    """The main job, end to end on the twin (grows with the pipeline, training and figures)."""
+    from acquisition.sim.survey import experiment1_survey, popup_reach_check
+
+    Settings.lab.mkdir(parents=True, exist_ok=True)
+    results = {}
+    for name in ("vsl", "vsl_rigid"):
+        grid = experiment1_survey(_robot(name), trajectory="curve", seed=seed)
+        _print_grid(grid, f"{name}: mean tip error (mm) on the curve, true tip vs rigid FK of the encoders")
+        results[name] = grid.to_dict()
+    popup = popup_reach_check(_robot("popup"), seed=seed)
+    console.print(
+        f"popup: tip deflection under 2 kg at 60 kPa, q0 = [0, 60, −120]°: {popup['deflection_mm']:.1f} mm "
+        f"(paper's RBM–PRBM difference at the start: 6.6 mm)"
+    )
+    results["popup"] = popup
+    out = Settings.lab / "twin" / "demo.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(results, indent=2))
+    console.print(f"main job done; results in {out.resolve()}")
+
+
+def _print_grid(grid, title: str) -> None:
+    if Settings.quiet:
+        return
+    table = Table(title=title)
+    table.add_column("pressure")
+    for col in grid.columns:
+        table.add_column(str(col), justify="right")
+    for idx, row in grid.iterrows():
+        table.add_row(str(idx), *(f"{v:.2f}" for v in row))
+    console.print(table)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    app(prog_name=os.path.basename(__file__))
