@@ -176,6 +176,7 @@ class StepperSpec(_Model):
     gear_ratio: PositiveFloat
     max_speed_rad_s: PositiveFloat
     acceleration_rad_s2: PositiveFloat
+    report_rate_hz: PositiveFloat = 100.0
 
     @property
     def rad_per_microstep(self) -> float:

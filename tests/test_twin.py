@@ -89,14 +89,9 @@ def test_vsl_extended_pose_deflection_matches_twin_reference(vsl):
 
 
 def _streams(world, seconds):
-    trace = world.run_for(seconds)
-    rng = world.rng
-    robot = world.robot
-    return (
-        streams.servo_stream(robot, world.clocks["servo_bus"], trace, world.dt, 500.0, rng),
-        streams.pressure_stream(robot, world.clocks["pressure_board"], trace, world.dt, rng),
-        streams.tracker_stream(robot, world.clocks["tracker"], trace, world.dt, rng),
-    )
+    read = world.read(world.run_for(seconds))
+    assert set(read) == {"servo_bus", "pressure_board", "stepper_board", "tracker"}
+    return read["servo_bus"], read["pressure_board"], read["tracker"], read["stepper_board"]
 
 
 def _scripted(robot, seed, batch=2):

@@ -100,6 +100,23 @@ def pressure_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace,
     }
 
 
+def stepper_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float,
+                   rng: np.random.Generator) -> Stream:  # fmt: skip
+    """The Nano's position reports (microsteps of each stepper joint) on its own clock."""
+    joints = [i for i, j in enumerate(robot.joints) if j.drive == "stepper"]
+    r, k, t = device_sample_instants(clocks, 1.0 / robot.stepper.report_rate_hz, trace.t[0] - dt, trace.t[-1])
+    idx = _step_index(trace, t, dt)
+    steps = np.rint(trace.q[r, idx][:, joints] / robot.stepper.rad_per_microstep).astype(np.int64)
+    return {
+        "robot": r,
+        "seq": k,
+        "t_true": t,
+        "host_ns": _host(robot.devices["stepper_board"].host_link, t, rng),
+        "micros": clocks.ticks_at(r, t),
+        "position_steps": steps,
+    }
+
+
 def tracker_spec(robot: RobotDescription) -> sensors.TrackerSpec:
     """The sensor model's view of the configured tracker."""
     tr = robot.sensors.tracker

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from acquisition.sim import kernel
+from acquisition.sim import kernel, streams
 from acquisition.sim.clocks import ClockSpec, DeviceClocks
 from models.robot import TIP_FRAME, RobotDescription
 
@@ -213,6 +213,21 @@ class World:
     def run_for(self, seconds: float) -> kernel.Trace:
         """Advance by ``seconds`` of simulated time (rounded to whole steps)."""
         return self.step(round(seconds / self.dt))
+
+    def read(self, trace: kernel.Trace, servo_rate_hz: float = 500.0) -> dict[str, streams.Stream]:
+        """What every device reported during ``trace``: one column table per device (see ``streams``).
+        Servos are polled by the host at ``servo_rate_hz``; the boards and the tracker run on their clocks."""
+        robot, dt, rng, clocks = self.robot, self.dt, self.rng, self.clocks
+        out: dict[str, streams.Stream] = {}
+        if "servo_bus" in clocks:
+            out["servo_bus"] = streams.servo_stream(robot, clocks["servo_bus"], trace, dt, servo_rate_hz, rng)
+        if "pressure_board" in clocks:
+            out["pressure_board"] = streams.pressure_stream(robot, clocks["pressure_board"], trace, dt, rng)
+        if "stepper_board" in clocks and robot.stepper is not None:
+            out["stepper_board"] = streams.stepper_stream(robot, clocks["stepper_board"], trace, dt, rng)
+        if "tracker" in clocks:
+            out["tracker"] = streams.tracker_stream(robot, clocks["tracker"], trace, dt, rng)
+        return out
 
     def settle(self, seconds: float = 2.0) -> None:
         """Let drives, pressures and links come to rest at the current commands (trace discarded)."""
