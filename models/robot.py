@@ -17,6 +17,8 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from models.kinematics import DHChain, DHRow
+
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "robots"
 TIP_FRAME = "tip"
 
@@ -338,6 +340,10 @@ class RobotDescription(_Model):
             rows.append(DHRowSpec(a_m=frac * length, alpha_rad=0.0, d_m=0.0, joint=q))
             rows.append(DHRowSpec(a_m=(1 - frac) * length, alpha_rad=0.0, d_m=0.0, joint=virtual[0]))
         return rows
+
+    def chain(self) -> DHChain:
+        """The kinematic chain (virtual joints included) as a :class:`models.kinematics.DHChain`."""
+        return DHChain([DHRow(r.a_m, r.alpha_rad, r.d_m, r.joint, r.offset_rad) for r in self.dh_rows()])
 
     @property
     def actuated_joints(self) -> list[str]:

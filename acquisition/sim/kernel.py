@@ -112,8 +112,7 @@ class Trace:
     torque: np.ndarray  # (B, n, A) drive torque (what the current sensor sees, in N·m)
     delta: np.ndarray  # (B, n, V)
     pressure: np.ndarray  # (B, n, C) link pressures
-    tip_pos: np.ndarray  # (B, n, 3) base frame
-    tip_rot: np.ndarray  # (B, n, 3, 3)
+    tip_pos: np.ndarray  # (B, n, 3) base frame (orientation: models.kinematics of q and δ, when needed)
 
 
 def allocate_trace(batch: int, n: int, a: int, v: int, c: int) -> Trace:
@@ -126,7 +125,6 @@ def allocate_trace(batch: int, n: int, a: int, v: int, c: int) -> Trace:
         delta=np.empty((batch, n, v)),
         pressure=np.empty((batch, n, c)),
         tip_pos=np.empty((batch, n, 3)),
-        tip_rot=np.empty((batch, n, 3, 3)),
     )
 
 
@@ -146,7 +144,7 @@ def advance(params: KernelParams, state: KernelState, cmd: KernelCommands, n: in
         state.out_vel, state.torque, state.delta, state.delta_dot, state.hyst_z, state.vj_torque,
         state.reg_buf, state.buf_idx, state.reg_out, state.p_link,
         cmd.goal, cmd.profile_vel, cmd.profile_acc, cmd.pressure_set, cmd.valve_open, cmd.payload_kg,
-        trace.q, trace.qd, trace.torque, trace.delta, trace.pressure, trace.tip_pos, trace.tip_rot,
+        trace.q, trace.qd, trace.torque, trace.delta, trace.pressure, trace.tip_pos,
     )  # fmt: skip
     trace.t[:] = state.t + p.dt * np.arange(1, n + 1)
     state.t = float(trace.t[-1]) if n else state.t
@@ -249,7 +247,7 @@ def _advance(
     ref_pos, ref_vel, loop_pos, loop_vel, loop_acc, out_pos, out_vel, torque, delta, delta_dot, hyst_z,
     vj_torque, reg_buf, buf_idx, reg_out, p_link,
     goal, prof_vel, prof_acc, p_set, valve_open, payload,
-    tr_q, tr_qd, tr_torque, tr_delta, tr_p, tr_tip, tr_rot,
+    tr_q, tr_qd, tr_torque, tr_delta, tr_p, tr_tip,
 ):  # fmt: skip
     nb, na = out_pos.shape
     nv = delta.shape[1]
@@ -342,6 +340,4 @@ def _advance(
                 tr_p[b, s, c] = p_link[b, c]
             for k in range(3):
                 tr_tip[b, s, k] = frames[nr + 1, k, 3]
-                for j in range(3):
-                    tr_rot[b, s, k, j] = frames[nr + 1, k, j]
     return (buf_idx + n) % depth

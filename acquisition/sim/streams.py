@@ -135,9 +135,8 @@ def tracker_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, 
     period = 1.0 / robot.sensors.tracker.frame_rate_hz
     r, k, t = device_sample_instants(clocks, period, trace.t[0] - dt, trace.t[-1])
     idx = _step_index(trace, t, dt)
-    reading = sensors.tracker_measurement(
-        trace.tip_pos[r, idx], trace.tip_rot[r, idx], tracker_spec(robot), rng
-    )
+    tip_rot = robot.chain().fk(trace.q[r, idx], trace.delta[r, idx])[..., :3, :3]
+    reading = sensors.tracker_measurement(trace.tip_pos[r, idx], tip_rot, tracker_spec(robot), rng)
     return {
         "robot": r,
         "frame": k,

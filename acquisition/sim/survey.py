@@ -75,13 +75,6 @@ def experiment1_survey(
     )
 
 
-def popup_chain(robot: RobotDescription) -> kinematics.DHChain:
-    """POPUP's D-H chain (virtual joints included) as the kinematics module's object."""
-    return kinematics.DHChain(
-        [kinematics.DHRow(r.a_m, r.alpha_rad, r.d_m, r.joint, r.offset_rad) for r in robot.dh_rows()]
-    )
-
-
 def popup_reach_check(robot: RobotDescription, seed: int = 0, payload_kg: float = 2.0,
                       pressure_pa: float = 60e3) -> dict:  # fmt: skip
     """Static tip deflection of POPUP at seed 001's start pose q0 = [0, 60, −120]° (PRBM vs RBM)."""
@@ -89,6 +82,6 @@ def popup_reach_check(robot: RobotDescription, seed: int = 0, payload_kg: float 
     world = World(robot, batch=1, seed=seed, q0=q0, pressure_pa=pressure_pa, payload_kg=payload_kg)
     world.settle(3.0)
     trace = world.step(1)
-    rigid = popup_chain(robot).position(trace.q[0, -1])
+    rigid = robot.chain().position(trace.q[0, -1])
     deflection = float(np.linalg.norm(trace.tip_pos[0, -1] - rigid) * 1e3)
     return {"deflection_mm": deflection, "delta_rad": trace.delta[0, -1].tolist()}
