@@ -216,9 +216,7 @@ def test_pressure_stream_reads_back_within_sensor_noise(vsl):
     trace = world.run_for(1.0)
     s = streams.pressure_stream(vsl, world.clocks["pressure_board"], trace, world.dt, world.rng)
     spec = vsl.sensors.pressure
-    adc = sensors.PressureSensorSpec(full_scale_pa=spec.full_scale_pa, v_min=spec.v_min, v_max=spec.v_max,
-                                     adc_lsb_v=spec.adc_lsb_v, adc_noise_v=spec.adc_noise_v)  # fmt: skip
-    p = sensors.adc_counts_to_pressure(s["counts"], adc)
+    p = sensors.adc_counts_to_pressure(s["counts"], streams.pressure_spec(vsl))
     pa_per_volt = spec.full_scale_pa / (spec.v_max - spec.v_min)
     assert np.abs(p - 1.5e5).max() < 6 * (spec.adc_noise_v + spec.adc_lsb_v) * pa_per_volt
     assert len(p) == pytest.approx(spec.sample_rate_hz, rel=0.02)

@@ -82,13 +82,9 @@ def servo_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt
 def pressure_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float,
                     rng: np.random.Generator) -> Stream:  # fmt: skip
     """ADS1115 conversions of every channel, on the board's own (drifting) clock."""
-    spec = robot.sensors.pressure
-    r, k, t = device_sample_instants(clocks, 1.0 / spec.sample_rate_hz, trace.t[0] - dt, trace.t[-1])
+    rate = robot.sensors.pressure.sample_rate_hz
+    r, k, t = device_sample_instants(clocks, 1.0 / rate, trace.t[0] - dt, trace.t[-1])
     idx = _step_index(trace, t, dt)
-    adc = sensors.PressureSensorSpec(
-        full_scale_pa=spec.full_scale_pa, v_min=spec.v_min, v_max=spec.v_max, adc_lsb_v=spec.adc_lsb_v,
-        adc_noise_v=spec.adc_noise_v,
-    )  # fmt: skip
     device = robot.devices.get("pressure_board") or robot.devices.get("main_board")
     return {
         "robot": r,
@@ -96,8 +92,14 @@ def pressure_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace,
         "t_true": t,
         "host_ns": _host(device.host_link, t, rng),
         "micros": clocks.ticks_at(r, t),
-        "counts": sensors.pressure_to_adc_counts(trace.pressure[r, idx], adc, rng),
+        "counts": sensors.pressure_to_adc_counts(trace.pressure[r, idx], pressure_spec(robot), rng),
     }
+
+
+def pressure_spec(robot: RobotDescription) -> sensors.PressureSensorSpec:
+    """The sensor model's view of the configured transducer + ADC chain."""
+    s = robot.sensors.pressure
+    return sensors.PressureSensorSpec(s.full_scale_pa, s.v_min, s.v_max, s.adc_lsb_v, s.adc_noise_v)
 
 
 def stepper_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float,
