@@ -1,0 +1,238 @@
+"""Serve emulators on pseudo-terminals: one select loop, stable port paths, faults, clean SIGTERM.
+
+Each device gets a pty; its path is published as a symlink ``<run_dir>/<name>`` (stable across unplug and
+replug, which create a new pty) and listed in ``<run_dir>/ports.json``. A unix socket
+``<run_dir>/control.sock`` takes one JSON command per line (faults, operator inputs) and answers one JSON
+line. Runs in its own process: client libraries that hold the GIL while blocked (ndicapy) need that.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import pty
+import selectors
+import signal
+import socket
+import time
+import tty
+from collections.abc import Callable
+from pathlib import Path
+
+from acquisition.sim.emulators.base import Emulator, Faults
+
+log = logging.getLogger(__name__)
+PORTS_FILE = "ports.json"
+CONTROL_SOCKET = "control.sock"
+
+
+class _Port:
+    """One emulator on one pty (re-created on replug)."""
+
+    def __init__(self, name: str, emulator: Emulator, run_dir: Path) -> None:
+        self.name = name
+        self.emulator = emulator
+        self.link = run_dir / name
+        self.faults = Faults()
+        self.master = -1
+        self.slave = -1
+        self.plug()
+
+    def plug(self) -> None:
+        self.master, self.slave = pty.openpty()
+        tty.setraw(self.slave)  # keep the slave open for our whole life: the host may close and reopen it
+        os.set_blocking(self.master, False)
+        tmp = self.link.with_name(self.link.name + ".tmp")
+        tmp.unlink(missing_ok=True)
+        tmp.symlink_to(os.ttyname(self.slave))
+        tmp.replace(self.link)
+        self.faults.unplugged = False
+        self.emulator.reset_link()
+
+    def unplug(self) -> None:
+        self.faults.unplugged = True
+        self.link.unlink(missing_ok=True)
+        for fd in (self.master, self.slave):
+            if fd >= 0:
+                os.close(fd)
+        self.master = self.slave = -1
+
+    def write(self, data: bytes) -> None:
+        if not data or self.master < 0:
+            return
+        if self.faults.drop_replies > 0:
+            self.faults.drop_replies -= 1
+            return
+        if self.faults.corrupt_replies > 0:
+            self.faults.corrupt_replies -= 1
+            middle = len(data) // 2
+            data = data[:middle] + bytes([data[middle] ^ 0x5A]) + data[middle + 1 :]
+        try:
+            os.write(self.master, data)
+        except BlockingIOError:
+            log.warning("%s: host not reading, %d bytes dropped", self.name, len(data))
+        except OSError as exc:  # EIO: no process has the slave open right now
+            log.debug("%s: write failed: %s", self.name, exc)
+
+
+class PtyHost:
+    """Serve ``emulators`` until SIGTERM/SIGINT; ``tick(now)`` runs every loop (the twin steps there),
+    ``control(cmd)`` handles commands the host does not know (operator inputs)."""
+
+    def __init__(
+        self,
+        run_dir: Path,
+        emulators: dict[str, Emulator],
+        tick: Callable[[float], None] | None = None,
+        control: Callable[[dict], dict] | None = None,
+        period_s: float = 0.0005,
+    ) -> None:
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.ports = {name: _Port(name, emu, self.run_dir) for name, emu in emulators.items()}
+        self.tick = tick
+        self.control = control
+        self.period_s = period_s
+        self._stop = False
+        self._t0 = time.monotonic()
+
+    def now(self) -> float:
+        return time.monotonic() - self._t0
+
+    def stop(self, *_: object) -> None:
+        self._stop = True
+
+    def serve_forever(self) -> None:
+        signal.signal(signal.SIGTERM, self.stop)
+        signal.signal(signal.SIGINT, self.stop)
+        sock_path = self.run_dir / CONTROL_SOCKET
+        sock_path.unlink(missing_ok=True)
+        server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        server.bind(str(sock_path))
+        server.listen()
+        server.setblocking(False)
+        self._publish()
+        sel = selectors.DefaultSelector()
+        sel.register(server, selectors.EVENT_READ, ("accept", None))
+        registered: dict[str, int] = {}
+        try:
+            while not self._stop:
+                self._sync_registrations(sel, registered)
+                for key, _ in sel.select(timeout=self.period_s):
+                    kind, obj = key.data
+                    if kind == "accept":
+                        conn, _ = server.accept()
+                        conn.setblocking(True)
+                        sel.register(conn, selectors.EVENT_READ, ("control", conn))
+                    elif kind == "control":
+                        self._serve_control(sel, obj)
+                    else:
+                        self._serve_port(obj)
+                now = self.now()
+                if self.tick is not None:
+                    self.tick(now)
+                for port in self.ports.values():
+                    if not port.faults.unplugged:
+                        port.write(port.emulator.poll(now))
+        finally:
+            for port in self.ports.values():
+                if not port.faults.unplugged:
+                    port.unplug()
+            (self.run_dir / PORTS_FILE).unlink(missing_ok=True)
+            sock_path.unlink(missing_ok=True)
+            server.close()
+
+    def _sync_registrations(self, sel: selectors.BaseSelector, registered: dict[str, int]) -> None:
+        for name, port in self.ports.items():
+            if registered.get(name) != port.master:
+                if name in registered and registered[name] >= 0:
+                    try:
+                        sel.unregister(registered[name])
+                    except (KeyError, ValueError):
+                        pass
+                if port.master >= 0:
+                    sel.register(port.master, selectors.EVENT_READ, ("port", port))
+                registered[name] = port.master
+
+    def _serve_port(self, port: _Port) -> None:
+        try:
+            data = os.read(port.master, 65536)
+        except BlockingIOError:
+            return
+        except OSError:  # EIO: the host closed its side; keep serving, it may reopen
+            time.sleep(0.001)
+            return
+        if data:
+            port.write(port.emulator.feed(data, self.now()))
+
+    def _serve_control(self, sel: selectors.BaseSelector, conn: socket.socket) -> None:
+        data = b""
+        while not data.endswith(b"\n"):
+            chunk = conn.recv(4096)
+            if not chunk:
+                sel.unregister(conn)
+                conn.close()
+                return
+            data += chunk
+        try:
+            reply = self._command(json.loads(data))
+        except (ValueError, KeyError, TypeError) as exc:
+            reply = {"ok": False, "error": str(exc)}
+        conn.sendall(json.dumps(reply).encode() + b"\n")
+
+    def _command(self, cmd: dict) -> dict:
+        op = cmd["op"]
+        if op == "fault":
+            port = self.ports[cmd["device"]]
+            kind = cmd["kind"]
+            if kind == "unplug":
+                port.unplug()
+            elif kind == "plug":
+                port.plug()
+            elif kind in ("corrupt", "drop"):
+                setattr(port.faults, f"{kind}_replies", int(cmd.get("count", 1)))
+            else:
+                raise ValueError(f"unknown fault {kind!r}")
+            self._publish()
+            return {"ok": True}
+        if op == "ports":
+            return {"ok": True, "ports": self._port_paths()}
+        if self.control is not None:
+            return self.control(cmd)
+        raise ValueError(f"unknown command {op!r}")
+
+    def _port_paths(self) -> dict[str, str]:
+        return {name: str(p.link) for name, p in self.ports.items() if not p.faults.unplugged}
+
+    def _publish(self) -> None:
+        path = self.run_dir / PORTS_FILE
+        tmp = path.with_suffix(".tmp")
+        tmp.write_text(json.dumps({"pid": os.getpid(), "ports": self._port_paths()}, indent=2))
+        tmp.replace(path)
+
+
+def send_control(run_dir: Path, command: dict, timeout_s: float = 5.0) -> dict:
+    """Send one command to a running host and return its answer."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
+        sock.settimeout(timeout_s)
+        sock.connect(str(Path(run_dir) / CONTROL_SOCKET))
+        sock.sendall(json.dumps(command).encode() + b"\n")
+        data = b""
+        while not data.endswith(b"\n"):
+            chunk = sock.recv(4096)
+            if not chunk:
+                break
+            data += chunk
+    return json.loads(data)
+
+
+def wait_for_ports(run_dir: Path, timeout_s: float = 30.0) -> dict[str, str]:
+    """Block until a host has published its ports (or raise TimeoutError)."""
+    path = Path(run_dir) / PORTS_FILE
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if path.exists() and (Path(run_dir) / CONTROL_SOCKET).exists():
+            return json.loads(path.read_text())["ports"]
+        time.sleep(0.05)
+    raise TimeoutError(f"no emulator host published its ports in {run_dir} within {timeout_s} s")
