@@ -53,18 +53,12 @@ def _host(link, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 def servo_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float, rate_hz: float,
                  rng: np.random.Generator) -> Stream:  # fmt: skip
     """Sync Reads of every position-controlled joint polled at ``rate_hz``: counts as the XM430 reports."""
-    servo, noise = robot.servo, robot.sensors.servo
     joints = [i for i, j in enumerate(robot.joints) if j.drive != "stepper"]
     batch = trace.q.shape[0]
     r, k, t = host_poll_instants(batch, 1.0 / rate_hz, trace.t[0] - dt, trace.t[-1])
     idx = _step_index(trace, t, dt)
-    q = trace.q[r, idx][:, joints]
-    qd = trace.qd[r, idx][:, joints]
-    torque = trace.torque[r, idx][:, joints]
-    amps = (
-        torque / servo.torque_constant_nm_per_a
-        + servo.idle_current_a * np.sign(torque)
-        + servo.friction_current_a * np.tanh(qd / 0.02)
+    counts = servo_counts(
+        robot, trace.q[r, idx][:, joints], trace.qd[r, idx][:, joints], trace.torque[r, idx][:, joints], rng
     )
     device = robot.devices.get("servo_bus") or robot.devices.get("main_board")
     return {
@@ -73,6 +67,21 @@ def servo_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt
         "t_true": t,
         "host_ns": _host(device.host_link, t, rng),
         "tick": clocks.ticks_at(r, t),
+        **counts,
+    }
+
+
+def servo_counts(robot: RobotDescription, q: np.ndarray, qd: np.ndarray, torque: np.ndarray,
+                 rng: np.random.Generator) -> Stream:  # fmt: skip
+    """Present position/velocity/current registers of servos at true angle, speed and drive torque:
+    current = torque / K_t + idle · sign(torque) + friction · sign(speed) (smoothed) + noise."""
+    servo, noise = robot.servo, robot.sensors.servo
+    amps = (
+        torque / servo.torque_constant_nm_per_a
+        + servo.idle_current_a * np.sign(torque)
+        + servo.friction_current_a * np.tanh(qd / 0.02)
+    )
+    return {
         "position": sensors.encoder_counts(q, servo.zero_count),
         "velocity": sensors.velocity_counts(qd, rng, noise.velocity_noise_counts),
         "current": sensors.current_counts(amps, noise.current_noise_counts, rng),

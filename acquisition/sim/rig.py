@@ -1,0 +1,137 @@
+"""The rig: the digital twin run in real time behind emulators of the robot's devices, one pty each.
+
+    python -m acquisition.sim.rig --robot vsl --run-dir lab/rig      (or: vslab rig --robot vsl)
+
+Drivers (and the recorder) find the ports in ``<run-dir>/ports.json``. The control socket takes the
+operator's inputs ({"op": "payload", "kg": 0.05}) and test queries ({"op": "state"}) besides faults.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+from pathlib import Path
+
+import numba
+import numpy as np
+
+from acquisition.protocols import dynamixel as dx
+from acquisition.sim import sensors, streams
+from acquisition.sim.emulators.base import Emulator
+from acquisition.sim.emulators.dynamixel import ControlTable, DynamixelBusEmulator
+from acquisition.sim.ptyhost import PtyHost
+from acquisition.sim.world import World
+from models.robot import RobotDescription, load_robot
+
+log = logging.getLogger(__name__)
+
+RAD_S_PER_VELOCITY_UNIT = 0.229 * 2 * np.pi / 60
+RAD_S2_PER_ACCELERATION_UNIT = 214.577 * 2 * np.pi / 3600
+
+
+class Rig:
+    """One simulated bench, advanced to the wall clock whenever a device is touched or the host loop ticks."""
+
+    def __init__(self, robot: RobotDescription, seed: int = 0, q0: np.ndarray | None = None) -> None:
+        self.robot = robot
+        home = np.deg2rad([0.0, 30.0, -60.0]) if q0 is None else q0
+        self.world = World(robot, batch=1, seed=seed, q0=home)
+        self.steps = 0
+        self.emulators: dict[str, Emulator] = {}
+        if "servo_bus" in robot.devices:
+            self.emulators["servo_bus"] = self._servo_bus()
+
+    def _servo_bus(self) -> DynamixelBusEmulator:
+        ids = self.robot.devices["servo_bus"].ids
+        hardware = TwinServos(
+            self, {dxl_id: self.robot.actuated_joints.index(name) for name, dxl_id in ids.items()}
+        )
+        bus = DynamixelBusEmulator(sorted(ids.values()), hardware)
+        for dxl_id, table in bus.tables.items():  # goals start where the joints are: torque-on does not jump
+            joint = hardware.joints[dxl_id]
+            table.set(
+                dx.GOAL_POSITION,
+                int(sensors.encoder_counts(self.world.state.out_pos[0, joint], hardware.zero)),
+            )
+        return bus
+
+    def advance(self, now_s: float) -> None:
+        """Step the twin up to ``now_s`` (rig time)."""
+        n = int(now_s / self.world.dt) - self.steps
+        if n > 0:
+            self.world.step(n)
+            self.steps += n
+
+    def control(self, cmd: dict) -> dict:
+        """Operator inputs and queries from the control socket."""
+        op = cmd["op"]
+        if op == "payload":
+            self.world.set_payload(float(cmd["kg"]))
+            return {"ok": True}
+        if op == "state":
+            st = self.world.state
+            return {"ok": True, "t": st.t, "q": st.out_pos[0].tolist(), "delta": st.delta[0].tolist(),
+                    "pressure_pa": st.p_link[0].tolist()}  # fmt: skip
+        raise ValueError(f"unknown command {op!r}")
+
+
+class TwinServos:
+    """The twin's joints behind the Dynamixel control tables."""
+
+    def __init__(self, rig: Rig, joints: dict[int, int]) -> None:
+        self.rig = rig
+        self.joints = joints
+        self.zero = rig.robot.servo.zero_count
+
+    def apply(self, dxl_id: int, table: ControlTable, now_s: float) -> None:
+        self.rig.advance(now_s)
+        world, j = self.rig.world, self.joints[dxl_id]
+        if table.torque_on:
+            world.commands.goal[0, j] = sensors.encoder_angle(
+                table.get(dx.GOAL_POSITION, signed=True), self.zero
+            )
+        else:  # limp joints are not modelled: the drive holds where it is
+            world.commands.goal[0, j] = world.state.out_pos[0, j]
+        world.commands.profile_vel[0, j] = table.get(dx.PROFILE_VELOCITY) * RAD_S_PER_VELOCITY_UNIT
+        world.commands.profile_acc[0, j] = table.get(dx.PROFILE_ACCELERATION) * RAD_S2_PER_ACCELERATION_UNIT
+
+    def sense(self, dxl_id: int, table: ControlTable, now_s: float) -> None:
+        self.rig.advance(now_s)
+        world, j = self.rig.world, self.joints[dxl_id]
+        st = world.state
+        counts = streams.servo_counts(
+            self.rig.robot, st.out_pos[0, j], st.out_vel[0, j], st.torque[0, j], world.rng
+        )
+        tick = world.clocks["servo_bus"].ticks_at(np.array([0]), np.array([st.t]))[0]
+        goal = table.get(dx.GOAL_POSITION, signed=True)
+        table.set(dx.PRESENT_POSITION, int(counts["position"]))
+        table.set(dx.PRESENT_VELOCITY, int(counts["velocity"]))
+        table.set(dx.PRESENT_CURRENT, int(counts["current"]))
+        table.set(dx.REALTIME_TICK, int(tick))
+        table.set(dx.MOVING, int(abs(goal - int(counts["position"])) > 1 or abs(st.out_vel[0, j]) > 0.01))
+
+
+def serve_rig(robot: RobotDescription, run_dir: Path, seed: int = 0) -> None:
+    """Run the rig until SIGTERM/SIGINT."""
+    numba.set_num_threads(1)  # one robot: worker threads would only steal the client's core
+    rig = Rig(robot, seed=seed)
+    rig.world.step(1)  # compile before the ports appear
+    host = PtyHost(run_dir, rig.emulators, tick=rig.advance, control=rig.control)
+    rig.steps = 0
+    rig.world.state.t = 0.0
+    log.info("rig for %s serving %s in %s", robot.name, ", ".join(rig.emulators), run_dir)
+    host.serve_forever()
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--robot", default="vsl")
+    parser.add_argument("--run-dir", type=Path, required=True)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    serve_rig(load_robot(args.robot), args.run_dir, args.seed)
+
+
+if __name__ == "__main__":
+    main()
