@@ -9,7 +9,8 @@ runner = CliRunner()
 
 
 @pytest.mark.parametrize(
-    "args", [[], ["robots"], ["robots", "list"], ["robots", "show"], ["twin"], ["twin", "survey"], ["demo"]]
+    "args",
+    [[], ["robots"], ["robots", "list"], ["robots", "show"], ["twin"], ["twin", "survey"], ["demo"], ["rig"]],
 )
 def test_every_command_has_help(args):
     result = runner.invoke(app, [*args, "--help"])

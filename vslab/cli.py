@@ -101,6 +101,22 @@ def twin_survey(
 
 
 @app.command()
+def rig(
+    robot: Annotated[str, typer.Option(help="Robot description.")] = "vsl",
+    run_dir: Annotated[Path | None, typer.Option(help="Where ports.json and the port links go.")] = None,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+) -> None:
+    """Run the twin in real time behind emulators of the robot's devices (until Ctrl-C / SIGTERM)."""
+    from acquisition.sim.rig import serve_rig
+
+    desc = _robot(robot)
+    where = run_dir or Settings.lab / "rig"
+    if not Settings.quiet:
+        console.print(f"rig for {desc.name}: ports in {where / 'ports.json'} (Ctrl-C stops)")
+    serve_rig(desc, where, seed=seed)
+
+
+@app.command()
 def demo(seed: Annotated[int, typer.Option(help="Random seed.")] = 0) -> None:
     """The main job, end to end on the twin (grows with the pipeline, training and figures)."""
     from acquisition.sim.survey import PRESSURES_BAR, experiment1_survey, popup_reach_check
