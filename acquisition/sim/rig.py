@@ -16,17 +16,15 @@ import numba
 import numpy as np
 
 from acquisition.protocols import dynamixel as dx
-from acquisition.sim import sensors, streams
+from acquisition.sim import sensors
 from acquisition.sim.emulators.base import Emulator
-from acquisition.sim.emulators.dynamixel import ControlTable, DynamixelBusEmulator
+from acquisition.sim.emulators.dynamixel import DynamixelBusEmulator
 from acquisition.sim.ptyhost import PtyHost
+from acquisition.sim.twin_devices import TwinServos
 from acquisition.sim.world import World
 from models.robot import RobotDescription, load_robot
 
 log = logging.getLogger(__name__)
-
-RAD_S_PER_VELOCITY_UNIT = 0.229 * 2 * np.pi / 60
-RAD_S2_PER_ACCELERATION_UNIT = 214.577 * 2 * np.pi / 3600
 
 
 class Rig:
@@ -73,42 +71,6 @@ class Rig:
             return {"ok": True, "t": st.t, "q": st.out_pos[0].tolist(), "delta": st.delta[0].tolist(),
                     "pressure_pa": st.p_link[0].tolist()}  # fmt: skip
         raise ValueError(f"unknown command {op!r}")
-
-
-class TwinServos:
-    """The twin's joints behind the Dynamixel control tables."""
-
-    def __init__(self, rig: Rig, joints: dict[int, int]) -> None:
-        self.rig = rig
-        self.joints = joints
-        self.zero = rig.robot.servo.zero_count
-
-    def apply(self, dxl_id: int, table: ControlTable, now_s: float) -> None:
-        self.rig.advance(now_s)
-        world, j = self.rig.world, self.joints[dxl_id]
-        if table.torque_on:
-            world.commands.goal[0, j] = sensors.encoder_angle(
-                table.get(dx.GOAL_POSITION, signed=True), self.zero
-            )
-        else:  # limp joints are not modelled: the drive holds where it is
-            world.commands.goal[0, j] = world.state.out_pos[0, j]
-        world.commands.profile_vel[0, j] = table.get(dx.PROFILE_VELOCITY) * RAD_S_PER_VELOCITY_UNIT
-        world.commands.profile_acc[0, j] = table.get(dx.PROFILE_ACCELERATION) * RAD_S2_PER_ACCELERATION_UNIT
-
-    def sense(self, dxl_id: int, table: ControlTable, now_s: float) -> None:
-        self.rig.advance(now_s)
-        world, j = self.rig.world, self.joints[dxl_id]
-        st = world.state
-        counts = streams.servo_counts(
-            self.rig.robot, st.out_pos[0, j], st.out_vel[0, j], st.torque[0, j], world.rng
-        )
-        tick = world.clocks["servo_bus"].ticks_at(np.array([0]), np.array([st.t]))[0]
-        goal = table.get(dx.GOAL_POSITION, signed=True)
-        table.set(dx.PRESENT_POSITION, int(counts["position"]))
-        table.set(dx.PRESENT_VELOCITY, int(counts["velocity"]))
-        table.set(dx.PRESENT_CURRENT, int(counts["current"]))
-        table.set(dx.REALTIME_TICK, int(tick))
-        table.set(dx.MOVING, int(abs(goal - int(counts["position"])) > 1 or abs(st.out_vel[0, j]) > 0.01))
 
 
 def serve_rig(robot: RobotDescription, run_dir: Path, seed: int = 0) -> None:
