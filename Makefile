@@ -24,6 +24,7 @@ test: $(BIN)/.installed
 
 bench: $(BIN)/.installed
 	$(BIN)/python bench/twin.py
+	$(BIN)/python bench/devices.py
 
 lint format: $(BIN)/.installed
 	$(BIN)/ruff check --fix .
