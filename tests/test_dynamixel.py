@@ -121,7 +121,10 @@ def test_real_sdk_sync_write_reaches_goals_and_sync_read_reads_them(host_factory
 def test_servo_bus_driver_commands_and_reads_si(host_factory):
     with host_factory(DEMO) as ports, ServoBus(ports["servo_bus"], ids=[1, 2]) as bus:
         assert bus.models == {1: dx.XM430_W350_MODEL, 2: dx.XM430_W350_MODEL}
-        bus.configure(profile_velocity_rad_s=0.0)
+        bus.configure(profile_velocity_rad_s=0.0, p_gain=850, d_gain=10)
+        port, packet = bus._port, bus._packet
+        assert packet.read2ByteTxRx(port, 1, 84)[0] == 850 and packet.read2ByteTxRx(port, 2, 80)[0] == 10
+        assert packet.read1ByteTxRx(port, 1, 11)[0] == 3, "position control mode"
         bus.set_torque(True)
         goal = np.deg2rad([10.0, -20.0])
         bus.write_goals(goal)

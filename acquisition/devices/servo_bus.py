@@ -108,17 +108,28 @@ class ServoBus(Device):
             self._port = None
 
     # ----------------------------------------------------------------------------------- commands
-    def configure(self, profile_velocity_rad_s: float = 0.0, profile_acceleration_rad_s2: float = 0.0,
-                  p_gain: int = 800, return_delay_us: int = 0) -> None:  # fmt: skip
-        """Position mode, return delay, P gain and profile (0 = unlimited) on every servo; torque off."""
+    def configure(
+        self,
+        profile_velocity_rad_s: float = 0.0,
+        profile_acceleration_rad_s2: float = 0.0,
+        p_gain: int = 800,
+        i_gain: int = 0,
+        d_gain: int = 0,
+        return_delay_us: int = 0,
+    ) -> None:
+        """Position mode, return delay, position PID gains and profile (0 = unlimited) on every servo.
+        Torque is switched off first (EEPROM items are locked while it is on) and left off."""
         self.set_torque(False)
+        velocity = round(profile_velocity_rad_s / RAD_S_PER_VELOCITY_UNIT)
+        acceleration = round(profile_acceleration_rad_s2 / RAD_S2_PER_ACCELERATION_UNIT)
         for dxl_id in self.ids:
             self._write(dxl_id, dx.OPERATING_MODE, dx.OPERATING_MODE_POSITION)
             self._write(dxl_id, dx.RETURN_DELAY_TIME, return_delay_us // 2)
             self._write(dxl_id, dx.POSITION_P_GAIN, p_gain)
-            self._write(dxl_id, dx.PROFILE_VELOCITY, round(profile_velocity_rad_s / RAD_S_PER_VELOCITY_UNIT))
-            self._write(dxl_id, dx.PROFILE_ACCELERATION,
-                        round(profile_acceleration_rad_s2 / RAD_S2_PER_ACCELERATION_UNIT))  # fmt: skip
+            self._write(dxl_id, dx.POSITION_I_GAIN, i_gain)
+            self._write(dxl_id, dx.POSITION_D_GAIN, d_gain)
+            self._write(dxl_id, dx.PROFILE_VELOCITY, velocity)
+            self._write(dxl_id, dx.PROFILE_ACCELERATION, acceleration)
 
     def set_torque(self, on: bool) -> None:
         """Torque on/off on every servo."""
