@@ -70,16 +70,19 @@ def vsl_ik(x: ArrayLike, lengths: ArmLengths, elbow: int = 1) -> Array:
     r2 = x[..., 2] - lengths.l1
     r3 = np.hypot(r1, r2)
     tol = 1e-12
-    bad = (r3 > l2 + l3 + tol) | (r3 < abs(l2 - l3) - tol) | (r3 == 0)
+    bad = ~((r3 <= l2 + l3 + tol) & (r3 >= abs(l2 - l3) - tol))  # NaN targets are unreachable too
     if np.any(bad):
-        first = x.reshape(-1, 3)[np.flatnonzero(bad.reshape(-1))[0]] * 1e3
+        index = int(np.flatnonzero(bad.reshape(-1))[0])
+        first = x.reshape(-1, 3)[index] * 1e3
         raise UnreachableError(
             f"{int(bad.sum())} target(s) unreachable, first at "
-            f"[{first[0]:.1f}, {first[1]:.1f}, {first[2]:.1f}] mm:"
+            f"[{first[0]:.1f}, {first[1]:.1f}, {first[2]:.1f}] mm (flat index {index}):"
             f" distance from the J2 axis must lie in [{abs(l2 - l3) * 1e3:.1f}, {(l2 + l3) * 1e3:.1f}] mm"
         )
-    theta1 = np.arctan2(x[..., 1], x[..., 0])
-    cos_a = np.clip((r3**2 + l2**2 - l3**2) / (2 * r3 * l2), -1.0, 1.0)
+    theta1 = np.arctan2(x[..., 1], x[..., 0])  # r1 = 0 (on the J1 axis): θ1 = 0
+    # r3 = 0 (only reachable when L2 = L3): the arm is folded and any θ2 works; cos_a = 0 picks θ2 = λπ/2
+    num_a = r3**2 + l2**2 - l3**2
+    cos_a = np.clip(np.divide(num_a, 2 * r3 * l2, out=np.zeros_like(r3), where=r3 > 0), -1.0, 1.0)
     cos_b = np.clip((l2**2 + l3**2 - r3**2) / (2 * l2 * l3), -1.0, 1.0)
     theta2 = np.arctan2(r2, r1) + elbow * np.arccos(cos_a)
     theta3 = np.pi + elbow * np.arccos(cos_b)
@@ -114,9 +117,16 @@ def vsl_jacobian(q: ArrayLike, lengths: ArmLengths) -> Array:
 def inverse_jacobian_velocity(jac: ArrayLike, xdot: ArrayLike, max_condition: float = 1e8) -> Array:
     """Joint velocities q̇ solving J q̇ = ẋ for batches; raises SingularityError near a singularity."""
     jac = np.asarray(jac, dtype=float)
-    cond = np.linalg.cond(jac)
-    if np.any(~np.isfinite(cond) | (cond > max_condition)):
-        raise SingularityError(f"Jacobian too close to singular (condition number {np.max(cond):.3g})")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cond = np.linalg.cond(jac)
+    bad = ~(cond <= max_condition)  # inf/NaN count as singular
+    if np.any(bad):
+        index = int(np.flatnonzero(bad.reshape(-1))[0])
+        raise SingularityError(
+            f"Jacobian too close to singular at {int(bad.sum())} of {bad.size} configuration(s);"
+            f" first at flat index {index} (condition number {cond.reshape(-1)[index]:.3g}"
+            f" > {max_condition:.3g})"
+        )
     return np.linalg.solve(jac, np.asarray(xdot, dtype=float)[..., None])[..., 0]
 
 
@@ -180,8 +190,8 @@ class DHChain:
         if len(set(names)) != len(names):
             raise ValueError(f"joint names must be unique: {names}")
         self.rows = tuple(rows)
-        self.actuated = tuple(r.joint for r in rows if r.actuated)
-        self.virtual = tuple(r.joint for r in rows if not r.actuated)
+        self._actuated = tuple(r.joint for r in rows if r.actuated)
+        self._virtual = tuple(r.joint for r in rows if not r.actuated)
         self._a = np.array([r.a for r in rows])
         self._alpha = np.array([r.alpha for r in rows])
         self._d = np.array([r.d for r in rows])
@@ -191,13 +201,33 @@ class DHChain:
             [self.actuated.index(r.joint) if r.actuated else self.virtual.index(r.joint) for r in rows]
         )
 
-    def _theta(self, q: Array, delta: Array | None) -> Array:
+    @property
+    def actuated(self) -> tuple[str, ...]:
+        """Names of the actuated joints (q*), in chain order."""
+        return self._actuated
+
+    @property
+    def virtual(self) -> tuple[str, ...]:
+        """Names of the virtual joints (link bending δ), in chain order."""
+        return self._virtual
+
+    def _theta(self, q: ArrayLike, delta: ArrayLike | None) -> Array:
+        """Every row's θ (..., R) from q (..., n_actuated) and δ (..., n_virtual)."""
         q = np.asarray(q, dtype=float)
-        if q.shape[-1] != len(self.actuated):
-            raise ValueError(f"q has {q.shape[-1]} values, the chain has actuated joints {self.actuated}")
+        if q.ndim == 0 or q.shape[-1] != len(self.actuated):
+            raise ValueError(
+                f"q has shape {q.shape}, the chain needs (..., {len(self.actuated)}): {self.actuated}"
+            )
         if delta is None:
             delta = np.zeros((*q.shape[:-1], len(self.virtual)))
-        delta = np.broadcast_to(np.asarray(delta, dtype=float), (*q.shape[:-1], len(self.virtual)))
+        delta = np.asarray(delta, dtype=float)
+        try:
+            delta = np.broadcast_to(delta, (*q.shape[:-1], len(self.virtual)))
+        except ValueError:
+            raise ValueError(
+                f"delta has shape {delta.shape}, the chain needs (..., {len(self.virtual)})"
+                f" matching q's batch {q.shape[:-1]}: {self.virtual}"
+            ) from None
         values = np.where(self._is_actuated, q[..., self._index.clip(max=q.shape[-1] - 1)], 0.0)
         if self.virtual:
             values = np.where(
@@ -244,6 +274,7 @@ class RigidChain:
 
     def __init__(self, flexible: DHChain) -> None:
         self.actuated = flexible.actuated
+        self.virtual: tuple[str, ...] = ()  # frozen at δ = 0
         self._lead = np.eye(4)  # virtual rows before the first actuated joint
         self._links: list[tuple[float, Array]] = []  # (offset, fixed transform after Rz(θ))
         for row in flexible.rows:

@@ -78,12 +78,14 @@ def _arc_angle(x: Array, xc: Array) -> float:
     return float(np.arctan2(x[0] - xc[0], -(x[2] - xc[2])))
 
 
-def circular(x0: ArrayLike, xg: ArrayLike, xc: ArrayLike, speed: float, n: int, lengths: ArmLengths,
-             elbow: int = 1) -> SetPoints:  # fmt: skip
+def circular(
+    x0: ArrayLike, xg: ArrayLike, xc: ArrayLike, speed: float, n: int, lengths: ArmLengths, elbow: int = 1
+) -> SetPoints:
     """Algorithm 2 generalised: the shorter arc about xc from x0 to xg in the XZ plane, N steps.
 
     The paper's loop x_{k+1} = [xc1 + r sin(αk), 0, xc3 − r cos(αk)], α = π/(2N), is the case of x0 directly
-    below xc and a quarter turn; here the start and end angles come from x0 and xg.
+    below xc and a quarter turn; here the start and end angles come from x0 and xg (an exact half turn goes
+    the way of increasing φ). N + 1 points, x0 first; ẋ is tangent with magnitude ``speed``.
     """
     x0, xg, xc = (np.asarray(v, float) for v in (x0, xg, xc))
     r0, rg = np.linalg.norm(x0 - xc), np.linalg.norm(xg - xc)
@@ -93,11 +95,16 @@ def circular(x0: ArrayLike, xg: ArrayLike, xc: ArrayLike, speed: float, n: int, 
         )
     if np.any(np.abs([x0[1], xg[1], xc[1]]) > 1e-12):
         raise ValueError("circular trajectories lie in the XZ plane: y must be 0")
-    if speed <= 0 or n < 1:
-        raise ValueError("a circular trajectory needs speed > 0 and n ≥ 1")
+    if r0 == 0 or np.linalg.norm(xg - x0) == 0 or speed <= 0 or n < 1:
+        raise ValueError("a circular trajectory needs x0 ≠ xc, x0 ≠ xg, speed > 0 and n ≥ 1")
     phi0 = _arc_angle(x0, xc)
-    sweep = (_arc_angle(xg, xc) - phi0 + np.pi) % (2 * np.pi) - np.pi
-    phi = phi0 + sweep * np.arange(n + 1) / n
+    sweep = _arc_angle(xg, xc) - phi0
+    # the shorter way, sweep in (−π, π]; wrap only when needed so that the paper's case stays bit-exact
+    if sweep > np.pi:
+        sweep -= 2 * np.pi
+    elif sweep <= -np.pi:
+        sweep += 2 * np.pi
+    phi = phi0 + (sweep / n) * np.arange(n + 1)  # as Algorithm 2: α k with α = sweep / N
     x = np.stack([xc[0] + r0 * np.sin(phi), np.zeros_like(phi), xc[2] - r0 * np.cos(phi)], -1)
     direction = np.sign(sweep)
     xdot = speed * direction * np.stack([np.cos(phi), np.zeros_like(phi), np.sin(phi)], -1)
@@ -105,9 +112,14 @@ def circular(x0: ArrayLike, xg: ArrayLike, xc: ArrayLike, speed: float, n: int, 
     return _plan(t, x, xdot, lengths, elbow)
 
 
-def experiment1(name: str, lengths: ArmLengths, speed: float = 0.02, n_per_segment: int = 50,
-                elbow: int = 1) -> SetPoints:  # fmt: skip
-    """One of Experiment 1's trajectories ('linear', 'curve', 'square') with the paper's points."""
+def experiment1(
+    name: str, lengths: ArmLengths, speed: float = 0.02, n_per_segment: int = 50, elbow: int = 1
+) -> SetPoints:
+    """An Experiment 1 trajectory ('linear', 'curve' or 'square') with the paper's points (seed 000, V.A).
+
+    'curve' is the two arcs, ending back at its start; 'square' is closed (the paper's four points, four
+    sides, back to [350, 0, 50] mm). Segments are joined without repeating their shared end points.
+    """
     if name not in EXPERIMENT1_POINTS_MM:
         raise ValueError(
             f"unknown Experiment 1 trajectory {name!r}; choose one of {', '.join(EXPERIMENT1_NAMES)}"

@@ -67,11 +67,30 @@ def test_jacobian_matches_central_differences():
     assert np.abs(vsl_jacobian(q, L) - numeric).max() < 1e-6
 
 
+@pytest.mark.parametrize("elbow", [1, -1])
+def test_ik_on_the_workspace_boundaries(elbow):
+    azim = np.linspace(-np.pi, np.pi, 7)
+    stretched = np.stack([0.5 * np.cos(azim), 0.5 * np.sin(azim), np.full(7, L.l1)], -1)  # r3 = L2 + L3
+    on_axis = np.array([[0.0, 0.0, 0.3], [0.0, 0.0, -0.2]])  # r1 = 0: θ1 = 0
+    folded = np.array([0.0, 0.0, L.l1])  # r3 = 0 = |L2 − L3|: any θ2 works
+    for x in (stretched, on_axis, folded):
+        q = vsl_ik(x, L, elbow)
+        assert np.all(np.isfinite(q))
+        assert np.abs(vsl_fk(q, L) - x).max() < 1e-9
+    np.testing.assert_array_equal(vsl_ik(on_axis, L, elbow)[:, 0], 0.0)
+
+
 def test_unreachable_target_raises_a_clear_error():
     with pytest.raises(
-        UnreachableError, match=r"1 target\(s\) unreachable, first at \[700\.0, 0\.0, 100\.0\] mm"
+        UnreachableError,
+        match=r"2 target\(s\) unreachable, first at \[700\.0, 0\.0, 100\.0\] mm \(flat index 1\).*"
+        r"\[0\.0, 500\.0\] mm",
     ):
-        vsl_ik(np.array([[0.3, 0, 0.2], [0.7, 0, 0.1]]), L)
+        vsl_ik(np.array([[0.3, 0, 0.2], [0.7, 0, 0.1], [0, 0.6, 0.1]]), L)
+    with pytest.raises(UnreachableError, match="1 target"):
+        vsl_ik(np.array([np.nan, 0, 0.2]), L)
+    with pytest.raises(UnreachableError, match=r"\[100\.0, 400\.0\] mm"):  # the annulus of unequal links
+        vsl_ik(np.array([0.05, 0, L.l1]), ArmLengths(0.1, 0.25, 0.15))
     with pytest.raises(ValueError, match="elbow"):
         vsl_ik(np.array([0.3, 0, 0.2]), L, elbow=0)
 
@@ -81,8 +100,9 @@ def test_inverse_jacobian_velocity_and_singularity():
     xdot = np.array([0.01, 0.0, -0.02])
     qd = inverse_jacobian_velocity(vsl_jacobian(q, L), xdot)
     np.testing.assert_allclose(vsl_jacobian(q, L) @ qd, xdot, atol=1e-12)
-    with pytest.raises(SingularityError):
-        inverse_jacobian_velocity(vsl_jacobian(np.array([0.0, 0.3, 0.0]), L), xdot)  # arm stretched out
+    batch = vsl_jacobian(np.array([q, [0.0, 0.3, 0.0]]), L)  # the second: arm stretched out
+    with pytest.raises(SingularityError, match=r"1 of 2 configuration.*flat index 1"):
+        inverse_jacobian_velocity(batch, xdot)
 
 
 def test_vsl_as_a_dh_chain_equals_eq1():
@@ -101,6 +121,17 @@ def test_popup_chain_with_zero_deflection_matches_the_rigid_model():
     q = np.random.default_rng(5).uniform(-3, 3, (1000, 3))
     np.testing.assert_allclose(chain.fk(q), chain.rigid().fk(q), atol=1e-12)
     np.testing.assert_allclose(chain.fk(q, np.zeros(4)), chain.fk(q), atol=0)
+    assert np.abs(chain.fk(q, np.full(4, 0.01)) - chain.fk(q)).max() > 1e-3  # δ does change the pose
+
+
+def test_dh_chain_rejects_bad_shapes():
+    chain = dh_chain_from_table(POPUP_TABLE2_MM)
+    with pytest.raises(ValueError, match=r"q has shape \(4,\).*q1"):
+        chain.fk(np.zeros(4))
+    with pytest.raises(ValueError, match="delta has shape"):
+        chain.fk(np.zeros((5, 3)), np.zeros((5, 3)))
+    with pytest.raises(ValueError, match="unique"):
+        DHChain([DHRow(0.1, 0, 0, "q1"), DHRow(0.1, 0, 0, "q1")])
 
 
 def test_popup_virtual_joints_move_the_end_effector_as_expected():
@@ -118,9 +149,22 @@ def test_popup_virtual_joints_move_the_end_effector_as_expected():
         expected = eps * np.cross(axis, tip - origin)  # small rotation about the virtual axis
         np.testing.assert_allclose(moved, expected, atol=eps**2)  # up to second order
         assert np.linalg.norm(moved) > 0
-    # δ22 bends the last 590 mm body: the tip moves ≈ 0.590 m × δ
-    delta = np.array([0, 0, 0, eps])
-    assert np.linalg.norm(chain.position(q, delta) - tip) == pytest.approx(0.590 * eps, rel=1e-3)
+    # δ22 bends the last 590 mm body: the tip moves ≈ 0.590 m × δ, perpendicular to that body, towards
+    # the side that rotation about the frame's z axis by +δ turns it (z × body direction)
+    body = tip - frames[-2, :3, 3]
+    assert np.linalg.norm(body) == pytest.approx(0.590, abs=1e-12)
+    moved = chain.position(q, [0, 0, 0, eps]) - tip
+    assert np.linalg.norm(moved) == pytest.approx(0.590 * eps, rel=1e-3)
+    assert abs(moved @ body) < 1e-3 * np.linalg.norm(moved) * np.linalg.norm(body)
+    side = np.cross(frames[-2, :3, 2], body / np.linalg.norm(body))
+    assert moved @ side == pytest.approx(0.590 * eps, rel=1e-3)
+    # δ12 (link 1's hinge): the tip moves by its distance from that hinge's axis × δ
+    i12 = [r.joint for r in chain.rows].index("d12")
+    axis, origin = frames[i12, :3, 2], frames[i12, :3, 3]
+    lever = np.linalg.norm(np.cross(axis, tip - origin))
+    assert lever > 0.5
+    moved = chain.position(q, [0, eps, 0, 0]) - tip
+    assert np.linalg.norm(moved) == pytest.approx(lever * eps, rel=1e-3)
 
 
 def test_dh_chain_jacobian_matches_central_differences():

@@ -10,9 +10,11 @@ L = ArmLengths(0.100, 0.250, 0.250)
 
 
 def _consistent(plan, speed):
+    """FK(q) = x, and the FK velocity J q̇ has the commanded speed."""
     np.testing.assert_allclose(vsl_fk(plan.q, L), plan.x, atol=1e-9)
     xdot = np.einsum("nij,nj->ni", vsl_jacobian(plan.q, L), plan.qd)
     np.testing.assert_allclose(np.linalg.norm(xdot, axis=-1), speed, rtol=1e-9)
+    return xdot
 
 
 def test_linear_is_algorithm1():
@@ -22,17 +24,38 @@ def test_linear_is_algorithm1():
     np.testing.assert_allclose(plan.x[[0, -1]], [x0, xg], atol=1e-15)
     steps = np.diff(plan.x, axis=0)
     np.testing.assert_allclose(steps, np.broadcast_to(steps[0], steps.shape), atol=1e-15)  # evenly, collinear
-    assert plan.t[-1] == pytest.approx(0.3 / 0.02)
-    _consistent(plan, 0.02)
+    np.testing.assert_allclose(np.diff(plan.t), 0.3 / 0.02 / 30, rtol=1e-12)
+    assert plan.t[0] == 0 and plan.t[-1] == pytest.approx(0.3 / 0.02)
+    xdot = np.broadcast_to(0.02 * (xg - x0) / 0.3, (31, 3))
+    np.testing.assert_allclose(_consistent(plan, 0.02), xdot, atol=1e-12)  # J q̇ = ẋ
+    np.testing.assert_allclose(plan.qd, np.linalg.solve(vsl_jacobian(plan.q, L), xdot[..., None])[..., 0])
+
+
+def test_linear_off_the_xz_plane_and_elbow_down():
+    x0, xg = np.array([0.2, 0.1, 0.15]), np.array([0.1, -0.25, 0.3])
+    plan = linear(x0, xg, speed=0.05, n=20, lengths=L, elbow=-1)
+    assert np.all(plan.q[:, 2] >= 0)  # elbow down
+    direction = np.cross(plan.x - x0, xg - x0)
+    np.testing.assert_allclose(direction, 0, atol=1e-15)
+    _consistent(plan, 0.05)
+
+
+def test_concat_continues_the_clock():
+    a = linear([0.3, 0, 0.05], [0.3, 0, 0.15], 0.02, 4, L)
+    b = linear([0.3, 0, 0.15], [0.2, 0, 0.15], 0.02, 5, L)
+    ab = a.concat(b)
+    assert len(ab) == len(a) + len(b) == 11
+    np.testing.assert_allclose(ab.t[5:], a.t[-1] + (b.t[1] - b.t[0]) + b.t)
+    np.testing.assert_array_equal(ab.x, np.concatenate([a.x, b.x]))
 
 
 def test_circular_reproduces_the_papers_loop():
     n, speed = 40, 0.02
     x0, xg, xc = np.array([0.3, 0, 0.05]), np.array([0.4, 0, 0.15]), np.array([0.3, 0, 0.15])
     plan = circular(x0, xg, xc, speed, n, L)
-    r, alpha, k = 0.1, np.pi / (2 * n), np.arange(n + 1)
+    r, alpha, k = np.linalg.norm(xc - x0), np.pi / (2 * n), np.arange(n + 1)  # Algorithm 2's r and α
     paper = np.stack([xc[0] + r * np.sin(alpha * k), np.zeros(n + 1), xc[2] - r * np.cos(alpha * k)], -1)
-    np.testing.assert_allclose(plan.x, paper, atol=1e-15)
+    np.testing.assert_array_equal(plan.x, paper)  # bit for bit
     np.testing.assert_allclose(np.linalg.norm(plan.x - xc, axis=-1), r, atol=1e-15)
     _consistent(plan, speed)
     # Algorithm 2's velocity: [V cos(αk), 0, V sin(αk)]
@@ -41,9 +64,26 @@ def test_circular_reproduces_the_papers_loop():
                                atol=1e-12)  # fmt: skip
 
 
-def test_circular_rejects_points_off_the_circle():
+def test_circular_general_arc_endpoints_and_direction():
+    xc = np.array([0.3, 0, 0.2])
+    x0, xg = xc + 0.08 * np.array([np.cos(0.3), 0, np.sin(0.3)]), xc + 0.08 * np.array([0, 0, -1.0])
+    plan = circular(x0, xg, xc, 0.03, 33, L)
+    np.testing.assert_allclose(plan.x[[0, -1]], [x0, xg], atol=1e-15)
+    np.testing.assert_allclose(np.linalg.norm(plan.x - xc, axis=-1), 0.08, atol=1e-15)
+    xdot = _consistent(plan, 0.03)
+    np.testing.assert_allclose(np.einsum("ni,ni->n", xdot, plan.x - xc), 0, atol=1e-12)  # tangent
+    assert xdot[0] @ (xg - x0) > 0  # heading towards the goal the short way
+    arc = np.linalg.norm(np.diff(plan.x, axis=0), axis=-1)
+    np.testing.assert_allclose(arc, arc[0], rtol=1e-9)  # evenly spaced
+
+
+def test_circular_rejects_bad_input():
     with pytest.raises(ValueError, match="not on one circle"):
         circular([0.3, 0, 0.05], [0.45, 0, 0.15], [0.3, 0, 0.15], 0.02, 10, L)
+    with pytest.raises(ValueError, match="y must be 0"):
+        circular([0.3, 0.01, 0.05], [0.4, 0.01, 0.15], [0.3, 0.01, 0.15], 0.02, 10, L)
+    with pytest.raises(ValueError, match="x0 ≠ xg"):
+        circular([0.3, 0, 0.05], [0.3, 0, 0.05], [0.3, 0, 0.15], 0.02, 10, L)
 
 
 def test_curve_is_two_arcs_back_to_the_start():
