@@ -1,0 +1,394 @@
+"""The two Arduino boards (pressure: Uno + ADS1115 + L298; stepper: Nano + A4988), byte for byte.
+
+Both speak firmware/PROTOCOL.md: input is buffered until ``\\n``, every line gets exactly one reply, a bad
+checksum gets ``ERR - 1 CHECKSUM``. What stands behind a board is a small "hardware" interface (the twin in
+the rig; ``SimplePressureHardware``/``SimpleStepperHardware`` here). Setters carry no time, so before each
+command the emulator brings the hardware up to ``now_s`` by reading it once. Streaming is scheduled on the
+board's own (drifting, wrapping) clock exactly like the firmware: at most one line per loop, never faster
+than the rate, missed periods are skipped.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+from typing import Protocol
+
+import numpy as np
+
+from acquisition.protocols import boards as bp
+from acquisition.sim.emulators.base import Emulator
+
+log = logging.getLogger(__name__)
+FIRMWARE_VERSION = "1.0.0"
+_HALF_WRAP = bp.MICROS_MODULO // 2
+_FRAMED = re.compile(rb"[\x20-\x7e]{0,%d}\*[0-9A-Fa-f]{2}\r?" % bp.MAX_BODY)
+
+
+class PressureHardware(Protocol):
+    """What stands behind the pressure board."""
+
+    def set_pressure(self, channel: int, pa: float) -> None:
+        """New regulator set-point (gauge Pa)."""
+
+    def set_valve(self, channel: int, open: bool) -> None:
+        """Energise (open) or release a solenoid valve."""
+
+    def sample(self, now_s: float) -> tuple[int, int]:
+        """ADS1115 counts of channels 0 and 1 at ``now_s``."""
+        ...
+
+    def micros(self, now_s: float) -> int:
+        """The board's ``micros()`` (own clock, wraps at 2³²)."""
+        ...
+
+
+class StepperHardware(Protocol):
+    """What stands behind the stepper board."""
+
+    def move_to(self, steps: int) -> None:
+        """New absolute target (microsteps)."""
+
+    def set_speed(self, steps_s: float, accel: float) -> None:
+        """Maximum speed (microsteps/s) and acceleration (microsteps/s²)."""
+
+    def stop(self) -> None:
+        """Stop as soon as possible."""
+
+    def position(self, now_s: float) -> int:
+        """Position (microsteps) at ``now_s``."""
+        ...
+
+    def moving(self, now_s: float) -> bool:
+        """Whether the motor is still moving at ``now_s``."""
+        ...
+
+    def micros(self, now_s: float) -> int:
+        """The board's ``micros()`` (own clock, wraps at 2³²)."""
+        ...
+
+
+# ---------------------------------------------------------------------------------- simple hardware
+class DriftingClock:
+    """A board clock: ``micros = (offset + now·(1 + ppm·1e-6))·1e6`` mod 2³²."""
+
+    def __init__(self, drift_ppm: float = 0.0, offset_s: float = 0.0) -> None:
+        self.drift_ppm = drift_ppm
+        self.offset_s = offset_s
+
+    def micros(self, now_s: float) -> int:
+        """The wrapping microsecond counter at host time ``now_s``."""
+        return int((self.offset_s + now_s * (1.0 + self.drift_ppm * 1e-6)) * 1e6) % bp.MICROS_MODULO
+
+
+class SimplePressureHardware:
+    """Two first-order regulators (τ 30 ms), vent valves (τ 20 ms when open, a GUESS of the plumbing),
+    0–4 bar → 0.5–4.5 V transducers, ADS1115 at ±4.096 V (125 µV LSB, 30 µV rms noise, clips at 32767)."""
+
+    tau_s = 0.030
+    vent_tau_s = 0.020
+    transducer_range_pa = 400_000.0
+    noise_v = 30e-6
+
+    def __init__(self, drift_ppm: float = 1500.0, offset_s: float = 0.0, seed: int = 0) -> None:
+        self.clock = DriftingClock(drift_ppm, offset_s)
+        self.setpoint_pa = [0.0, 0.0]
+        self.pressure_pa = [0.0, 0.0]
+        self.valve_open = [False, False]
+        self._last_s: float | None = None
+        self._rng = np.random.default_rng(seed)
+
+    def set_pressure(self, channel: int, pa: float) -> None:
+        """New regulator set-point."""
+        self.setpoint_pa[channel] = float(pa)
+
+    def set_valve(self, channel: int, open: bool) -> None:
+        """An open valve vents its chamber to the atmosphere."""
+        self.valve_open[channel] = bool(open)
+
+    def advance(self, now_s: float) -> None:
+        """Integrate the chamber pressures up to ``now_s`` (exact for piecewise-constant inputs)."""
+        dt = 0.0 if self._last_s is None else max(0.0, now_s - self._last_s)
+        self._last_s = now_s if self._last_s is None else max(self._last_s, now_s)
+        for ch in (0, 1):
+            target, tau = (
+                (0.0, self.vent_tau_s) if self.valve_open[ch] else (self.setpoint_pa[ch], self.tau_s)
+            )
+            self.pressure_pa[ch] = target + (self.pressure_pa[ch] - target) * math.exp(-dt / tau)
+
+    def sample(self, now_s: float) -> tuple[int, int]:
+        """ADC counts of both transducers."""
+        self.advance(now_s)
+        counts = []
+        for ch in (0, 1):
+            volts = 0.5 + 4.0 * self.pressure_pa[ch] / self.transducer_range_pa
+            volts += self.noise_v * float(self._rng.standard_normal())
+            counts.append(int(np.clip(round(volts / bp.ADC_LSB_V), -32768, 32767)))
+        return counts[0], counts[1]
+
+    def micros(self, now_s: float) -> int:
+        """The Uno's resonator clock."""
+        return self.clock.micros(now_s)
+
+
+class SimpleStepperHardware:
+    """Constant-speed moves (acceleration ignored), instant stop, on a crystal clock (default +40 ppm)."""
+
+    def __init__(self, drift_ppm: float = 40.0, offset_s: float = 0.0) -> None:
+        self.clock = DriftingClock(drift_ppm, offset_s)
+        self.speed_steps_s = 1000.0
+        self.accel_steps_s2 = 5000.0
+        self.target = 0
+        self._pos = 0.0
+        self._last_s: float | None = None
+
+    def _advance(self, now_s: float) -> None:
+        dt = 0.0 if self._last_s is None else max(0.0, now_s - self._last_s)
+        self._last_s = now_s if self._last_s is None else max(self._last_s, now_s)
+        remaining = self.target - self._pos
+        step = min(abs(remaining), self.speed_steps_s * dt)
+        self._pos += math.copysign(step, remaining)
+
+    def move_to(self, steps: int) -> None:
+        """New absolute target."""
+        self.target = int(steps)
+
+    def set_speed(self, steps_s: float, accel: float) -> None:
+        """Speed used from now on; the acceleration is only remembered."""
+        self.speed_steps_s, self.accel_steps_s2 = float(steps_s), float(accel)
+
+    def stop(self) -> None:
+        """Stop where the motor is."""
+        self.target = round(self._pos)
+        self._pos = float(self.target)
+
+    def position(self, now_s: float) -> int:
+        """Whole microsteps taken so far."""
+        self._advance(now_s)
+        return math.trunc(self._pos)
+
+    def moving(self, now_s: float) -> bool:
+        """True until the target is reached."""
+        self._advance(now_s)
+        return self.position(now_s) != self.target
+
+    def micros(self, now_s: float) -> int:
+        """The Nano's clock."""
+        return self.clock.micros(now_s)
+
+
+# ---------------------------------------------------------------------------------------- emulators
+class _LineBoard(Emulator):
+    """Line framing, checksums, tags, ID?/STREAM and the micros()-based stream scheduler."""
+
+    board = ""
+    serial_number = ""
+
+    def __init__(self) -> None:
+        self._rx = bytearray()
+        self._overflow = False
+        self.stream_hz = 0
+        self._period_us = 0
+        self._next_us = 0
+        self.seq = 0
+        self._booted = False
+
+    def reset_link(self) -> None:
+        self._rx.clear()
+        self._overflow = False
+
+    def feed(self, data: bytes, now_s: float) -> bytes:
+        out = bytearray()
+        for byte in data:
+            if byte == 0x0A:
+                if self._overflow:
+                    out += bp.encode(f"ERR - {bp.E_MALFORMED} {bp.ERROR_NAMES[bp.E_MALFORMED]}")
+                else:
+                    out += self._answer(bytes(self._rx), now_s)
+                self._rx.clear()
+                self._overflow = False
+            elif len(self._rx) >= bp.MAX_BODY + 4:  # body + "*XX" + optional "\r"
+                self._overflow = True
+            else:
+                self._rx.append(byte)
+        return bytes(out)
+
+    def _answer(self, line: bytes, now_s: float) -> bytes:
+        try:
+            body = bp.decode(line)
+        except bp.BoardChecksumError:
+            well_formed = _FRAMED.fullmatch(line) is not None  # the firmware's order: framing, then checksum
+            code = bp.E_CHECKSUM if well_formed else bp.E_MALFORMED
+            return bp.encode(f"ERR - {code} {bp.ERROR_NAMES[code]}")
+        try:
+            cmd = bp.parse_command(body)
+        except bp.BoardSyntaxError:
+            return bp.encode(f"ERR - {bp.E_MALFORMED} {bp.ERROR_NAMES[bp.E_MALFORMED]}")
+        self._touch(now_s)
+        try:
+            reply = self._command(cmd, now_s)
+        except _Reject as exc:
+            reply = f"ERR {cmd.tag} {exc.code} {bp.ERROR_NAMES[exc.code]}"
+        return bp.encode(reply)
+
+    def _command(self, cmd: bp.Command, now_s: float) -> str:
+        if cmd.verb == "ID?":
+            _nargs(cmd, 0)
+            return f"ID {cmd.tag} {self.board} {FIRMWARE_VERSION} {self.serial_number}"
+        if cmd.verb == "STREAM":
+            _nargs(cmd, 1)
+            rate = _arg(cmd.args[0], 0, bp.MAX_STREAM_HZ)
+            self.stream_hz = rate
+            if rate:
+                self._period_us = 1_000_000 // rate
+                self._next_us = self._micros(now_s)  # first line on the next loop
+            return f"OK {cmd.tag} STREAM"
+        raise _Reject(bp.E_UNKNOWN)
+
+    def poll(self, now_s: float) -> bytes:
+        out = b""
+        if not self._booted:
+            self._booted = True
+            out = bp.encode(f"READY {self.board} {FIRMWARE_VERSION}")
+        if not self.stream_hz:
+            return out
+        now_us = self._micros(now_s)
+        if (now_us - self._next_us) % bp.MICROS_MODULO >= _HALF_WRAP:
+            return out  # not due yet
+        self._next_us = (self._next_us + self._period_us) % bp.MICROS_MODULO
+        if (now_us - self._next_us) % bp.MICROS_MODULO < _HALF_WRAP:  # fell behind by a period: skip
+            self._next_us = (now_us + self._period_us) % bp.MICROS_MODULO
+        body = self._sample_body(now_s, now_us)
+        self.seq = (self.seq + 1) % bp.SEQ_MODULO
+        return out + bp.encode(body)
+
+    # hooks
+    def _touch(self, now_s: float) -> None:
+        """Bring the hardware model up to ``now_s`` before a command changes it."""
+
+    def _micros(self, now_s: float) -> int:
+        raise NotImplementedError
+
+    def _sample_body(self, now_s: float, now_us: int) -> str:
+        raise NotImplementedError
+
+
+class _Reject(Exception):
+    def __init__(self, code: int) -> None:
+        super().__init__(bp.ERROR_NAMES[code])
+        self.code = code
+
+
+def _nargs(cmd: bp.Command, n: int) -> None:
+    if len(cmd.args) != n:
+        raise _Reject(bp.E_ARGS)
+
+
+def _arg(text: str, low: int, high: int) -> int:
+    """A decimal integer argument within limits (ERR ARGS / ERR RANGE otherwise)."""
+    body = text[1:] if text[:1] in "+-" else text
+    if not body.isdigit() or len(body) > 10:
+        raise _Reject(bp.E_ARGS)
+    value = int(text)
+    if not low <= value <= high:
+        raise _Reject(bp.E_RANGE)
+    return value
+
+
+class PressureBoardEmulator(_LineBoard):
+    """The Uno: SET, VALVE, STREAM, STOP, ID? (PROTOCOL.md)."""
+
+    name = "pressure_board"
+    board = bp.BOARD_PRESSURE
+
+    def __init__(self, hardware: PressureHardware, serial_number: str = "VSLP-0001") -> None:
+        super().__init__()
+        self.hw = hardware
+        self.serial_number = serial_number
+        self.valves = 0
+
+    def _touch(self, now_s: float) -> None:
+        self.hw.sample(now_s)
+
+    def _micros(self, now_s: float) -> int:
+        return self.hw.micros(now_s)
+
+    def _command(self, cmd: bp.Command, now_s: float) -> str:
+        if cmd.verb == "SET":
+            _nargs(cmd, 2)
+            channel, pa = _arg(cmd.args[0], 0, 1), _arg(cmd.args[1], 0, bp.MAX_SET_PA)
+            self.hw.set_pressure(channel, float(pa))
+            return f"OK {cmd.tag} SET"
+        if cmd.verb == "VALVE":
+            _nargs(cmd, 2)
+            channel, state = _arg(cmd.args[0], 0, 1), _arg(cmd.args[1], 0, 1)
+            self.hw.set_valve(channel, bool(state))
+            self.valves = (self.valves & ~(1 << channel)) | (state << channel)
+            return f"OK {cmd.tag} VALVE"
+        if cmd.verb == "STOP":
+            _nargs(cmd, 0)
+            for channel in (0, 1):
+                self.hw.set_pressure(channel, 0.0)
+                self.hw.set_valve(channel, False)
+            self.valves = 0
+            self.stream_hz = 0
+            return f"OK {cmd.tag} STOP"
+        return super()._command(cmd, now_s)
+
+    def _sample_body(self, now_s: float, now_us: int) -> str:
+        c0, c1 = self.hw.sample(now_s)
+        return f"P {self.seq} {now_us} {c0} {c1} {self.valves}"
+
+
+class StepperBoardEmulator(_LineBoard):
+    """The Nano: MOVE, SPEED, POS?, STOP, STREAM, ID? (PROTOCOL.md)."""
+
+    name = "stepper_board"
+    board = bp.BOARD_STEPPER
+
+    def __init__(self, hardware: StepperHardware, serial_number: str = "VSLS-0001") -> None:
+        super().__init__()
+        self.hw = hardware
+        self.serial_number = serial_number
+
+    def _touch(self, now_s: float) -> None:
+        self.hw.position(now_s)
+
+    def _micros(self, now_s: float) -> int:
+        return self.hw.micros(now_s)
+
+    def _command(self, cmd: bp.Command, now_s: float) -> str:
+        if cmd.verb == "MOVE":
+            _nargs(cmd, 1)
+            self.hw.move_to(_arg(cmd.args[0], -bp.MAX_ABS_STEPS, bp.MAX_ABS_STEPS))
+            return f"OK {cmd.tag} MOVE"
+        if cmd.verb == "SPEED":
+            _nargs(cmd, 2)
+            speed = _arg(cmd.args[0], 1, bp.MAX_SPEED_STEPS_S)
+            accel = _arg(cmd.args[1], 1, bp.MAX_ACCEL_STEPS_S2)
+            self.hw.set_speed(float(speed), float(accel))
+            return f"OK {cmd.tag} SPEED"
+        if cmd.verb == "STOP":
+            _nargs(cmd, 0)
+            self.hw.stop()
+            return f"OK {cmd.tag} STOP"
+        if cmd.verb == "POS?":
+            _nargs(cmd, 0)
+            moving = int(self.hw.moving(now_s))
+            return f"POS {cmd.tag} {self.hw.micros(now_s)} {self.hw.position(now_s)} {moving}"
+        return super()._command(cmd, now_s)
+
+    def _sample_body(self, now_s: float, now_us: int) -> str:
+        moving = int(self.hw.moving(now_s))
+        return f"S {self.seq} {now_us} {self.hw.position(now_s)} {moving}"
+
+
+def demo_pressure_board() -> PressureBoardEmulator:
+    """The pressure board on ``SimplePressureHardware`` (+1500 ppm clock), for ``acquisition.sim.serve``."""
+    return PressureBoardEmulator(SimplePressureHardware())
+
+
+def demo_stepper_board() -> StepperBoardEmulator:
+    """The stepper board on ``SimpleStepperHardware``, for ``acquisition.sim.serve``."""
+    return StepperBoardEmulator(SimpleStepperHardware())
