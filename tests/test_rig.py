@@ -58,3 +58,47 @@ def test_bad_control_commands_get_an_error_reply(host_factory, tmp_path, command
     with host_factory(**RIG):
         reply = send_control(tmp_path / "run", command)
         assert reply["ok"] is False and reply["error"]
+
+
+def test_pressure_board_regulates_the_twin_and_streams_on_its_own_clock(host_factory, tmp_path):
+    from acquisition.devices.boards import PressureBoard
+    from acquisition.sim import sensors, streams
+
+    robot = load_robot("vsl")
+    spec = streams.pressure_spec(robot)
+    with host_factory(**RIG) as ports, PressureBoard(ports["pressure_board"]) as board:
+        assert board.identity.board == "PRESSURE"
+        board.set_valve(0, True)
+        board.set_valve(1, True)
+        board.set_pressure(0, 120_000)
+        board.set_pressure(1, 80_000)
+        board.start_stream(100)
+        time.sleep(1.0)
+        samples = board.read_samples()
+        board.stop_stream()
+        assert len(samples) > 50
+        counts = np.array([s.counts for s in samples[-20:]])
+        pa = sensors.adc_counts_to_pressure(counts, spec).mean(axis=0)
+        np.testing.assert_allclose(pa, [120_000, 80_000], atol=1_500)
+        truth = send_control(tmp_path / "run", {"op": "state"})["pressure_pa"]
+        np.testing.assert_allclose(truth, [120_000, 80_000], rtol=1e-3)
+        seq = np.array([s.seq for s in samples])
+        assert np.all(np.diff(seq) == 1), "consecutive sequence numbers"
+        micros = np.array([s.micros for s in samples], dtype=float)
+        assert np.all(np.diff(micros) > 0)
+
+
+def test_stepper_board_turns_j1_of_the_twin(host_factory, tmp_path):
+    from acquisition.devices.boards import StepperBoard
+
+    robot = load_robot("vsl")
+    target = round(np.deg2rad(15.0) / robot.stepper.rad_per_microstep)
+    with host_factory(**RIG) as ports, StepperBoard(ports["stepper_board"]) as board:
+        board.set_speed(2000, 20000)
+        board.move_to(target)
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline and board.position().position_steps != target:
+            time.sleep(0.02)
+        assert board.position().position_steps == target
+        q1 = send_control(tmp_path / "run", {"op": "state"})["q"][0]
+        assert q1 == pytest.approx(target * robot.stepper.rad_per_microstep, abs=1e-9)

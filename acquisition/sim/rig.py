@@ -18,9 +18,10 @@ import numpy as np
 from acquisition.protocols import dynamixel as dx
 from acquisition.sim import sensors
 from acquisition.sim.emulators.base import Emulator
+from acquisition.sim.emulators.boards import PressureBoardEmulator, StepperBoardEmulator
 from acquisition.sim.emulators.dynamixel import DynamixelBusEmulator
 from acquisition.sim.ptyhost import PtyHost
-from acquisition.sim.twin_devices import TwinServos
+from acquisition.sim.twin_devices import TwinPressure, TwinServos, TwinStepper
 from acquisition.sim.world import World
 from models.robot import RobotDescription, load_robot
 
@@ -38,6 +39,10 @@ class Rig:
         self.emulators: dict[str, Emulator] = {}
         if "servo_bus" in robot.devices:
             self.emulators["servo_bus"] = self._servo_bus()
+        if "pressure_board" in robot.devices:
+            self.emulators["pressure_board"] = PressureBoardEmulator(TwinPressure(self))
+        if "stepper_board" in robot.devices and robot.stepper is not None:
+            self.emulators["stepper_board"] = StepperBoardEmulator(TwinStepper(self))
 
     def _servo_bus(self) -> DynamixelBusEmulator:
         ids = self.robot.devices["servo_bus"].ids
