@@ -102,3 +102,30 @@ def test_stepper_board_turns_j1_of_the_twin(host_factory, tmp_path):
         assert board.position().position_steps == target
         q1 = send_control(tmp_path / "run", {"op": "state"})["q"][0]
         assert q1 == pytest.approx(target * robot.stepper.rad_per_microstep, abs=1e-9)
+
+
+def test_unplugged_pressure_board_is_reported_and_reconnects(host_factory, tmp_path):
+    from acquisition.devices.boards import PressureBoard
+    from acquisition.errors import DeviceDisconnectedError, DeviceError, DeviceNotFoundError
+
+    run = tmp_path / "run"
+    with host_factory(**RIG) as ports, PressureBoard(ports["pressure_board"]) as board:
+        board.start_stream(50)
+        time.sleep(0.2)
+        assert board.read_samples()
+        send_control(run, {"op": "fault", "device": "pressure_board", "kind": "unplug"})
+        with pytest.raises(DeviceError) as info:
+            for _ in range(50):  # the loss shows on the next read or command
+                board.read_samples()
+                board.set_valve(0, True)
+                time.sleep(0.01)
+        assert isinstance(
+            info.value, DeviceDisconnectedError | DeviceNotFoundError
+        ) or "pressure board" in str(info.value)
+        with pytest.raises(DeviceNotFoundError):
+            board.reconnect()
+        send_control(run, {"op": "fault", "device": "pressure_board", "kind": "plug"})
+        board.reconnect()
+        board.start_stream(50)
+        time.sleep(0.2)
+        assert board.read_samples(), "streaming again after the replug, same process"
