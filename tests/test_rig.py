@@ -129,3 +129,48 @@ def test_unplugged_pressure_board_is_reported_and_reconnects(host_factory, tmp_p
         board.start_stream(50)
         time.sleep(0.2)
         assert board.read_samples(), "streaming again after the replug, same process"
+
+
+def test_tracker_frames_follow_the_twins_tip_and_missing_is_nan(host_factory, tmp_path):
+    from acquisition.devices.tracker import Tracker
+    from acquisition.sim import streams
+
+    robot = load_robot("vsl")
+    transform = streams.tracker_spec(robot).base_to_tracker
+    run = tmp_path / "run"
+    with host_factory(**RIG) as ports, Tracker(ports["tracker"]) as trk:
+        frames = [trk.read() for _ in range(40)]
+        truth = send_control(run, {"op": "state"})
+        pose = robot.chain().fk(np.array(truth["q"]), np.array(truth["delta"]))
+        expected = transform[:3, :3] @ pose[:3, 3] + transform[:3, 3]
+        positions = np.array([f.position_m for f in frames[-20:]])
+        assert not any(f.missing for f in frames)
+        np.testing.assert_allclose(
+            positions.mean(axis=0), expected, atol=0.3e-3
+        )  # arm at rest, noise 0.25 mm
+        assert np.all(np.diff([f.frame for f in frames]) >= 0)
+        send_control(run, {"op": "coil", "inside": False})
+        time.sleep(0.1)
+        gone = trk.read()
+        assert gone.missing and np.isnan(gone.position_m).all() and np.isnan(gone.quaternion).all()
+        assert gone.port_status & 0x40, "out-of-volume bit"
+        send_control(run, {"op": "coil", "inside": True})
+        time.sleep(0.1)
+        assert not trk.read().missing
+
+
+def test_unplugged_tracker_is_reported_and_reconnects(host_factory, tmp_path):
+    from acquisition.devices.tracker import Tracker
+    from acquisition.errors import DeviceDisconnectedError, DeviceNotFoundError
+
+    run = tmp_path / "run"
+    with host_factory(**RIG) as ports, Tracker(ports["tracker"]) as trk:
+        trk.read()
+        send_control(run, {"op": "fault", "device": "tracker", "kind": "unplug"})
+        with pytest.raises(DeviceDisconnectedError, match="NDI Aurora on"):
+            trk.read()
+        with pytest.raises(DeviceNotFoundError):
+            trk.reconnect()
+        send_control(run, {"op": "fault", "device": "tracker", "kind": "plug"})
+        trk.reconnect()
+        assert not trk.read().missing

@@ -3,7 +3,8 @@
     python -m acquisition.sim.rig --robot vsl --run-dir lab/rig      (or: vslab rig --robot vsl)
 
 Drivers (and the recorder) find the ports in ``<run-dir>/ports.json``. The control socket takes the
-operator's inputs ({"op": "payload", "kg": 0.05}) and test queries ({"op": "state"}) besides faults.
+operator's inputs ({"op": "payload", "kg": 0.05}), test faults of the twin ({"op": "coil", "inside": false}:
+the tracker coil leaves the field volume) and queries ({"op": "state"}) besides the port faults.
 """
 
 from __future__ import annotations
@@ -17,11 +18,12 @@ import numpy as np
 
 from acquisition.protocols import dynamixel as dx
 from acquisition.sim import sensors
+from acquisition.sim.emulators.aurora import AuroraEmulator
 from acquisition.sim.emulators.base import Emulator
 from acquisition.sim.emulators.boards import PressureBoardEmulator, StepperBoardEmulator
 from acquisition.sim.emulators.dynamixel import DynamixelBusEmulator
 from acquisition.sim.ptyhost import PtyHost
-from acquisition.sim.twin_devices import TwinPressure, TwinServos, TwinStepper
+from acquisition.sim.twin_devices import TwinPressure, TwinServos, TwinStepper, TwinTrackerSource
 from acquisition.sim.world import World
 from models.robot import RobotDescription, load_robot
 
@@ -43,6 +45,9 @@ class Rig:
             self.emulators["pressure_board"] = PressureBoardEmulator(TwinPressure(self))
         if "stepper_board" in robot.devices and robot.stepper is not None:
             self.emulators["stepper_board"] = StepperBoardEmulator(TwinStepper(self))
+        self.coil = TwinTrackerSource(self)
+        if "tracker" in robot.devices:
+            self.emulators["tracker"] = AuroraEmulator(self.coil)
 
     def _servo_bus(self) -> DynamixelBusEmulator:
         ids = self.robot.devices["servo_bus"].ids
@@ -70,6 +75,9 @@ class Rig:
         op = cmd["op"]
         if op == "payload":
             self.world.set_payload(float(cmd["kg"]))
+            return {"ok": True}
+        if op == "coil":  # the tracker coil leaves (inside=false) or re-enters the field volume
+            self.coil.force_out = not bool(cmd["inside"])
             return {"ok": True}
         if op == "state":
             st = self.world.state

@@ -7,13 +7,13 @@ world's commands, and reads the world's true state through the same sensor model
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from acquisition.protocols import dynamixel as dx
 from acquisition.sim import sensors, streams
+from acquisition.sim.emulators.aurora import TrackerSample
 from acquisition.sim.emulators.dynamixel import ControlTable
 
 if TYPE_CHECKING:
@@ -126,18 +126,6 @@ class TwinStepper:
         return _ticks(self.rig, "stepper_board")
 
 
-@dataclass(frozen=True)
-class CoilReading:
-    """One tracker frame of the tip coil (tracker frame, SI; NaN pose when missing)."""
-
-    frame: int
-    position_m: np.ndarray
-    quaternion: np.ndarray
-    rms_error: float
-    missing: bool
-    port_status: int
-
-
 class TwinTrackerSource:
     """The tip coil as the tracker sees it, at the tracker's own frame counter; ``force_out`` moves the coil
     out of the field volume (the fault a test asks for)."""
@@ -149,7 +137,7 @@ class TwinTrackerSource:
         self.tool = np.asarray(rig.robot.tool_offset_m)
         self.force_out = False
 
-    def __call__(self, now_s: float) -> CoilReading:
+    def __call__(self, now_s: float) -> TrackerSample:
         self.rig.advance(now_s)
         st = self.rig.world.state
         pose = self.chain.fk(st.out_pos[0], st.delta[0])
@@ -157,11 +145,11 @@ class TwinTrackerSource:
         if self.force_out:
             tip = tip + 10.0  # far outside any field volume
         reading = sensors.tracker_measurement(tip[None], pose[None, :3, :3], self.spec, self.rig.world.rng)
-        return CoilReading(
+        return TrackerSample(
             frame=_ticks(self.rig, "tracker"),
             position_m=reading.position_m[0],
             quaternion=reading.quaternion[0],
-            rms_error=float(reading.rms_error[0]),
+            rms_error=float(reading.rms_error[0]) * 1e-3,  # the sensor model reports mm
             missing=bool(reading.missing[0]),
             port_status=int(reading.port_status[0]),
         )
