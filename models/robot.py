@@ -160,6 +160,8 @@ class ServoSpec(_Model):
     loop_time_constant_s: PositiveFloat
     backlash_rad: NonNegFloat
     torque_constant_nm_per_a: PositiveFloat
+    max_torque_nm: PositiveFloat  # stall/peak torque: the drive cannot push harder, whatever the loop asks
+    max_speed_rad_s: PositiveFloat  # top speed: what a profile velocity of 0 ("unlimited") really means
     idle_current_a: NonNegFloat
     friction_current_a: NonNegFloat
     rotor_inertia_kgm2: NonNegFloat

@@ -12,6 +12,9 @@ the ones the model functions give (tests call the same functions vectorised).
 Simplifications (documented, deliberate): virtual joints are decoupled from each other (each sees the
 gravity torque of everything distal to it, its own distal inertia, and the acceleration of the actuated
 joints before it about its axis); centrifugal and Coriolis terms are neglected (joint speeds ≤ 3 rad/s).
+Drives are bounded by their stall torque and top speed; "unlimited" profiles accelerate with the torque left
+after gravity. The position loop is first order with a torque-dependent droop, so when the torque saturates
+the output speed overshoots the profile for a few milliseconds (up to ≈ 2× top speed on a jolt).
 """
 
 from __future__ import annotations
@@ -62,6 +65,8 @@ class KernelParams:
     drive_tau: np.ndarray  # (A,) s, position-loop time constant
     drive_backlash_half: np.ndarray  # (A,) rad
     drive_quantum: np.ndarray  # (A,) rad per microstep (steppers), 0 otherwise
+    drive_max_torque: np.ndarray  # (A,) N·m the drive can deliver
+    drive_max_speed: np.ndarray  # (A,) rad/s: the speed of an "unlimited" profile
     reg_alpha: float  # 1 − exp(−dt/τ_regulator)
     reg_max: float
     leak_factor: float  # exp(−dt/τ_leak)
@@ -138,7 +143,8 @@ def advance(params: KernelParams, state: KernelState, cmd: KernelCommands, n: in
         n, p.dt, p.gravity, p.row_a, alpha_cs, p.row_d, p.row_offset, p.row_virtual, p.row_var,
         p.tool_offset, p.mass_frame, p.mass_pos, p.mass_kg, p.mass_inertia, p.vj_link, p.vj_delta_h,
         p.vj_tau_y, p.link_channel, p.table_n, p.table_p, p.table_k, p.table_c, p.drive_kind,
-        p.drive_stiffness, p.drive_tau, p.drive_backlash_half, p.drive_quantum, p.reg_alpha, p.reg_max,
+        p.drive_stiffness, p.drive_tau, p.drive_backlash_half, p.drive_quantum, p.drive_max_torque,
+        p.drive_max_speed, p.reg_alpha, p.reg_max,
         p.leak_factor,
         state.ref_pos, state.ref_vel, state.loop_pos, state.loop_vel, state.loop_acc, state.out_pos,
         state.out_vel, state.torque, state.delta, state.delta_dot, state.hyst_z, state.vj_torque,
@@ -242,7 +248,8 @@ def _joint_loads(frames, mass_frame, world_pos, mass_kg, mass_inertia, payload, 
 def _advance(
     n, dt, gravity, row_a, row_alpha, row_d, row_offset, row_virtual, row_var, tool, mass_frame, mass_pos,
     mass_kg, mass_inertia, vj_link, vj_delta_h, vj_tau_y, link_channel, table_n, table_p, table_k, table_c,
-    drive_kind, drive_stiffness, drive_tau, drive_backlash_half, drive_quantum, reg_alpha, reg_max,
+    drive_kind, drive_stiffness, drive_tau, drive_backlash_half, drive_quantum, drive_max_torque,
+    drive_max_speed, reg_alpha, reg_max,
     leak_factor,
     ref_pos, ref_vel, loop_pos, loop_vel, loop_acc, out_pos, out_vel, torque, delta, delta_dot, hyst_z,
     vj_torque, reg_buf, buf_idx, reg_out, p_link,
@@ -280,12 +287,21 @@ def _advance(
                              loads)  # fmt: skip
                 prev_out = out_pos[b, j]
                 prev_ref_vel = ref_vel[b, j]
+                # "unlimited" (0) profiles mean what the motor can do: its top speed, and the acceleration
+                # its torque leaves after holding gravity
+                vmax = prof_vel[b, j] if prof_vel[b, j] > 0.0 else drive_max_speed[j]
+                vmax = min(vmax, drive_max_speed[j])
+                amax = prof_acc[b, j]
+                if drive_max_torque[j] < np.inf and loads[1] > 0.0:
+                    reserve = max(drive_max_torque[j] - abs(loads[0]), 0.05 * drive_max_torque[j])
+                    amax = min(amax, reserve / loads[1]) if amax > 0.0 else reserve / loads[1]
                 ref_pos[b, j], ref_vel[b, j] = _profile_step(
-                    ref_pos[b, j], ref_vel[b, j], goal[b, j], prof_vel[b, j], prof_acc[b, j], dt
+                    ref_pos[b, j], ref_vel[b, j], goal[b, j], vmax, amax, dt
                 )
                 # the drive holds gravity and accelerates the distal inertia along its profile (the
                 # reference acceleration: using the loop's own acceleration would close an algebraic loop)
-                torque[b, j] = -loads[0] + loads[1] * (ref_vel[b, j] - prev_ref_vel) / dt
+                demand = -loads[0] + loads[1] * (ref_vel[b, j] - prev_ref_vel) / dt
+                torque[b, j] = min(max(demand, -drive_max_torque[j]), drive_max_torque[j])
                 if drive_kind[j] == DRIVE_STEPPER:
                     new = round(ref_pos[b, j] / drive_quantum[j]) * drive_quantum[j]
                     loop_acc[b, j] = (ref_vel[b, j] - loop_vel[b, j]) / dt

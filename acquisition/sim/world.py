@@ -86,6 +86,12 @@ def build_params(robot: RobotDescription, dt: float = DEFAULT_DT) -> kernel.Kern
         drive_tau=np.full(len(actuated), servo.loop_time_constant_s if servo else 1.0),
         drive_backlash_half=np.full(len(actuated), servo.backlash_rad / 2 if servo else 0.0),
         drive_quantum=np.where(is_stepper, stepper.rad_per_microstep if stepper else 0.0, 0.0),
+        drive_max_torque=np.where(is_stepper, np.inf, servo.max_torque_nm if servo else np.inf),
+        drive_max_speed=np.where(
+            is_stepper,
+            stepper.max_speed_rad_s if stepper else np.inf,
+            servo.max_speed_rad_s if servo else np.inf,
+        ),
         reg_alpha=1.0 - math.exp(-dt / pn.regulator_time_constant_s),
         reg_max=pn.regulator_max_pa,
         leak_factor=math.exp(-dt / pn.leak_time_constant_s),
