@@ -13,15 +13,27 @@ from typing import Literal
 
 import numpy as np
 
+# A sample taken exactly on a tick boundary must count that tick despite float rounding of (1 + ε)·t + b.
+_TICK_EPS = 1e-9
+
 
 @dataclass(frozen=True)
 class ClockSpec:
-    """A device counter: tick length, wrap modulus (None = never wraps), drift spread, start offset range."""
+    """A device counter: tick length (s), wrap modulus (None = never wraps), drift spread (ppm, 1σ) and the
+    range [0, offset_max_s) of its start offset."""
 
     tick_s: float
     wrap: int | None
     drift_ppm_sigma: float
     offset_max_s: float
+
+    def __post_init__(self) -> None:
+        if not self.tick_s > 0:
+            raise ValueError(f"tick_s must be > 0, got {self.tick_s}")
+        if self.wrap is not None and self.wrap < 2:
+            raise ValueError(f"wrap must be None or ≥ 2, got {self.wrap}")
+        if self.drift_ppm_sigma < 0 or self.offset_max_s < 0:
+            raise ValueError("drift_ppm_sigma and offset_max_s must be ≥ 0")
 
 
 class DeviceClocks:
@@ -29,65 +41,89 @@ class DeviceClocks:
 
     def __init__(self, spec: ClockSpec, batch: int, rng: np.random.Generator) -> None:
         self.spec = spec
-        self.drift_ppm = rng.normal(0.0, spec.drift_ppm_sigma, size=batch)
-        self.offset_s = (
+        self.drift_ppm: np.ndarray = rng.normal(0.0, spec.drift_ppm_sigma, size=batch)
+        self.offset_s: np.ndarray = (
             rng.uniform(0.0, spec.offset_max_s, size=batch) if spec.offset_max_s > 0 else np.zeros(batch)
         )
 
     @classmethod
     def from_truth(cls, spec: ClockSpec, drift_ppm: np.ndarray, offset_s: np.ndarray) -> DeviceClocks:
-        """Clocks with pinned drift and offset (tests, or a config that fixes them)."""
+        """Clocks with pinned drift (ppm) and offset (s), both (B,) (tests, or a config that fixes them)."""
+        drift = np.atleast_1d(np.asarray(drift_ppm, dtype=float))
+        offset = np.atleast_1d(np.asarray(offset_s, dtype=float))
+        if drift.ndim != 1 or drift.shape != offset.shape:
+            raise ValueError(f"drift_ppm {drift.shape} and offset_s {offset.shape} must both be (B,)")
         clocks = cls.__new__(cls)
-        clocks.spec = spec
-        clocks.drift_ppm = np.asarray(drift_ppm, dtype=float)
-        clocks.offset_s = np.asarray(offset_s, dtype=float)
+        clocks.spec, clocks.drift_ppm, clocks.offset_s = spec, drift, offset
         return clocks
 
+    @property
+    def batch(self) -> int:
+        """Number of clocks (robots)."""
+        return self.drift_ppm.shape[0]
+
     def device_seconds(self, t: np.ndarray) -> np.ndarray:
-        """Device time (1 + ε)·t + b for true times t of shape (B,) or (B, N)."""
+        """Device time (1 + ε)·t + b for true times t of shape (B,) or (B, N, ...)."""
         t = np.asarray(t, dtype=float)
-        extra = (1,) * (t.ndim - 1)
+        extra = (1,) * max(t.ndim - 1, 0)
         rate = (1.0 + self.drift_ppm * 1e-6).reshape(-1, *extra)
         return rate * t + self.offset_s.reshape(-1, *extra)
 
     def ticks(self, t: np.ndarray) -> np.ndarray:
-        """The device counter at true times t (B,) or (B, N): whole ticks, wrapped."""
+        """The device counter (int64) at true times t (B,) or (B, N): floor(device s / tick), wrapped."""
         return self._count(self.device_seconds(t))
 
     def ticks_at(self, robot: np.ndarray, t: np.ndarray) -> np.ndarray:
-        """The counter for flat samples: robot index and true time per sample."""
-        seconds = (1.0 + self.drift_ppm[robot] * 1e-6) * t + self.offset_s[robot]
+        """The counter for flat samples: robot index and true time per sample (same shape)."""
+        robot = np.asarray(robot, dtype=np.intp)
+        seconds = (1.0 + self.drift_ppm[robot] * 1e-6) * np.asarray(t, dtype=float) + self.offset_s[robot]
         return self._count(seconds)
 
     def _count(self, seconds: np.ndarray) -> np.ndarray:
-        counts = np.floor(seconds / self.spec.tick_s + 1e-9).astype(np.int64)
+        counts = np.floor(seconds / self.spec.tick_s + _TICK_EPS).astype(np.int64)
         return counts % self.spec.wrap if self.spec.wrap is not None else counts
 
 
 def unwrap_ticks(ticks: np.ndarray, wrap: int) -> np.ndarray:
-    """Undo counter wraps in a 1-D sequence (assumes consecutive samples are less than half a wrap apart)."""
+    """Undo counter wraps in a 1-D sequence of wrapped ticks (int64 out, starting at ticks[0]).
+
+    Assumes consecutive samples are less than half a wrap apart (a longer gap is ambiguous and is read as the
+    shorter way round); a backward jump of more than half a wrap is taken as one wrap forward.
+    """
     ticks = np.asarray(ticks, dtype=np.int64)
+    if ticks.ndim != 1:
+        raise ValueError(f"unwrap_ticks takes a 1-D sequence, got shape {ticks.shape}")
     step = np.diff(ticks)
-    wraps = np.concatenate([[0], np.cumsum(step < -(wrap // 2)) - np.cumsum(step > wrap // 2)])
-    return ticks + wraps * wrap
+    turns = np.cumsum((step < -(wrap // 2)).astype(np.int64) - (step > wrap // 2))
+    return ticks + np.concatenate([np.zeros(min(ticks.size, 1), np.int64), turns]) * np.int64(wrap)
+
+
+JitterKind = Literal["exponential", "uniform"]
 
 
 @dataclass(frozen=True)
 class HostLinkSpec:
-    """USB-serial delivery: fixed latency plus a one-sided random extra delay (never negative)."""
+    """USB-serial delivery: fixed latency (s) plus a one-sided random extra delay of scale ``jitter_s``:
+    uniform on [0, jitter_s) (FTDI latency timer; mean jitter_s/2) or exponential with mean jitter_s."""
 
     latency_s: float
     jitter_s: float
-    kind: Literal["exponential", "uniform"] = "uniform"
+    kind: JitterKind = "uniform"
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("exponential", "uniform"):
+            raise ValueError(f"unknown host link jitter kind {self.kind!r} (exponential or uniform)")
+        if self.latency_s < 0 or self.jitter_s < 0:
+            raise ValueError("latency_s and jitter_s must be ≥ 0 (the delay is one-sided)")
 
 
 def host_receive_ns(t: np.ndarray, spec: HostLinkSpec, rng: np.random.Generator) -> np.ndarray:
-    """Host receive times (int64 ns) of samples taken at true times t."""
+    """Host receive times (int64 ns) of samples taken at true times t (s): t + latency + jitter ≥ 0."""
     t = np.asarray(t, dtype=float)
-    if spec.kind == "exponential":
-        jitter = rng.exponential(spec.jitter_s, size=t.shape) if spec.jitter_s > 0 else np.zeros(t.shape)
-    elif spec.kind == "uniform":
-        jitter = rng.uniform(0.0, spec.jitter_s, size=t.shape)
+    if spec.jitter_s == 0:
+        jitter = np.zeros(t.shape)
+    elif spec.kind == "exponential":
+        jitter = rng.exponential(spec.jitter_s, size=t.shape)
     else:
-        raise ValueError(f"unknown host link jitter kind {spec.kind!r} (exponential or uniform)")
+        jitter = rng.uniform(0.0, spec.jitter_s, size=t.shape)
     return np.round((t + spec.latency_s + jitter) * 1e9).astype(np.int64)

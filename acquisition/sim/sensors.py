@@ -15,6 +15,7 @@ POSITION_COUNTS_PER_REV = 4096
 CURRENT_A_PER_COUNT = 2.69e-3
 VELOCITY_RAD_S_PER_COUNT = 0.229 * 2 * np.pi / 60  # 0.229 rpm
 CURRENT_LIMIT_COUNTS = 1193  # XM430 Current Limit (address 38) default
+ADC_MIN_COUNTS, ADC_MAX_COUNTS = -32768, 32767  # ADS1115 signed 16-bit output code
 
 # NDI port status bits (devices.md)
 PORT_OCCUPIED = 0x01
@@ -56,16 +57,20 @@ def velocity_counts(
 
 
 def to_signed(raw: np.ndarray, nbytes: int) -> np.ndarray:
-    """Signed value of an unsigned register read (the SDK returns signed items as unsigned)."""
+    """Signed int64 of an unsigned ``nbytes`` register read (the SDK returns signed items as unsigned)."""
+    if nbytes not in (1, 2, 4):
+        raise ValueError(f"nbytes must be 1, 2 or 4, got {nbytes}")
     raw = np.asarray(raw, dtype=np.int64)
     bits = 8 * nbytes
+    if np.any((raw < 0) | (raw >= 1 << bits)):
+        raise ValueError(f"raw register values must be unsigned {bits}-bit")
     return np.where(raw >= 1 << (bits - 1), raw - (1 << bits), raw)
 
 
 # ------------------------------------------------------------------------------ pressure transducer
 @dataclass(frozen=True)
 class PressureSensorSpec:
-    """Linear transducer (0…full scale → v_min…v_max) read by a 16-bit ADC with voltage noise."""
+    """Linear transducer (gauge 0…full_scale_pa → v_min…v_max V) read by a 16-bit ADC (LSB, rms noise, V)."""
 
     full_scale_pa: float
     v_min: float
@@ -73,14 +78,26 @@ class PressureSensorSpec:
     adc_lsb_v: float
     adc_noise_v: float
 
+    def __post_init__(self) -> None:
+        if not (
+            self.full_scale_pa > 0
+            and self.v_max > self.v_min
+            and self.adc_lsb_v > 0
+            and self.adc_noise_v >= 0
+        ):
+            raise ValueError(f"invalid pressure sensor spec {self}")
 
-def pressure_to_adc_counts(pressure_pa: np.ndarray, spec: PressureSensorSpec, rng: np.random.Generator):
-    """ADS1115 counts of a gauge pressure: transducer range clipped, voltage noise, LSB quantisation."""
+
+def pressure_to_adc_counts(
+    pressure_pa: np.ndarray, spec: PressureSensorSpec, rng: np.random.Generator
+) -> np.ndarray:
+    """ADS1115 counts (int64) of a gauge pressure: transducer range clipped, voltage noise, nearest LSB, then
+    the ADC's own saturation (at ±4.096 V gain a 4.5 V output clips at 32767 ≈ 4.096 V)."""
     p = np.clip(np.asarray(pressure_pa, dtype=float), 0.0, spec.full_scale_pa)
     volts = spec.v_min + p / spec.full_scale_pa * (spec.v_max - spec.v_min)
     if spec.adc_noise_v > 0:
         volts = volts + rng.normal(0.0, spec.adc_noise_v, size=volts.shape)
-    return np.clip(np.rint(volts / spec.adc_lsb_v), -32768, 32767).astype(np.int64)
+    return np.clip(np.rint(volts / spec.adc_lsb_v), ADC_MIN_COUNTS, ADC_MAX_COUNTS).astype(np.int64)
 
 
 def adc_counts_to_pressure(counts: np.ndarray, spec: PressureSensorSpec) -> np.ndarray:
@@ -90,8 +107,9 @@ def adc_counts_to_pressure(counts: np.ndarray, spec: PressureSensorSpec) -> np.n
 
 
 # --------------------------------------------------------------------------------------- rotations
-def rotation_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """R = Rz(yaw) · Ry(pitch) · Rx(roll)."""
+def rotation_from_rpy(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """R = Rz(yaw) · Ry(pitch) · Rx(roll), shape (..., 3, 3) for broadcast angle arrays (rad)."""
+    roll, pitch, yaw = np.broadcast_arrays(*(np.asarray(a, dtype=float) for a in (roll, pitch, yaw)))
     cr, sr, cp, sp, cy, sy = (
         np.cos(roll),
         np.sin(roll),
@@ -100,20 +118,24 @@ def rotation_from_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
         np.cos(yaw),
         np.sin(yaw),
     )
-    return np.array(
+    return np.stack(
         [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
+            np.stack([cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr], -1),
+            np.stack([sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr], -1),
+            np.stack([-sp, cp * sr, cp * cr], -1),
+        ],
+        -2,
     )
 
 
 def make_transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
-    """4×4 homogeneous transform p' = R p + t."""
-    out = np.eye(4)
-    out[:3, :3] = rotation
-    out[:3, 3] = translation
+    """Homogeneous transforms (..., 4, 4) with p' = R p + t, from R (..., 3, 3) and t (..., 3)."""
+    rotation, translation = np.asarray(rotation, dtype=float), np.asarray(translation, dtype=float)
+    batch = np.broadcast_shapes(rotation.shape[:-2], translation.shape[:-1])
+    out = np.zeros((*batch, 4, 4))
+    out[..., :3, :3] = rotation
+    out[..., :3, 3] = translation
+    out[..., 3, 3] = 1.0
     return out
 
 
@@ -159,7 +181,8 @@ def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------------------ tracker
 @dataclass(frozen=True)
 class TrackerSpec:
-    """Where the field generator sits (base → tracker transform), noise, field volume, reported RMS."""
+    """Where the field generator sits (4×4 base → tracker, p_t = R p_b + t), position noise per axis (m),
+    field volume (axis-aligned box in tracker coordinates, m) and the mean of the reported RMS error (mm)."""
 
     base_to_tracker: np.ndarray
     noise_m: float
@@ -167,9 +190,23 @@ class TrackerSpec:
     field_max_m: np.ndarray
     rms_error_mm_mean: float
 
+    def __post_init__(self) -> None:
+        for name in ("base_to_tracker", "field_min_m", "field_max_m"):
+            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=float))
+        if (
+            self.base_to_tracker.shape != (4, 4)
+            or self.field_min_m.shape != (3,)
+            or self.field_max_m.shape != (3,)
+        ):
+            raise ValueError("base_to_tracker must be 4×4 and the field box corners 3-vectors")
+        if np.any(self.field_min_m >= self.field_max_m) or self.noise_m < 0:
+            raise ValueError("field_min_m must be below field_max_m on every axis and noise_m ≥ 0")
+
 
 @dataclass(frozen=True)
 class TrackerReading:
+    """What the tracker reports per sample (TX/BX fields); a MISSING sample carries NaN, never a zero pose."""
+
     position_m: np.ndarray  # (..., 3) tracker frame; NaN when missing
     quaternion: np.ndarray  # (..., 4) q0 qx qy qz; NaN when missing
     rms_error: np.ndarray  # (...,) mm as the Aurora reports it; NaN when missing
@@ -180,7 +217,9 @@ class TrackerReading:
 def tracker_measurement(
     tip_pos_base: np.ndarray, tip_rot_base: np.ndarray, spec: TrackerSpec, rng: np.random.Generator
 ) -> TrackerReading:
-    """The tip coil as the tracker reports it: pose in the tracker frame with noise, MISSING out of volume."""
+    """The tip coil as the tracker reports it: pose in the tracker frame with Gaussian position noise,
+    MISSING (NaN pose, out-of-volume bit) when the true position is outside the field box.
+    Takes tip positions (..., 3) and rotations (..., 3, 3) in the robot base frame."""
     rot, trans = spec.base_to_tracker[:3, :3], spec.base_to_tracker[:3, 3]
     pos = np.asarray(tip_pos_base) @ rot.T + trans
     missing = np.any((pos < spec.field_min_m) | (pos > spec.field_max_m), axis=-1)
