@@ -8,7 +8,6 @@ the host receive time (int64 ns) and the servos' own tick (ms, wraps at 32768).
 from __future__ import annotations
 
 import logging
-import math
 import termios
 from dataclasses import dataclass
 
@@ -36,10 +35,6 @@ from acquisition.protocols import dynamixel as dx
 
 log = logging.getLogger(__name__)
 
-RAD_PER_COUNT = 2 * math.pi / 4096
-RAD_S_PER_VELOCITY_UNIT = 0.229 * 2 * math.pi / 60
-AMP_PER_CURRENT_UNIT = 2.69e-3
-RAD_S2_PER_ACCELERATION_UNIT = 214.577 * 2 * math.pi / 3600  # 214.577 rev/min²
 _BLOCK_START, _BLOCK_LEN = dx.REALTIME_TICK[0], 16  # 120 … 135
 
 
@@ -120,8 +115,8 @@ class ServoBus(Device):
         """Position mode, return delay, position PID gains and profile (0 = unlimited) on every servo.
         Torque is switched off first (EEPROM items are locked while it is on) and left off."""
         self.set_torque(False)
-        velocity = round(profile_velocity_rad_s / RAD_S_PER_VELOCITY_UNIT)
-        acceleration = round(profile_acceleration_rad_s2 / RAD_S2_PER_ACCELERATION_UNIT)
+        velocity = round(profile_velocity_rad_s / dx.RAD_S_PER_VELOCITY_UNIT)
+        acceleration = round(profile_acceleration_rad_s2 / dx.RAD_S2_PER_ACCELERATION_UNIT)
         for dxl_id in self.ids:
             self._write(dxl_id, dx.OPERATING_MODE, dx.OPERATING_MODE_POSITION)
             self._write(dxl_id, dx.RETURN_DELAY_TIME, return_delay_us // 2)
@@ -138,12 +133,12 @@ class ServoBus(Device):
 
     def set_profile_velocity(self, velocity_rad_s: np.ndarray) -> None:
         """Per-servo profile velocity (the paper's Move(q, q̇)); 0 = unlimited."""
-        units = np.rint(np.abs(velocity_rad_s) / RAD_S_PER_VELOCITY_UNIT).astype(int)
+        units = np.rint(np.abs(velocity_rad_s) / dx.RAD_S_PER_VELOCITY_UNIT).astype(int)
         self._sync_write(dx.PROFILE_VELOCITY, units)
 
     def write_goals(self, position_rad: np.ndarray) -> None:
         """Goal positions (rad, in the order of ``ids``) in one Sync Write (no reply by design)."""
-        counts = np.rint(np.asarray(position_rad) / RAD_PER_COUNT).astype(int) + self.zero_count
+        counts = np.rint(np.asarray(position_rad) / dx.RAD_PER_POSITION_COUNT).astype(int) + self.zero_count
         self._sync_write(dx.GOAL_POSITION, counts)
 
     def read_state(self) -> ServoState:
@@ -200,9 +195,9 @@ class ServoBus(Device):
             host_ns=host_ns,
             ids=self.ids,
             tick_ms=tick,
-            position_rad=(position - self.zero_count) * RAD_PER_COUNT,
-            velocity_rad_s=velocity * RAD_S_PER_VELOCITY_UNIT,
-            current_a=current * AMP_PER_CURRENT_UNIT,
+            position_rad=(position - self.zero_count) * dx.RAD_PER_POSITION_COUNT,
+            velocity_rad_s=velocity * dx.RAD_S_PER_VELOCITY_UNIT,
+            current_a=current * dx.AMP_PER_CURRENT_UNIT,
             position_counts=position,
             current_counts=current,
             moving=moving.astype(bool),

@@ -7,6 +7,7 @@ status: ``… | ID | LEN | 0x55 | ERR | params | CRC`` with LEN = len(params) + 
 
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass
 
@@ -70,6 +71,14 @@ EEPROM_END = 64  # addresses below are writable only with torque off
 CONTROL_TABLE_SIZE = 256
 XM430_W350_MODEL = 1020
 OPERATING_MODE_POSITION = 3
+
+# XM430 register units in SI (e-manual): one count of each register
+POSITION_COUNTS_PER_REV = 4096
+RAD_PER_POSITION_COUNT = 2 * math.pi / POSITION_COUNTS_PER_REV
+RAD_S_PER_VELOCITY_UNIT = 0.229 * 2 * math.pi / 60  # 0.229 rpm (Present Velocity, Profile Velocity)
+RAD_S2_PER_ACCELERATION_UNIT = 214.577 * 2 * math.pi / 3600  # 214.577 rev/min² (Profile Acceleration)
+AMP_PER_CURRENT_UNIT = 2.69e-3  # Present Current, Goal Current
+CURRENT_LIMIT_DEFAULT = 1193
 
 # Present Current, Velocity and Position read together (addresses 126–135) in one transaction
 STATE_BLOCK = (126, 10)

@@ -11,10 +11,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-POSITION_COUNTS_PER_REV = 4096
-CURRENT_A_PER_COUNT = 2.69e-3
-VELOCITY_RAD_S_PER_COUNT = 0.229 * 2 * np.pi / 60  # 0.229 rpm
-CURRENT_LIMIT_COUNTS = 1193  # XM430 Current Limit (address 38) default
+from acquisition.protocols import dynamixel as dx
+
+# the XM430's register units live with the protocol; named here as the sensor model uses them
+POSITION_COUNTS_PER_REV = dx.POSITION_COUNTS_PER_REV
+CURRENT_A_PER_COUNT = dx.AMP_PER_CURRENT_UNIT
+VELOCITY_RAD_S_PER_COUNT = dx.RAD_S_PER_VELOCITY_UNIT
+CURRENT_LIMIT_COUNTS = dx.CURRENT_LIMIT_DEFAULT
 ADC_MIN_COUNTS, ADC_MAX_COUNTS = -32768, 32767  # ADS1115 signed 16-bit output code
 
 # NDI port status bits (devices.md)

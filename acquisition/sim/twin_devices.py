@@ -19,8 +19,6 @@ from acquisition.sim.emulators.dynamixel import ControlTable
 if TYPE_CHECKING:
     from acquisition.sim.rig import Rig
 
-RAD_S_PER_VELOCITY_UNIT = 0.229 * 2 * np.pi / 60
-RAD_S2_PER_ACCELERATION_UNIT = 214.577 * 2 * np.pi / 3600
 _ROBOT0 = np.array([0])
 
 
@@ -46,8 +44,10 @@ class TwinServos:
             )
         else:  # limp joints are not modelled: the drive holds where it is
             world.commands.goal[0, j] = world.state.out_pos[0, j]
-        world.commands.profile_vel[0, j] = table.get(dx.PROFILE_VELOCITY) * RAD_S_PER_VELOCITY_UNIT
-        world.commands.profile_acc[0, j] = table.get(dx.PROFILE_ACCELERATION) * RAD_S2_PER_ACCELERATION_UNIT
+        world.commands.profile_vel[0, j] = table.get(dx.PROFILE_VELOCITY) * dx.RAD_S_PER_VELOCITY_UNIT
+        world.commands.profile_acc[0, j] = (
+            table.get(dx.PROFILE_ACCELERATION) * dx.RAD_S2_PER_ACCELERATION_UNIT
+        )
 
     def sense(self, dxl_id: int, table: ControlTable, now_s: float) -> None:
         self.rig.advance(now_s)

@@ -227,7 +227,7 @@ class DynamixelBusEmulator(Emulator):
 class SimpleServos:
     """Stand-alone servo model (no twin): each joint slews to its goal at its profile velocity."""
 
-    COUNTS_PER_S_PER_UNIT = 0.229 / 60 * 4096  # profile velocity unit 0.229 rpm
+    COUNTS_PER_S_PER_UNIT = dx.RAD_S_PER_VELOCITY_UNIT / dx.RAD_PER_POSITION_COUNT  # per 0.229 rpm unit
 
     def __init__(self) -> None:
         self._pos: dict[int, float] = {}
