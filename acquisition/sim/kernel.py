@@ -42,7 +42,7 @@ class KernelParams:
     dt: float
     gravity: np.ndarray  # (3,)
     row_a: np.ndarray  # (R,) D-H rows, standard convention
-    row_alpha: np.ndarray
+    row_alpha_cs: np.ndarray  # (R, 2) cos α, sin α (constant: computed once)
     row_d: np.ndarray
     row_offset: np.ndarray
     row_virtual: np.ndarray  # (R,) bool: virtual (link bending) or actuated
@@ -138,9 +138,8 @@ def advance(params: KernelParams, state: KernelState, cmd: KernelCommands, n: in
     b, a = state.out_pos.shape
     trace = allocate_trace(b, n, a, state.delta.shape[1], state.p_link.shape[1])
     p = params
-    alpha_cs = np.stack([np.cos(p.row_alpha), np.sin(p.row_alpha)], axis=1)
     state.buf_idx = _advance(
-        n, p.dt, p.gravity, p.row_a, alpha_cs, p.row_d, p.row_offset, p.row_virtual, p.row_var,
+        n, p.dt, p.gravity, p.row_a, p.row_alpha_cs, p.row_d, p.row_offset, p.row_virtual, p.row_var,
         p.tool_offset, p.mass_frame, p.mass_pos, p.mass_kg, p.mass_inertia, p.vj_link, p.vj_delta_h,
         p.vj_tau_y, p.link_channel, p.table_n, p.table_p, p.table_k, p.table_c, p.drive_kind,
         p.drive_stiffness, p.drive_tau, p.drive_backlash_half, p.drive_quantum, p.drive_max_torque,
@@ -176,7 +175,7 @@ def _profile_step(ref, vel, goal, vmax, amax, dt):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _frames(q, delta, row_a, row_alpha, row_d, row_offset, row_virtual, row_var, tool, out):
+def _frames(q, delta, row_a, row_alpha_cs, row_d, row_offset, row_virtual, row_var, tool, out):
     """Cumulative D-H transforms: out[0] = base, out[i+1] = after row i, out[R+1] = tool point."""
     r = row_a.shape[0]
     for i in range(4):
@@ -185,7 +184,7 @@ def _frames(q, delta, row_a, row_alpha, row_d, row_offset, row_virtual, row_var,
     for i in range(r):
         th = row_offset[i] + (delta[row_var[i]] if row_virtual[i] else q[row_var[i]])
         ct, st = math.cos(th), math.sin(th)
-        ca, sa = row_alpha[i, 0], row_alpha[i, 1]  # cos α, sin α (precomputed)
+        ca, sa = row_alpha_cs[i, 0], row_alpha_cs[i, 1]
         # T = Rz(θ) Tz(d) Tx(a) Rx(α)
         t00, t01, t02, t03 = ct, -st * ca, st * sa, row_a[i] * ct
         t10, t11, t12, t13 = st, ct * ca, -ct * sa, row_a[i] * st
@@ -246,7 +245,7 @@ def _joint_loads(frames, mass_frame, world_pos, mass_kg, mass_inertia, payload, 
 
 @numba.njit(cache=True, parallel=True, error_model="numpy")
 def _advance(
-    n, dt, gravity, row_a, row_alpha, row_d, row_offset, row_virtual, row_var, tool, mass_frame, mass_pos,
+    n, dt, gravity, row_a, row_alpha_cs, row_d, row_offset, row_virtual, row_var, tool, mass_frame, mass_pos,
     mass_kg, mass_inertia, vj_link, vj_delta_h, vj_tau_y, link_channel, table_n, table_p, table_k, table_c,
     drive_kind, drive_stiffness, drive_tau, drive_backlash_half, drive_quantum, drive_max_torque,
     drive_max_speed, reg_alpha, reg_max,
@@ -267,7 +266,9 @@ def _advance(
         frames = np.empty((nr + 2, 4, 4))
         loads = np.empty(2)
         world_pos = np.empty((mass_kg.shape[0] + 1, 3))
-        _frames(out_pos[b], delta[b], row_a, row_alpha, row_d, row_offset, row_virtual, row_var, tool, frames)
+        _frames(
+            out_pos[b], delta[b], row_a, row_alpha_cs, row_d, row_offset, row_virtual, row_var, tool, frames
+        )
         for s in range(n):
             slot = (buf_idx + s + 1) % depth
             # --- pneumatics: dead time (delay line), first-order regulator, valve hold with slow leak
@@ -344,7 +345,7 @@ def _advance(
                 )  # fmt: skip
                 vj_torque[b, v] = tau
             # --- record the true state (tip pose from this step's kinematics)
-            _frames(out_pos[b], delta[b], row_a, row_alpha, row_d, row_offset, row_virtual, row_var, tool,
+            _frames(out_pos[b], delta[b], row_a, row_alpha_cs, row_d, row_offset, row_virtual, row_var, tool,
                     frames)  # fmt: skip
             for j in range(na):
                 tr_q[b, s, j] = out_pos[b, j]

@@ -90,10 +90,7 @@ def serve_rig(robot: RobotDescription, run_dir: Path, seed: int = 0) -> None:
     """Run the rig until SIGTERM/SIGINT."""
     numba.set_num_threads(1)  # one robot: worker threads would only steal the client's core
     rig = Rig(robot, seed=seed)
-    rig.world.step(1)  # compile before the ports appear
     host = PtyHost(run_dir, rig.emulators, tick=rig.advance, control=rig.control)
-    rig.steps = 0
-    rig.world.state.t = 0.0
     log.info("rig for %s serving %s in %s", robot.name, ", ".join(rig.emulators), run_dir)
     host.serve_forever()
 

@@ -63,7 +63,7 @@ def build_params(robot: RobotDescription, dt: float = DEFAULT_DT) -> kernel.Kern
         dt=dt,
         gravity=np.array(robot.gravity_m_s2, dtype=float),
         row_a=np.array([r.a_m for r in rows]),
-        row_alpha=np.array([r.alpha_rad for r in rows]),
+        row_alpha_cs=np.array([[math.cos(r.alpha_rad), math.sin(r.alpha_rad)] for r in rows]),
         row_d=np.array([r.d_m for r in rows]),
         row_offset=np.array([r.offset_rad for r in rows]),
         row_virtual=row_virtual,
