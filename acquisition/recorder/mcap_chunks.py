@@ -1,0 +1,243 @@
+"""An MCAP writer for batches of fixed-size messages: message records and indexes built with numpy.
+
+The mcap package's ``Writer`` costs ~10 µs per ``add_message`` (a Python call, a struct.pack and an index
+append per message): ~90 k messages/s here, less than a batched twin produces. Our messages come in batches of
+one topic with a fixed payload size, so a batch of records is one structured array (opcode, length, channel,
+sequence, log time, publish time, payload) turned into bytes at once, and each chunk's MessageIndex records
+are two numpy columns. Everything else (header, schemas, channels, metadata, chunk records, statistics,
+summary, footer) is serialised with the mcap package's own record classes, so the file is standard MCAP:
+summary with chunk indexes and statistics, CRCs, zstd chunks. Schemas and channels sit in the data section
+before any chunk, so a torn file still says what its messages are.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from dataclasses import dataclass, field
+from typing import BinaryIO
+
+import numpy as np
+import zstandard
+from mcap.records import (
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Metadata,
+    MetadataIndex,
+    Opcode,
+    RecordBuilder,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
+
+MAGIC = b"\x89MCAP0\r\n"
+_RECORD_PREFIX = 1 + 8  # opcode + length
+_MESSAGE_FIXED = 2 + 4 + 8 + 8  # channel id, sequence, log time, publish time
+
+
+def message_record_dtype(payload_size: int) -> np.dtype:
+    """One Message record with a ``payload_size``-byte payload, packed as MCAP lays it out."""
+    return np.dtype(
+        [("opcode", "u1"), ("length", "<u8"), ("channel", "<u2"), ("sequence", "<u4"),
+         ("log_time", "<u8"), ("publish_time", "<u8"), ("data", "u1", (payload_size,))]
+    )  # fmt: skip
+
+
+@dataclass
+class _OpenChunk:
+    blocks: list[bytes] = field(default_factory=list)
+    size: int = 0
+    index: dict[int, list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)
+    start: int | None = None
+    end: int | None = None
+
+    def add(self, channel: int, records: bytes, log_time: np.ndarray, offsets: np.ndarray) -> None:
+        self.blocks.append(records)
+        self.index.setdefault(channel, []).append((log_time, offsets + self.size))
+        self.size += len(records)
+        lo, hi = int(log_time.min()), int(log_time.max())
+        self.start = lo if self.start is None else min(self.start, lo)
+        self.end = hi if self.end is None else max(self.end, hi)
+
+
+class BatchMcapWriter:
+    """``start`` → ``register_schema``/``register_channel`` → ``add_batch``/``add_message``/``add_metadata``
+    (``flush`` any time) → ``finish``. Not thread-safe: one writer thread per file."""
+
+    def __init__(self, stream: BinaryIO, chunk_size: int = 1 << 20, compression_level: int = 3) -> None:
+        self.stream = stream
+        self.chunk_size = chunk_size
+        self._compressor = zstandard.ZstdCompressor(level=compression_level)
+        self._chunk = _OpenChunk()
+        self._schemas: dict[int, Schema] = {}
+        self._channels: dict[int, Channel] = {}
+        self._chunk_indexes: list[ChunkIndex] = []
+        self._metadata_indexes: list[MetadataIndex] = []
+        self._stats = Statistics(
+            attachment_count=0, channel_count=0, channel_message_counts={}, chunk_count=0, message_count=0,
+            message_end_time=0, message_start_time=0, metadata_count=0, schema_count=0,
+        )  # fmt: skip
+        self._record_dtypes: dict[int, np.dtype] = {}
+
+    # ------------------------------------------------------------------------------- plain records
+    def _write_record(self, record) -> int:
+        """Serialise one record straight to the stream; returns its offset."""
+        builder = RecordBuilder()
+        record.write(builder)
+        offset = self.stream.tell()
+        self.stream.write(builder.end())
+        return offset
+
+    def start(self, profile: str, library: str) -> None:
+        self.stream.write(MAGIC)
+        self._write_record(Header(profile=profile, library=library))
+
+    def register_schema(self, name: str, encoding: str, data: bytes) -> int:
+        schema = Schema(id=len(self._schemas) + 1, name=name, encoding=encoding, data=data)
+        self._schemas[schema.id] = schema
+        self._stats.schema_count += 1
+        self._write_record(schema)
+        return schema.id
+
+    def register_channel(self, topic: str, message_encoding: str, schema_id: int, metadata=None) -> int:
+        channel = Channel(
+            id=len(self._channels) + 1, topic=topic, message_encoding=message_encoding,
+            schema_id=schema_id, metadata=dict(metadata or {}),
+        )  # fmt: skip
+        self._channels[channel.id] = channel
+        self._stats.channel_count += 1
+        self._stats.channel_message_counts[channel.id] = 0
+        self._write_record(channel)
+        return channel.id
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        self._finalize_chunk()  # metadata lives between chunks
+        offset = self._write_record(Metadata(name=name, metadata=dict(data)))
+        self._metadata_indexes.append(
+            MetadataIndex(offset=offset, length=self.stream.tell() - offset, name=name)
+        )
+        self._stats.metadata_count += 1
+
+    # ------------------------------------------------------------------------------------ messages
+    def add_batch(self, channel_id: int, log_time: np.ndarray, publish_time: np.ndarray,
+                  sequence: np.ndarray, payload: np.ndarray) -> None:  # fmt: skip
+        """Messages of one channel: ``payload`` an (n, size) uint8 array (or n structured rows)."""
+        payload = np.ascontiguousarray(payload).view(np.uint8).reshape(len(log_time), -1)
+        n, size = payload.shape
+        if n == 0:
+            return
+        dtype = self._record_dtypes.get(size) or self._record_dtypes.setdefault(
+            size, message_record_dtype(size)
+        )
+        per_chunk = max(1, self.chunk_size // dtype.itemsize)
+        for lo in range(0, n, per_chunk):
+            hi = min(n, lo + per_chunk)
+            records = np.empty(hi - lo, dtype=dtype)
+            records["opcode"] = Opcode.MESSAGE
+            records["length"] = _MESSAGE_FIXED + size
+            records["channel"] = channel_id
+            records["sequence"] = sequence[lo:hi]
+            records["log_time"] = log_time[lo:hi]
+            records["publish_time"] = publish_time[lo:hi]
+            records["data"] = payload[lo:hi]
+            offsets = np.arange(hi - lo, dtype=np.uint64) * np.uint64(dtype.itemsize)
+            self._chunk.add(channel_id, records.tobytes(), np.asarray(log_time[lo:hi], np.uint64), offsets)
+            self._count(channel_id, log_time[lo:hi])
+            if self._chunk.size >= self.chunk_size:
+                self._finalize_chunk()
+
+    def add_message(
+        self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int
+    ) -> None:
+        """One message of any size (events)."""
+        record = struct.pack("<BQHIQQ", Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id, sequence,
+                             log_time, publish_time) + data  # fmt: skip
+        lt = np.array([log_time], dtype=np.uint64)
+        self._chunk.add(channel_id, record, lt, np.zeros(1, np.uint64))
+        self._count(channel_id, lt)
+        if self._chunk.size >= self.chunk_size:
+            self._finalize_chunk()
+
+    def _count(self, channel_id: int, log_time: np.ndarray) -> None:
+        st = self._stats
+        n = len(log_time)
+        lo, hi = int(np.min(log_time)), int(np.max(log_time))
+        st.message_start_time = lo if st.message_count == 0 else min(st.message_start_time, lo)
+        st.message_end_time = hi if st.message_count == 0 else max(st.message_end_time, hi)
+        st.message_count += n
+        st.channel_message_counts[channel_id] += n
+
+    def _finalize_chunk(self) -> None:
+        chunk = self._chunk
+        if not chunk.blocks:
+            return
+        data = b"".join(chunk.blocks)
+        compressed = self._compressor.compress(data)
+        record = Chunk(
+            message_start_time=chunk.start, message_end_time=chunk.end, uncompressed_size=len(data),
+            uncompressed_crc=zlib.crc32(data), compression="zstd", data=compressed,
+        )  # fmt: skip
+        chunk_offset = self._write_record(record)
+        chunk_length = self.stream.tell() - chunk_offset
+        index_start = self.stream.tell()
+        index_offsets = {}
+        for channel_id, pieces in chunk.index.items():
+            log_time = np.concatenate([p[0] for p in pieces])
+            offsets = np.concatenate([p[1] for p in pieces])
+            order = np.argsort(log_time, kind="stable")
+            pairs = np.stack([log_time[order], offsets[order]], axis=1).astype("<u8").tobytes()
+            index_offsets[channel_id] = self.stream.tell()
+            self.stream.write(
+                struct.pack("<BQHI", Opcode.MESSAGE_INDEX, 2 + 4 + len(pairs), channel_id, len(pairs))
+            )
+            self.stream.write(pairs)
+        self._chunk_indexes.append(
+            ChunkIndex(
+                message_start_time=chunk.start, message_end_time=chunk.end, chunk_start_offset=chunk_offset,
+                chunk_length=chunk_length, message_index_offsets=index_offsets,
+                message_index_length=self.stream.tell() - index_start, compression="zstd",
+                compressed_size=len(compressed), uncompressed_size=len(data),
+            )
+        )  # fmt: skip
+        self._stats.chunk_count += 1
+        self._chunk = _OpenChunk()
+
+    def flush(self) -> None:
+        """Close the open chunk and push everything to the OS (no fsync)."""
+        self._finalize_chunk()
+        self.stream.flush()
+
+    def finish(self) -> None:
+        """Data end, summary (schemas, channels, statistics, chunk and metadata indexes), footer."""
+        self._finalize_chunk()
+        self._write_record(DataEnd(data_section_crc=0))
+        summary_start = self.stream.tell()
+        builder = RecordBuilder()
+        offsets = []
+        groups = [
+            (Opcode.SCHEMA, list(self._schemas.values())),
+            (Opcode.CHANNEL, list(self._channels.values())),
+            (Opcode.STATISTICS, [self._stats]),
+            (Opcode.CHUNK_INDEX, self._chunk_indexes),
+            (Opcode.METADATA_INDEX, self._metadata_indexes),
+        ]
+        for opcode, records in groups:
+            start = builder.count
+            for record in records:
+                record.write(builder)
+            offsets.append(SummaryOffset(opcode, summary_start + start, builder.count - start))
+        summary_offset_start = summary_start + builder.count
+        for offset in offsets:
+            offset.write(builder)
+        summary = builder.end()
+        crc = zlib.crc32(summary)
+        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
+        self.stream.write(summary)
+        self._write_record(Footer(summary_start, summary_offset_start, crc))
+        self.stream.write(MAGIC)
+        self.stream.flush()

@@ -1,0 +1,253 @@
+"""One MCAP writer per session: zstd chunks, flushed at least every ``flush_s``, rotated by size or duration.
+
+The writer is single-threaded by design (``SessionWriter``): the real-time recorder feeds it from one thread
+that drains the device workers' queue, the simulated-time runner calls it directly. Each part file is
+complete on its own: schemas, channels and the session metadata are written into every part.
+
+    with SessionWriter(directory, robot, session_id="s1", protocol="experiment1") as w:
+        w.write(topics.SERVO_STATE, log_time_ns, rows)      # rows: structured array of the topic's message
+        w.event(Event(EventKind.NOTE, text="hello"), log_time_ns)
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import mcap
+import numpy as np
+
+from acquisition.recorder.mcap_chunks import BatchMcapWriter
+from acquisition.schemas import Event, FixedMessage
+from acquisition.schemas.topics import EVENTS, MESSAGE_ENCODING, SCHEMA_ENCODING, Topic, session_topics
+from models.robot import RobotDescription
+
+PROFILE = "ros2"  # Foxglove and ROS 2 tools take the files as ros2 bags
+SESSION_METADATA = "vslab.session"
+COUNTERS_METADATA = "vslab.counters"
+SESSION_CARD = "session.json"
+
+
+def vslab_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("vslab")
+    except Exception:  # running from a source tree without an install
+        return "unknown"
+
+
+@dataclass
+class StreamCounters:
+    """Samples per topic: received from the device, written to the file, dropped (never written)."""
+
+    received: int = 0
+    written: int = 0
+    dropped: int = 0
+    first_ns: int | None = None
+    last_ns: int | None = None
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class RotationPolicy:
+    """Start a new part when the current one passes ``max_bytes`` or spans ``max_seconds`` of log time."""
+
+    max_bytes: int | None = 512 * 1024**2
+    max_seconds: float | None = None
+
+
+@dataclass
+class _Part:
+    path: Path
+    file: object
+    writer: BatchMcapWriter
+    channels: dict[str, int] = field(default_factory=dict)
+    first_ns: int | None = None
+
+
+class SessionWriter:
+    """Writes a session's topics into ``<directory>/<session_id>_<part>.mcap`` files."""
+
+    def __init__(
+        self,
+        directory: Path,
+        robot: RobotDescription,
+        session_id: str,
+        protocol: str = "manual",
+        metadata: dict[str, str] | None = None,
+        topics: dict[str, Topic] | None = None,
+        chunk_size: int = 1 << 20,
+        flush_s: float = 0.5,
+        rotation: RotationPolicy | None = None,
+        clock=time.monotonic,
+    ) -> None:
+        self.directory = Path(directory)
+        self.robot = robot
+        self.session_id = session_id
+        self.topics = session_topics(robot) if topics is None else topics
+        self.chunk_size = chunk_size
+        self.flush_s = flush_s
+        self.rotation = rotation or RotationPolicy()
+        self.clock = clock
+        self.counters = {name: StreamCounters() for name in self.topics}
+        self.metadata = {
+            "session_id": session_id,
+            "robot": robot.name,
+            "protocol": protocol,
+            "robot_description": robot.model_dump_json(),
+            "vslab_version": vslab_version(),
+            "mcap_version": getattr(mcap, "__version__", "unknown"),
+            "python_version": platform.python_version(),
+            **(metadata or {}),
+        }
+        self.parts: list[Path] = []
+        self._part: _Part | None = None
+        self._last_flush = clock()
+        self._sequence: dict[str, int] = dict.fromkeys(self.topics, 0)
+
+    # ------------------------------------------------------------------------------------ lifecycle
+    def __enter__(self) -> SessionWriter:
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def open(self) -> None:
+        if self._part is None:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            self._start_part()
+            self._write_card("recording")
+
+    def close(self) -> None:
+        """Finish the open part: summary, indexes and the final counters as metadata."""
+        if self._part is not None:
+            self._part.writer.add_metadata(
+                COUNTERS_METADATA, {k: json.dumps(c.as_dict()) for k, c in self.counters.items()}
+            )
+            self._finish_part()
+            self._write_card("complete")
+
+    def _write_card(self, status: str) -> None:
+        """``session.json`` beside the parts: what the session is, and how far it got."""
+        card = {k: v for k, v in self.metadata.items() if k != "robot_description"}
+        card |= {
+            "status": status,
+            "parts": [p.name for p in self.parts],
+            "counters": {k: c.as_dict() for k, c in self.counters.items()},
+        }
+        tmp = self.directory / "session.json.tmp"
+        tmp.write_text(json.dumps(card, indent=2) + "\n")
+        tmp.replace(self.directory / SESSION_CARD)
+
+    def note_received(self, topic: str, n: int = 1) -> None:
+        """A worker took ``n`` samples of ``topic`` from its device (written or not)."""
+        self.counters[topic].received += n
+
+    def note_dropped(self, topic: str, n: int = 1) -> None:
+        """``n`` received samples of ``topic`` will never be written (queue full, encode error)."""
+        self.counters[topic].dropped += n
+
+    def _start_part(self) -> None:
+        path = self.directory / f"{self.session_id}_{len(self.parts):03d}.mcap"
+        f = open(path, "xb")
+        writer = BatchMcapWriter(f, chunk_size=self.chunk_size)
+        writer.start(profile=PROFILE, library=f"vslab {self.metadata['vslab_version']}")
+        part = _Part(path, f, writer)
+        for name, topic in self.topics.items():
+            schema_id = writer.register_schema(topic.schema_name, SCHEMA_ENCODING, topic.schema_text.encode())
+            part.channels[name] = writer.register_channel(name, MESSAGE_ENCODING, schema_id)
+        writer.add_metadata(SESSION_METADATA, {**self.metadata, "part": str(len(self.parts))})
+        writer.flush()
+        self.parts.append(path)
+        self._part = part
+
+    def _finish_part(self) -> None:
+        part, self._part = self._part, None
+        part.writer.finish()
+        part.file.close()
+
+    # ------------------------------------------------------------------------------------- writing
+    def write(self, topic: str, log_time_ns: np.ndarray, rows: np.ndarray, publish_time_ns=None) -> None:
+        """Write messages of one topic: ``rows`` a structured array of its message type (see
+        ``FixedMessage.pack``), ``log_time_ns`` the host receive times, ``publish_time_ns`` the device times
+        in ns when known (default: the log times)."""
+        message = self._message(topic)
+        if rows.dtype != message.dtype:
+            raise ValueError(f"{topic}: rows are not {message.name} messages")
+        log_time = np.asarray(log_time_ns, dtype=np.int64)
+        if len(log_time) != len(rows):
+            raise ValueError(f"{topic}: {len(log_time)} log times for {len(rows)} messages")
+        if len(rows) == 0:
+            return
+        publish = log_time if publish_time_ns is None else np.asarray(publish_time_ns, dtype=np.int64)
+        self._rotate_if_due(int(log_time[0]))
+        seq0 = self._sequence[topic]
+        sequence = np.arange(seq0, seq0 + len(rows), dtype=np.uint32)
+        self._part.writer.add_batch(self._part.channels[topic], log_time, publish, sequence, rows)
+        self._sequence[topic] = seq0 + len(rows)
+        self._count(topic, log_time)
+        self._flush_if_due()
+
+    def event(self, event: Event, log_time_ns: int) -> None:
+        """Write one event (plan marker, payload change, device gap, note)."""
+        self._rotate_if_due(log_time_ns)
+        seq = self._sequence[EVENTS]
+        self._part.writer.add_message(
+            self._part.channels[EVENTS], log_time_ns, event.encode(), log_time_ns, seq
+        )
+        self._sequence[EVENTS] = seq + 1
+        self._count(EVENTS, np.array([log_time_ns]))
+        self._flush_if_due()
+
+    def _message(self, topic: str) -> FixedMessage:
+        try:
+            message = self.topics[topic].message
+        except KeyError:
+            raise ValueError(f"session of {self.robot.name} has no topic {topic!r}") from None
+        if message is None:
+            raise ValueError(f"{topic} is written with event()")
+        if self._part is None:
+            raise RuntimeError("the session writer is not open")
+        return message
+
+    def _count(self, topic: str, log_time: np.ndarray) -> None:
+        c = self.counters[topic]
+        c.written += len(log_time)
+        c.received = max(c.received, c.written + c.dropped)  # direct writers (the simulator) do not note
+        first, last = int(log_time.min()), int(log_time.max())
+        c.first_ns = first if c.first_ns is None else min(c.first_ns, first)
+        c.last_ns = last if c.last_ns is None else max(c.last_ns, last)
+        part = self._part
+        part.first_ns = first if part.first_ns is None else min(part.first_ns, first)
+
+    def _flush_if_due(self) -> None:
+        now = self.clock()
+        if now - self._last_flush >= self.flush_s:
+            self.flush()
+
+    def flush(self) -> None:
+        """Close the open chunk and push it to the file: what a kill can no longer take away."""
+        if self._part is not None:
+            self._part.writer.flush()
+        self._last_flush = self.clock()
+
+    def _rotate_if_due(self, log_time_ns: int) -> None:
+        part, policy = self._part, self.rotation
+        if part is None:
+            raise RuntimeError("the session writer is not open")
+        too_big = policy.max_bytes is not None and part.file.tell() >= policy.max_bytes
+        too_long = (
+            policy.max_seconds is not None
+            and part.first_ns is not None
+            and log_time_ns - part.first_ns >= policy.max_seconds * 1e9
+        )
+        if too_big or too_long:
+            self._finish_part()
+            self._start_part()
