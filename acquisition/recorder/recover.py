@@ -8,6 +8,7 @@ again through a fresh Writer, which adds the summary and the indexes.
 from __future__ import annotations
 
 import logging
+import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,7 +42,7 @@ def recover(source: str | Path, output: str | Path | None = None) -> RecoveryRep
     """Write every readable record of ``source`` into ``output`` (default ``<name>.recovered.mcap``)."""
     source = Path(source)
     output = recovered_path(source) if output is None else Path(output)
-    if output.resolve() == source.resolve():
+    if output.resolve() == source.resolve() or (output.exists() and os.path.samefile(output, source)):
         raise ValueError("recovery writes a new file; it never overwrites the original")
     messages, reason, torn = 0, "", True
     schema_ids: dict[int, int] = {}

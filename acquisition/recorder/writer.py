@@ -187,6 +187,8 @@ class SessionWriter:
         if len(rows) == 0:
             return
         publish = log_time if publish_time_ns is None else np.asarray(publish_time_ns, dtype=np.int64)
+        if publish.shape != log_time.shape:
+            raise ValueError(f"{topic}: {publish.shape} publish times for {len(rows)} messages")
         self._rotate_if_due(int(log_time[0]))
         seq0 = self._sequence[topic]
         sequence = np.arange(seq0, seq0 + len(rows), dtype=np.uint32)

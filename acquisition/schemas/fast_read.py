@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
 from acquisition.schemas.cdr import FixedMessage, SchemaError
@@ -83,7 +84,12 @@ def read_fixed_topics(path: str | Path, topics: list[str] | None = None) -> dict
     """Every fixed-layout topic of an indexed MCAP file (a finished or recovered one), in log-time order."""
     path = Path(path)
     with open(path, "rb") as f:
-        summary = make_reader(f).get_summary()
+        try:
+            summary = make_reader(f).get_summary()
+        except (McapError, struct.error, OSError, EOFError) as exc:
+            raise SchemaError(
+                f"{path}: unreadable summary ({exc}); a torn file? run `vslab sessions recover`"
+            ) from exc
         if summary is None:
             raise SchemaError(f"{path}: no summary (a torn file? run `vslab sessions recover`)")
         wanted: dict[int, tuple[str, FixedMessage]] = {}

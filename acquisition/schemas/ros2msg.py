@@ -21,9 +21,12 @@ def parse_fixed_message(name: str, text: str) -> FixedMessage | None:
             continue
         if line.startswith("=" * 10):  # start of a dependency's definition: not a flat message
             return None
+        code = line.split("#", 1)[0]
+        if "<=" in code:  # bounded strings and arrays have no fixed layout
+            return None
         m = _FIELD.match(line)
         if m is None:
-            if "=" in line.split("#", 1)[0]:  # a constant
+            if "=" in code:  # a constant
                 continue
             return None
         kind, count = m["type"], m["count"]
