@@ -21,6 +21,8 @@ robots_app = typer.Typer(help="Robot descriptions in configs/robots/.", no_args_
 twin_app = typer.Typer(help="The digital twin.", no_args_is_help=True)
 app.add_typer(robots_app, name="robots")
 app.add_typer(twin_app, name="twin")
+sessions_app = typer.Typer(help="Recorded sessions in <lab>/sessions/.", no_args_is_help=True)
+app.add_typer(sessions_app, name="sessions")
 
 console = Console()
 
@@ -137,6 +139,116 @@ def demo(seed: Annotated[int, typer.Option(help="Random seed.")] = 0) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=2))
     console.print(f"main job done; results in {out.resolve()}")
+
+
+def _overrides(pairs: list[str]) -> dict:
+    """``key=value`` pairs (values parsed as YAML: numbers, lists, booleans)."""
+    import yaml
+
+    out = {}
+    for pair in pairs:
+        key, sep, value = pair.partition("=")
+        if not sep:
+            _fail(f"--set takes key=value, got {pair!r}")
+        out[key.strip()] = yaml.safe_load(value)
+    return out
+
+
+@app.command()
+def simulate(
+    protocol: Annotated[str, typer.Argument(help="Protocol: experiment1, campaign, or a YAML path.")],
+    set_: Annotated[
+        list[str] | None, typer.Option("--set", help="Override a protocol parameter: key=value (repeatable).")
+    ] = None,
+    benches: Annotated[int, typer.Option(help="Twin benches stepped together (batch size).")] = 128,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+) -> None:
+    """Run a protocol on the twin in simulated time: the same sessions as on the rig, much faster."""
+    import time
+
+    from rich.progress import Progress
+
+    from acquisition.plans.sim_runner import simulate_protocol
+
+    start = time.perf_counter()
+    sessions_dir = Settings.lab / "sessions"
+    with Progress(console=console, disable=Settings.quiet, transient=True) as bar:
+        tasks: dict[str, int] = {}
+
+        def progress(label: str, fraction: float) -> None:
+            if label not in tasks:
+                tasks[label] = bar.add_task(label, total=1.0)
+            bar.update(tasks[label], completed=fraction)
+
+        try:
+            reports = simulate_protocol(
+                protocol, sessions_dir, seed=seed, benches=benches, overrides=_overrides(set_ or []),
+                progress=progress,
+            )  # fmt: skip
+        except (ValueError, FileNotFoundError, RobotDescriptionError) as exc:
+            _fail(str(exc))
+    wall = time.perf_counter() - start
+    written = sum(len(r.sessions) for r in reports)
+    skipped = sum(len(r.skipped) for r in reports)
+    simulated = sum(r.simulated_s for r in reports)
+    messages = sum(r.messages for r in reports)
+    console.print(
+        f"{protocol}: {written} sessions written, {skipped} already complete; {simulated:,.0f} bench-seconds "
+        f"simulated in {wall:.1f} s ({simulated / wall:,.0f}× real time), {messages:,} messages "
+        f"→ {sessions_dir}"
+    )
+
+
+@sessions_app.command("list")
+def sessions_list() -> None:
+    """Sessions in the lab: robot, protocol, status, duration, streams, drops."""
+    from acquisition.recorder.sessions import list_sessions
+
+    table = Table("session", "robot", "protocol", "status", "duration s", "messages", "dropped", "torn parts")
+    for info in list_sessions(Settings.lab / "sessions"):
+        table.add_row(
+            info.id, info.robot, info.protocol, info.status, f"{info.duration_s:.1f}",
+            f"{sum(s.messages for s in info.streams.values()):,}", str(info.dropped), str(len(info.torn)),
+        )  # fmt: skip
+    console.print(table)
+
+
+def _session_dir(session: str) -> Path:
+    directory = Path(session) if Path(session).is_dir() else Settings.lab / "sessions" / session
+    if not directory.is_dir():
+        _fail(f"no session {session!r} in {Settings.lab / 'sessions'}")
+    return directory
+
+
+@sessions_app.command("info")
+def sessions_info(session: Annotated[str, typer.Argument(help="Session id or directory.")]) -> None:
+    """One session's streams: messages, time span, rate, drops."""
+    from acquisition.recorder.sessions import session_info
+
+    info = session_info(_session_dir(session))
+    table = Table(
+        "topic", "messages", "duration s", "rate Hz", "dropped",
+        title=f"{info.id}: {info.robot}, {info.protocol}, {info.status}, {len(info.parts)} part(s)",
+    )  # fmt: skip
+    for s in info.streams.values():
+        table.add_row(s.topic, f"{s.messages:,}", f"{s.duration_s:.2f}", f"{s.rate_hz:.1f}", str(s.dropped))
+    console.print(table)
+    for part in info.torn:
+        console.print(f"[yellow]torn part[/yellow] {part.name}: run `vslab sessions recover {info.id}`")
+
+
+@sessions_app.command("recover")
+def sessions_recover(session: Annotated[str, typer.Argument(help="Session id or directory.")]) -> None:
+    """Write a valid, indexed copy of every torn part (the originals are never changed)."""
+    from acquisition.recorder.sessions import recover_session
+
+    reports = recover_session(_session_dir(session))
+    if not reports:
+        console.print("nothing to recover: every part is whole")
+    for r in reports:
+        console.print(
+            f"{r.source.name} → {r.output.name}: {r.messages:,} messages ({r.reason or 'complete'})"
+        )
 
 
 def _print_grid(grid, title: str) -> None:

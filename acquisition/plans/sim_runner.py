@@ -191,3 +191,39 @@ def _write_commands(w: SessionWriter, topics, cmds: dict, tb: np.ndarray, last_g
         last_pressure[r] = pi[-1]
         n += len(new)
     return n
+
+
+def simulate_protocol(
+    protocol: str,
+    sessions_dir: Path,
+    seed: int = 0,
+    benches: int = 128,
+    overrides: dict | None = None,
+    progress: Callable[[str, float], None] | None = None,
+) -> list[SimReport]:
+    """Expand a protocol (``configs/protocols/<name>.yaml`` + overrides) into plans and run them all on the
+    twin, at most ``benches`` benches per batch. Sessions already complete on disk are skipped."""
+    from acquisition.plans import protocols
+    from models.robot import load_robot
+
+    params = protocols.load_protocol(protocol, **(overrides or {}))
+    kind = Path(protocol).stem
+    if kind == "experiment1":
+        robots = {params["robot"]: load_robot(params["robot"])}
+        if params["rigid_arm"]:
+            robots[params["rigid_robot"]] = load_robot(params["rigid_robot"])
+        plans = protocols.experiment1(robots[params["robot"]], robots.get(params["rigid_robot"]), params)
+    elif kind == "campaign":
+        robots = {params["robot"]: load_robot(params["robot"])}
+        plans = protocols.campaign(robots[params["robot"]], params, benches=benches, seed=seed)
+    else:
+        raise ValueError(f"no simulated runner for protocol {protocol!r} (experiment1, campaign)")
+    reports = []
+    for name, robot in robots.items():
+        group = [p for p in plans if p.robot == name]
+        for k in range(0, len(group), benches):
+            batch = group[k : k + benches]
+            label = f"{kind} {name} {k + 1}–{k + len(batch)}/{len(group)}"
+            tick = (lambda f, label=label: progress(label, f)) if progress else None
+            reports.append(simulate(batch, robot, sessions_dir, seed=seed + k, progress=tick))
+    return reports
