@@ -199,6 +199,82 @@ def simulate(
     )
 
 
+@app.command()
+def record(
+    robot: Annotated[str, typer.Option(help="Robot description.")] = "vsl",
+    ports: Annotated[
+        Path | None, typer.Option(help="ports.json (or the rig's run directory) naming each device's port.")
+    ] = None,
+    rig: Annotated[
+        bool, typer.Option("--rig", help="Start a rig (the twin behind emulators) to record.")
+    ] = False,
+    duration: Annotated[float, typer.Option(help="Seconds to record (0: until Ctrl-C).")] = 0.0,
+    session: Annotated[str | None, typer.Option(help="Session id (default: time, robot).")] = None,
+    protocol: Annotated[str, typer.Option(help="What this session is (stored in its metadata).")] = "manual",
+) -> None:
+    """Record every device of a robot to one MCAP session, with live counters; Ctrl-C stops cleanly."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from rich.live import Live
+
+    from acquisition.recorder.recorder import Recorder
+    from acquisition.sim.ptyhost import wait_for_ports
+
+    desc = _robot(robot)
+    session_id = session or time.strftime("%Y%m%d-%H%M%S") + f"-{desc.name}"
+    rig_proc = None
+    if rig:
+        run_dir = Settings.lab / "rig" / session_id
+        rig_proc = subprocess.Popen(
+            [sys.executable, "-m", "acquisition.sim.rig", "--robot", desc.name, "--run-dir", str(run_dir)]
+        )
+        ports = run_dir
+    if ports is None:
+        _fail("say where the devices are: --ports <ports.json | rig run dir>, or --rig")
+    try:
+        if rig or ports.is_dir():
+            port_map = wait_for_ports(ports, timeout_s=60)
+        elif ports.is_file():
+            port_map = json.loads(ports.read_text())
+        else:
+            _fail(f"no ports file or rig directory at {ports}")
+        stop = {"now": False}
+
+        def on_signal(signum, frame):
+            stop["now"] = True
+
+        signal.signal(signal.SIGTERM, on_signal)
+        rec = Recorder(desc, port_map, Settings.lab / "sessions" / session_id, session_id, protocol=protocol)
+        start = time.monotonic()
+        with rec, Live(console=console, refresh_per_second=2, transient=False) as live:
+            try:
+                while not stop["now"] and (duration <= 0 or time.monotonic() - start < duration):
+                    time.sleep(0.5)
+                    if not Settings.quiet:
+                        live.update(_counter_table(rec.snapshot(), time.monotonic() - start))
+            except KeyboardInterrupt:
+                pass
+        if rec.write_error:
+            _fail(f"the session writer failed: {rec.write_error}")
+        console.print(f"session {session_id}: {', '.join(p.name for p in rec.writer.parts)} in "
+                      f"{rec.writer.directory}")  # fmt: skip
+    finally:
+        if rig_proc is not None:
+            rig_proc.terminate()
+            rig_proc.wait(timeout=10)
+
+
+def _counter_table(snapshot: dict, elapsed: float) -> Table:
+    table = Table("topic", "received", "written", "dropped", "rate Hz", title=f"recording {elapsed:.0f} s")
+    for topic, c in sorted(snapshot.items()):
+        rate = c["received"] / elapsed if elapsed > 0 else 0.0
+        table.add_row(topic, f"{c['received']:,}", f"{c['written']:,}", str(c["dropped"]), f"{rate:.0f}")
+    return table
+
+
 @sessions_app.command("list")
 def sessions_list() -> None:
     """Sessions in the lab: robot, protocol, status, duration, streams, drops."""

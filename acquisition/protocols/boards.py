@@ -27,7 +27,7 @@ ERROR_NAMES = {E_CHECKSUM: "CHECKSUM", E_MALFORMED: "MALFORMED", E_UNKNOWN: "UNK
 # limits enforced by the firmware (PROTOCOL.md, "Limits")
 MAX_SET_PA = 400_000  # set-point limit: the transducers' 0–4 bar range
 REGULATOR_FULL_SCALE_PA = 1_000_000  # ASSUMPTION: K8P 0–10 V ↔ 0–10 bar
-MAX_STREAM_HZ = 200
+MAX_STREAM_HZ = 250  # the ADS1115 at 860 SPS, two channels multiplexed: ~430 Hz each; 250 Hz = 11 kB/s of 25
 MAX_SPEED_STEPS_S = 4000  # AccelStepper on a 16 MHz AVR
 MAX_ACCEL_STEPS_S2 = 100_000
 MAX_ABS_STEPS = 2_000_000

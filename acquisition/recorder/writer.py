@@ -195,7 +195,7 @@ class SessionWriter:
         self._part.writer.add_batch(self._part.channels[topic], log_time, publish, sequence, rows)
         self._sequence[topic] = seq0 + len(rows)
         self._count(topic, log_time)
-        self._flush_if_due()
+        self.flush_if_due()
 
     def event(self, event: Event, log_time_ns: int) -> None:
         """Write one event (plan marker, payload change, device gap, note)."""
@@ -206,7 +206,7 @@ class SessionWriter:
         )
         self._sequence[EVENTS] = seq + 1
         self._count(EVENTS, np.array([log_time_ns]))
-        self._flush_if_due()
+        self.flush_if_due()
 
     def _message(self, topic: str) -> FixedMessage:
         try:
@@ -229,7 +229,7 @@ class SessionWriter:
         part = self._part
         part.first_ns = first if part.first_ns is None else min(part.first_ns, first)
 
-    def _flush_if_due(self) -> None:
+    def flush_if_due(self) -> None:
         now = self.clock()
         if now - self._last_flush >= self.flush_s:
             self.flush()

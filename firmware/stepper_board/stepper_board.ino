@@ -26,7 +26,7 @@ static const uint8_t PIN_MS[3] = {6, 7, 8};
 static const int32_t MAX_ABS_STEPS = 2000000L;
 static const int32_t MAX_SPEED = 4000;  // microsteps/s: AccelStepper's practical limit on 16 MHz
 static const int32_t MAX_ACCEL = 100000L;
-static const int32_t MAX_STREAM_HZ = 200;
+static const int32_t MAX_STREAM_HZ = 250;
 
 AccelStepper stepper(AccelStepper::DRIVER, PIN_STEP, PIN_DIR);
 static vsl::StreamClock stream = {0, 0, 0};
