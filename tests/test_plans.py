@@ -381,11 +381,6 @@ def test_campaign_is_reproducible(vsl, campaign_params):
     assert not np.allclose(a[0].pressure_pa, c[0].pressure_pa)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="campaign() builds an empty plan (no actions) for every bench beyond the number of points, "
-    "so Plan raises 'no goal action'; simulate_protocol's default benches=128 hits it for < 128 points",
-)
 def test_campaign_with_more_benches_than_points(vsl):
     params = protocols.load_protocol("campaign", points=3)
     plans = protocols.campaign(vsl, params, benches=5, seed=0)

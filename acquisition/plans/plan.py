@@ -48,6 +48,8 @@ class Plan:
 
     def at(self, t: np.ndarray) -> dict[str, np.ndarray]:
         """What is commanded at plan times ``t``: the latest action at or before each time."""
+        if np.any(np.asarray(t) < 0):
+            raise ValueError(f"plan {self.name}: nothing is commanded before time 0")
         g = np.searchsorted(self.goal_t, t, side="right") - 1
         p = np.searchsorted(self.pressure_t, t, side="right") - 1
         m = np.searchsorted(self.payload_t, t, side="right") - 1

@@ -99,7 +99,7 @@ def campaign(robot: RobotDescription, params: dict, benches: int = 1, seed: int 
     pressure = rng.uniform(p_lo, p_hi, size=n)
     payload = rng.choice(np.asarray(params["payloads_g"], float) * GRAM, size=n)
     plans = []
-    for k, idx in enumerate(np.array_split(np.arange(n), benches)):
+    for k, idx in enumerate(np.array_split(np.arange(n), min(benches, n))):
         b = _builder(
             f"campaign/bench{k:03d}", robot, {"protocol": "campaign", "seed": seed, "points": len(idx)}
         )

@@ -143,8 +143,10 @@ def simulate(
                 for topic, (robot_idx, host_ns, topic_rows) in rows.items():
                     lo, hi = np.searchsorted(robot_idx, [r, r + 1])
                     sel = slice(lo, hi)
+                    if t1 > durations[r]:  # the plan ends in this window: nothing after its end
+                        sel = lo + np.flatnonzero(host_ns[lo:hi] <= durations[r] * 1e9)
                     w.write(topic, SIM_EPOCH_NS + host_ns[sel], topic_rows[sel])
-                    messages += hi - lo
+                    messages += len(topic_rows[sel])
                 e_lo = np.searchsorted(event_t[r], t0, side="left")
                 e_hi = len(event_t[r]) if t1 >= durations[r] else np.searchsorted(event_t[r], t1, side="left")
                 for t_event, event in p.events[e_lo:e_hi]:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -68,6 +69,10 @@ class Recorder:
         queue_size: int = 200_000,
     ) -> None:
         self.robot = robot
+        # drivers stamp with the monotonic clock (no jumps within a session); the file's log times are UNIX
+        # ns: monotonic + this offset, measured once and stored in the metadata
+        self.unix_offset_ns = time.time_ns() - time.monotonic_ns()
+        metadata = {**(metadata or {}), "host_clock": f"log_time = monotonic_ns + {self.unix_offset_ns}"}
         self.writer = SessionWriter(directory, robot, session_id, protocol, metadata, flush_s=flush_s,
                                     rotation=rotation)  # fmt: skip
         self.queue: queue.Queue[Sample] = queue.Queue(maxsize=queue_size)
@@ -89,8 +94,11 @@ class Recorder:
         self.writer.open()
         self.event(Event(EventKind.SESSION_START, label=self.writer.session_id))
         self._thread.start()
+        # one device at a time: a slow connection (the tracker's, whose library holds the GIL) must not stall
+        # the devices already streaming
         for w in self.workers:
             w.start()
+            w.ready.wait(timeout=30.0)
 
     def event(self, event: Event) -> None:
         """Mark something (plan step, payload change, note) at the current host time."""
@@ -147,10 +155,10 @@ class Recorder:
         for topic, samples in by_topic.items():
             if topic == T.EVENTS:
                 for s in samples:
-                    self.writer.event(s.values, s.host_ns)
+                    self.writer.event(s.values, s.host_ns + self.unix_offset_ns)
                 continue
             message = self.writer.topics[topic].message
             columns = {k: np.array([s.values[k] for s in samples]) for k in samples[0].values}
-            log_time = np.array([s.host_ns for s in samples], dtype=np.int64)
+            log_time = np.array([s.host_ns for s in samples], dtype=np.int64) + self.unix_offset_ns
             self.writer.write(topic, log_time, message.pack(columns, n=len(samples)))
         self.writer.flush_if_due()

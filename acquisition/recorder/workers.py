@@ -51,6 +51,7 @@ class DeviceWorker(threading.Thread):
         self.received: Counter[str] = Counter()
         self.dropped: Counter[str] = Counter()
         self.gaps = 0
+        self.ready = threading.Event()  # set after the first connection attempt, whatever its outcome
         self.error: str | None = None
 
     # device-specific
@@ -70,6 +71,7 @@ class DeviceWorker(threading.Thread):
 
     def run(self) -> None:
         connected = self._try_connect()
+        self.ready.set()
         gap_start: float | None = None if connected else time.monotonic()
         if not connected:
             self._event(Event(EventKind.DEVICE_GAP_START, label=self.device_name, text=self.error or ""))

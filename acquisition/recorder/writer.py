@@ -192,7 +192,8 @@ class SessionWriter:
         self._rotate_if_due(int(log_time[0]))
         seq0 = self._sequence[topic]
         sequence = np.arange(seq0, seq0 + len(rows), dtype=np.uint32)
-        self._part.writer.add_batch(self._part.channels[topic], log_time, publish, sequence, rows)
+        payload = message.canonical_bytes(rows)
+        self._part.writer.add_batch(self._part.channels[topic], log_time, publish, sequence, payload)
         self._sequence[topic] = seq0 + len(rows)
         self._count(topic, log_time)
         self.flush_if_due()

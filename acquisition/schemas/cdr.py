@@ -89,6 +89,20 @@ class FixedMessage:
             {"names": names, "formats": formats, "offsets": offsets, "itemsize": HEADER_SIZE + position}
         )
 
+    @cached_property
+    def field_mask(self) -> np.ndarray:
+        """0xFF on every byte of a field, 0 on alignment padding: ``raw & mask`` zeroes the padding, which
+        numpy copies of structured rows (fancy indexing) leave uninitialised."""
+        mask = np.zeros(self.size, dtype=np.uint8)
+        for name in self.dtype.names:
+            sub, offset = self.dtype.fields[name][:2]
+            mask[offset : offset + sub.itemsize] = 0xFF
+        return mask
+
+    def canonical_bytes(self, rows: np.ndarray) -> np.ndarray:
+        """(n, size) uint8 of ``rows`` with zeroed padding: what goes on the wire."""
+        return np.ascontiguousarray(rows).view(np.uint8).reshape(len(rows), self.size) & self.field_mask
+
     @property
     def size(self) -> int:
         """Bytes per encoded message."""
