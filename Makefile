@@ -25,6 +25,8 @@ test: $(BIN)/.installed
 bench: $(BIN)/.installed
 	$(BIN)/python bench/twin.py
 	$(BIN)/python bench/devices.py
+	$(BIN)/python bench/record.py
+	$(BIN)/python bench/simulate.py
 
 lint format: $(BIN)/.installed
 	$(BIN)/ruff check --fix .
