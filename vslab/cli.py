@@ -211,8 +211,14 @@ def record(
     duration: Annotated[float, typer.Option(help="Seconds to record (0: until Ctrl-C).")] = 0.0,
     session: Annotated[str | None, typer.Option(help="Session id (default: time, robot).")] = None,
     protocol: Annotated[str, typer.Option(help="What this session is (stored in its metadata).")] = "manual",
+    live: Annotated[
+        bool, typer.Option("--live", help="Serve the streams to Foxglove over WebSocket while recording.")
+    ] = False,
+    live_host: Annotated[str, typer.Option(help="Address the live view binds to.")] = "127.0.0.1",
+    live_port: Annotated[int, typer.Option(help="Port of the live view (0: any free one).")] = 8765,
 ) -> None:
     """Record every device of a robot to one MCAP session, with live counters; Ctrl-C stops cleanly."""
+    import contextlib
     import signal
     import subprocess
     import sys
@@ -247,16 +253,21 @@ def record(
             stop["now"] = True
 
         signal.signal(signal.SIGTERM, on_signal)
-        rec = Recorder(desc, port_map, Settings.lab / "sessions" / session_id, session_id, protocol=protocol)
-        start = time.monotonic()
-        with rec, Live(console=console, refresh_per_second=2, transient=False) as live:
-            try:
-                while not stop["now"] and (duration <= 0 or time.monotonic() - start < duration):
-                    time.sleep(0.5)
-                    if not Settings.quiet:
-                        live.update(_counter_table(rec.snapshot(), time.monotonic() - start))
-            except KeyboardInterrupt:
-                pass
+        view = _live_view(desc, live_host, live_port) if live else contextlib.nullcontext()
+        with view as live_server:
+            rec = Recorder(desc, port_map, Settings.lab / "sessions" / session_id, session_id,
+                           protocol=protocol, live=live_server)  # fmt: skip
+            start = time.monotonic()
+            with rec, Live(console=console, refresh_per_second=2, transient=False) as counters:
+                try:
+                    while not stop["now"] and (duration <= 0 or time.monotonic() - start < duration):
+                        time.sleep(0.5)
+                        if not Settings.quiet:
+                            counters.update(_counter_table(rec.snapshot(), time.monotonic() - start))
+                except KeyboardInterrupt:
+                    pass
+        if rec.live_errors:
+            console.print(f"[yellow]the live view failed {rec.live_errors} time(s); the file is complete[/]")
         if rec.write_error:
             _fail(f"the session writer failed: {rec.write_error}")
         console.print(f"session {session_id}: {', '.join(p.name for p in rec.writer.parts)} in "
@@ -265,6 +276,28 @@ def record(
         if rig_proc is not None:
             rig_proc.terminate()
             rig_proc.wait(timeout=10)
+
+
+def _live_view(desc, host: str, port: int):
+    """A started Foxglove live view of ``desc``'s topics; tells the user where to point Foxglove."""
+    import ipaddress
+
+    from acquisition.recorder.live import LiveServer
+    from acquisition.schemas.topics import session_topics
+
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback:
+        console.print(f"[yellow]warning: the live view on {host} is unauthenticated: anyone who can reach "
+                      f"it sees the streams[/]")  # fmt: skip
+    try:
+        server = LiveServer(session_topics(desc), host=host, port=port).start()
+    except Exception as exc:  # a port in use, an address not ours
+        _fail(f"cannot start the live view on {host}:{port}: {exc}")
+    console.print(f"live view: open {server.url} in Foxglove (Open connection → Foxglove WebSocket)")
+    return server
 
 
 def _counter_table(snapshot: dict, elapsed: float) -> Table:

@@ -16,6 +16,7 @@ import threading
 import time
 from collections import defaultdict
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -32,6 +33,9 @@ from acquisition.recorder.writer import RotationPolicy, SessionWriter
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from models.robot import RobotDescription
+
+if TYPE_CHECKING:  # the live view (foxglove) is imported only by those who use it
+    from acquisition.recorder.live import LiveServer
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +71,7 @@ class Recorder:
         flush_s: float = 0.4,
         rotation: RotationPolicy | None = None,
         queue_size: int = 200_000,
+        live: LiveServer | None = None,  # started by the caller; shown what the file gets
     ) -> None:
         self.robot = robot
         # drivers stamp with the monotonic clock (no jumps within a session); the file's log times are UNIX
@@ -82,6 +87,8 @@ class Recorder:
         self._done = threading.Event()
         self._thread = threading.Thread(target=self._write_loop, name="session-writer", daemon=True)
         self.write_error: BaseException | None = None
+        self.live = live
+        self.live_errors = 0  # live-view failures: logged once, counted, never stop the recording
 
     def __enter__(self) -> Recorder:
         self.start()
@@ -156,9 +163,24 @@ class Recorder:
             if topic == T.EVENTS:
                 for s in samples:
                     self.writer.event(s.values, s.host_ns + self.unix_offset_ns)
+                    self._feed_live(topic, [s.host_ns + self.unix_offset_ns], [s.values.encode()])
                 continue
             message = self.writer.topics[topic].message
             columns = {k: np.array([s.values[k] for s in samples]) for k in samples[0].values}
             log_time = np.array([s.host_ns for s in samples], dtype=np.int64) + self.unix_offset_ns
-            self.writer.write(topic, log_time, message.pack(columns, n=len(samples)))
+            rows = message.pack(columns, n=len(samples))
+            self.writer.write(topic, log_time, rows)
+            self._feed_live(topic, log_time, rows)
         self.writer.flush_if_due()
+
+    def _feed_live(self, topic: str, log_time, messages) -> None:
+        """Show what was just written in the live view, if any; its failures never reach the file."""
+        if self.live is None:
+            return
+        try:
+            self.live.publish(topic, log_time, messages)
+        except Exception:
+            self.live_errors += 1
+            if self.live_errors == 1:
+                log.exception("live view failed on %s; recording goes on without it (counted in live_errors)",
+                              topic)  # fmt: skip
