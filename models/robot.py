@@ -241,10 +241,31 @@ class TrackerSpec(_Model):
         return self
 
 
+class AccelerometerSpec(_Model):
+    """3-axis MEMS accelerometer at the end of the chain ('tip'): reads the specific force R^T (a − g) in
+    its own frame (the tip frame), with white noise over its bandwidth, quantised and clipped."""
+
+    frame: Literal["tip"] = "tip"
+    full_scale_m_s2: PositiveFloat
+    lsb_m_s2: PositiveFloat
+    noise_density_m_s2_per_sqrt_hz: NonNegFloat
+    bandwidth_hz: PositiveFloat
+    sample_rate_hz: PositiveFloat
+
+    @model_validator(mode="after")
+    def _resolution(self) -> AccelerometerSpec:
+        if self.lsb_m_s2 >= self.full_scale_m_s2:
+            raise ValueError("lsb_m_s2 must be below full_scale_m_s2")
+        if self.bandwidth_hz > self.sample_rate_hz / 2:
+            raise ValueError("bandwidth_hz exceeds the Nyquist frequency sample_rate_hz / 2")
+        return self
+
+
 class SensorsSpec(_Model):
     servo: ServoSensorSpec | None = None
     pressure: PressureSensorSpec
     tracker: TrackerSpec
+    accelerometer: AccelerometerSpec | None = None
 
 
 class ClockSpecModel(_Model):
@@ -270,6 +291,23 @@ class DeviceSpec(_Model):
     host_link: HostLinkModel
 
 
+class SafetySpec(_Model):
+    """Limits beyond the joints' and the pneumatics' own: the tip's allowed box (base frame) and how close to
+    the wrinkling moment M_w(p) an inflatable link (one with ``radius_m``) may be loaded."""
+
+    workspace_min_m: tuple[float, float, float]
+    workspace_max_m: tuple[float, float, float]
+    wrinkling_fraction: Annotated[float, Field(gt=0, le=1)] = 1.0  # of M_w: the limit of ordinary plans
+    collapse_fraction: Annotated[float, Field(gt=0, le=1)] = 0.9  # of M_c: plans that allow wrinkling
+    pressure_tolerance_pa: NonNegFloat = 5000.0  # measured pressure may overshoot max_operating_pa by this
+
+    @model_validator(mode="after")
+    def _box(self) -> SafetySpec:
+        if any(lo >= hi for lo, hi in zip(self.workspace_min_m, self.workspace_max_m, strict=True)):
+            raise ValueError("workspace_min_m must be below workspace_max_m on every axis")
+        return self
+
+
 # ------------------------------------------------------------------------------------------- the robot
 class RobotDescription(_Model):
     """A validated robot description; use :func:`load_robot` to read one."""
@@ -286,6 +324,7 @@ class RobotDescription(_Model):
     pneumatics: PneumaticsSpec
     sensors: SensorsSpec
     devices: dict[str, DeviceSpec]
+    safety: SafetySpec | None = None
     gravity_m_s2: tuple[float, float, float] = (0.0, 0.0, -9.81)
 
     @model_validator(mode="after")
@@ -312,10 +351,22 @@ class RobotDescription(_Model):
                 raise ValueError(f"link {link.name!r}: from_link {link.table.from_link!r} is not a link")
             if link.pressure_channel is not None and link.pressure_channel >= self.pneumatics.channels:
                 raise ValueError(f"link {link.name!r}: pressure_channel exceeds pneumatics.channels")
+        for link in self.links:
+            # At rest δ = τ/k − δ_h z with dz/dτ ≤ 1/τ_y: below τ_y = k δ_h a load would move the link against it
+            # (the tip rises when a mass is hung). A loop of full width 2 δ_h needs load swings ≫ τ_y.
+            k_max = max(self.link_table(link.name).stiffness_nm_per_rad)
+            h = link.hysteresis
+            if h.delta_h_rad > 0 and h.tau_y_nm < k_max * h.delta_h_rad * (1 - 1e-6):
+                raise ValueError(
+                    f"link {link.name!r}: hysteresis tau_y_nm {h.tau_y_nm:g} is below k_max·delta_h_rad = "
+                    f"{k_max * h.delta_h_rad:.3g} N·m: the link would deflect against its load"
+                )
         frames = {*row_joints, TIP_FRAME}
         for m in self.masses:
             if m.frame not in frames:
                 raise ValueError(f"mass {m.name!r}: frame {m.frame!r} is not one of {sorted(frames)}")
+        if "accelerometer" in self.devices and self.sensors.accelerometer is None:
+            raise ValueError("devices has an accelerometer but sensors has no accelerometer section")
         drives = {j.drive for j in self.joints}
         if drives & {"servo", "motor"} and self.servo is None:
             raise ValueError(

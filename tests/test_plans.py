@@ -216,8 +216,8 @@ def test_misspelt_override_raises():
 
 
 def test_unknown_protocol_lists_the_known_ones():
-    with pytest.raises(FileNotFoundError, match="no protocol 'experiment2'") as err:
-        protocols.load_protocol("experiment2")
+    with pytest.raises(FileNotFoundError, match="no protocol 'experiment9'") as err:
+        protocols.load_protocol("experiment9")
     assert "campaign" in str(err.value) and "experiment1" in str(err.value)
 
 

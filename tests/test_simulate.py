@@ -351,7 +351,7 @@ def test_simulate_protocol_runs_both_arms(tmp_path):
 def test_simulate_protocol_unknown_kind(tmp_path):
     path = tmp_path / "other.yaml"
     path.write_text("robot: vsl\n")
-    with pytest.raises(ValueError, match="no simulated runner"):
+    with pytest.raises(ValueError, match="no plans for protocol"):
         simulate_protocol(str(path), tmp_path / "sessions")
     with pytest.raises(FileNotFoundError, match="known: campaign, experiment1"):
         simulate_protocol("nonesuch", tmp_path / "sessions")

@@ -6,6 +6,7 @@ whole batch of benches with ``searchsorted``, and a plan can be saved, diffed an
 - joint goals (rad) with their profile velocities (rad/s, 0 = the servo's default);
 - pressure set-points (Pa) and valve states per channel;
 - payload changes (kg): the operator hangs a mass (hardware: prompted and confirmed; twin: applied);
+- hammer taps (N·m·s angular impulse on the tested link; hardware: prompted; twin: ``World.tap``);
 - events: repetition start/end, settled points, notes — written to the session's events topic.
 
 Build one with ``PlanBuilder``: ``b.goto(q).settle(2.0).follow(setpoints).mark(...)``.
@@ -35,8 +36,16 @@ class Plan:
     payload_kg: np.ndarray  # (k,)
     events: tuple[tuple[float, Event], ...]
     parameters: dict = field(default_factory=dict)  # what the protocol was asked for (for the session card)
+    tap_t: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (j,) may be empty
+    tap_impulse_nms: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (j,) angular impulses
 
     def __post_init__(self) -> None:
+        if len(self.tap_t) != len(self.tap_impulse_nms):
+            raise ValueError(f"plan {self.name}: tap_t and tap_impulse_nms differ in length")
+        if len(self.tap_t) and (
+            np.any(np.diff(self.tap_t) < 0) or self.tap_t[0] < 0 or self.tap_t[-1] > self.duration_s
+        ):
+            raise ValueError(f"plan {self.name}: tap times must be in order and within the plan")
         for name in ("goal", "pressure", "payload"):
             t = getattr(self, f"{name}_t")
             if len(t) == 0:
@@ -75,6 +84,7 @@ class PlanBuilder:
         self._goals: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._pressures: list[tuple[float, np.ndarray, np.ndarray]] = []
         self._payloads: list[tuple[float, float]] = []
+        self._taps: list[tuple[float, float]] = []
         self._events: list[tuple[float, Event]] = []
 
     def goto(self, q: np.ndarray, speed: np.ndarray | float = 0.0) -> PlanBuilder:
@@ -103,6 +113,14 @@ class PlanBuilder:
         self._events.append(
             (self.t, Event(EventKind.PAYLOAD, value=float(kg), text=f"payload {kg * 1e3:g} g"))
         )
+        return self
+
+    def tap(self, impulse_nms: float) -> PlanBuilder:
+        """A hammer tap now (angular impulse on the tested link), marked by a PLAN_STEP event 'tap'."""
+        self._events.append(
+            (self.t, Event(EventKind.PLAN_STEP, len(self._taps), float(impulse_nms), "tap", "hammer tap"))
+        )
+        self._taps.append((self.t, float(impulse_nms)))
         return self
 
     def wait(self, seconds: float) -> PlanBuilder:
@@ -134,4 +152,5 @@ class PlanBuilder:
             self.name, self.robot, self.t, goal_t, goal_q, goal_speed, pressure_t, pressure_pa,
             valves.astype(bool), np.array([p[0] for p in self._payloads], float),
             np.array([p[1] for p in self._payloads], float), tuple(events), self.parameters,
+            np.array([t[0] for t in self._taps], float), np.array([t[1] for t in self._taps], float),
         )  # fmt: skip

@@ -1,6 +1,7 @@
 """Protocols from the seeds, expanded into plans (one plan per session) from ``configs/protocols/*.yaml``.
 
 - ``experiment1``: linear, curve and square × payloads × VSL pressures and the rigid arm, repeated;
+- ``experiment2``: the curve at two (payload, pressure) cases, model-based vs compensated commands;
 - ``campaign``: seed 000's data campaign, random pressure, joint position and payload per settled point.
 """
 
@@ -60,11 +61,7 @@ def experiment1(vsl: RobotDescription, rigid: RobotDescription | None, params: d
         arms.append((rigid, 0.0, rigid.name))
     plans = []
     for robot, pressure_pa, arm in arms:
-        lengths = arm_lengths(robot)
         for name in params["trajectories"]:
-            path = trajectories.experiment1(
-                name, lengths, speed=params["speed_m_s"], n_per_segment=params["points_per_segment"]
-            )
             for grams in params["payloads_g"]:
                 cell = {
                     "trajectory": name,
@@ -72,18 +69,66 @@ def experiment1(vsl: RobotDescription, rigid: RobotDescription | None, params: d
                     "pressure_pa": pressure_pa,
                     "payload_kg": grams * GRAM,
                 }
-                b = _builder(
-                    f"experiment1/{name}/{arm}/{grams:g}g", robot, {"protocol": "experiment1", **cell}
+                plans.append(
+                    _trajectory_plan(
+                        f"experiment1/{name}/{arm}/{grams:g}g",
+                        robot,
+                        params,
+                        {"protocol": "experiment1", **cell},
+                    )
                 )
-                b.goto(path.q[0], params["return_speed_rad_s"]).pressure(pressure_pa).payload(grams * GRAM)
-                b.settle(params["settle_s"])
-                for rep in range(params["repetitions"]):
-                    b.mark(EventKind.REPETITION_START, rep, name)
-                    b.follow(path.t, path.q, path.qd)
-                    b.wait(0.5).mark(EventKind.REPETITION_END, rep, name)
-                    b.goto(path.q[0], params["return_speed_rad_s"]).wait(params["rest_s"])
-                plans.append(b.build())
     return plans
+
+
+COMMANDS = ("ik", "static", "hybrid")  # Experiment 2's command modes (see acquisition.plans.compensation)
+
+
+def experiment2(vsl: RobotDescription, rigid: RobotDescription | None, params: dict) -> list[Plan]:
+    """Seed 000's Experiment 2: the curve at each (payload, pressure) case, commanded by the model-based IK
+    (``ik``), the grey-box static compensation (``static``, ours) and the hybrid inverse network (``hybrid``);
+    the rigid-link arm with the model-based IK at each case's payload. The plans' goals are always the IK of
+    the desired path; ``parameters["commands"]`` says which compensator turns them into commands."""
+    unknown = set(params["commands"]) - set(COMMANDS)
+    if unknown:
+        raise ValueError(
+            f"experiment2: unknown command mode(s) {sorted(unknown)} (known: {', '.join(COMMANDS)})"
+        )
+    name = params["trajectory"]
+    cells = []
+    for case in params["cases"]:
+        grams, bar = case["payload_g"], case["pressure_bar"]
+        cells += [(vsl, bar * BAR, f"{vsl.name}-{bar:g}bar", grams, mode) for mode in params["commands"]]
+        if params["rigid_arm"] and rigid is not None:
+            cells.append((rigid, 0.0, rigid.name, grams, "ik"))
+    plans, seen = [], set()
+    for robot, pressure_pa, arm, grams, mode in cells:
+        plan_name = f"experiment2/{name}/{arm}/{grams:g}g/{mode}"
+        if plan_name in seen:  # the rigid arm at a payload two cases share
+            continue
+        seen.add(plan_name)
+        cell = {"trajectory": name, "arm": arm, "pressure_pa": pressure_pa, "payload_kg": grams * GRAM}
+        parameters = {"protocol": "experiment2", "commands": mode, **cell}
+        plans.append(_trajectory_plan(plan_name, robot, params | {"trajectories": [name]}, parameters))
+    return plans
+
+
+def _trajectory_plan(plan_name: str, robot: RobotDescription, params: dict, cell: dict) -> Plan:
+    """Set pressure and payload, settle, then the repetitions of one Experiment 1/2 trajectory."""
+    path = trajectories.experiment1(
+        cell["trajectory"],
+        arm_lengths(robot),
+        speed=params["speed_m_s"],
+        n_per_segment=params["points_per_segment"],
+    )
+    b = _builder(plan_name, robot, cell)
+    b.goto(path.q[0], params["return_speed_rad_s"]).pressure(cell["pressure_pa"]).payload(cell["payload_kg"])
+    b.settle(params["settle_s"])
+    for rep in range(params["repetitions"]):
+        b.mark(EventKind.REPETITION_START, rep, cell["trajectory"])
+        b.follow(path.t, path.q, path.qd)
+        b.wait(0.5).mark(EventKind.REPETITION_END, rep, cell["trajectory"])
+        b.goto(path.q[0], params["return_speed_rad_s"]).wait(params["rest_s"])
+    return b.build()
 
 
 def campaign(robot: RobotDescription, params: dict, benches: int = 1, seed: int = 0) -> list[Plan]:
@@ -108,3 +153,31 @@ def campaign(robot: RobotDescription, params: dict, benches: int = 1, seed: int 
             b.settle(params["settle_s"], index=int(point), hold_s=params["hold_s"])
         plans.append(b.build())
     return plans
+
+
+def expand_protocol(
+    protocol: str | Path, overrides: dict | None = None, benches: int = 1, seed: int = 0
+) -> tuple[dict[str, RobotDescription], list[Plan], dict]:
+    """A protocol's robots (by name, as set up for it), its plans and its parameters (with overrides).
+    ``benches``: how many parallel benches the campaign's points are dealt to."""
+    from acquisition.plans import popup_protocols
+    from models.robot import load_robot
+
+    params = load_protocol(protocol, **(overrides or {}))
+    kind = Path(protocol).stem
+    robots = {params["robot"]: load_robot(params["robot"])}
+    if kind in ("experiment1", "experiment2"):
+        if params["rigid_arm"]:
+            robots[params["rigid_robot"]] = load_robot(params["rigid_robot"])
+        expand = experiment1 if kind == "experiment1" else experiment2
+        plans = expand(robots[params["robot"]], robots.get(params["rigid_robot"]), params)
+    elif kind == "campaign":
+        plans = campaign(robots[params["robot"]], params, benches=benches, seed=seed)
+    elif kind in popup_protocols.PROTOCOLS:
+        robot = popup_protocols.bench_robot(robots[params["robot"]], params)
+        robots = {robot.name: robot}
+        plans = popup_protocols.PROTOCOLS[kind](robot, params)
+    else:
+        known = ", ".join(["experiment1", "experiment2", "campaign", *popup_protocols.PROTOCOLS])
+        raise ValueError(f"no plans for protocol {protocol!r} ({known})")
+    return robots, plans, params

@@ -18,12 +18,15 @@ from pathlib import Path
 
 import numpy as np
 
+from acquisition.plans.compensation import Compensator, StaticModelCompensator
 from acquisition.plans.plan import Plan
 from acquisition.plans.twin_topics import stream_rows
 from acquisition.recorder.writer import SESSION_CARD, SessionWriter
+from acquisition.safety import SafetyChecker
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from acquisition.sim.kernel import Trace
+from acquisition.sim.streams import servo_current_a
 from acquisition.sim.world import World
 from models.robot import RobotDescription
 
@@ -75,15 +78,33 @@ def simulate(
     window_s: float = 1.0,
     servo_rate_hz: float = 500.0,
     progress: Callable[[float], None] | None = None,
+    compensators: list[Compensator | None] | None = None,
+    check_safety: bool = True,
 ) -> SimReport:
-    """Run ``plans`` (all for ``robot``) as one batch; write one session per plan under ``sessions_dir``."""
+    """Run ``plans`` (all for ``robot``) as one batch; write one session per plan under ``sessions_dir``.
+
+    ``compensators[i]`` (if given) turns plan i's goals into commands at each new set-point, from the bench's
+    pressures and currents at that instant. With ``check_safety`` every plan is checked before anything runs
+    (:class:`SafetyError`), and the benches' state while they run: a bench that breaks a limit gets a
+    SAFETY_STOP event and its session ends there."""
     if any(p.robot != robot.name for p in plans):
         raise ValueError(f"every plan of a batch must be for {robot.name}")
-    skipped = [session_id(p) for p in plans if _complete(sessions_dir / session_id(p))]
-    plans = [p for p in plans if session_id(p) not in skipped]
+    compensators = list(compensators) if compensators is not None else [None] * len(plans)
+    if len(compensators) != len(plans):
+        raise ValueError("one compensator (or None) per plan")
+    done = [_complete(sessions_dir / session_id(p)) for p in plans]
+    skipped = [session_id(p) for p, d in zip(plans, done, strict=True) if d]
+    plans, compensators = (
+        [p for p, d in zip(plans, done, strict=True) if not d],
+        [c for c, d in zip(compensators, done, strict=True) if not d],
+    )
     start = time.perf_counter()
     if not plans:
         return SimReport([], skipped, 0.0, 0.0, 0)
+    safety = SafetyChecker(robot) if check_safety else None
+    if safety:
+        for p in plans:
+            safety.require_safe(p)
     first = [p.at(np.array([0.0])) for p in plans]
     world = World(
         robot, batch=len(plans), seed=seed,
@@ -114,6 +135,7 @@ def simulate(
     topics = writers[0].topics
     last_goal = np.full(len(plans), -1)
     last_pressure = np.full(len(plans), -1)
+    compensation = _Compensation(robot, plans, compensators)
     messages = 0
     t0 = 0.0
     try:
@@ -126,15 +148,27 @@ def simulate(
             pressure = np.stack([c["pressure_pa"] for c in cmds], axis=1)
             valves = np.stack([c["valve_open"] for c in cmds], axis=1)
             payload = np.stack([c["payload_kg"] for c in cmds], axis=1)
+            taps = _taps_by_block(plans, tb, block_s)  # (nb, B) angular impulses, N·m·s
+            goal_index = np.stack([c["goal_index"] for c in cmds], axis=1)
             traces = []
             for b in range(blocks_per_window):
+                compensation.apply(world, goal_index[b], goal[b])  # in place: what is sent
                 world.command_joints(goal[b], profile_vel=speed[b])
                 world.command_pressure(pressure[b])
                 world.set_valves(valves[b])
                 world.set_payload(payload[b])
+                if taps[b].any():
+                    world.tap(taps[b])
                 traces.append(world.step(steps_per_block))
             trace = _concat(traces)
             t1 = float(trace.t[-1])
+            for r, c in enumerate(cmds):
+                c["goal_q"] = goal[:, r]  # the goals as sent (compensated where a compensator is set)
+            stops = (
+                _safety_stops(safety, plans, trace, (payload, pressure, valves), durations) if safety else {}
+            )
+            for r, (t_stop, _) in stops.items():
+                durations[r] = t_stop  # the bench's session ends at the stop
             rows = stream_rows(robot, topics, world.read(trace, servo_rate_hz), valves[-1])
             for r, (p, w) in enumerate(zip(plans, writers, strict=True)):
                 if t0 >= durations[r]:
@@ -148,20 +182,97 @@ def simulate(
                     w.write(topic, SIM_EPOCH_NS + host_ns[sel], topic_rows[sel])
                     messages += len(topic_rows[sel])
                 e_lo = np.searchsorted(event_t[r], t0, side="left")
-                e_hi = len(event_t[r]) if t1 >= durations[r] else np.searchsorted(event_t[r], t1, side="left")
+                e_hi = np.searchsorted(
+                    event_t[r], min(t1, durations[r]), "right" if t1 >= durations[r] else "left"
+                )
                 for t_event, event in p.events[e_lo:e_hi]:
                     w.event(event, SIM_EPOCH_NS + round(t_event * 1e9))
+                    messages += 1
+                if r in stops:
+                    w.event(stops[r][1], SIM_EPOCH_NS + round(stops[r][0] * 1e9))
                     messages += 1
             t0 = t1
             if progress:
                 progress(min(1.0, t0 / end))
-        for w, p in zip(writers, plans, strict=True):
-            w.event(Event(EventKind.SESSION_END, label=p.name), SIM_EPOCH_NS + round(p.duration_s * 1e9))
+        for w, p, d in zip(writers, plans, durations, strict=True):
+            w.event(Event(EventKind.SESSION_END, label=p.name), SIM_EPOCH_NS + round(d * 1e9))
     finally:
         for w in writers:
             w.close()
     wall = time.perf_counter() - start
     return SimReport([session_id(p) for p in plans], skipped, float(durations.sum()), wall, messages)
+
+
+class _Compensation:
+    """Per bench: the command sent for the active set-point, computed once when the set-point changes."""
+
+    def __init__(self, robot: RobotDescription, plans: list[Plan], compensators: list[Compensator | None]):
+        self.robot = robot
+        self.benches = [r for r, c in enumerate(compensators) if c is not None]
+        self.compensators = compensators
+        self.index = np.full(len(plans), -1)
+        self.command = np.zeros((len(plans), len(robot.actuated_joints)))
+
+    def apply(self, world: World, goal_index: np.ndarray, goal: np.ndarray) -> None:
+        """Replace the compensated benches' goals (B, A) in place; new set-points see the bench's pressures
+        and currents now."""
+        if not self.benches:
+            return
+        servo = self.robot.servo
+        for r in self.benches:
+            if goal_index[r] != self.index[r]:
+                torque, qd = world.state.torque[r], world.state.out_vel[r]
+                current = servo_current_a(servo, torque, qd)
+                self.command[r] = self.compensators[r](
+                    goal[r][None], world.state.p_link[r][None], current[None]
+                )[0]
+                self.index[r] = goal_index[r]
+            goal[r] = self.command[r]
+
+
+def _safety_stops(
+    safety: SafetyChecker, plans: list[Plan], trace: Trace, commands: tuple[np.ndarray, ...],
+    durations: np.ndarray, rate_hz: float = 20.0,
+) -> dict[int, tuple[float, Event]]:  # fmt: skip
+    """The first limit each running bench broke in this window (true state sampled at ``rate_hz``);
+    ``commands``: the payload, pressure set-points and valves of every block (nb, B, ...)."""
+    payload, setpoint, valves = commands
+    steps_per_block = len(trace.t) // payload.shape[0]
+    step = max(1, round(1.0 / (rate_hz * (trace.t[1] - trace.t[0])))) if len(trace.t) > 1 else 1
+    idx = np.arange(step - 1, len(trace.t), step)
+    benches, n = trace.q.shape[0], len(idx)
+
+    def flat(x: np.ndarray) -> np.ndarray:  # (B, steps, k) at the sampled steps → (B·n, k)
+        return x[:, idx].reshape(benches * n, -1)
+
+    def per_block(x: np.ndarray) -> np.ndarray:  # (nb, B, k) at the sampled steps' blocks → (B·n, k)
+        return np.swapaxes(x[idx // steps_per_block], 0, 1).reshape(benches * n, -1)
+
+    allow = np.array([bool(p.parameters.get("allow_wrinkling")) for p in plans])
+    violations = safety.check_state(
+        np.tile(trace.t[idx], benches), flat(trace.q), flat(trace.pressure),
+        per_block(payload[..., None])[:, 0], flat(trace.delta),
+        allow_wrinkling=np.repeat(allow, n), every=True, commanded=(per_block(setpoint), per_block(valves)),
+    )  # fmt: skip
+    stops: dict[int, tuple[float, Event]] = {}
+    for v in violations:
+        r = v.sample // n
+        if v.t_s > durations[r] or r in stops:
+            continue
+        stops[r] = (v.t_s, Event(EventKind.SAFETY_STOP, label=v.limit, text=v.detail))
+    return stops
+
+
+def _taps_by_block(plans: list[Plan], tb: np.ndarray, block_s: float) -> np.ndarray:
+    """The plans' tap impulses summed into the blocks starting at ``tb`` (a tap acts at its block's start)."""
+    out = np.zeros((len(tb), len(plans)))
+    for r, p in enumerate(plans):
+        t = p.tap_t
+        sel = (t >= tb[0] - 1e-9) & (t < tb[-1] + block_s - 1e-9)
+        if sel.any():
+            k = np.clip(np.searchsorted(tb, t[sel] + 1e-9, side="right") - 1, 0, len(tb) - 1)
+            np.add.at(out[:, r], k, p.tap_impulse_nms[sel])
+    return out
 
 
 def _write_commands(w: SessionWriter, topics, cmds: dict, tb: np.ndarray, last_goal, last_pressure, r: int,
@@ -202,24 +313,22 @@ def simulate_protocol(
     benches: int = 128,
     overrides: dict | None = None,
     progress: Callable[[str, float], None] | None = None,
+    inverse_model: Callable[[Plan], Compensator] | None = None,
 ) -> list[SimReport]:
     """Expand a protocol (``configs/protocols/<name>.yaml`` + overrides) into plans and run them all on the
-    twin, at most ``benches`` benches per batch. Sessions already complete on disk are skipped."""
-    from acquisition.plans import protocols
-    from models.robot import load_robot
+    twin, at most ``benches`` benches per batch. Sessions already complete on disk are skipped.
 
-    params = protocols.load_protocol(protocol, **(overrides or {}))
+    Experiment 2's ``hybrid`` plans need ``inverse_model``: it gives the compensator (a trained inverse
+    network) for a plan; the layers above ``acquisition`` (the pipeline's registry) provide it."""
+    from acquisition.plans.protocols import expand_protocol
+
+    robots, plans, params = expand_protocol(protocol, overrides, benches=benches, seed=seed)
     kind = Path(protocol).stem
-    if kind == "experiment1":
-        robots = {params["robot"]: load_robot(params["robot"])}
-        if params["rigid_arm"]:
-            robots[params["rigid_robot"]] = load_robot(params["rigid_robot"])
-        plans = protocols.experiment1(robots[params["robot"]], robots.get(params["rigid_robot"]), params)
-    elif kind == "campaign":
-        robots = {params["robot"]: load_robot(params["robot"])}
-        plans = protocols.campaign(robots[params["robot"]], params, benches=benches, seed=seed)
-    else:
-        raise ValueError(f"no simulated runner for protocol {protocol!r} (experiment1, campaign)")
+    if kind == "experiment2" and "hybrid" in params["commands"] and inverse_model is None:
+        raise ValueError(
+            "experiment2: hybrid commands need a trained inverse model (train one first, or run without "
+            "them: --set 'commands=[ik,static]')"
+        )
     reports = []
     for name, robot in robots.items():
         group = [p for p in plans if p.robot == name]
@@ -227,5 +336,18 @@ def simulate_protocol(
             batch = group[k : k + benches]
             label = f"{kind} {name} {k + 1}–{k + len(batch)}/{len(group)}"
             tick = (lambda f, label=label: progress(label, f)) if progress else None
-            reports.append(simulate(batch, robot, sessions_dir, seed=seed + k, progress=tick))
+            compensators = [_compensator(p, robot, inverse_model) for p in batch]
+            reports.append(
+                simulate(batch, robot, sessions_dir, seed=seed + k, progress=tick, compensators=compensators)
+            )
     return reports
+
+
+def _compensator(plan: Plan, robot: RobotDescription, inverse_model) -> Compensator | None:
+    """What turns a plan's goals into commands: nothing (model-based IK), the static model, or the network."""
+    mode = plan.parameters.get("commands", "ik")
+    if mode == "static":
+        return StaticModelCompensator(robot, plan.parameters["payload_kg"])
+    if mode == "hybrid":
+        return inverse_model(plan)
+    return None

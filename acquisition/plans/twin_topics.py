@@ -75,4 +75,10 @@ def stream_rows(robot: RobotDescription, topics: dict[str, T.Topic], streams: di
             }
         )
         out[T.TRACKER] = (s["robot"], s["host_ns"], rows)
+    if "accelerometer" in streams and T.ACCEL in topics:
+        s = streams["accelerometer"]
+        rows = topics[T.ACCEL].message.pack(
+            {"seq": s["seq"] % 2**32, "micros": s["micros"], "acceleration": s["acceleration"]}
+        )
+        out[T.ACCEL] = (s["robot"], s["host_ns"], rows)
     return out

@@ -17,8 +17,10 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
 from acquisition.schemas.cdr import FixedMessage, SchemaError
+from acquisition.schemas.events import Event
 from acquisition.schemas.ros2msg import parse_fixed_message
 
+EVENTS_TOPIC = "/events"  # acquisition.schemas.topics.EVENTS (topics imports the robot model; this need not)
 _MESSAGE_HEADER = 1 + 8 + 2 + 4 + 8 + 8  # opcode, record length, channel id, sequence, log time, publish time
 _PUBLISH_TIME_AT = 1 + 8 + 2 + 4 + 8
 
@@ -132,3 +134,12 @@ def read_fixed_topics(path: str | Path, topics: list[str] | None = None) -> dict
         rows = payload[order].reshape(-1).view(message.dtype)
         out[topic] = TopicData(topic, message, log_time[order], publish[order], rows)
     return out
+
+
+def read_events(path: str | Path) -> list[tuple[int, Event]]:
+    """The events topic of an MCAP file (generic reader: few, variable-size messages): (log_time, event)."""
+    with open(path, "rb") as f:
+        return [
+            (m.log_time, Event.decode(m.data))
+            for _, _, m in make_reader(f).iter_messages(topics=[EVENTS_TOPIC], log_time_order=True)
+        ]

@@ -76,6 +76,9 @@ class Rig:
         if op == "payload":
             self.world.set_payload(float(cmd["kg"]))
             return {"ok": True}
+        if op == "tap":  # a hammer tap on the last link (angular impulse, N·m·s)
+            self.world.tap(float(cmd["nms"]))
+            return {"ok": True}
         if op == "coil":  # the tracker coil leaves (inside=false) or re-enters the field volume
             self.coil.force_out = not bool(cmd["inside"])
             return {"ok": True}

@@ -109,6 +109,23 @@ def adc_counts_to_pressure(counts: np.ndarray, spec: PressureSensorSpec) -> np.n
     return (volts - spec.v_min) / (spec.v_max - spec.v_min) * spec.full_scale_pa
 
 
+# ----------------------------------------------------------------------------------- accelerometer
+def accelerometer_reading(
+    specific_force_m_s2: np.ndarray,
+    lsb_m_s2: float,
+    full_scale_m_s2: float,
+    noise_rms_m_s2: float,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """What a MEMS accelerometer reports (m/s², (..., 3)) for a true specific force in its frame: white noise
+    of ``noise_rms_m_s2`` per axis, rounded to the LSB, saturating at ± full scale."""
+    f = np.asarray(specific_force_m_s2, dtype=float)
+    if noise_rms_m_s2 > 0:
+        f = f + rng.normal(0.0, noise_rms_m_s2, size=f.shape)
+    limit = np.floor(full_scale_m_s2 / lsb_m_s2)
+    return np.clip(np.rint(f / lsb_m_s2), -limit, limit) * lsb_m_s2
+
+
 # --------------------------------------------------------------------------------------- rotations
 def rotation_from_rpy(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
     """R = Rz(yaw) · Ry(pitch) · Rx(roll), shape (..., 3, 3) for broadcast angle arrays (rad)."""

@@ -76,16 +76,21 @@ def servo_counts(robot: RobotDescription, q: np.ndarray, qd: np.ndarray, torque:
     """Present position/velocity/current registers of servos at true angle, speed and drive torque:
     current = torque / K_t + idle · sign(torque) + friction · sign(speed) (smoothed) + noise."""
     servo, noise = robot.servo, robot.sensors.servo
-    amps = (
-        torque / servo.torque_constant_nm_per_a
-        + servo.idle_current_a * np.sign(torque)
-        + servo.friction_current_a * np.tanh(qd / 0.02)
-    )
+    amps = servo_current_a(servo, torque, qd)
     return {
         "position": sensors.encoder_counts(q, servo.zero_count),
         "velocity": sensors.velocity_counts(qd, rng, noise.velocity_noise_counts),
         "current": sensors.current_counts(amps, noise.current_noise_counts, rng),
     }
+
+
+def servo_current_a(servo, torque: np.ndarray, qd: np.ndarray) -> np.ndarray:
+    """The drive current (A, no noise) of servos holding ``torque`` (N·m) at speed ``qd`` (rad/s)."""
+    return (
+        torque / servo.torque_constant_nm_per_a
+        + servo.idle_current_a * np.sign(torque)
+        + servo.friction_current_a * np.tanh(qd / 0.02)
+    )
 
 
 def pressure_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float,
@@ -158,4 +163,41 @@ def tracker_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, 
         "rms_error": reading.rms_error,
         "missing": reading.missing,
         "port_status": reading.port_status,
+    }
+
+
+def tip_acceleration(trace: Trace, dt: float, tip_before: np.ndarray | None = None) -> np.ndarray:
+    """Tip acceleration (B, n, 3) in the base frame by second differences of the 1 kHz tip trace:
+    a_n = (x_n − 2 x_(n−1) + x_(n−2)) / dt², the acceleration one step earlier (a one-sample delay, like a
+    sensor's filter). ``tip_before`` (B, 2, 3) are the two positions before the trace; without them the
+    trace is extended linearly (zero acceleration at its first steps)."""
+    x = trace.tip_pos
+    if tip_before is None:
+        first, second = x[:, :1], x[:, 1:2] if x.shape[1] > 1 else x[:, :1]
+        tip_before = np.concatenate([3 * first - 2 * second, 2 * first - second], axis=1)
+    x = np.concatenate([tip_before, x], axis=1)
+    return (x[:, 2:] - 2.0 * x[:, 1:-1] + x[:, :-2]) / dt**2
+
+
+def accelerometer_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float,
+                         rng: np.random.Generator, tip_before: np.ndarray | None = None,
+                         ) -> Stream:  # fmt: skip
+    """The tip accelerometer on its own clock: specific force R_tipᵀ (a − g) in the sensor (tip) frame,
+    gravity included (at rest it reads +|g| along the sensor's up direction), noisy and quantised."""
+    spec = robot.sensors.accelerometer
+    r, k, t = device_sample_instants(clocks, 1.0 / spec.sample_rate_hz, trace.t[0] - dt, trace.t[-1])
+    idx = _step_index(trace, t, dt)
+    accel = tip_acceleration(trace, dt, tip_before)[r, idx]
+    rot = robot.chain().fk(trace.q[r, idx], trace.delta[r, idx])[..., :3, :3]
+    force = np.einsum("nji,nj->ni", rot, accel - np.asarray(robot.gravity_m_s2))
+    noise_rms = spec.noise_density_m_s2_per_sqrt_hz * np.sqrt(spec.bandwidth_hz)
+    return {
+        "robot": r,
+        "seq": k,
+        "t_true": t,
+        "host_ns": _host(robot.devices["accelerometer"].host_link, t, rng),
+        "micros": clocks.ticks_at(r, t),
+        "acceleration": sensors.accelerometer_reading(
+            force, spec.lsb_m_s2, spec.full_scale_m_s2, noise_rms, rng
+        ),
     }

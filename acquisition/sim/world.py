@@ -166,6 +166,7 @@ class World:
         self.clocks = {
             name: DeviceClocks(_clock_spec(dev.clock), batch, self.rng) for name, dev in robot.devices.items()
         }
+        self._tip_tail: tuple[float, np.ndarray] | None = None  # (time, last two tip positions) of a read
 
     def _start_at_rest(self) -> None:
         """Start with the drives already drooped under gravity (a few fixed-point steps, clock reset),
@@ -204,6 +205,38 @@ class World:
         """The operator hangs a payload at the end-effector (per robot)."""
         self.commands.payload_kg[:] = np.broadcast_to(payload_kg, self.commands.payload_kg.shape)
 
+    def virtual_joint_inertia(self) -> np.ndarray:
+        """(B, V) inertia (kg·m²) the kernel gives each virtual joint now: the distal masses (payload
+        included) about its axis in the current deflected configuration."""
+        p, st = self.params, self.state
+        rows = np.flatnonzero(p.row_virtual)
+        out = np.empty((self.batch, len(self.layout.virtual)))
+        frames = np.empty((len(p.row_a) + 2, 4, 4))
+        world_pos = np.empty((len(p.mass_kg) + 1, 3))
+        loads = np.empty(2)
+        for b in range(self.batch):
+            kernel._frames(st.out_pos[b], st.delta[b], p.row_a, p.row_alpha_cs, p.row_d, p.row_offset,
+                           p.row_virtual, p.row_var, p.tool_offset, frames)  # fmt: skip
+            kernel._mass_positions(frames, p.mass_frame, p.mass_pos, world_pos)
+            for i in rows:
+                kernel._joint_loads(frames, p.mass_frame, world_pos, p.mass_kg, p.mass_inertia,
+                                    self.commands.payload_kg[b], p.gravity, i, loads)  # fmt: skip
+                out[b, p.row_var[i]] = loads[1]
+        return out
+
+    def tap(self, impulse_nms: np.ndarray | float, virtual_joint: str | None = None) -> None:
+        """A hammer tap: an angular impulse (N·m·s, (B,) or scalar; 0 = no tap) on one virtual joint (default
+        the chain's last, link 2's distal bending axis), applied as an instant change of its rate δ̇ += J / I
+        with the kernel's inertia I; the link then rings freely at its damped frequency."""
+        name = virtual_joint or self.layout.virtual[-1]
+        if name not in self.layout.virtual:
+            raise ValueError(
+                f"robot {self.robot.name!r} has no virtual joint {name!r}: {self.layout.virtual}"
+            )
+        v = self.layout.virtual.index(name)
+        impulse = np.broadcast_to(np.asarray(impulse_nms, float), (self.batch,))
+        self.state.delta_dot[:, v] += impulse / self.virtual_joint_inertia()[:, v]
+
     # ----------------------------------------------------------------------------------- stepping
     @property
     def t(self) -> float:
@@ -233,6 +266,14 @@ class World:
             out["stepper_board"] = streams.stepper_stream(robot, clocks["stepper_board"], trace, dt, rng)
         if "tracker" in clocks:
             out["tracker"] = streams.tracker_stream(robot, clocks["tracker"], trace, dt, rng)
+        if "accelerometer" in clocks and robot.sensors.accelerometer is not None:
+            tail = self._tip_tail
+            before = tail[1] if tail is not None and abs(trace.t[0] - dt - tail[0]) < dt / 2 else None
+            out["accelerometer"] = streams.accelerometer_stream(
+                robot, clocks["accelerometer"], trace, dt, rng, before
+            )
+            if trace.tip_pos.shape[1] >= 2:
+                self._tip_tail = (float(trace.t[-1]), trace.tip_pos[:, -2:].copy())
         return out
 
     def settle(self, seconds: float = 2.0) -> None:

@@ -1,0 +1,169 @@
+"""The POPUP arm's test protocols of seed 001, expanded into plans (one plan per session):
+
+- ``popup_static``: link 2 held horizontal as a cantilever, tip masses loaded then unloaded at each pressure,
+  a settled hold at every load, repeated (Fig. 7: load–displacement with hysteresis);
+- ``popup_impact``: at each pressure a hammer tap on link 2 and its free oscillation recorded by the tip
+  accelerometer (Table 1: damped frequency and log-decrement damping);
+- ``popup_deploy``: links deflated with valves closed, link 1 inflated to its set point, then link 2 once
+  link 1's transducer has reached it (PLAN_STEP 'pressure-check' events, verified by
+  :func:`verify_pressure_checks`).
+
+Parameters come from ``configs/protocols/popup_*.yaml`` (``protocols.load_protocol``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from acquisition.plans.plan import Plan, PlanBuilder
+from acquisition.schemas.events import EventKind
+from models.robot import Hysteresis, RobotDescription
+
+KPA, GRAM = 1e3, 1e-3
+PRESSURE_CHECK = "pressure-check"
+
+
+RIGID_FACTOR = 1000.0  # a "fixed joint": stiffness and damping × 1000, no hysteresis
+
+
+def bench_robot(robot: RobotDescription, params: dict) -> RobotDescription:
+    """The robot as set up for the test (the paper's link tests ran on a bare link on a fixed joint):
+    masses named in ``without_masses`` taken off, links named in ``rigid_links`` made ``RIGID_FACTOR`` times
+    stiffer without hysteresis, so the tip sees only the link under test."""
+    drop = set(params.get("without_masses") or [])
+    rigid = set(params.get("rigid_links") or [])
+    unknown = (drop - {m.name for m in robot.masses}) | (rigid - {link.name for link in robot.links})
+    if unknown:
+        raise ValueError(f"robot {robot.name!r} has no mass(es) or link(s) {sorted(unknown)}")
+    links = [
+        link.model_copy(
+            update={
+                "table": robot.link_table(link.name).scaled(RIGID_FACTOR),
+                "hysteresis": Hysteresis(delta_h_rad=0.0, tau_y_nm=link.hysteresis.tau_y_nm),
+            }
+        )
+        if link.name in rigid
+        else link
+        for link in robot.links
+    ]
+    return robot.model_copy(
+        update={"masses": [m for m in robot.masses if m.name not in drop], "links": links}
+    )
+
+
+def _builder(name: str, robot: RobotDescription, parameters: dict) -> PlanBuilder:
+    return PlanBuilder(name, robot.name, len(robot.actuated_joints), robot.pneumatics.channels, parameters)
+
+
+def _pose(params: dict) -> np.ndarray:
+    return np.radians(np.asarray(params["pose_deg"], float))
+
+
+def static_test(robot: RobotDescription, params: dict) -> list[Plan]:
+    """One plan per pressure: loading through ``loads_g`` then unloading back, a SETTLED hold at every load
+    (index = point number in the plan), each repetition bracketed by REPETITION_START/END; PLAN_STEP
+    events 'loading'/'unloading' mark the branches."""
+    loads = np.asarray(params["loads_g"], float) * GRAM
+    branches = (("loading", loads), ("unloading", loads[::-1][1:]))
+    plans = []
+    for kpa in params["pressures_kpa"]:
+        cell = {
+            "protocol": "popup_static",
+            "pressure_pa": kpa * KPA,
+            "loads_kg": loads.tolist(),
+            "allow_wrinkling": bool(params.get("allow_wrinkling", False)),
+        }
+        b = _builder(f"popup_static/{kpa:g}kPa", robot, cell)
+        b.goto(_pose(params)).pressure(kpa * KPA).payload(float(loads[0])).wait(params["pressure_settle_s"])
+        point = 0
+        for rep in range(params["repetitions"]):
+            b.mark(EventKind.REPETITION_START, rep, "static")
+            for label, branch in branches:
+                b.mark(EventKind.PLAN_STEP, rep, label)
+                for kg in branch:
+                    b.payload(float(kg)).settle(params["settle_s"], index=point, hold_s=params["hold_s"])
+                    point += 1
+            b.mark(EventKind.REPETITION_END, rep, "static")
+        plans.append(b.build())
+    return plans
+
+
+def impact_test(robot: RobotDescription, params: dict) -> list[Plan]:
+    """One plan per pressure: settle, then ``taps`` hammer taps, each followed by ``record_s`` of free
+    oscillation and bracketed by REPETITION_START/END."""
+    plans = []
+    for kpa in params["pressures_kpa"]:
+        impulse = params["tap_impulse_nms"]
+        cell = {"protocol": "popup_impact", "pressure_pa": kpa * KPA, "tap_impulse_nms": impulse}
+        b = _builder(f"popup_impact/{kpa:g}kPa", robot, cell)
+        b.goto(_pose(params)).pressure(kpa * KPA).payload(0.0).settle(params["settle_s"])
+        for rep in range(params["taps"]):
+            b.mark(EventKind.REPETITION_START, rep, "impact")
+            b.tap(impulse).wait(params["record_s"])
+            b.mark(EventKind.REPETITION_END, rep, "impact")
+        plans.append(b.build())
+    return plans
+
+
+def fill_time_s(robot: RobotDescription, time_constants: float) -> float:
+    """Estimated time for a link to reach its set point: regulator dead time + ``time_constants`` lags."""
+    pn = robot.pneumatics
+    return pn.regulator_dead_time_s + time_constants * pn.regulator_time_constant_s
+
+
+def deployment(robot: RobotDescription, params: dict) -> list[Plan]:
+    """Links at 0 Pa with valves closed; channel 0 opened to its set point, a 'pressure-check' PLAN_STEP
+    (index = channel, value = set point) after the estimated fill time, its valve closed; then channel 1."""
+    set_points = np.asarray(params["set_points_kpa"], float) * KPA
+    channels = robot.pneumatics.channels
+    if len(set_points) != channels:
+        raise ValueError(f"popup_deploy: set_points_kpa needs {channels} values, got {len(set_points)}")
+    fill_s = fill_time_s(robot, params["fill_time_constants"])
+    cell = {
+        "protocol": "popup_deploy",
+        "set_points_pa": set_points.tolist(),
+        "fill_s": fill_s,
+    }
+    b = _builder("popup_deploy/" + "-".join(f"{p / KPA:g}" for p in set_points) + "kPa", robot, cell)
+    pressure, valves = np.zeros(channels), np.zeros(channels, bool)
+    b.goto(_pose(params)).pressure(pressure, valves).payload(0.0).wait(params["deflated_s"])
+    for ch in params["order"]:
+        pressure[ch], valves[ch] = set_points[ch], True
+        b.pressure(pressure, valves).mark(EventKind.PLAN_STEP, ch, "inflate", value=float(set_points[ch]))
+        b.wait(fill_s).mark(EventKind.PLAN_STEP, ch, PRESSURE_CHECK, value=float(set_points[ch]))
+        valves[ch] = False  # normally-closed valves: the supply is cut once the link is full
+        b.pressure(pressure, valves)
+    b.wait(params["hold_s"])
+    return [b.build()]
+
+
+def pressure_checks(plan: Plan) -> list[tuple[float, int, float]]:
+    """The plan's (time s, channel, set point Pa) pressure checks."""
+    return [
+        (t, e.index, e.value)
+        for t, e in plan.events
+        if e.kind == EventKind.PLAN_STEP and e.label == PRESSURE_CHECK
+    ]
+
+
+def verify_pressure_checks(
+    plan: Plan, t_s: np.ndarray, pressure_pa: np.ndarray, tolerance: float = 0.05
+) -> list[tuple[int, float, float, bool]]:
+    """At every check, the last measured pressure (``t_s`` plan seconds, ``pressure_pa`` (n, C)) of its
+    channel against the set point: (channel, set point, measured, within ``tolerance`` of it)."""
+    out = []
+    for t, ch, target in pressure_checks(plan):
+        i = int(np.searchsorted(t_s, t, side="right")) - 1
+        measured = float(pressure_pa[i, ch]) if i >= 0 else math.nan
+        out.append((ch, target, measured, abs(measured - target) <= tolerance * target))
+    return out
+
+
+PROTOCOLS: dict[str, Callable[[RobotDescription, dict], list[Plan]]] = {
+    "popup_static": static_test,
+    "popup_impact": impact_test,
+    "popup_deploy": deployment,
+}

@@ -1,0 +1,233 @@
+"""Safety limits: checked on a plan before it runs, and on the measured state while it runs.
+
+Limits come from the robot description: the joints' ranges, the pneumatics' operating range, and its
+``safety`` section (the tip's allowed box; how close to the wrinkling moment M_w(p) = (π²/8) p r³ an
+inflatable link may be loaded — above M_w the link is non-linear, at M_c = 2 M_w it collapses). A protocol
+that studies the non-linear range (POPUP's static link test) sets ``allow_wrinkling`` and is held below
+``collapse_fraction`` · M_c instead.
+
+A link whose valve is closed below the operating minimum is *stowed* (deflated, as before deployment): it is
+not load-bearing, so its wrinkling limit does not apply, but no joint may move while it is stowed.
+
+Every check is vectorised over samples. ``check_plan`` looks at every commanded instant (and at points between
+consecutive joint goals); ``check_state`` at measured samples (the runners call it while a plan runs).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from acquisition.plans.plan import Plan
+from models.prbm import collapse_moment, wrinkling_moment
+from models.robot import RobotDescription
+from models.statics import gravity_moments, static_deflection
+
+MOVE_SUBSAMPLES = 8  # points checked between two consecutive joint goals (a move sweeps through them)
+
+
+class SafetyError(RuntimeError):
+    """A plan breaks a safety limit; nothing has been commanded."""
+
+    def __init__(self, plan: str, violations: list[Violation]) -> None:
+        self.violations = violations
+        shown = "\n".join(f"  {v}" for v in violations[:10])
+        more = f"\n  … and {len(violations) - 10} more" if len(violations) > 10 else ""
+        super().__init__(f"plan {plan} breaks {len(violations)} safety limit(s):\n{shown}{more}")
+
+
+@dataclass(frozen=True)
+class Violation:
+    t_s: float  # plan time (check_plan) or the sample's time (check_state)
+    limit: str  # "joint", "pressure", "workspace", "wrinkling", "collapse", "stowed-motion"
+    detail: str
+    sample: int = -1  # which sample (check_state) or instant (check_plan)
+
+    def __str__(self) -> str:
+        return f"t = {self.t_s:.3f} s: {self.limit}: {self.detail}"
+
+
+class SafetyChecker:
+    """The limits of one robot, ready to check plans and measured samples."""
+
+    def __init__(self, robot: RobotDescription) -> None:
+        self.robot = robot
+        self.joint_limits = robot.joint_limits()
+        pn = robot.pneumatics
+        self.pressure_min, self.pressure_max = pn.min_operating_pa, pn.max_operating_pa
+        spec = robot.safety
+        self.tolerance_pa = spec.pressure_tolerance_pa if spec else 0.0
+        self.box = (np.asarray(spec.workspace_min_m), np.asarray(spec.workspace_max_m)) if spec else None
+        self.link_channels = sorted(
+            {ln.pressure_channel for ln in robot.links if ln.pressure_channel is not None}
+        )
+        # inflatable links: (name, radius, channel, indices of its virtual joints among the chain's rows)
+        rows = [r.joint for r in robot.dh_rows()]
+        self.inflatable = [
+            (ln.name, ln.radius_m, ln.pressure_channel, [rows.index(v) for v in ln.virtual_joints])
+            for ln in robot.links
+            if ln.radius_m is not None and ln.pressure_channel is not None
+        ]
+        self.wrinkling_fraction = spec.wrinkling_fraction if spec else 1.0
+        self.collapse_fraction = spec.collapse_fraction if spec else 0.9
+
+    # ------------------------------------------------------------------------------------------- plans
+    def check_plan(self, plan: Plan) -> list[Violation]:
+        """Every limit at every commanded instant of ``plan`` (static loads at rest in the commanded pose)."""
+        if plan.robot != self.robot.name:
+            raise ValueError(f"plan {plan.name} is for {plan.robot}, not {self.robot.name}")
+        times = np.unique(np.concatenate([plan.goal_t, plan.pressure_t, plan.payload_t, self._moves(plan)]))
+        cmd = plan.at(times)
+        goal_q = cmd["goal_q"]
+        # between two goals the joints sweep from one to the other: check the goal interpolated there
+        prev = np.maximum(cmd["goal_index"] - 1, 0)
+        start, end = plan.goal_t[cmd["goal_index"]], self._goal_end(plan, cmd["goal_index"])
+        frac = np.clip((times - start) / np.maximum(end - start, 1e-9), 0.0, 1.0)[:, None]
+        moving = (times > start)[:, None] & (end > start)[:, None]
+        q = np.where(moving, plan.goal_q[prev] + frac * (goal_q - plan.goal_q[prev]), goal_q)
+        out = self._joints(plan.goal_t, plan.goal_q)  # a sweep between goals stays inside the joints' box
+        pressure, valves = cmd["pressure_pa"], cmd["valve_open"]
+        out += self._pressure_commands(times, pressure, valves)
+        stowed = self._stowed(pressure, valves)
+        goal_changes = np.flatnonzero(np.diff(cmd["goal_index"], prepend=-1) != 0)[1:]
+        for k in goal_changes[stowed[goal_changes].any(axis=1)]:
+            out.append(
+                Violation(float(times[k]), "stowed-motion", "a joint goal changes while a link is deflated")
+            )
+        delta, _ = static_deflection(self.robot, q, pressure, cmd["payload_kg"])
+        out += self._workspace(times, self.robot.chain().position(q, delta))
+        full = gravity_moments(self.robot, q, delta, cmd["payload_kg"])
+        out += self._bending(times, full, pressure, stowed, bool(plan.parameters.get("allow_wrinkling")))
+        return sorted(out, key=lambda v: v.t_s)
+
+    def require_safe(self, plan: Plan) -> None:
+        """Raise :class:`SafetyError` if ``plan`` breaks any limit."""
+        violations = self.check_plan(plan)
+        if violations:
+            raise SafetyError(plan.name, violations)
+
+    @staticmethod
+    def _goal_end(plan: Plan, index: np.ndarray) -> np.ndarray:
+        """When the move towards goal ``index`` is expected to end: at the next goal's time, or after the
+        joint distance at the profile speed (a ``goto`` followed by a wait)."""
+        nxt = np.minimum(index + 1, len(plan.goal_t) - 1)
+        distance = np.abs(plan.goal_q[index] - plan.goal_q[np.maximum(index - 1, 0)]).max(axis=1)
+        speed = plan.goal_speed[index].max(axis=1)
+        travel = np.where(speed > 0, distance / np.maximum(speed, 1e-9), 0.0)
+        t_next = np.where(index + 1 < len(plan.goal_t), plan.goal_t[nxt], np.inf)
+        return np.minimum(plan.goal_t[index] + travel, t_next)
+
+    def _moves(self, plan: Plan) -> np.ndarray:
+        """Instants within each move, so a sweep through a forbidden pose is caught."""
+        idx = np.arange(1, len(plan.goal_t))
+        if not len(idx):
+            return np.empty(0)
+        start, end = plan.goal_t[idx], self._goal_end(plan, idx)
+        frac = np.arange(1, MOVE_SUBSAMPLES + 1) / MOVE_SUBSAMPLES
+        t = start[:, None] + (end - start)[:, None] * frac[None]
+        return np.clip(t.ravel(), 0.0, plan.duration_s)
+
+    def _stowed(self, pressure: np.ndarray, valves: np.ndarray) -> np.ndarray:
+        """(n, C): link channels closed below the operating minimum (deflated, not load-bearing)."""
+        out = np.zeros(pressure.shape, bool)
+        ch = self.link_channels
+        out[:, ch] = ~valves[:, ch] & (pressure[:, ch] < self.pressure_min)
+        return out
+
+    def _pressure_commands(self, t: np.ndarray, pressure: np.ndarray, valves: np.ndarray) -> list[Violation]:
+        high = np.argwhere(pressure > self.pressure_max)
+        out = _found(t, high[:, 0], "pressure", [
+            f"channel {c} set to {pressure[i, c]:.0f} Pa > {self.pressure_max:.0f} Pa" for i, c in high
+        ])  # fmt: skip
+        ch = np.array(self.link_channels, int)
+        low = np.argwhere(valves[:, ch] & (pressure[:, ch] < self.pressure_min))
+        least = f"{self.pressure_min:.0f} Pa"
+        return out + _found(t, low[:, 0], "pressure", [
+            f"link channel {ch[c]} open at {pressure[i, ch[c]]:.0f} Pa < {least}" for i, c in low
+        ])  # fmt: skip
+
+    # --------------------------------------------------------------------------------- measured state
+    def check_state(
+        self,
+        t: np.ndarray,
+        q: np.ndarray,
+        pressure: np.ndarray,
+        payload_kg: np.ndarray | float,
+        delta: np.ndarray | None = None,
+        allow_wrinkling: np.ndarray | bool = False,
+        every: bool = False,
+        commanded: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> list[Violation]:
+        """Limits on measured samples: joints ``q`` (n, A), link pressures (n, C), the payload hanging now
+        (per sample or one). The link bending δ is the true one on the twin, else the static estimate from
+        k(p). ``allow_wrinkling`` may differ per sample. ``every``: all violations, not the first few.
+        ``commanded``: the (set-points, valves) in force at each sample, to know which links are stowed.
+        """
+        t, q, pressure = np.atleast_1d(t), np.atleast_2d(q), np.atleast_2d(pressure)
+        payload = np.broadcast_to(np.asarray(payload_kg, float), t.shape)
+        keep = None if every else 3
+        out = self._joints(t, q, keep)
+        high = np.argwhere(pressure > self.pressure_max + self.tolerance_pa)
+        out += _found(t, high[:, 0], "pressure", [
+            f"channel {c} at {pressure[i, c]:.0f} Pa > {self.pressure_max:.0f} Pa" for i, c in high
+        ], keep)  # fmt: skip
+        if delta is None:
+            delta, _ = static_deflection(self.robot, q, pressure, payload)
+        out += self._workspace(t, self.robot.chain().position(q, delta), keep)
+        moments = gravity_moments(self.robot, q, delta, payload)
+        stowed = self._stowed(*commanded) if commanded is not None else np.zeros(pressure.shape, bool)
+        out += self._bending(t, moments, pressure, stowed, allow_wrinkling, keep)
+        return sorted(out, key=lambda v: v.t_s)
+
+    # ------------------------------------------------------------------------------------------ limits
+    def _joints(self, t: np.ndarray, q: np.ndarray, keep: int | None = 3) -> list[Violation]:
+        lo, hi = self.joint_limits[:, 0], self.joint_limits[:, 1]
+        bad = np.argwhere((q < lo - 1e-9) | (q > hi + 1e-9))
+        names = self.robot.actuated_joints
+        return _found(t, bad[:, 0], "joint", [
+            f"{names[j]} at {q[i, j]:.4f} rad, limits [{lo[j]:.4f}, {hi[j]:.4f}]" for i, j in bad
+        ], keep)  # fmt: skip
+
+    def _workspace(self, t: np.ndarray, tip: np.ndarray, keep: int | None = 3) -> list[Violation]:
+        if self.box is None:
+            return []
+        lo, hi = self.box
+        bad = np.flatnonzero(((tip < lo) | (tip > hi)).any(axis=1))
+        box = f"{np.round(lo * 1e3).tolist()}–{np.round(hi * 1e3).tolist()} mm"
+        return _found(t, bad, "workspace", [
+            f"tip at {np.round(tip[i] * 1e3, 1).tolist()} mm, outside {box}" for i in bad
+        ], keep)  # fmt: skip
+
+    def _bending(self, t: np.ndarray, moments: np.ndarray, pressure: np.ndarray, stowed: np.ndarray,
+                 allow_wrinkling: np.ndarray | bool, keep: int | None = 3) -> list[Violation]:  # fmt: skip
+        """Each inflatable link's bending moment (the vector sum over its virtual joints' axes) against
+        M_w(p) — or, where wrinkling is allowed (per sample), M_c(p)."""
+        out = []
+        allow = np.broadcast_to(np.asarray(allow_wrinkling, bool), t.shape)
+        for name, radius, channel, rows in self.inflatable:
+            bending = np.linalg.norm(moments[:, rows], axis=1)
+            p = np.maximum(pressure[:, channel], 0.0)
+            limit = np.where(
+                allow,
+                self.collapse_fraction * collapse_moment(p, radius),
+                self.wrinkling_fraction * wrinkling_moment(p, radius),
+            )
+            bad = (bending > limit) & ~stowed[:, channel]
+            for kind, mask in (("wrinkling", bad & ~allow), ("collapse", bad & allow)):
+                idx = np.flatnonzero(mask)
+                out += _found(t, idx, kind, [
+                    f"{name} bends with {bending[i]:.2f} N·m > {limit[i]:.2f} N·m at {p[i] / 1e3:.1f} kPa"
+                    for i in idx
+                ], keep)  # fmt: skip
+        return out
+
+
+def _found(t: np.ndarray, samples: np.ndarray, limit: str, details: list[str], keep: int | None = 3):
+    """Violations of one limit at ``samples``; only the first ``keep`` (a slow move past a limit breaks it at
+    many instants) and a count of the rest, unless ``keep`` is None."""
+    out = [Violation(float(t[i]), limit, d, int(i)) for i, d in zip(samples, details, strict=True)]
+    if keep is None or len(out) <= keep:
+        return out
+    last = out[keep - 1]
+    return [*out[:keep], Violation(last.t_s, limit, f"… and {len(out) - keep} more instants", last.sample)]

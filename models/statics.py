@@ -1,0 +1,84 @@
+"""Static loads of a robot description: the gravity moment about every joint of the chain.
+
+The moment about a joint is what its drive (actuated joint) or its link's spring (virtual joint) must hold;
+on an inflatable link it is compared with the wrinkling moment M_w(p) (``models.prbm.wrinkling_moment``).
+Vectorised over any leading batch shape of ``q``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from models.robot import TIP_FRAME, RobotDescription
+
+Array = NDArray[np.float64]
+
+
+def _mass_table(robot: RobotDescription) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row index of each point mass's frame (−1 = the tool point), positions in that frame, masses."""
+    rows = [r.joint for r in robot.dh_rows()]
+    frame = np.array([-1 if m.frame == TIP_FRAME else rows.index(m.frame) for m in robot.masses], dtype=int)
+    tool = np.asarray(robot.tool_offset_m, float)
+    pos = np.array(
+        [np.add(m.position_m, tool) if m.frame == TIP_FRAME else m.position_m for m in robot.masses], float
+    ).reshape(-1, 3)
+    return frame, pos, np.array([m.mass_kg for m in robot.masses], float)
+
+
+def gravity_moments(robot: RobotDescription, q: ArrayLike, delta: ArrayLike | None = None,
+                    payload_kg: ArrayLike = 0.0) -> Array:  # fmt: skip
+    """Gravity moment (N·m) about every row's joint axis, (..., R) in chain order: (r × m g) · z summed over
+    the masses distal to the joint, the payload hanging at the tool point. Same convention as the twin's
+    kernel: positive = gravity turns the joint in its positive direction."""
+    chain = robot.chain()
+    q = np.asarray(q, float)
+    frames = chain.frames(q, delta)  # (..., R + 1, 4, 4); frames[..., i] is the frame before row i
+    n_rows = frames.shape[-3] - 1
+    mass_row, mass_pos, mass_kg = _mass_table(robot)
+    tip = frames[..., -1, :, :]
+    tool = tip[..., :3, :3] @ np.asarray(robot.tool_offset_m, float) + tip[..., :3, 3]
+    # base-frame positions of the masses (..., M, 3) and of the payload
+    owner = np.where(mass_row < 0, n_rows, mass_row + 1)
+    f = frames[..., owner, :, :]
+    world = np.einsum("...mij,mj->...mi", f[..., :3, :3], mass_pos) + f[..., :3, 3]
+    payload = np.broadcast_to(np.asarray(payload_kg, float), q.shape[:-1])
+    gravity = np.asarray(robot.gravity_m_s2, float)
+    distal_of = np.where(mass_row < 0, n_rows, mass_row)  # a mass is distal to row i when its row ≥ i
+    out = np.empty((*q.shape[:-1], n_rows))
+    for i in range(n_rows):
+        z, origin = frames[..., i, :3, 2], frames[..., i, :3, 3]
+        force = mass_kg[distal_of >= i, None] * gravity  # (m, 3)
+        r = world[..., distal_of >= i, :] - origin[..., None, :]
+        moment = np.cross(r, force).sum(axis=-2) + np.cross(tool - origin, payload[..., None] * gravity)
+        out[..., i] = np.einsum("...k,...k->...", moment, z)
+    return out
+
+
+def static_deflection(robot: RobotDescription, q: ArrayLike, pressure_pa: ArrayLike,
+                      payload_kg: ArrayLike = 0.0, iterations: int = 3) -> tuple[Array, Array]:  # fmt: skip
+    """Virtual-joint angles δ = M(q, δ)/k(p) at rest (fixed-point iterations, hysteresis ignored) and the
+    moments about the virtual joints there: ((..., V), (..., V))."""
+    q = np.asarray(q, float)
+    rows = robot.dh_rows()
+    virtual = [i for i, r in enumerate(rows) if not r.joint.startswith("q")]
+    stiffness = _virtual_stiffness(robot, q.shape[:-1], pressure_pa)
+    delta = np.zeros((*q.shape[:-1], len(virtual)))
+    for _ in range(iterations):
+        moments = gravity_moments(robot, q, delta, payload_kg)[..., virtual]
+        delta = moments / stiffness
+    return delta, gravity_moments(robot, q, delta, payload_kg)[..., virtual]
+
+
+def _virtual_stiffness(robot: RobotDescription, batch: tuple[int, ...], pressure_pa: ArrayLike) -> Array:
+    """k(p) of every virtual joint's link at the link's channel pressure, (..., V)."""
+    from models.prbm import interp_table
+
+    pressure = np.broadcast_to(np.asarray(pressure_pa, float), (*batch, robot.pneumatics.channels))
+    out = np.empty((*batch, len(robot.virtual_joints)))
+    for v, name in enumerate(robot.virtual_joints):
+        link = robot.link_of(name)
+        table = robot.link_table(link.name)
+        p = pressure[..., link.pressure_channel] if link.pressure_channel is not None else np.zeros(batch)
+        out[..., v] = interp_table(p, table.pressure_pa, table.stiffness_nm_per_rad)
+    return out

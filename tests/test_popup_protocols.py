@@ -1,0 +1,163 @@
+"""POPUP protocols (seed 001): plans well formed, and short simulated runs whose sessions carry the tip
+accelerometer and the link pressures; the static test's loop; the deployment's pressure checks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from acquisition.plans import popup_protocols as pp
+from acquisition.plans import protocols
+from acquisition.plans.plan import Plan, PlanBuilder
+from acquisition.plans.sim_runner import SIM_EPOCH_NS, session_id, simulate_protocol
+from acquisition.schemas import topics as T
+from acquisition.schemas.events import Event, EventKind
+from acquisition.schemas.fast_read import read_fixed_topics
+from models.robot import load_robot
+
+SEED = 3
+REDUCED = {
+    "popup_static": {"pressures_kpa": [30], "repetitions": 2, "settle_s": 1.5, "hold_s": 0.5},
+    "popup_impact": {"pressures_kpa": [20, 80], "taps": 3, "record_s": 2.0, "settle_s": 2.0},
+    "popup_deploy": {},
+}
+
+
+@pytest.fixture(scope="module")
+def popup():
+    return load_robot("popup")
+
+
+def _plans(name: str, popup, **overrides) -> tuple[dict, list[Plan]]:
+    params = protocols.load_protocol(name, **overrides)
+    return params, pp.PROTOCOLS[name](pp.bench_robot(popup, params), params)
+
+
+def _kinds(plan: Plan, kind: EventKind, label: str | None = None) -> list[tuple[float, Event]]:
+    return [(t, e) for t, e in plan.events if e.kind == kind and (label is None or e.label == label)]
+
+
+def test_static_plans(popup):
+    params, plans = _plans("popup_static", popup)
+    assert [p.name for p in plans] == [f"popup_static/{k}kPa" for k in (10, 20, 30, 40, 50)]
+    n_loads = len(params["loads_g"])
+    for p in plans:
+        assert len(_kinds(p, EventKind.REPETITION_START)) == len(_kinds(p, EventKind.REPETITION_END)) == 3
+        settled = _kinds(p, EventKind.SETTLED)
+        assert [e.index for _, e in settled] == list(range(3 * (2 * n_loads - 1)))
+        assert p.payload_kg.max() == pytest.approx(max(params["loads_g"]) * 1e-3)
+        assert np.allclose(p.goal_q, np.radians(params["pose_deg"])) and len(p.tap_t) == 0
+
+
+def test_impact_plans(popup):
+    params, plans = _plans("popup_impact", popup)
+    assert len(plans) == 9
+    for p in plans:
+        taps = _kinds(p, EventKind.PLAN_STEP, "tap")
+        assert len(p.tap_t) == len(taps) == params["taps"] >= 3
+        assert np.allclose(p.tap_t, [t for t, _ in taps]) and np.all(p.tap_impulse_nms > 0)
+        assert p.tap_t[0] >= params["settle_s"] and p.duration_s >= p.tap_t[-1] + params["record_s"]
+
+
+def test_deploy_plan_inflates_link1_then_link2(popup):
+    _, (plan,) = _plans("popup_deploy", popup)
+    start = plan.at(np.array([0.0]))
+    assert np.all(start["pressure_pa"] == 0) and not start["valve_open"].any()
+    checks = pp.pressure_checks(plan)
+    assert [(ch, v) for _, ch, v in checks] == [(0, 50e3), (1, 50e3)]
+    ((t_inflate2, _),) = [(t, e) for t, e in _kinds(plan, EventKind.PLAN_STEP, "inflate") if e.index == 1]
+    assert t_inflate2 >= checks[0][0]
+    assert plan.at(np.array([checks[0][0] - 1e-3]))["pressure_pa"][0, 1] == 0
+
+
+def test_plan_taps_must_be_ordered_and_inside():
+    b = PlanBuilder("t", "popup", 3, 2).goto(np.zeros(3)).pressure(1e4).payload(0.0).wait(1.0).tap(0.01)
+    plan = b.wait(1.0).build()
+    assert plan.tap_t.tolist() == [1.0] and plan.tap_impulse_nms.tolist() == [0.01]
+    with pytest.raises(ValueError, match="tap times"):
+        Plan(**{**plan.__dict__, "tap_t": np.array([3.0])})
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory, popup):
+    directory = tmp_path_factory.mktemp("popup")
+    out = {}
+    for name, overrides in REDUCED.items():
+        _, plans = _plans(name, popup, **overrides)
+        simulate_protocol(name, directory, seed=SEED, overrides=overrides)
+        out[name] = []
+        for plan in plans:
+            (part,) = sorted((directory / session_id(plan)).glob("*.mcap"))
+            with open(part, "rb") as f:
+                events = [
+                    ((m.log_time - SIM_EPOCH_NS) / 1e9, Event.decode(m.data))
+                    for _, _, m in make_reader(f).iter_messages(topics=[T.EVENTS], log_time_order=True)
+                ]
+            out[name].append((plan, read_fixed_topics(part), events))
+    return out
+
+
+def _seconds(log_time: np.ndarray) -> np.ndarray:
+    return (log_time.astype(np.int64) - SIM_EPOCH_NS) / 1e9
+
+
+@pytest.mark.parametrize("name", list(REDUCED))
+def test_sessions_have_accelerometer_and_pressures(sessions, popup, name):
+    for plan, data, _ in sessions[name]:
+        accel, pressure = data[T.ACCEL], data[T.PRESSURE]
+        accel_hz, pressure_hz = len(accel) / plan.duration_s, len(pressure) / plan.duration_s
+        assert accel_hz == pytest.approx(popup.sensors.accelerometer.sample_rate_hz, rel=0.02)
+        assert pressure_hz == pytest.approx(popup.sensors.pressure.sample_rate_hz, rel=0.02)
+        assert accel.rows["acceleration"].shape == (len(accel), 3)
+        rest = accel.rows["acceleration"][:200].mean(axis=0)
+        assert np.linalg.norm(rest) == pytest.approx(9.81, abs=0.3)
+        final = pressure.rows["pressure"][-50:].mean(axis=0)
+        assert final == pytest.approx(plan.pressure_pa[-1], abs=1.5e3)
+
+
+def test_impact_taps_ring_the_link(sessions):
+    for _, data, events in sessions["popup_impact"]:
+        t = _seconds(data[T.ACCEL].log_time)
+        a = data[T.ACCEL].rows["acceleration"]
+        taps = [te for te, e in events if e.kind == EventKind.PLAN_STEP and e.label == "tap"]
+        assert len(taps) == 3
+        for t_tap in taps:
+            after = a[(t > t_tap + 0.02) & (t < t_tap + 0.3)]
+            before = a[(t > t_tap - 0.3) & (t < t_tap - 0.01)]
+            assert after.std(axis=0).max() > 20 * before.std(axis=0).max()
+
+
+def test_static_loop_shape(sessions, popup):
+    """Vertical tip positions averaged over each SETTLED hold: the tip goes down as the first load goes up; at
+    equal loads the loading and unloading branches of the second repetition differ by a loop no wider than
+    the configured one (2 δ_h of link 2 × its length) and at least a third of it; it closes at zero load.
+
+    Known twin limitation: each load step makes the link ring, and the ringing drives the Bouc–Wen state
+    (towards z = 0), so the loop is wider than the quasi-static model's for the same cycle and the second
+    loading branch starts slightly upwards. Next step: drive z with the quasi-static (gravity) torque."""
+    ((plan, data, events),) = sessions["popup_static"]
+    tracker = data[T.TRACKER]
+    t, z = _seconds(tracker.log_time), tracker.rows["position"][:, 2]
+    ok = ~tracker.rows["missing"]
+    holds = [(te, e.value) for te, e in events if e.kind == EventKind.SETTLED]
+    heights = np.array([z[ok & (t >= t0) & (t < t0 + hold)].mean() for t0, hold in holds])
+    n = len(plan.parameters["loads_kg"])
+    assert np.all(np.diff(heights[:n]) < 0)  # first loading: more load, lower tip, never against the load
+    second = heights[2 * n - 1 :]
+    loading, unloading = second[:n], second[n:][::-1]
+    width = np.abs(loading[:-1] - unloading).max()
+    link2 = popup.links[0]
+    configured = 2 * link2.hysteresis.delta_h_rad * 0.590  # link 2: hinge (D-H row d22) to tip
+    assert configured / 3 < width < 1.1 * configured
+    assert abs(loading[0] - unloading[0]) < 0.5e-3  # the loop closes at zero load
+
+
+def test_deploy_pressure_checks_pass(sessions):
+    ((plan, data, _),) = sessions["popup_deploy"]
+    pressure = data[T.PRESSURE]
+    t, p = _seconds(pressure.log_time), pressure.rows["pressure"]
+    results = pp.verify_pressure_checks(plan, t, p)
+    assert [r[0] for r in results] == [0, 1] and all(r[3] for r in results)
+    first_check = pp.pressure_checks(plan)[0][0]
+    assert p[t < first_check, 1].max() < 1e3  # link 2 stays deflated until link 1 is full
