@@ -107,6 +107,10 @@ class Recorder:
             w.start()
             w.ready.wait(timeout=30.0)
 
+    def worker(self, device: str) -> DeviceWorker | None:
+        """The worker that owns ``device`` ("servo_bus", "pressure_board", "stepper_board", "tracker")."""
+        return next((w for w in self.workers if w.device_name == device), None)
+
     def event(self, event: Event) -> None:
         """Mark something (plan step, payload change, note) at the current host time."""
         self.queue.put(Sample(T.EVENTS, host_now_ns(), event))

@@ -5,6 +5,12 @@ Read rate it is asked for, the boards' and the tracker's own streams), stamping 
 receive time. When the device fails (unplugged, timeouts, garbage) the worker marks a gap in the events,
 keeps retrying the connection with back-off and marks the gap's end when the device answers again; the other
 workers never notice. Samples go to a bounded queue; a full queue drops (and counts) rather than blocks.
+
+Commands (a plan runner's goals, set-points) go through the worker that owns the port: ``submit(action)``
+queues a callable that the worker runs between two polls; what it returns (a command sample, e.g. the goals
+as sent) is recorded like any other sample. Commands queued while the device is lost are dropped, counted,
+and marked in the events: a stale goal must never run when the device comes back. ``latest`` holds the last
+sample of each topic for the runner's safety checks and compensation.
 """
 
 from __future__ import annotations
@@ -14,6 +20,7 @@ import queue
 import threading
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,6 +60,14 @@ class DeviceWorker(threading.Thread):
         self.gaps = 0
         self.ready = threading.Event()  # set after the first connection attempt, whatever its outcome
         self.error: str | None = None
+        self.connected = False
+        self.commands: queue.SimpleQueue[Callable[[], Sample | None]] = queue.SimpleQueue()
+        self.commands_dropped = 0
+        self.latest: dict[str, Sample] = {}
+
+    def submit(self, action: Callable[[], Sample | None]) -> None:
+        """Run ``action`` on this worker's thread before its next poll (it may use the device)."""
+        self.commands.put(action)
 
     # device-specific
     def connect(self) -> None: ...
@@ -60,6 +75,7 @@ class DeviceWorker(threading.Thread):
     def disconnect(self) -> None: ...
 
     def emit(self, sample: Sample) -> None:
+        self.latest[sample.topic] = sample
         self.received[sample.topic] += 1
         try:
             self.out.put_nowait(sample)
@@ -77,6 +93,7 @@ class DeviceWorker(threading.Thread):
             self._event(Event(EventKind.DEVICE_GAP_START, label=self.device_name, text=self.error or ""))
         while not self.stop_event.is_set():
             if gap_start is not None:
+                self._run_commands()  # not connected: drops what was queued
                 if self.stop_event.wait(self.retry_s) or not self._try_connect():
                     continue
                 gap = time.monotonic() - gap_start
@@ -84,7 +101,7 @@ class DeviceWorker(threading.Thread):
                 log.warning("%s back after %.1f s", self.device_name, gap)
                 gap_start = None
             try:
-                samples = self.poll()
+                samples = self._run_commands() + self.poll()
             except DeviceError as exc:
                 self.error = str(exc)
                 self.gaps += 1
@@ -95,11 +112,28 @@ class DeviceWorker(threading.Thread):
                 continue
             for s in samples:
                 self.emit(s)
+        self._run_commands()  # a last safe stop submitted with the stop request still runs
         self._safe_disconnect()
+
+    def _run_commands(self) -> list[Sample]:
+        out = []
+        while True:
+            try:
+                action = self.commands.get_nowait()
+            except queue.Empty:
+                return out
+            if not self.connected:
+                self.commands_dropped += 1
+                self._event(Event(EventKind.NOTE, label=self.device_name, text="command dropped: no device"))
+                continue
+            sample = action()
+            if sample is not None:
+                out.append(sample)
 
     def _try_connect(self) -> bool:
         try:
             self.connect()
+            self.connected = True
             return True
         except DeviceError as exc:
             self.error = str(exc)
@@ -107,6 +141,7 @@ class DeviceWorker(threading.Thread):
             return False
 
     def _safe_disconnect(self) -> None:
+        self.connected = False
         try:
             self.disconnect()
         except DeviceError:

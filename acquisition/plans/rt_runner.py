@@ -1,0 +1,249 @@
+"""The real-time runner: a plan executed on the devices (hardware or the rig) while a Recorder records.
+
+Commands go through the recorder's device workers (each owns its port), which record them as they are sent:
+servo goals on ``/servo/goal``, pressure set-points and valves on ``/pressure/command``. The plan's clock is
+the host's monotonic clock, paused while the operator is busy (hanging a payload, tapping the link). Every
+``1/check_hz`` the latest measured state is checked against the safety limits; a violation, a lost device
+or Ctrl-C makes a safe stop: the servos hold where they are, the stepper stops, the pressures stay (an
+inflatable arm must not be vented under load), a SAFETY_STOP event says why, and the session stays valid.
+
+    with Recorder(robot, ports, directory, session_id) as rec:
+        report = RealTimeRunner(rec, plan, on_payload=prompt).run()
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from acquisition.devices.base import host_now_ns
+from acquisition.plans.compensation import Compensator
+from acquisition.plans.plan import Plan
+from acquisition.recorder.recorder import Recorder
+from acquisition.recorder.workers import Sample
+from acquisition.safety import SafetyChecker, Violation
+from acquisition.schemas import topics as T
+from acquisition.schemas.events import Event, EventKind
+
+log = logging.getLogger(__name__)
+
+
+class RunnerError(RuntimeError):
+    """The plan cannot start (a device the plan needs is missing or silent)."""
+
+
+@dataclass
+class RunReport:
+    plan: str
+    status: str  # "complete", "stopped" (a safety limit or a lost device), "interrupted" (operator)
+    elapsed_s: float  # plan time reached
+    reason: str = ""
+    commands: int = 0
+    violations: list[Violation] = field(default_factory=list)
+
+
+class RealTimeRunner:
+    def __init__(
+        self,
+        recorder: Recorder,
+        plan: Plan,
+        compensator: Compensator | None = None,
+        on_payload: Callable[[float], None] | None = None,
+        on_tap: Callable[[float], None] | None = None,
+        tick_s: float = 0.002,
+        check_hz: float = 20.0,
+        stale_s: float = 0.5,
+    ) -> None:
+        self.rec, self.plan, self.robot = recorder, plan, recorder.robot
+        if plan.robot != self.robot.name:
+            raise ValueError(f"plan {plan.name} is for {plan.robot}, the recorder records {self.robot.name}")
+        self.compensator = compensator
+        self.on_payload, self.on_tap = on_payload, on_tap
+        self.tick_s, self.check_period, self.stale_ns = tick_s, 1.0 / check_hz, int(stale_s * 1e9)
+        self.safety = SafetyChecker(self.robot)
+        joints = self.robot.joints
+        self.servo_joints = [i for i, j in enumerate(joints) if j.drive != "stepper"]
+        self.stepper_joints = [i for i, j in enumerate(joints) if j.drive == "stepper"]
+        servo_dev = self.robot.devices.get("servo_bus")
+        if servo_dev is not None:  # goals in the bus's id order
+            names = [j.name for j in joints]
+            self.servo_joints = [names.index(n) for n in servo_dev.ids if n in names]
+        self.servo = recorder.worker("servo_bus")
+        self.pressure = recorder.worker("pressure_board")
+        self.stepper = recorder.worker("stepper_board")
+        self.commands = 0
+        self._goal_seq = self._pressure_seq = 0
+
+    # --------------------------------------------------------------------------------------- running
+    def run(self) -> RunReport:
+        """Run the plan to its end, a safety stop or Ctrl-C (a safe stop too); never raises on those."""
+        plan = self.plan
+        self.safety.require_safe(plan)
+        self._require_devices()
+        self.rec.event(Event(EventKind.PLAN_STEP, 0, label="plan-start", text=plan.name))
+        self._send_torque(True)
+        cursor = {"goal": -1, "pressure": -1, "payload": -1, "tap": -1, "event": 0}
+        payload = float(plan.payload_kg[0])
+        start, paused, next_check, t = time.monotonic(), 0.0, 0.0, 0.0
+        try:
+            while t <= plan.duration_s:
+                t = time.monotonic() - start - paused
+                g = int(np.searchsorted(plan.goal_t, t, side="right")) - 1
+                if g != cursor["goal"]:
+                    cursor["goal"] = g
+                    self._send_goals(plan.goal_q[g], plan.goal_speed[g])
+                p = int(np.searchsorted(plan.pressure_t, t, side="right")) - 1
+                if p != cursor["pressure"]:
+                    cursor["pressure"] = p
+                    self._send_pressures(plan.pressure_pa[p], plan.valve_open[p])
+                m = int(np.searchsorted(plan.payload_t, t, side="right")) - 1
+                if m != cursor["payload"]:
+                    cursor["payload"], payload = m, float(plan.payload_kg[m])
+                    paused += self._operator(self.on_payload, payload)
+                k = int(np.searchsorted(plan.tap_t, t, side="right")) - 1
+                if k != cursor["tap"] and k >= 0:
+                    cursor["tap"] = k
+                    paused += self._operator(self.on_tap, float(plan.tap_impulse_nms[k]))
+                while cursor["event"] < len(plan.events) and plan.events[cursor["event"]][0] <= t:
+                    self.rec.event(plan.events[cursor["event"]][1])
+                    cursor["event"] += 1
+                if t >= next_check:
+                    next_check = t + self.check_period
+                    problem = self._check(t, payload)
+                    if problem is not None:
+                        return self._safe_stop("stopped", t, *problem)
+                time.sleep(self.tick_s)
+        except KeyboardInterrupt:
+            return self._safe_stop("interrupted", t, "operator", "Ctrl-C")
+        self.rec.event(Event(EventKind.PLAN_STEP, 1, label="plan-end", text=plan.name))
+        return RunReport(plan.name, "complete", plan.duration_s, commands=self.commands)
+
+    def _operator(self, action: Callable[[float], None] | None, value: float) -> float:
+        """Hand over to the operator (or the rig) and return how long the plan clock was paused."""
+        if action is None:
+            return 0.0
+        before = time.monotonic()
+        action(value)
+        return time.monotonic() - before
+
+    def _require_devices(self, timeout_s: float = 5.0) -> None:
+        """Every device the plan commands must be connected and streaming before the first command."""
+        needed = [(self.servo, T.SERVO_STATE)] if self.servo_joints else []
+        needed += [(self.pressure, T.PRESSURE)]
+        if self.stepper_joints:
+            needed.append((self.stepper, T.STEPPER))
+        deadline = time.monotonic() + timeout_s
+        for worker, topic in needed:
+            if worker is None:
+                raise RunnerError(f"plan {self.plan.name} needs a {topic} device; the recorder has none")
+            while topic not in worker.latest:
+                if time.monotonic() > deadline:
+                    raise RunnerError(
+                        f"no {topic} samples from {worker.device_name} ({worker.error or 'silent'})"
+                    )
+                time.sleep(0.01)
+
+    # --------------------------------------------------------------------------------------- sending
+    def _measured(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """Latest joint angles (A,), link pressures (C,), joint currents (A,) and the oldest stamp used."""
+        q = np.zeros(len(self.robot.joints))
+        current = np.zeros(len(self.robot.joints))
+        stamps = []
+        if self.servo_joints:
+            s = self.servo.latest[T.SERVO_STATE]
+            q[self.servo_joints] = s.values["position"]
+            current[self.servo_joints] = s.values["current"]
+            stamps.append(s.host_ns)
+        if self.stepper_joints:
+            s = self.stepper.latest[T.STEPPER]
+            q[self.stepper_joints] = s.values["position"]
+            stamps.append(s.host_ns)
+        s = self.pressure.latest[T.PRESSURE]
+        stamps.append(s.host_ns)
+        return q, np.asarray(s.values["pressure"], float), current, min(stamps)
+
+    def _send_goals(self, q_goal: np.ndarray, speed: np.ndarray) -> None:
+        q_cmd = np.asarray(q_goal, float)
+        if self.compensator is not None:
+            _, pressure, current, _ = self._measured()
+            q_cmd = self.compensator(q_cmd[None], pressure[None], current[None])[0]
+        self._goal_seq += 1
+        seq, servo = self._goal_seq, self.robot.servo
+        if self.servo_joints:
+            joints = self.servo_joints
+            speed_s = np.where(speed[joints] > 0, speed[joints], servo.profile_velocity_rad_s)
+
+            def servo_goals() -> Sample:
+                bus = self.servo.bus
+                bus.set_profile_velocity(speed_s)
+                bus.write_goals(q_cmd[joints])
+                values = {"seq": seq, "position": q_cmd[joints], "profile_velocity": speed_s,
+                          "profile_acceleration": np.zeros(len(joints))}  # fmt: skip
+                return Sample(T.SERVO_GOAL, host_now_ns(), values)
+
+            self.servo.submit(servo_goals)
+        if self.stepper_joints:
+            spec, j = self.robot.stepper, self.stepper_joints[0]
+            steps = round(q_cmd[j] / spec.rad_per_microstep)
+            rate = (speed[j] if speed[j] > 0 else spec.max_speed_rad_s) / spec.rad_per_microstep
+            accel = spec.acceleration_rad_s2 / spec.rad_per_microstep
+
+            def stepper_goal() -> None:
+                self.stepper.board.set_speed(min(max(rate, 1.0), 4000.0), min(max(accel, 1.0), 100_000.0))
+                self.stepper.board.move_to(steps)
+
+            self.stepper.submit(stepper_goal)
+        self.commands += 1
+
+    def _send_pressures(self, pressure_pa: np.ndarray, valves: np.ndarray) -> None:
+        self._pressure_seq += 1
+        seq = self._pressure_seq
+
+        def pressures() -> Sample:
+            board = self.pressure.board
+            for ch, (pa, open_) in enumerate(zip(pressure_pa, valves, strict=True)):
+                board.set_pressure(ch, float(pa))
+                board.set_valve(ch, bool(open_))
+            values = {"seq": seq, "setpoint": pressure_pa, "valve_open": valves}
+            return Sample(T.PRESSURE_COMMAND, host_now_ns(), values)
+
+        self.pressure.submit(pressures)
+        self.commands += 1
+
+    def _send_torque(self, on: bool) -> None:
+        if self.servo_joints:
+            self.servo.submit(lambda: self.servo.bus.set_torque(on))
+
+    # ---------------------------------------------------------------------------------------- safety
+    def _check(self, t: float, payload_kg: float) -> tuple[str, str] | None:
+        """A reason to stop now: a safety limit on the latest measurements, or a lost or silent device."""
+        for worker in (self.servo, self.pressure, self.stepper):
+            if worker is not None and not worker.connected:
+                return "device", f"{worker.device_name} lost: {worker.error}"
+        q, pressure, _, oldest = self._measured()
+        if host_now_ns() - oldest > self.stale_ns:
+            return "device", f"no fresh samples for {(host_now_ns() - oldest) / 1e9:.2f} s"
+        allow = bool(self.plan.parameters.get("allow_wrinkling"))
+        cmd = self.plan.at(np.array([t]))
+        violations = self.safety.check_state(
+            np.array([t]), q[None], pressure[None], payload_kg, allow_wrinkling=allow,
+            commanded=(cmd["pressure_pa"], cmd["valve_open"]),
+        )  # fmt: skip
+        if violations:
+            return violations[0].limit, violations[0].detail
+        return None
+
+    def _safe_stop(self, status: str, t: float, limit: str, why: str) -> RunReport:
+        """Hold the servos where they are, stop the stepper, keep the pressures; mark why."""
+        log.warning("plan %s: safe stop at %.2f s: %s: %s", self.plan.name, t, limit, why)
+        self.rec.event(Event(EventKind.SAFETY_STOP, label=limit, text=why))
+        if self.servo_joints and self.servo.connected and T.SERVO_STATE in self.servo.latest:
+            here = np.asarray(self.servo.latest[T.SERVO_STATE].values["position"], float)
+            self.servo.submit(lambda: self.servo.bus.write_goals(here))
+        if self.stepper_joints and self.stepper.connected:
+            self.stepper.submit(self.stepper.board.stop)
+        return RunReport(self.plan.name, status, t, f"{limit}: {why}", self.commands)

@@ -1,0 +1,137 @@
+"""The real-time plan runner on the rig: commands through the recorder's workers, recorded as sent; stops."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from acquisition.plans.plan import PlanBuilder
+from acquisition.plans.rt_runner import RealTimeRunner
+from acquisition.recorder.recorder import Recorder
+from acquisition.recorder.sessions import session_info
+from acquisition.safety import SafetyChecker
+from acquisition.schemas import topics as T
+from acquisition.schemas.events import EventKind
+from acquisition.schemas.fast_read import read_events, read_fixed_topics
+from acquisition.sim.ptyhost import send_control
+from models.robot import load_robot
+
+RIG = {"module": "acquisition.sim.rig", "extra": ("--robot", "vsl")}
+ROOT = Path(__file__).resolve().parents[1]
+BAR = 1e5
+
+
+@pytest.fixture(scope="module")
+def vsl():
+    return load_robot("vsl")
+
+
+def _plan(name="test/rt"):
+    """Home → a start pose, a few timed set-points, a pressure change, a payload, a hold: ≈ 5.5 s."""
+    b = PlanBuilder(name, "vsl", joints=3, channels=2, parameters={"protocol": "test"})
+    b.goto([0.2, 0.9, -1.6], 1.0).pressure(1.0 * BAR).payload(0.0).wait(1.5)
+    b.mark(EventKind.REPETITION_START, 0, "steps")
+    t = np.array([0.0, 0.5, 1.0, 1.5])
+    q = np.array([[0.2, 0.9, -1.6], [0.25, 0.95, -1.65], [0.3, 1.0, -1.7], [0.3, 1.0, -1.7]])
+    b.follow(t, q, np.full((4, 3), 0.3))
+    b.mark(EventKind.REPETITION_END, 0, "steps")
+    b.pressure([1.5 * BAR, 2.0 * BAR]).payload(0.05).wait(2.5)
+    return b.build()
+
+
+def test_plan_runs_on_the_rig_and_is_recorded_as_sent(host_factory, tmp_path, vsl):
+    plan = _plan()
+    with host_factory(**RIG) as ports:
+        rig_dir = tmp_path / "run"
+        with Recorder(vsl, ports, tmp_path / "s", "s") as rec:
+            payloads = []
+
+            def hang(kg):
+                payloads.append(kg)
+                send_control(rig_dir, {"op": "payload", "kg": kg})
+
+            report = RealTimeRunner(rec, plan, on_payload=hang).run()
+            truth = send_control(rig_dir, {"op": "state"})
+    assert report.status == "complete" and report.commands == len(plan.goal_t) + len(plan.pressure_t)
+    assert payloads == [0.0, 0.05]
+    (part,) = sorted((tmp_path / "s").glob("*.mcap"))
+    data = read_fixed_topics(part)
+    goals = data[T.SERVO_GOAL].rows
+    np.testing.assert_allclose(goals["position"], plan.goal_q[:, 1:])  # servo joints q2, q3
+    np.testing.assert_array_equal(goals["seq"], np.arange(1, len(plan.goal_t) + 1))
+    cmd = data[T.PRESSURE_COMMAND].rows
+    np.testing.assert_allclose(cmd["setpoint"], plan.pressure_pa)
+    # every joint reached its last goal (within the servos' droop under load) and the pressures theirs
+    np.testing.assert_allclose(truth["q"], plan.goal_q[-1], atol=0.03)
+    np.testing.assert_allclose(
+        data[T.PRESSURE].rows["pressure"][-50:].mean(axis=0), plan.pressure_pa[-1], rtol=0.03
+    )
+    # goal log times follow the plan's timing (first goal at the start)
+    start = data[T.SERVO_GOAL].log_time[0]
+    np.testing.assert_allclose((data[T.SERVO_GOAL].log_time - start) / 1e9, plan.goal_t, atol=0.05)
+    kinds = [e.kind for _, e in read_events(part)]
+    for kind in (
+        EventKind.REPETITION_START,
+        EventKind.REPETITION_END,
+        EventKind.PAYLOAD,
+        EventKind.PLAN_STEP,
+    ):
+        assert kind in kinds
+    assert EventKind.SAFETY_STOP not in kinds
+
+
+def test_watchdog_stops_the_plan_and_holds_the_arm(host_factory, tmp_path, vsl, monkeypatch):
+    """The tip leaves a (tightened) workspace box while the plan runs: SAFETY_STOP, the servos hold where they
+    are (the plan's later goals are never sent), and the session closes complete."""
+    plan = _plan("test/rt-stop")
+    monkeypatch.setattr(SafetyChecker, "require_safe", lambda self, plan: None)  # only the in-run check
+    with host_factory(**RIG) as ports:
+        with Recorder(vsl, ports, tmp_path / "s", "s") as rec:
+            runner = RealTimeRunner(rec, plan, on_payload=lambda kg: None)
+            lo, hi = runner.safety.box
+            runner.safety.box = (lo, np.array([hi[0], 0.04, hi[2]]))  # y ≤ 40 mm: q1 = 0.2 rad leaves it
+            report = runner.run()
+            time.sleep(1.0)
+    assert report.status == "stopped" and report.reason.startswith("workspace")
+    (part,) = sorted((tmp_path / "s").glob("*.mcap"))
+    data = read_fixed_topics(part)
+    stops = [(t, e) for t, e in read_events(part) if e.kind == EventKind.SAFETY_STOP]
+    assert len(stops) == 1 and stops[0][1].label == "workspace"
+    assert len(data[T.SERVO_GOAL]) < len(plan.goal_t)
+    servo = data[T.SERVO_STATE]
+    after = servo.log_time > stops[0][0] + 0.5e9
+    held = servo.rows["position"][after]
+    assert np.ptp(held, axis=0).max() < 0.005  # held still (the velocity register is ±2 counts of noise)
+    assert session_info(tmp_path / "s").status == "complete"
+
+
+@pytest.mark.slow
+def test_ctrl_c_on_vslab_run_is_a_safe_stop(tmp_path):
+    """`vslab run --rig` interrupted (SIGINT) mid-plan: a SAFETY_STOP 'operator' event, a complete session."""
+    lab = tmp_path / "lab"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "vslab.cli", "--lab", str(lab), "--quiet", "run", "experiment1",
+         "--plan", "experiment1/curve/vsl-1bar/25g", "--rig", "--session", "interrupted"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    session = lab / "sessions" / "interrupted"
+    deadline = time.monotonic() + 90
+    while not list(session.glob("*.mcap")) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    time.sleep(4.0)
+    proc.send_signal(signal.SIGINT)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, out
+    assert "interrupted" in out
+    info = session_info(session)
+    assert info.status == "complete"
+    (part,) = sorted(session.glob("*.mcap"))
+    stops = [e for _, e in read_events(part) if e.kind == EventKind.SAFETY_STOP]
+    assert [e.label for e in stops] == ["operator"]
+    assert len(read_fixed_topics(part)[T.SERVO_GOAL]) >= 1

@@ -1,0 +1,263 @@
+"""`vslab record`, `vslab run` and `vslab sessions`: hardware (or rig) sessions."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.table import Table
+
+from vslab.app import Settings, _fail, _robot, app, console, sessions_app
+
+PORTS_HELP = "ports.json (or the rig's run directory) naming each device's port."
+RIG_HELP = "Start a rig (the twin behind emulators) and use its devices."
+LiveOption = Annotated[bool, typer.Option("--live", help="Serve the streams to Foxglove over WebSocket.")]
+LiveHost = Annotated[str, typer.Option(help="Address the live view binds to.")]
+LivePort = Annotated[int, typer.Option(help="Port of the live view (0: any free one).")]
+
+
+@contextlib.contextmanager
+def _devices(desc, ports: Path | None, rig: bool, session_id: str):
+    """(port map, rig run directory or None): the devices named by ``ports``, or a rig started for the
+    session (stopped on exit). SIGTERM becomes KeyboardInterrupt, so both stop a session the same way."""
+    from acquisition.sim.ptyhost import wait_for_ports
+
+    rig_proc = None
+    if rig:
+        ports = Settings.lab / "rig" / session_id
+        rig_proc = subprocess.Popen(
+            [sys.executable, "-m", "acquisition.sim.rig", "--robot", desc.name, "--run-dir", str(ports)]
+        )
+    if ports is None:
+        _fail("say where the devices are: --ports <ports.json | rig run dir>, or --rig")
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
+    try:
+        if rig or ports.is_dir():
+            yield wait_for_ports(ports, timeout_s=60), ports
+        elif ports.is_file():
+            yield json.loads(ports.read_text()), None
+        else:
+            _fail(f"no ports file or rig directory at {ports}")
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        if rig_proc is not None:
+            rig_proc.terminate()
+            rig_proc.wait(timeout=10)
+
+
+def _recorder(desc, port_map: dict, session_id: str, protocol: str, live: bool, host: str, port: int, **meta):
+    """The session's Recorder (not started) and its live view (or a null context)."""
+    from acquisition.recorder.recorder import Recorder
+
+    view = _live_view(desc, host, port) if live else contextlib.nullcontext()
+    rec = Recorder(desc, port_map, Settings.lab / "sessions" / session_id, session_id, protocol=protocol,
+                   metadata={k: str(v) for k, v in meta.items()})  # fmt: skip
+    return rec, view
+
+
+def _finish(rec) -> None:
+    if rec.live_errors:
+        console.print(f"[yellow]the live view failed {rec.live_errors} time(s); the file is complete[/]")
+    if rec.write_error:
+        _fail(f"the session writer failed: {rec.write_error}")
+    console.print(f"session {rec.writer.session_id}: {', '.join(p.name for p in rec.writer.parts)} in "
+                  f"{rec.writer.directory}")  # fmt: skip
+
+
+@app.command()
+def record(
+    robot: Annotated[str, typer.Option(help="Robot description.")] = "vsl",
+    ports: Annotated[Path | None, typer.Option(help=PORTS_HELP)] = None,
+    rig: Annotated[bool, typer.Option("--rig", help=RIG_HELP)] = False,
+    duration: Annotated[float, typer.Option(help="Seconds to record (0: until Ctrl-C).")] = 0.0,
+    session: Annotated[str | None, typer.Option(help="Session id (default: time, robot).")] = None,
+    protocol: Annotated[str, typer.Option(help="What this session is (stored in its metadata).")] = "manual",
+    live: LiveOption = False,
+    live_host: LiveHost = "127.0.0.1",
+    live_port: LivePort = 8765,
+) -> None:
+    """Record every device of a robot to one MCAP session, with live counters; Ctrl-C stops cleanly."""
+    from rich.live import Live
+
+    desc = _robot(robot)
+    session_id = session or time.strftime("%Y%m%d-%H%M%S") + f"-{desc.name}"
+    with _devices(desc, ports, rig, session_id) as (port_map, _):
+        rec, view = _recorder(desc, port_map, session_id, protocol, live, live_host, live_port)
+        with view as live_server:
+            rec.live = live_server
+            start = time.monotonic()
+            with rec, Live(console=console, refresh_per_second=2, transient=False) as counters:
+                try:
+                    while duration <= 0 or time.monotonic() - start < duration:
+                        time.sleep(0.5)
+                        if not Settings.quiet:
+                            counters.update(_counter_table(rec.snapshot(), time.monotonic() - start))
+                except KeyboardInterrupt:
+                    pass
+    _finish(rec)
+
+
+@app.command()
+def run(
+    protocol: Annotated[str, typer.Argument(help="Protocol (configs/protocols/) or a YAML path.")],
+    plan: Annotated[str, typer.Option(help="Which of its plans: a name, or its number (0 = first).")] = "0",
+    set_: Annotated[list[str] | None, typer.Option("--set", help="Override a parameter: key=value.")] = None,
+    ports: Annotated[Path | None, typer.Option(help=PORTS_HELP)] = None,
+    rig: Annotated[bool, typer.Option("--rig", help=RIG_HELP)] = False,
+    session: Annotated[str | None, typer.Option(help="Session id (default: time, plan).")] = None,
+    live: LiveOption = False,
+    live_host: LiveHost = "127.0.0.1",
+    live_port: LivePort = 8765,
+) -> None:
+    """Run one plan of a protocol in real time on the devices (or the rig) while recording it. Payload
+    changes and taps prompt the operator (on the rig: applied). Ctrl-C: a safe stop; the file stays valid."""
+    from acquisition.plans.compensation import StaticModelCompensator
+    from acquisition.plans.protocols import expand_protocol
+    from acquisition.plans.rt_runner import RealTimeRunner, RunnerError
+    from acquisition.safety import SafetyError
+    from models.robot import RobotDescriptionError
+    from vslab.app import _overrides
+
+    try:
+        robots, plans, _ = expand_protocol(protocol, _overrides(set_ or []))
+    except (ValueError, FileNotFoundError, RobotDescriptionError) as exc:
+        _fail(str(exc))
+    chosen = [p for k, p in enumerate(plans) if plan in (p.name, str(k))]
+    if not chosen:
+        _fail(f"{protocol} has no plan {plan!r}; its plans: " + ", ".join(p.name for p in plans[:10]) + " …")
+    the_plan = chosen[0]
+    desc = robots[the_plan.robot]
+    commands = the_plan.parameters.get("commands", "ik")
+    if commands == "hybrid":
+        _fail("hybrid commands need a trained inverse model (not available yet); use commands=static or ik")
+    compensator = (
+        StaticModelCompensator(desc, the_plan.parameters["payload_kg"]) if commands == "static" else None
+    )
+    session_id = session or time.strftime("%Y%m%d-%H%M%S-") + the_plan.name.replace("/", "-")
+    console.print(f"{the_plan.name}: {the_plan.duration_s:.1f} s on {desc.name}")
+    with _devices(desc, ports, rig, session_id) as (port_map, rig_dir):
+        on_payload, on_tap = _operator(rig_dir if rig else None)
+        rec, view = _recorder(desc, port_map, session_id, the_plan.parameters.get("protocol", protocol), live,
+                              live_host, live_port, plan=the_plan.name, runner="real-time")  # fmt: skip
+        with view as live_server:
+            rec.live = live_server
+            with rec:
+                try:
+                    report = RealTimeRunner(rec, the_plan, compensator, on_payload, on_tap).run()
+                except (SafetyError, RunnerError) as exc:
+                    _fail(str(exc))
+    _finish(rec)
+    colour = "green" if report.status == "complete" else "yellow"
+    console.print(f"[{colour}]{report.status}[/] at {report.elapsed_s:.1f} s of {the_plan.duration_s:.1f} s"
+                  + (f": {report.reason}" if report.reason else ""))  # fmt: skip
+
+
+def _operator(rig_dir: Path | None):
+    """Who hangs payloads and taps the link: the rig (through its control socket) or the operator (prompted;
+    the plan's clock waits for Enter)."""
+    from acquisition.sim.ptyhost import send_control
+
+    if rig_dir is not None:
+        return (lambda kg: send_control(rig_dir, {"op": "payload", "kg": kg}),
+                lambda nms: send_control(rig_dir, {"op": "tap", "nms": nms}))  # fmt: skip
+
+    def payload(kg: float) -> None:
+        typer.prompt(
+            f"hang {kg * 1e3:g} g at the end-effector, then press Enter", default="", show_default=False
+        )
+
+    def tap(nms: float) -> None:
+        typer.prompt(
+            f"tap the link (≈ {nms * 1e3:g} mN·m·s), then press Enter", default="", show_default=False
+        )
+
+    return payload, tap
+
+
+def _live_view(desc, host: str, port: int):
+    """A started Foxglove live view of ``desc``'s topics; tells the user where to point Foxglove."""
+    import ipaddress
+
+    from acquisition.recorder.live import LiveServer
+    from acquisition.schemas.topics import session_topics
+
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        loopback = False
+    if not loopback:
+        console.print(f"[yellow]warning: the live view on {host} is unauthenticated: anyone who can reach "
+                      f"it sees the streams[/]")  # fmt: skip
+    try:
+        server = LiveServer(session_topics(desc), host=host, port=port).start()
+    except Exception as exc:  # a port in use, an address not ours
+        _fail(f"cannot start the live view on {host}:{port}: {exc}")
+    console.print(f"live view: open {server.url} in Foxglove (Open connection → Foxglove WebSocket)")
+    return server
+
+
+def _counter_table(snapshot: dict, elapsed: float) -> Table:
+    table = Table("topic", "received", "written", "dropped", "rate Hz", title=f"recording {elapsed:.0f} s")
+    for topic, c in sorted(snapshot.items()):
+        rate = c["received"] / elapsed if elapsed > 0 else 0.0
+        table.add_row(topic, f"{c['received']:,}", f"{c['written']:,}", str(c["dropped"]), f"{rate:.0f}")
+    return table
+
+
+@sessions_app.command("list")
+def sessions_list() -> None:
+    """Sessions in the lab: robot, protocol, status, duration, streams, drops."""
+    from acquisition.recorder.sessions import list_sessions
+
+    table = Table("session", "robot", "protocol", "status", "duration s", "messages", "dropped", "torn parts")
+    for info in list_sessions(Settings.lab / "sessions"):
+        table.add_row(
+            info.id, info.robot, info.protocol, info.status, f"{info.duration_s:.1f}",
+            f"{sum(s.messages for s in info.streams.values()):,}", str(info.dropped), str(len(info.torn)),
+        )  # fmt: skip
+    console.print(table)
+
+
+def _session_dir(session: str) -> Path:
+    directory = Path(session) if Path(session).is_dir() else Settings.lab / "sessions" / session
+    if not directory.is_dir():
+        _fail(f"no session {session!r} in {Settings.lab / 'sessions'}")
+    return directory
+
+
+@sessions_app.command("info")
+def sessions_info(session: Annotated[str, typer.Argument(help="Session id or directory.")]) -> None:
+    """One session's streams: messages, time span, rate, drops."""
+    from acquisition.recorder.sessions import session_info
+
+    info = session_info(_session_dir(session))
+    table = Table(
+        "topic", "messages", "duration s", "rate Hz", "dropped",
+        title=f"{info.id}: {info.robot}, {info.protocol}, {info.status}, {len(info.parts)} part(s)",
+    )  # fmt: skip
+    for s in info.streams.values():
+        table.add_row(s.topic, f"{s.messages:,}", f"{s.duration_s:.2f}", f"{s.rate_hz:.1f}", str(s.dropped))
+    console.print(table)
+    for part in info.torn:
+        console.print(f"[yellow]torn part[/yellow] {part.name}: run `vslab sessions recover {info.id}`")
+
+
+@sessions_app.command("recover")
+def sessions_recover(session: Annotated[str, typer.Argument(help="Session id or directory.")]) -> None:
+    """Write a valid, indexed copy of every torn part (the originals are never changed)."""
+    from acquisition.recorder.sessions import recover_session
+
+    reports = recover_session(_session_dir(session))
+    if not reports:
+        console.print("nothing to recover: every part is whole")
+    for r in reports:
+        console.print(
+            f"{r.source.name} → {r.output.name}: {r.messages:,} messages ({r.reason or 'complete'})"
+        )
