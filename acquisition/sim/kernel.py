@@ -88,7 +88,7 @@ class KernelState:
     delta: np.ndarray  # (B, V)
     delta_dot: np.ndarray
     hyst_z: np.ndarray
-    vj_torque: np.ndarray  # (B, V) external torque on each virtual joint at the last step
+    vj_torque: np.ndarray  # (B, V) static (gravity + payload) moment on each virtual joint, last step
     reg_buf: np.ndarray  # (B, C, D) regulator set-point delay line
     buf_idx: int
     reg_out: np.ndarray  # (B, C)
@@ -339,11 +339,15 @@ def _advance(
                 k = _interp(p, table_p[link, :m], table_k[link, :m])
                 c = _interp(p, table_p[link, :m], table_c[link, :m])
                 tau = loads[0] - inertia * coupling
+                # the hysteresis state follows the static load (gravity and payload moment), not the ringing
+                # of the drives' accelerations: passing tau − Δ(static) as the previous torque makes the
+                # step's dτ the static change while the spring still balances the full tau
+                static_change = loads[0] - vj_torque[b, v]
                 delta[b, v], delta_dot[b, v], hyst_z[b, v] = _link_step(
-                    delta[b, v], delta_dot[b, v], hyst_z[b, v], tau, vj_torque[b, v], k, c, inertia,
+                    delta[b, v], delta_dot[b, v], hyst_z[b, v], tau, tau - static_change, k, c, inertia,
                     vj_delta_h[v], vj_tau_y[v], dt,
                 )  # fmt: skip
-                vj_torque[b, v] = tau
+                vj_torque[b, v] = loads[0]
             # --- record the true state (tip pose from this step's kinematics)
             _frames(out_pos[b], delta[b], row_a, row_alpha_cs, row_d, row_offset, row_virtual, row_var, tool,
                     frames)  # fmt: skip
