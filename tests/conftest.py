@@ -7,8 +7,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
 
+from acquisition.schemas.fast_read import read_fixed_topics
 from acquisition.sim.ptyhost import wait_for_ports
 
 
@@ -35,3 +39,30 @@ def host_factory(tmp_path):
         return emulator_host(tmp_path / "run", *devices, module=module, extra=extra)
 
     return start
+
+
+def ros2_decodes_as_fast_path(part: Path) -> dict[str, int]:
+    """Decode every fixed-layout message of ``part`` with mcap-ros2-support (the reference decoder) and check
+    each field against the fast chunk reader's; returns the messages checked per topic."""
+    fast = read_fixed_topics(part)
+    seen = {topic: 0 for topic in fast}
+    with open(part, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _, channel, message, decoded in reader.iter_decoded_messages(log_time_order=False):
+            if channel.topic not in fast:
+                continue
+            data = fast[channel.topic]
+            i = message.sequence  # the writer numbers each topic's messages from 0, in log-time order
+            assert data.log_time[i] == message.log_time
+            row = data.rows[i]
+            for name in row.dtype.names[1:]:
+                np.testing.assert_array_equal(np.asarray(getattr(decoded, name)), row[name])
+            seen[channel.topic] += 1
+    assert seen == {topic: len(d) for topic, d in fast.items()}
+    return seen
+
+
+@pytest.fixture
+def ros2_agrees():
+    """The check of :func:`ros2_decodes_as_fast_path`, for tests that write sessions."""
+    return ros2_decodes_as_fast_path

@@ -45,7 +45,7 @@ def _plan(name="test/rt"):
     return b.build()
 
 
-def test_plan_runs_on_the_rig_and_is_recorded_as_sent(host_factory, tmp_path, vsl):
+def test_plan_runs_on_the_rig_and_is_recorded_as_sent(host_factory, tmp_path, vsl, ros2_agrees):
     plan = _plan()
     with host_factory(**RIG) as ports:
         rig_dir = tmp_path / "run"
@@ -84,6 +84,8 @@ def test_plan_runs_on_the_rig_and_is_recorded_as_sent(host_factory, tmp_path, vs
     ):
         assert kind in kinds
     assert EventKind.SAFETY_STOP not in kinds
+    checked = ros2_agrees(part)  # the command topics decode with the reference ROS 2 decoder too
+    assert checked[T.SERVO_GOAL] == len(plan.goal_t) and checked[T.PRESSURE_COMMAND] == len(plan.pressure_t)
 
 
 def test_watchdog_stops_the_plan_and_holds_the_arm(host_factory, tmp_path, vsl, monkeypatch):
