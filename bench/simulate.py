@@ -2,8 +2,10 @@
 
 Targets (issue 4): Experiment 1 (3 trajectories × 5 payloads × 5 arms × 5 repetitions = 375 runs) and the
 17,568-point campaign each in under 5 minutes on this machine, written as sessions (MCAP), as `vslab simulate`
-does. Prints wall time, bench-seconds simulated, the speed-up over real time and the messages written.
-Usage: python bench/simulate.py [--points N] [--benches B] [--only experiment1|campaign]
+does. Also Experiment 2 (model-based and static-compensated commands; the hybrid ones need a trained model)
+and the POPUP link tests. Prints wall time, bench-seconds simulated, the speed-up over real time and the
+messages written; every plan is safety-checked before it runs and while it runs.
+Usage: python bench/simulate.py [--points N] [--benches B] [--only PROTOCOL]
 """
 
 from __future__ import annotations
@@ -39,13 +41,18 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--points", type=int, default=17568, help="campaign size (the paper's n = 17568)")
     parser.add_argument("--benches", type=int, default=128, help="twin benches stepped together")
-    parser.add_argument("--only", choices=("experiment1", "campaign"))
+    parser.add_argument("--only", choices=("experiment1", "campaign", "experiment2", "popup"))
     args = parser.parse_args()
     print("simulated-time runner (numba twin, sessions written to MCAP)")
     if args.only in (None, "experiment1"):
         run("experiment1", args.benches, {})
     if args.only in (None, "campaign"):
         run("campaign", args.benches, {"points": args.points})
+    if args.only in (None, "experiment2"):
+        run("experiment2", args.benches, {"commands": ["ik", "static"]})
+    if args.only in (None, "popup"):
+        for protocol in ("popup_static", "popup_impact", "popup_deploy"):
+            run(protocol, args.benches, {})
 
 
 if __name__ == "__main__":
