@@ -50,6 +50,14 @@ def _host(link, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return host_receive_ns(t, spec, rng)
 
 
+def _stamped(device, clocks: DeviceClocks, r: np.ndarray, k: np.ndarray, t: np.ndarray,
+             rng: np.random.Generator, stamp: str = "micros") -> Stream:  # fmt: skip
+    """The columns every device stream has: bench, sequence number, true time, host receive time (ns) and
+    the device's own clock reading under ``stamp``."""
+    return {"robot": r, "seq": k, "t_true": t, "host_ns": _host(device.host_link, t, rng),
+            stamp: clocks.ticks_at(r, t)}  # fmt: skip
+
+
 def servo_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float, rate_hz: float,
                  rng: np.random.Generator) -> Stream:  # fmt: skip
     """Sync Reads of every position-controlled joint polled at ``rate_hz``: counts as the XM430 reports."""
@@ -62,11 +70,7 @@ def servo_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt
     )
     device = robot.devices.get("servo_bus") or robot.devices.get("main_board")
     return {
-        "robot": r,
-        "seq": k,
-        "t_true": t,
-        "host_ns": _host(device.host_link, t, rng),
-        "tick": clocks.ticks_at(r, t),
+        **_stamped(device, clocks, r, k, t, rng, "tick"),
         **counts,
     }
 
@@ -101,11 +105,7 @@ def pressure_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace,
     idx = _step_index(trace, t, dt)
     device = robot.devices.get("pressure_board") or robot.devices.get("main_board")
     return {
-        "robot": r,
-        "seq": k,
-        "t_true": t,
-        "host_ns": _host(device.host_link, t, rng),
-        "micros": clocks.ticks_at(r, t),
+        **_stamped(device, clocks, r, k, t, rng),
         "counts": sensors.pressure_to_adc_counts(trace.pressure[r, idx], pressure_spec(robot), rng),
     }
 
@@ -124,11 +124,7 @@ def stepper_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, 
     idx = _step_index(trace, t, dt)
     steps = np.rint(trace.q[r, idx][:, joints] / robot.stepper.rad_per_microstep).astype(np.int64)
     return {
-        "robot": r,
-        "seq": k,
-        "t_true": t,
-        "host_ns": _host(robot.devices["stepper_board"].host_link, t, rng),
-        "micros": clocks.ticks_at(r, t),
+        **_stamped(robot.devices["stepper_board"], clocks, r, k, t, rng),
         "position_steps": steps,
     }
 
@@ -192,11 +188,7 @@ def accelerometer_stream(robot: RobotDescription, clocks: DeviceClocks, trace: T
     force = np.einsum("nji,nj->ni", rot, accel - np.asarray(robot.gravity_m_s2))
     noise_rms = spec.noise_density_m_s2_per_sqrt_hz * np.sqrt(spec.bandwidth_hz)
     return {
-        "robot": r,
-        "seq": k,
-        "t_true": t,
-        "host_ns": _host(robot.devices["accelerometer"].host_link, t, rng),
-        "micros": clocks.ticks_at(r, t),
+        **_stamped(robot.devices["accelerometer"], clocks, r, k, t, rng),
         "acceleration": sensors.accelerometer_reading(
             force, spec.lsb_m_s2, spec.full_scale_m_s2, noise_rms, rng
         ),
