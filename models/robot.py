@@ -352,8 +352,8 @@ class RobotDescription(_Model):
             if link.pressure_channel is not None and link.pressure_channel >= self.pneumatics.channels:
                 raise ValueError(f"link {link.name!r}: pressure_channel exceeds pneumatics.channels")
         for link in self.links:
-            # At rest δ = τ/k − δ_h z with dz/dτ ≤ 1/τ_y: below τ_y = k δ_h a load would move the link against it
-            # (the tip rises when a mass is hung). A loop of full width 2 δ_h needs load swings ≫ τ_y.
+            # At rest δ = τ/k − δ_h z with dz/dτ ≤ 1/τ_y: below τ_y = k δ_h a load would move the link against
+            # itself (the tip rises when a mass is hung). A loop of full width 2 δ_h needs load swings ≫ τ_y.
             k_max = max(self.link_table(link.name).stiffness_nm_per_rad)
             h = link.hysteresis
             if h.delta_h_rad > 0 and h.tau_y_nm < k_max * h.delta_h_rad * (1 - 1e-6):
