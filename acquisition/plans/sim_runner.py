@@ -49,6 +49,35 @@ class SimReport:
         return self.simulated_s / self.wall_s if self.wall_s > 0 else float("inf")
 
 
+TWIN_TRUTH = (
+    "twin_truth"  # metadata key: what the twin knows and a lab never does (for checking the pipeline)
+)
+
+
+def twin_truth(world: World, bench: int) -> str:
+    """JSON of the bench's true device clocks (t_dev = (1 + ε)·t + b) and fixed USB latencies, and where the
+    tracker's field generator sits: the answers the pipeline's clock fits and registration are tested
+    against. The pipeline itself never reads it."""
+    import json
+
+    robot = world.robot
+    clocks = {
+        name: {
+            "drift_ppm": float(c.drift_ppm[bench]), "offset_s": float(c.offset_s[bench]),
+            "tick_s": c.spec.tick_s, "wrap": c.spec.wrap,
+            "latency_s": robot.devices[name].host_link.latency_s,
+            "jitter_s": robot.devices[name].host_link.jitter_s,
+        }
+        for name, c in world.clocks.items()
+    }  # fmt: skip
+    tracker = robot.sensors.tracker
+    placement = {
+        "rpy_rad": list(tracker.base_to_tracker_rpy_rad),
+        "translation_m": list(tracker.base_to_tracker_translation_m),
+    }
+    return json.dumps({"clocks": clocks, "base_to_tracker": placement, "host_epoch_ns": SIM_EPOCH_NS})
+
+
 def session_id(plan: Plan) -> str:
     return "sim-" + plan.name.replace("/", "-")
 
@@ -121,14 +150,15 @@ def simulate(
     durations = np.array([p.duration_s for p in plans])
     event_t = [np.array([t for t, _ in p.events]) for p in plans]
     writers = []
-    for p in plans:
+    for r, p in enumerate(plans):
         directory = sessions_dir / session_id(p)
         if directory.exists():  # an incomplete earlier try: start it again
             for old in directory.glob("*"):
                 old.unlink()
         w = SessionWriter(directory, robot, session_id(p), protocol=p.parameters.get("protocol", p.name),
                           metadata={"plan": p.name, "runner": "simulated", "seed": str(seed),
-                                    "parameters": repr(p.parameters)}, flush_s=30.0)  # fmt: skip
+                                    "parameters": repr(p.parameters), TWIN_TRUTH: twin_truth(world, r)},
+                          flush_s=30.0)  # fmt: skip
         w.open()
         w.event(Event(EventKind.SESSION_START, label=p.name), SIM_EPOCH_NS)
         writers.append(w)
