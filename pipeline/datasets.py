@@ -1,0 +1,141 @@
+"""The matrix D of seed 000 (IV): measured tip x, link pressures p, joint currents i, joint angles q, plus the
+model-based columns the hybrid networks take (the rigid FK of q, the rigid IK of x), ids and splits.
+
+Columns (SI): ``x_0..2`` (m, base frame), ``p_<c>`` (Pa, one per link channel), ``i_<k>`` (A, one per servo),
+``q_<j>`` (rad, every actuated joint in the robot's order), ``fk_0..2`` (m), ``ik_<j>`` (rad; NaN where x is
+out of reach), ``payload_kg``, ``robot``, ``session``, ``point`` (static point number or −1), ``repetition``
+(−1 for static points), ``split_random`` and ``split_group`` ("train" / "val" / "test").
+
+A dataset is written once under ``<lab>/datasets/<name>/<version>/`` (``data.parquet`` + ``card.json``); the
+version is the hash of its source sessions' hashes, the stage parameters and the code version, so building
+unchanged inputs again gives the same version and writes nothing.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from models import kinematics
+from models.robot import AnthropomorphicKinematics, RobotDescription
+from pipeline.cache import code_version, digest
+from pipeline.tables import columns
+
+SPLITS = ("train", "val", "test")
+FRACTIONS = (0.70, 0.15, 0.15)  # seed 000: 70 / 15 / 15
+
+
+def joint_angles(df: pd.DataFrame, robot: RobotDescription) -> np.ndarray:
+    """(n, A) joint angles in the robot's joint order from the timeline's stepper and servo columns."""
+    q = np.full((len(df), len(robot.joints)), np.nan)
+    steppers = [k for k, j in enumerate(robot.joints) if j.drive == "stepper"]
+    servo_dev = robot.devices.get("servo_bus") or robot.devices.get("main_board")
+    names = [j.name for j in robot.joints]
+    servos = [names.index(n) for n in (servo_dev.ids if servo_dev else {}) if n in names]
+    if steppers:
+        q[:, steppers] = columns(df, "stepper_position")[:, : len(steppers)]
+    if servos:
+        q[:, servos] = columns(df, "servo_position")[:, : len(servos)]
+    return q
+
+
+def assemble(points: pd.DataFrame, robot: RobotDescription) -> pd.DataFrame:
+    """D from registered rows (static points or trajectory samples) of one robot: ``x_0..2`` must already be
+    in the base frame; ``servo_position``/``stepper_position``, ``servo_current``, ``pressure`` columns as
+    the timeline names them."""
+    if not isinstance(robot.kinematics, AnthropomorphicKinematics):
+        raise ValueError(f"robot {robot.name!r}: the matrix D is defined for the anthropomorphic VSL arm")
+    kin = robot.kinematics
+    lengths = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+    q = joint_angles(points, robot)
+    x = columns(points, "x")
+    out = {f"x_{k}": x[:, k] for k in range(3)}
+    pressure = columns(points, "pressure")
+    out |= {f"p_{c}": pressure[:, c] for c in range(pressure.shape[1])}
+    current = columns(points, "servo_current")
+    out |= {f"i_{k}": current[:, k] for k in range(current.shape[1])}
+    out |= {f"q_{j}": q[:, j] for j in range(q.shape[1])}
+    fk = kinematics.vsl_fk(q, lengths)
+    out |= {f"fk_{k}": fk[:, k] for k in range(3)}
+    ik = _ik_or_nan(x, lengths)
+    out |= {f"ik_{j}": ik[:, j] for j in range(3)}
+    n = len(points)
+    out["payload_kg"] = points["payload_kg"].to_numpy(float) if "payload_kg" in points else np.zeros(n)
+    out["robot"] = np.full(n, robot.name)
+    for name, default in (("session", ""), ("point", -1), ("repetition", -1)):
+        out[name] = points[name].to_numpy() if name in points else np.full(n, default)
+    return pd.DataFrame(out)
+
+
+def _ik_or_nan(x: np.ndarray, lengths: kinematics.ArmLengths) -> np.ndarray:
+    out = np.full((len(x), 3), np.nan)
+    r3 = np.hypot(np.hypot(x[:, 0], x[:, 1]), x[:, 2] - lengths.l1)
+    ok = np.isfinite(r3) & (r3 <= lengths.l2 + lengths.l3) & (r3 >= abs(lengths.l2 - lengths.l3))
+    if ok.any():
+        out[ok] = kinematics.vsl_ik(x[ok], lengths, 1)
+    return out
+
+
+def add_splits(d: pd.DataFrame, seed: int = 0, group: str = "session") -> pd.DataFrame:
+    """``split_random``: rows dealt 70/15/15 at random (the paper's split); ``split_group``: whole groups
+    (sessions, or repetitions where there is one session) dealt so that no group spans two splits."""
+    rng = np.random.default_rng(seed)
+    out = d.copy()
+    labels = np.empty(len(d), dtype=object)
+    bounds = np.round(np.cumsum(FRACTIONS) * len(d)).astype(int)
+    for name, idx in zip(SPLITS, np.split(rng.permutation(len(d)), bounds[:-1]), strict=True):
+        labels[idx] = name
+    out["split_random"] = labels
+    keys = d[group].astype(str)
+    if keys.nunique() < 3 and "repetition" in d:
+        keys = keys + "/" + d["repetition"].astype(str) + "/" + d["point"].astype(str)
+    groups = np.asarray(keys.unique(), dtype=object)
+    rng.shuffle(groups)
+    sizes = keys.value_counts().reindex(groups).to_numpy()
+    ends = np.cumsum(sizes) / len(d)
+    which = np.searchsorted(np.cumsum(FRACTIONS)[:-1], ends - sizes / len(d) / 2)  # by each group's middle
+    out["split_group"] = keys.map(dict(zip(groups, np.array(SPLITS)[which], strict=True))).to_numpy()
+    return out
+
+
+def dataset_version(sources: dict[str, str], parameters: dict) -> str:
+    """The version id: a hash of the source sessions' content hashes, the parameters and the code version."""
+    return digest(
+        {"sources": dict(sorted(sources.items())), "parameters": parameters, "code": code_version()}
+    )[:16]
+
+
+def write_dataset(root: Path, name: str, version: str, tables: dict[str, pd.DataFrame], card: dict) -> Path:
+    """``<root>/<name>/<version>/``: ``<table>.parquet`` for each table (``data`` is D) and card.json, written
+    whole in a temporary directory, then renamed in (a killed build leaves no half dataset)."""
+    final = Path(root) / name / version
+    if (final / "card.json").is_file():
+        return final
+    final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{version}-", dir=final.parent))
+    for table, df in tables.items():
+        df.to_parquet(tmp / f"{table}.parquet", index=False)
+    data = tables["data"]
+    counts = {"rows": len(data), **{f"rows_{s}": int((data["split_random"] == s).sum()) for s in SPLITS}}
+    counts |= {f"rows_{t}": len(df) for t, df in tables.items() if t != "data"}
+    (tmp / "card.json").write_text(json.dumps({"name": name, "version": version, **card, "counts": counts},
+                                              indent=1, default=str))  # fmt: skip
+    os.replace(tmp, final)
+    return final
+
+
+def load_dataset(root: Path, name: str, version: str | None = None) -> tuple[pd.DataFrame, dict]:
+    """A dataset's table and card (the newest version when none is named)."""
+    base = Path(root) / name
+    if version is None:
+        cards = sorted(base.glob("*/card.json"), key=lambda p: p.stat().st_mtime)
+        if not cards:
+            raise FileNotFoundError(f"no dataset {name!r} under {root}")
+        version = cards[-1].parent.name
+    path = base / version
+    return pd.read_parquet(path / "data.parquet"), json.loads((path / "card.json").read_text())
