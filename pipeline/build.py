@@ -26,7 +26,7 @@ import pandas as pd
 
 from models.robot import RobotDescription
 from pipeline import datasets
-from pipeline.cache import StageCache, code_version, file_hash, stage_key
+from pipeline.cache import StageCache, code_version, stage_key
 from pipeline.tables import columns
 
 log = logging.getLogger(__name__)
@@ -51,16 +51,12 @@ class BuildReport:
     rows: int = 0
 
 
-def session_parts(directory: Path) -> list[Path]:
-    return sorted(Path(directory).glob("*.mcap"))
-
-
 def process_session(directory: str, parameters: dict, cache_root: str) -> dict:
     """Per-session stages of one session (a top-level function: any executor can run it). Returns a small
     record: the cache key of its outputs, or the reason it failed."""
     from pipeline.clean import clean
-    from pipeline.ingest import ingest_session
-    from pipeline.segment import repetitions, static_points
+    from pipeline.ingest import ingest_session, session_parts, source_hash
+    from pipeline.segment import Stillness, repetitions, static_points
     from pipeline.sync import sync
 
     directory = Path(directory)
@@ -69,7 +65,7 @@ def process_session(directory: str, parameters: dict, cache_root: str) -> dict:
         parts = session_parts(directory)
         if not parts:
             raise ValueError(f"{directory}: no MCAP parts")
-        source = file_hash(parts)
+        source = source_hash(parts)
         session_params = {k: parameters[k] for k in ("clean", "segment")}
         key = stage_key("session", [source], session_params)
         if cache.has("session", key):
@@ -77,10 +73,11 @@ def process_session(directory: str, parameters: dict, cache_root: str) -> dict:
         s = ingest_session(directory)
         s = clean(s, **parameters["clean"])
         s, timeline = sync(s)
-        points = static_points(timeline, s.events, s.t0_ns, **parameters["segment"])
+        still = Stillness(**parameters["segment"])
+        points = static_points(timeline, s.events, s.t0_ns, stillness=still, report=s.report)
         timeline = timeline.assign(repetition=repetitions(timeline, s.events, s.t0_ns))
         trajectory = timeline[timeline["repetition"] >= 0]
-        record = {"session": s.session_id, "robot": s.robot.name, "source": source,
+        record = {"session": directory.name, "robot": s.robot.name, "source": source,
                   "robot_description": s.robot.model_dump_json(), "report": s.report.as_dict(),
                   "metadata": s.metadata}  # fmt: skip
         cache.store("session", key, {"static": points, "trajectory": trajectory}, record)

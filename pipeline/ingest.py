@@ -1,0 +1,324 @@
+"""Ingest: a session directory's MCAP parts → one table per topic (see ``pipeline.tables``).
+
+Fixed-layout topics take the chunk-speed path (``read_fixed_topics``: whole chunks viewed as structured
+arrays, turned into columns without a per-message loop). Any other topic is decoded message by message with
+mcap-ros2-support (correct, not fast). A torn part (killed recorder, no summary) is read in memory up to the
+tear, with a warning; the session directory is never written. User-causable problems raise ``IngestError``.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+from collections.abc import Collection, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import zstandard
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.records import Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap_ros2.decoder import DecoderFactory
+from pydantic import ValidationError
+
+from acquisition.schemas.cdr import FixedMessage, SchemaError
+from acquisition.schemas.events import Event
+from acquisition.schemas.fast_read import _chunk_records, read_fixed_topics
+from acquisition.schemas.ros2msg import parse_fixed_message
+from acquisition.schemas.topics import EVENTS, session_topics
+from models.robot import RobotDescription
+from pipeline.cache import file_hash
+from pipeline.tables import EVENT_COLUMNS, SessionTables, StageReport
+
+log = logging.getLogger(__name__)
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+SESSION_METADATA = "vslab.session"  # acquisition.recorder.writer.SESSION_METADATA
+RECOVERED_SUFFIX = ".recovered.mcap"  # acquisition.recorder.recover.RECOVERED_SUFFIX
+_MESSAGE_HEADER = 1 + 8 + 2 + 4 + 8 + 8  # opcode, record length, channel, sequence, log time, publish time
+_READ_ERRORS = (McapError, struct.error, zstandard.ZstdError, EOFError, ValueError, KeyError, OSError)
+
+
+class IngestError(Exception):
+    """A session that cannot be ingested: ``path`` says which file or directory, ``reason`` why."""
+
+    def __init__(self, path: str | Path, reason: str) -> None:
+        self.path, self.reason = Path(path), reason
+        super().__init__(f"{path}: {reason}")
+
+
+_FixedChunk = tuple[FixedMessage, np.ndarray, np.ndarray, np.ndarray]  # message, log, publish, rows
+
+
+@dataclass
+class _Part:
+    """What one part holds: fixed topics as (message, log, publish, rows), other topics as rows."""
+
+    metadata: dict[str, str] = field(default_factory=dict)
+    fixed: dict[str, list[_FixedChunk]] = field(default_factory=dict)
+    generic: dict[str, list[dict]] = field(default_factory=dict)
+    events: list[tuple[int, Event]] = field(default_factory=list)
+    topics: set[str] = field(default_factory=set)
+
+
+def session_parts(directory: Path) -> list[Path]:
+    """The parts of a session in order: each ``<id>_NNN.mcap``, or its recovered copy where one exists."""
+    parts = sorted(p for p in directory.glob("*.mcap") if not p.name.endswith(RECOVERED_SUFFIX))
+    recovered = [p.with_name(p.name.removesuffix(".mcap") + RECOVERED_SUFFIX) for p in parts]
+    return [r if r.is_file() else p for p, r in zip(parts, recovered, strict=True)]
+
+
+def source_hash(parts: Iterable[Path]) -> str:
+    """sha256 over the parts' bytes, in order (streamed)."""
+    return file_hash(parts)
+
+
+def ingest_session(directory: Path, generic_topics: Collection[str] = ()) -> SessionTables:
+    """Every part of the session in ``directory`` as tables. Topics in ``generic_topics`` are decoded by the
+    generic (mcap-ros2) path even when the fast path could read them (for checks and comparisons)."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise IngestError(directory, "not a session directory")
+    parts = session_parts(directory)
+    if not parts:
+        what = "empty directory" if not any(directory.iterdir()) else "no MCAP parts (*.mcap)"
+        raise IngestError(directory, f"session has no parts: {what}")
+    report = StageReport()
+    read = [_read_part(p, set(generic_topics), report) for p in parts]
+    metadata = next((r.metadata for r in read if r.metadata), None)
+    if metadata is None:
+        raise IngestError(parts[0], f"no {SESSION_METADATA!r} metadata record: not a vslab session")
+    robot = _robot(parts[0], metadata)
+    expected = set(session_topics(robot))
+    for path, r in zip(parts, read, strict=True):
+        for topic in sorted(expected - r.topics):
+            report.warnings.append(f"{path.name}: no {topic} stream")
+    streams: dict[str, pd.DataFrame] = {}
+    for topic in sorted(set().union(*(r.fixed for r in read))):
+        streams[topic] = _fixed_table([c for r in read for c in r.fixed.get(topic, [])])
+    for topic in sorted(set().union(*(r.generic for r in read))):
+        rows = [row for r in read for row in r.generic.get(topic, [])]
+        streams[topic] = _generic_table(rows)
+    events = _events_table([e for r in read for e in r.events])
+    return SessionTables(
+        session_id=metadata.get("session_id", directory.name),
+        robot=robot,
+        metadata={k: v for k, v in metadata.items() if k != "robot_description"},
+        streams=streams,
+        events=events,
+        report=report,
+        source_hash=source_hash(parts),
+    )
+
+
+def _robot(path: Path, metadata: dict[str, str]) -> RobotDescription:
+    try:
+        return RobotDescription.model_validate_json(metadata["robot_description"])
+    except KeyError:
+        raise IngestError(path, "session metadata has no robot_description") from None
+    except ValidationError as exc:
+        raise IngestError(path, f"bad robot_description: {str(exc).splitlines()[0]}") from exc
+
+
+# ------------------------------------------------------------------------------------------ one part
+def _read_part(path: Path, generic_topics: set[str], report: StageReport) -> _Part:
+    with open(path, "rb") as f:
+        head = f.read(len(MCAP_MAGIC))
+        if head != MCAP_MAGIC:
+            raise IngestError(path, "not an MCAP file (no MCAP magic)" if head else "empty file")
+        f.seek(0)
+        try:
+            summary = make_reader(f).get_summary()
+        except _READ_ERRORS:
+            summary = None
+        if summary is None:
+            return _read_torn(path, generic_topics, report)
+        part = _Part()
+        fixed, generic = set(), set()
+        for channel in summary.channels.values():
+            schema = summary.schemas.get(channel.schema_id)
+            part.topics.add(channel.topic)
+            if channel.topic == EVENTS:
+                continue
+            message = _fixed_message(schema, channel.message_encoding)
+            if message is not None and channel.topic not in generic_topics:
+                fixed.add(channel.topic)
+            else:
+                generic.add(channel.topic)
+        try:
+            f.seek(0)
+            for m in make_reader(f).iter_metadata():
+                if m.name == SESSION_METADATA:
+                    part.metadata = dict(m.metadata)
+            data = read_fixed_topics(path, sorted(fixed)) if fixed else {}
+            for topic, d in data.items():
+                part.fixed[topic] = [(d.message, d.log_time, d.publish_time, d.rows)]
+            decoders = DecoderFactory()
+            wanted = {cid: c for cid, c in summary.channels.items() if c.topic in generic | {EVENTS}}
+            for cid, log_time, publish_time, payload in _indexed_messages(f, summary, set(wanted)):
+                channel = wanted[cid]
+                if channel.topic == EVENTS:
+                    part.events.append((log_time, Event.decode(payload)))
+                else:
+                    schema = summary.schemas.get(channel.schema_id)
+                    row = _decode_generic(decoders, schema, channel, log_time, publish_time, payload)
+                    part.generic.setdefault(channel.topic, []).append(row)
+        except (SchemaError, *_READ_ERRORS) as exc:
+            raise IngestError(path, f"unreadable ({_first_line(exc)}); truncated or corrupt?") from exc
+    return part
+
+
+def _indexed_messages(f, summary, channel_ids: set[int]) -> Iterable[tuple[int, int, int, bytes]]:
+    """(channel id, log time, publish time, payload) of the channels' messages, found through the chunks'
+    message indexes: only chunks that hold one are decompressed, and no other record is parsed."""
+    for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+        present = sorted(cid for cid in ci.message_index_offsets if cid in channel_ids)
+        if not present:
+            continue
+        records = _chunk_records(f, ci.chunk_start_offset, ci.chunk_length)
+        for cid in present:
+            f.seek(ci.message_index_offsets[cid] + 1 + 8 + 2)
+            (pairs_len,) = struct.unpack("<I", f.read(4))
+            pairs = np.frombuffer(f.read(pairs_len), dtype="<u8").reshape(-1, 2)
+            for log_time, offset in pairs.tolist():
+                record_len, _channel, _seq, _log, publish = struct.unpack_from("<QHIQQ", records, offset + 1)
+                start = offset + _MESSAGE_HEADER
+                yield cid, log_time, publish, records[start : offset + 9 + record_len]
+
+
+def _read_torn(path: Path, generic_topics: set[str], report: StageReport) -> _Part:
+    """A part without a summary, read record by record up to the first cut-off or corrupt record."""
+    part, schemas, channels = _Part(), {}, {}
+    raw: dict[int, list[Message]] = {}
+    reason = "ended before its footer"
+    with open(path, "rb") as f:
+        try:
+            for record in StreamReader(f, validate_crcs=True).records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+                    part.topics.add(record.topic)
+                elif isinstance(record, Message) and record.channel_id in channels:
+                    raw.setdefault(record.channel_id, []).append(record)
+                elif isinstance(record, Metadata) and record.name == SESSION_METADATA:
+                    part.metadata = dict(record.metadata)
+        except _READ_ERRORS as exc:
+            reason = _first_line(exc)
+    if not part.metadata and not raw:
+        raise IngestError(path, f"truncated: nothing readable before the tear ({reason})")
+    decoders = DecoderFactory()
+    for cid, messages in raw.items():
+        channel, schema = channels[cid], schemas.get(channels[cid].schema_id)
+        messages.sort(key=lambda m: m.log_time)
+        if channel.topic == EVENTS:
+            part.events += [(m.log_time, Event.decode(m.data)) for m in messages]
+            continue
+        message = _fixed_message(schema, channel.message_encoding)
+        if message is None or channel.topic in generic_topics:
+            part.generic[channel.topic] = [
+                _decode_generic(decoders, schema, channel, m.log_time, m.publish_time, m.data)
+                for m in messages
+            ]
+            continue
+        log_time = np.array([m.log_time for m in messages], dtype=np.int64)
+        publish = np.array([m.publish_time for m in messages], dtype=np.int64)
+        rows = message.decode(b"".join(m.data for m in messages))
+        part.fixed[channel.topic] = [(message, log_time, publish, rows)]
+    n = sum(len(v) for v in raw.values())
+    text = f"{path.name}: torn part read up to the tear ({n} messages; {reason})"
+    report.warnings.append(text)
+    log.warning(text)
+    return part
+
+
+def _fixed_message(schema: Schema | None, encoding: str) -> FixedMessage | None:
+    if schema is None or encoding != "cdr" or schema.encoding != "ros2msg":
+        return None
+    return parse_fixed_message(schema.name, schema.data.decode())
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0][:200]}" if text else type(exc).__name__
+
+
+# ---------------------------------------------------------------------------------------- the tables
+def _fixed_table(chunks: list[_FixedChunk]) -> pd.DataFrame:
+    """Columns of a fixed-layout topic: log/publish times, then each field (arrays flattened)."""
+    message = chunks[0][0]
+    if all(c[0].dtype == message.dtype for c in chunks):
+        if len(chunks) == 1:
+            _, log_time, publish, rows = chunks[0]
+        else:
+            log_time = np.concatenate([c[1] for c in chunks])
+            publish = np.concatenate([c[2] for c in chunks])
+            rows = np.concatenate([c[3] for c in chunks])
+        return fixed_columns(message, log_time, publish, rows)
+    frames = [fixed_columns(*c) for c in chunks]  # parts with other array lengths: union of columns
+    return pd.concat(frames, ignore_index=True)
+
+
+def fixed_columns(message: FixedMessage, log_time, publish_time, rows: np.ndarray) -> pd.DataFrame:
+    """One DataFrame from structured rows (vectorised: one strided copy per column)."""
+    data: dict[str, np.ndarray] = {
+        "log_time": np.asarray(log_time, np.int64),
+        "publish_time": np.asarray(publish_time, np.int64),
+    }
+    for f in message.fields:
+        values = rows[f.name]
+        if f.count:
+            for i in range(f.count):
+                data[f"{f.name}_{i}"] = np.ascontiguousarray(values[:, i])
+        else:
+            data[f.name] = np.ascontiguousarray(values)
+    return pd.DataFrame(data, copy=False)
+
+
+def _decode_generic(
+    decoders: DecoderFactory, schema, channel, log_time: int, publish_time: int, data
+) -> dict:
+    decode = decoders.decoder_for(channel.message_encoding, schema)
+    if decode is None:
+        raise SchemaError(f"{channel.topic}: no decoder for {channel.message_encoding!r} messages")
+    row = {"log_time": log_time, "publish_time": publish_time}
+    _flatten(decode(data), "", row)
+    return row
+
+
+def _flatten(value, name: str, out: dict) -> None:
+    """Nested messages → ``<field>_<sub>``, sequences → ``<field>_<i>``, scalars as they are."""
+    if hasattr(value, "__slots__") and not isinstance(value, (str, bytes)):
+        for slot in value.__slots__:
+            _flatten(getattr(value, slot), f"{name}_{slot}" if name else slot, out)
+    elif isinstance(value, (list, tuple, bytes, bytearray, np.ndarray)):
+        for i, item in enumerate(value):
+            _flatten(item, f"{name}_{i}", out)
+    else:
+        out[name] = value
+
+
+def _generic_table(rows: list[dict]) -> pd.DataFrame:
+    df = pd.DataFrame(rows)
+    for name in ("log_time", "publish_time"):
+        if name in df:
+            df[name] = df[name].astype(np.int64)
+    return df.sort_values("log_time", kind="stable", ignore_index=True) if len(df) else df
+
+
+def _events_table(events: list[tuple[int, Event]]) -> pd.DataFrame:
+    events = sorted(events, key=lambda e: e[0])
+    df = pd.DataFrame(
+        {
+            "log_time": np.array([t for t, _ in events], dtype=np.int64),
+            "kind": np.array([int(e.kind) for _, e in events], dtype=np.int64),
+            "index": np.array([e.index for _, e in events], dtype=np.int64),
+            "value": np.array([e.value for _, e in events], dtype=np.float64),
+            "label": pd.Series([e.label for _, e in events], dtype=object),
+            "text": pd.Series([e.text for _, e in events], dtype=object),
+        }
+    )
+    return df[list(EVENT_COLUMNS)]
