@@ -143,6 +143,66 @@ def simulate(
     )
 
 
+@app.command()
+def build(
+    name: Annotated[str, typer.Option(help="Dataset name (datasets/<name>/<version>/).")] = "campaign",
+    protocol: Annotated[
+        str | None, typer.Option(help="Only sessions of this protocol (default: the dataset name's).")
+    ] = None,
+    pattern: Annotated[str, typer.Option("--sessions", help="Session directories to consider (glob).")] = "*",
+    set_: Annotated[
+        list[str] | None, typer.Option("--set", help="A stage parameter: stage.key=value (repeatable).")
+    ] = None,
+    workers: Annotated[int, typer.Option(help="Parallel processes (0: one per core).")] = 0,
+) -> None:
+    """Build a versioned dataset from recorded sessions: ingest, clean, sync, register, segment, D + splits.
+    Every stage is cached: building again with nothing changed does no work."""
+    import concurrent.futures as cf
+    import time
+
+    from rich.progress import Progress
+
+    from pipeline.build import build as build_dataset
+
+    wanted = protocol or name
+    sessions = [d for d in sorted((Settings.lab / "sessions").glob(pattern)) if d.is_dir()]
+    sessions = [d for d in sessions if _session_protocol(d) in (wanted, None) or wanted == "all"]
+    if not sessions:
+        _fail(
+            f"no sessions of protocol {wanted!r} in {Settings.lab / 'sessions'} (see `vslab sessions list`)"
+        )
+    parameters: dict = {}
+    for key, value in _overrides(set_ or []).items():
+        stage, _, param = key.partition(".")
+        parameters.setdefault(stage, {})[param] = value
+    start = time.perf_counter()
+    executor = cf.ProcessPoolExecutor(workers) if workers > 0 else None
+    with Progress(console=console, disable=Settings.quiet, transient=True) as bar:
+        task = bar.add_task(f"{len(sessions)} sessions", total=len(sessions))
+        try:
+            report = build_dataset(sessions, Settings.lab, name, parameters, executor=executor,
+                                   progress=lambda done, total: bar.update(task, completed=done))  # fmt: skip
+        except ValueError as exc:
+            _fail(str(exc))
+        finally:
+            if executor is not None:
+                executor.shutdown()
+    wall = time.perf_counter() - start
+    what = "built" if report.built else "already built (nothing to do)"
+    sources = f"{len(report.sessions)} sessions ({report.cached} cached)"
+    console.print(
+        f"dataset {name} {report.version}: {what}, {report.rows:,} rows from {sources} in {wall:.1f} s"
+    )
+    console.print(f"  → {report.path}")
+    for session, reason in report.failed.items():
+        console.print(f"[yellow]skipped {session}:[/] {reason}", soft_wrap=True)
+
+
+def _session_protocol(directory: Path) -> str | None:
+    card = directory / "session.json"
+    return json.loads(card.read_text()).get("protocol") if card.is_file() else None
+
+
 def _print_grid(grid, title: str) -> None:
     if Settings.quiet:
         return

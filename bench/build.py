@@ -1,0 +1,49 @@
+"""End-to-end dataset build: the paper-size campaign (17,568 static points) from MCAP sessions to D.
+
+Simulates the campaign on the twin (not timed: see bench/simulate.py), then times `vslab build`'s work:
+cold (every stage runs: ingest, clean, sync, segment per session in parallel processes; registration, D,
+splits), warm (nothing changed: the version is found, no stage runs) and with one parameter changed (the
+per-session stages come from the cache). Prints rows, failed settled windows and the times.
+Usage: python bench/build.py [--points N] [--benches B] [--workers W]
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures as cf
+import os
+import tempfile
+import time
+from pathlib import Path
+
+from acquisition.plans.sim_runner import simulate_protocol
+from pipeline.build import build
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--points", type=int, default=17568, help="campaign size (the paper's n = 17568)")
+    parser.add_argument("--benches", type=int, default=128, help="sessions (twin benches)")
+    parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="build processes")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        lab = Path(tmp)
+        start = time.perf_counter()
+        simulate_protocol(
+            "campaign", lab / "sessions", benches=args.benches, overrides={"points": args.points}
+        )
+        sessions = sorted((lab / "sessions").iterdir())
+        size = sum(p.stat().st_size for p in lab.rglob("*.mcap")) / 2**20
+        print(f"campaign: {args.points:,} points in {len(sessions)} sessions, {size:.0f} MiB "
+              f"(simulated in {time.perf_counter() - start:.1f} s, not counted)")  # fmt: skip
+        for label, params in (("cold", {}), ("warm", {}), ("new split seed", {"splits": {"seed": 1}})):
+            with cf.ProcessPoolExecutor(args.workers) as pool:
+                start = time.perf_counter()
+                report = build(sessions, lab, "campaign", params, executor=pool)
+                wall = time.perf_counter() - start
+            print(f"  {label:<15} {wall:7.1f} s  {report.rows:6,d} rows  built={report.built!s:<5}  "
+                  f"cached {report.cached}/{len(sessions)}  failed {len(report.failed)}")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

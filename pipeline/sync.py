@@ -1,0 +1,155 @@
+"""The sync stage: every device's stamps → host time of sampling, then every stream on one timeline.
+
+Each stamped stream's device clock is fitted (:func:`pipeline.clock.fit_clock`, lower envelope, resets split)
+and the stream gets ``t``: its samples' fitted sampling times in s since the session's ``t0_ns``. Streams the
+host stamps itself (commands) get ``t`` from their log time. The timeline is the tracker's frames at their
+fitted times, with the other streams linearly interpolated there, NaN outside a stream's span and across its
+gaps, so nothing is invented.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+
+import numpy as np
+import pandas as pd
+
+from acquisition.schemas import topics as T
+from pipeline.clock import ClockFit, fit_clock, unwrap_stamps
+from pipeline.tables import SessionTables, columns
+
+log = logging.getLogger(__name__)
+
+UNWRAPPED = "device_ticks"  # the unwrapped counter column pipeline.clean adds
+# topic → (devices whose clock stamps it, first one the robot has; the stamp field)
+STAMPS: dict[str, tuple[tuple[str, ...], str]] = {
+    T.SERVO_STATE: (("servo_bus", "main_board"), "tick_ms"),
+    T.PRESSURE: (("pressure_board", "main_board"), "micros"),
+    T.STEPPER: (("stepper_board",), "micros"),
+    T.TRACKER: (("tracker",), "frame"),
+    T.ACCEL: (("accelerometer",), "micros"),
+}
+# what the timeline interpolates at the tracker's frames: topic → (column prefix, fields)
+TIMELINE_FIELDS: dict[str, tuple[str, tuple[str, ...]]] = {
+    T.SERVO_STATE: ("servo_", ("position", "velocity", "current")),
+    T.PRESSURE: ("", ("pressure",)),
+    T.STEPPER: ("stepper_", ("position",)),
+}
+
+
+def interpolate(t_src: np.ndarray, values: np.ndarray, t_query: np.ndarray, max_gap_s: float) -> np.ndarray:
+    """Linear interpolation of ``values`` (n, k) sampled at increasing ``t_src`` at ``t_query`` (m,) → (m, k);
+    NaN outside [t_src[0], t_src[-1]] and between samples more than ``max_gap_s`` apart."""
+    t_src, t_query = np.asarray(t_src, dtype=float), np.asarray(t_query, dtype=float)
+    values = np.asarray(values, dtype=float).reshape(len(t_src), -1)
+    out = np.full((t_query.size, values.shape[1]), np.nan)
+    if t_src.size < 2:
+        return out
+    right = np.clip(np.searchsorted(t_src, t_query, side="right"), 1, t_src.size - 1)
+    left = right - 1
+    span = t_src[right] - t_src[left]
+    weight = np.divide(t_query - t_src[left], span, out=np.zeros_like(span), where=span > 0)
+    ok = (t_query >= t_src[0]) & (t_query <= t_src[-1]) & ((span <= max_gap_s) | (t_query == t_src[left]))
+    out[ok] = values[left[ok]] * (1.0 - weight[ok, None]) + values[right[ok]] * weight[ok, None]
+    return out
+
+
+def resample(t_query: np.ndarray, sources: Mapping[str, tuple[np.ndarray, np.ndarray]],
+             gap_periods: float = 3.0) -> pd.DataFrame:  # fmt: skip
+    """Columns ``sources[name] = (t, values (n,) or (n, k))`` interpolated at ``t_query``: one column
+    ``name`` (k = 1) or ``name_<i>``. A gap is longer than ``gap_periods`` median sample periods."""
+    out: dict[str, np.ndarray] = {"t": np.asarray(t_query, dtype=float)}
+    for name, (t, values) in sources.items():
+        t, values = np.asarray(t, dtype=float), np.asarray(values, dtype=float)
+        scalar = values.ndim == 1
+        values = values.reshape(len(t), -1)
+        order = np.argsort(t, kind="stable")
+        t, values = t[order], values[order]
+        period = float(np.median(np.diff(t))) if t.size > 1 else 0.0
+        got = interpolate(t, values, t_query, gap_periods * period)
+        if scalar:
+            out[name] = got[:, 0]
+        else:
+            out.update({f"{name}_{i}": got[:, i] for i in range(got.shape[1])})
+    return pd.DataFrame(out)
+
+
+def _stamp_device(session: SessionTables, topic: str) -> tuple[str, str] | None:
+    if topic not in STAMPS:
+        return None
+    names, field = STAMPS[topic]
+    df = session.streams[topic]
+    device = next((n for n in names if n in session.robot.devices), None)
+    if device is None or (field not in df.columns and UNWRAPPED not in df.columns):
+        return None
+    return device, field
+
+
+def fit_stream(session: SessionTables, topic: str, **fit_options) -> tuple[str, ClockFit, np.ndarray] | None:
+    """Fit the clock of the device that stamps ``topic``: (device, fit, unwrapped ticks), or None (not
+    stamped, or fewer than 2 rows)."""
+    found = _stamp_device(session, topic)
+    df = session.streams[topic]
+    if found is None or len(df) < 2:
+        return None
+    device, field = found
+    spec = session.robot.devices[device]
+    host = df["log_time"].to_numpy(dtype=np.int64)
+    if UNWRAPPED in df.columns:
+        ticks = df[UNWRAPPED].to_numpy(dtype=np.int64)
+    else:
+        ticks = unwrap_stamps(df[field].to_numpy(dtype=np.int64), host, spec.clock.tick_s, spec.clock.wrap)
+    phase = 0.0 if field == "frame" else 0.5  # a frame number is the sampling event; a counter is floored
+    fit = fit_clock(ticks, host, spec.clock.tick_s, spec.host_link.latency_s, ref_ns=session.t0_ns,
+                    stamp_phase=phase, **fit_options)  # fmt: skip
+    return device, fit, ticks
+
+
+def timeline(session: SessionTables, gap_periods: float = 3.0) -> pd.DataFrame:
+    """The tracker's frames at their fitted times (``t``, ``tracker_position_<i>``) with the other streams
+    (:data:`TIMELINE_FIELDS`) interpolated there. Streams must already have ``t`` (see :func:`sync`)."""
+    tracker = session.streams.get(T.TRACKER)
+    if tracker is None or "t" not in tracker.columns:
+        raise ValueError(f"session {session.session_id}: no synced tracker stream to put the timeline on")
+    sources: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for topic, (prefix, fields) in TIMELINE_FIELDS.items():
+        df = session.streams.get(topic)
+        if df is None or "t" not in df.columns or not len(df):
+            continue
+        for name in fields:
+            try:
+                sources[prefix + name] = (df["t"].to_numpy(), columns(df, name))
+            except KeyError:
+                continue
+    frame_t = tracker["t"].to_numpy(dtype=float)
+    out = resample(frame_t, sources, gap_periods)
+    position = pd.DataFrame(columns(tracker, "position"), index=out.index).add_prefix("tracker_position_")
+    frame = {"frame": tracker["frame"].to_numpy()} if "frame" in tracker.columns else {}
+    return pd.concat([out[["t"]], pd.DataFrame(frame, index=out.index), position, out.drop(columns="t")],
+                     axis=1)  # fmt: skip
+
+
+def sync(
+    session: SessionTables, gap_periods: float = 3.0, **fit_options
+) -> tuple[SessionTables, pd.DataFrame]:
+    """Fit every stamped device clock, add ``t`` (s since ``t0_ns``) to every stream, record each fit in
+    ``report.values["clock/<device>"]`` and return the synced session with its tracker-frame timeline."""
+    out = session.replace()
+    t0 = session.t0_ns
+    for topic, df in session.streams.items():
+        fitted = fit_stream(session, topic, **fit_options)
+        df = df.copy()
+        if fitted is None:
+            if topic in STAMPS and len(df):
+                out.report.warnings.append(f"{topic}: no device stamps to fit; t is the host log time")
+            df["t"] = (df["log_time"].to_numpy(dtype=np.int64) - t0) * 1e-9
+        else:
+            device, fit, ticks = fitted
+            df["t"] = (fit.to_host_ns(ticks, fit.labels()) - t0) * 1e-9
+            out.report.values[f"clock/{device}"] = fit.as_dict()
+            if fit.resets:
+                out.report.warnings.append(f"{device}: {fit.resets} counter reset(s), segments fitted apart")
+            log.info("%s: drift %.1f ppm, jitter p95 %.2f ms", device, fit.drift_ppm, 1e3 * fit.jitter_p95_s)
+        out.streams[topic] = df
+    return out, timeline(out, gap_periods) if T.TRACKER in out.streams else pd.DataFrame()

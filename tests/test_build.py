@@ -1,0 +1,69 @@
+"""`vslab build` end to end on twin sessions: the dataset, its cache, and bad inputs beside good ones."""
+
+from __future__ import annotations
+
+import shutil
+import time
+
+import numpy as np
+import pytest
+
+from acquisition.plans.sim_runner import simulate_protocol
+from pipeline.build import build
+from pipeline.datasets import load_dataset
+
+POINTS = 96
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory):
+    """A small campaign (4 benches → 4 sessions of 24 settled points)."""
+    lab = tmp_path_factory.mktemp("lab")
+    simulate_protocol("campaign", lab / "sessions", seed=2, benches=4, overrides={"points": POINTS})
+    return lab
+
+
+@pytest.mark.slow
+def test_campaign_builds_once(lab):
+    sessions = sorted((lab / "sessions").iterdir())
+    report = build(sessions, lab, "campaign")
+    assert report.built and not report.failed and report.cached == 0
+    d, card = load_dataset(lab / "datasets", "campaign", report.version)
+    assert abs(len(d) - POINTS) <= 2  # ± settled windows that failed (reported in the card)
+    assert card["counts"]["rows"] == len(d) and set(card["sources"]) == {s.name for s in sessions}
+    # the measured tip is in the base frame: near the model's FK, sagging below it (payloads, soft links)
+    sag = d["fk_2"] - d["x_2"]
+    assert 0 < sag.mean() < 0.03 and np.hypot(d["fk_0"] - d["x_0"], d["fk_1"] - d["x_1"]).mean() < 0.01
+    for session in card["sessions"].values():
+        assert {"clock/servo_bus", "clock/pressure_board", "clock/tracker"} <= set(session["values"])
+    # nothing changed: the same version, found without running a stage
+    start = time.perf_counter()
+    again = build(sessions, lab, "campaign")
+    assert again.version == report.version and not again.built and again.rows == len(d)
+    assert time.perf_counter() - start < 5.0
+    # a changed parameter: a new version; the per-session stages it does not touch are reused
+    other = build(sessions, lab, "campaign", {"splits": {"seed": 1}})
+    assert other.version != report.version and other.built and other.cached == len(sessions)
+
+
+@pytest.mark.slow
+def test_bad_sessions_are_reported_and_the_others_build(lab, tmp_path):
+    good = sorted((lab / "sessions").iterdir())[:2]
+    bad = tmp_path / "bad"
+    for name in ("truncated", "not-mcap", "empty"):
+        (bad / name).mkdir(parents=True)
+    part = next(good[0].glob("*.mcap"))
+    data = part.read_bytes()
+    (bad / "truncated" / part.name).write_bytes(data[: len(data) // 3])  # a killed recorder's torn file
+    (bad / "not-mcap" / "x_000.mcap").write_text("this is not an MCAP file\n")
+    report = build([*good, *(sorted(bad.iterdir()))], tmp_path / "lab", "mixed")
+    assert set(report.sessions) >= {g.name for g in good}
+    assert "not-mcap" in report.failed and "MCAP" in report.failed["not-mcap"]
+    assert "empty" in report.failed and "no MCAP parts" in report.failed["empty"]
+    # the torn file is read up to the tear (with a warning in its card), or reported — never silently lost
+    _, card = load_dataset(tmp_path / "lab" / "datasets", "mixed", report.version)
+    if "truncated" in report.sessions:
+        assert any("torn" in w or "tear" in w for w in card["sessions"]["truncated"]["warnings"])
+    else:
+        assert "truncated" in report.failed
+    shutil.rmtree(bad)
