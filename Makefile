@@ -27,6 +27,8 @@ bench: $(BIN)/.installed
 	$(BIN)/python bench/devices.py
 	$(BIN)/python bench/record.py
 	$(BIN)/python bench/simulate.py
+	$(BIN)/python bench/ingest.py
+	$(BIN)/python bench/build.py
 
 lint format: $(BIN)/.installed
 	$(BIN)/ruff check --fix .

@@ -200,5 +200,5 @@ def register(points: pd.DataFrame, robot: RobotDescription, deflection: bool = T
     fit, inlier = robust_fit(src, dst, k_mad, iterations)
     reg = Registration(fit, fit.residuals(src[inlier], dst[inlier]), fit.residuals(src, dst), len(points),
                        len(selected), int((~inlier).sum()), deflection, selected[inlier])  # fmt: skip
-    log.info("registration: %d of %d pairs, rms %.3f mm", len(reg.used), len(points), reg.residuals.rms * 1e3)
+    log.debug("registered: %d of %d pairs, rms %.3f mm", len(reg.used), len(points), reg.residuals.rms * 1e3)
     return reg

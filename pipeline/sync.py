@@ -150,6 +150,6 @@ def sync(
             out.report.values[f"clock/{device}"] = fit.as_dict()
             if fit.resets:
                 out.report.warnings.append(f"{device}: {fit.resets} counter reset(s), segments fitted apart")
-            log.info("%s: drift %.1f ppm, jitter p95 %.2f ms", device, fit.drift_ppm, 1e3 * fit.jitter_p95_s)
+            log.debug("%s: drift %.1f ppm, jitter p95 %.2f ms", device, fit.drift_ppm, 1e3 * fit.jitter_p95_s)
         out.streams[topic] = df
     return out, timeline(out, gap_periods) if T.TRACKER in out.streams else pd.DataFrame()
