@@ -38,6 +38,10 @@ TIMELINE_FIELDS: dict[str, tuple[str, tuple[str, ...]]] = {
 }
 
 
+class SyncError(ValueError):
+    """A session that cannot be put on a timeline (no tracker frames)."""
+
+
 def interpolate(t_src: np.ndarray, values: np.ndarray, t_query: np.ndarray, max_gap_s: float) -> np.ndarray:
     """Linear interpolation of ``values`` (n, k) sampled at increasing ``t_src`` at ``t_query`` (m,) → (m, k);
     NaN outside [t_src[0], t_src[-1]] and between samples more than ``max_gap_s`` apart."""
@@ -134,7 +138,13 @@ def sync(
     session: SessionTables, gap_periods: float = 3.0, **fit_options
 ) -> tuple[SessionTables, pd.DataFrame]:
     """Fit every stamped device clock, add ``t`` (s since ``t0_ns``) to every stream, record each fit in
-    ``report.values["clock/<device>"]`` and return the synced session with its tracker-frame timeline."""
+    ``report.values["clock/<device>"]`` and return the synced session with its tracker-frame timeline.
+    A session without tracker frames has no ground truth to put on a timeline: :class:`SyncError`."""
+    tracker = session.streams.get(T.TRACKER)
+    if tracker is None or not len(tracker):
+        raise SyncError(
+            f"session {session.session_id}: no {T.TRACKER} samples, so no ground truth and no timeline"
+        )
     out = session.replace()
     t0 = session.t0_ns
     for topic, df in session.streams.items():
@@ -152,4 +162,4 @@ def sync(
                 out.report.warnings.append(f"{device}: {fit.resets} counter reset(s), segments fitted apart")
             log.debug("%s: drift %.1f ppm, jitter p95 %.2f ms", device, fit.drift_ppm, 1e3 * fit.jitter_p95_s)
         out.streams[topic] = df
-    return out, timeline(out, gap_periods) if T.TRACKER in out.streams else pd.DataFrame()
+    return out, timeline(out, gap_periods)

@@ -8,7 +8,9 @@ import time
 import numpy as np
 import pytest
 
-from acquisition.plans.sim_runner import simulate_protocol
+from acquisition.plans.plan import PlanBuilder
+from acquisition.plans.sim_runner import simulate, simulate_protocol
+from models.robot import load_robot
 from pipeline.build import build
 from pipeline.datasets import load_dataset
 
@@ -56,7 +58,18 @@ def test_bad_sessions_are_reported_and_the_others_build(lab, tmp_path):
     data = part.read_bytes()
     (bad / "truncated" / part.name).write_bytes(data[: len(data) // 3])  # a killed recorder's torn file
     (bad / "not-mcap" / "x_000.mcap").write_text("this is not an MCAP file\n")
+    vsl = load_robot("vsl")  # a session recorded without the tracker: no ground truth
+    blind = vsl.model_copy(update={"devices": {k: v for k, v in vsl.devices.items() if k != "tracker"}})
+    plan = (
+        PlanBuilder("no/tracker", "vsl", 3, 2)
+        .goto([0, 0.9, -1.6])
+        .pressure(1e5)
+        .payload(0)
+        .settle(1.0, 0, 0.5)
+    )
+    simulate([plan.build()], blind, bad)
     report = build([*good, *(sorted(bad.iterdir()))], tmp_path / "lab", "mixed")
+    assert "tracker" in report.failed["sim-no-tracker"]
     assert set(report.sessions) >= {g.name for g in good}
     assert "not-mcap" in report.failed and "MCAP" in report.failed["not-mcap"]
     assert "empty" in report.failed and "no MCAP parts" in report.failed["empty"]
