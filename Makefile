@@ -28,7 +28,6 @@ bench: $(BIN)/.installed
 	$(BIN)/python bench/record.py
 	$(BIN)/python bench/simulate.py
 	$(BIN)/python bench/ingest.py
-	$(BIN)/python bench/build.py
 
 lint format: $(BIN)/.installed
 	$(BIN)/ruff check --fix .

@@ -20,29 +20,32 @@ from acquisition.plans.sim_runner import simulate_protocol
 from pipeline.build import build
 
 
+def end_to_end(points: int, benches: int, workers: int) -> None:
+    """Simulate the campaign, then time the cold, warm and re-parameterised builds."""
+    with tempfile.TemporaryDirectory() as tmp:
+        lab = Path(tmp)
+        start = time.perf_counter()
+        simulate_protocol("campaign", lab / "sessions", benches=benches, overrides={"points": points})
+        sessions = sorted((lab / "sessions").iterdir())
+        size = sum(p.stat().st_size for p in lab.rglob("*.mcap")) / 2**20
+        print(f"end to end: campaign of {points:,} points in {len(sessions)} sessions, {size:.0f} MiB "
+              f"(simulated in {time.perf_counter() - start:.1f} s, not counted)")  # fmt: skip
+        for label, params in (("cold", {}), ("warm", {}), ("new split seed", {"splits": {"seed": 1}})):
+            with cf.ProcessPoolExecutor(workers) as pool:
+                start = time.perf_counter()
+                report = build(sessions, lab, "campaign", params, executor=pool)
+                wall = time.perf_counter() - start
+            print(f"  build {label:<15} {wall:7.1f} s  {report.rows:6,d} rows  built={report.built!s:<5}  "
+                  f"cached {report.cached}/{len(sessions)}  failed {len(report.failed)}")  # fmt: skip
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--points", type=int, default=17568, help="campaign size (the paper's n = 17568)")
     parser.add_argument("--benches", type=int, default=128, help="sessions (twin benches)")
     parser.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="build processes")
     args = parser.parse_args()
-    with tempfile.TemporaryDirectory() as tmp:
-        lab = Path(tmp)
-        start = time.perf_counter()
-        simulate_protocol(
-            "campaign", lab / "sessions", benches=args.benches, overrides={"points": args.points}
-        )
-        sessions = sorted((lab / "sessions").iterdir())
-        size = sum(p.stat().st_size for p in lab.rglob("*.mcap")) / 2**20
-        print(f"campaign: {args.points:,} points in {len(sessions)} sessions, {size:.0f} MiB "
-              f"(simulated in {time.perf_counter() - start:.1f} s, not counted)")  # fmt: skip
-        for label, params in (("cold", {}), ("warm", {}), ("new split seed", {"splits": {"seed": 1}})):
-            with cf.ProcessPoolExecutor(args.workers) as pool:
-                start = time.perf_counter()
-                report = build(sessions, lab, "campaign", params, executor=pool)
-                wall = time.perf_counter() - start
-            print(f"  {label:<15} {wall:7.1f} s  {report.rows:6,d} rows  built={report.built!s:<5}  "
-                  f"cached {report.cached}/{len(sessions)}  failed {len(report.failed)}")  # fmt: skip
+    end_to_end(args.points, args.benches, args.workers)
 
 
 if __name__ == "__main__":

@@ -6,13 +6,16 @@ the sha256 of the parts included), and ≥ 10× the generic reader. The generic 
 ``make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages()`` over the same parts, messages
 only (no table built: flattering to it); it decodes sessions until ``--generic-s`` seconds have passed and the
 rate is extrapolated to the whole set (the output says when). The sessions are a campaign simulated into a
-temporary directory first (not timed); ``clean`` is timed too, for reference.
-Usage: python bench/ingest.py [--points N] [--benches B] [--generic-s S]
+temporary directory first (not timed); ``clean`` is timed too, for reference. Then the end-to-end time to
+build the dataset of a paper-size campaign (17,568 points; bench/build.py, skip with --no-build).
+Usage: python bench/ingest.py [--points N] [--benches B] [--generic-s S] [--no-build]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import runpy
 import tempfile
 import time
 from pathlib import Path
@@ -64,6 +67,7 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=1600, help="campaign points (≈1,300 messages each)")
     parser.add_argument("--benches", type=int, default=32, help="twin benches = sessions")
     parser.add_argument("--generic-s", type=float, default=30.0, help="time budget of the generic reader")
+    parser.add_argument("--no-build", action="store_true", help="skip the end-to-end campaign build")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "sessions"
@@ -97,6 +101,10 @@ def main() -> None:
     print(
         f"  clean       (reference)      {n_fast:12,d} msgs {clean_s:8.2f} s {n_fast / clean_s:12,.0f} msg/s"
     )
+    if not args.no_build:
+        runpy.run_path(str(Path(__file__).with_name("build.py")))["end_to_end"](
+            17568, 128, os.cpu_count() or 1
+        )
 
 
 if __name__ == "__main__":
