@@ -172,3 +172,18 @@ def velocity_law(d: ArrayLike, t: ArrayLike, v0: float, a0: float) -> Array:
     dist = np.linalg.norm(d, axis=-1, keepdims=True)
     speed = np.minimum(np.minimum(a0 * np.asarray(t, dtype=float)[..., None], v0), np.sqrt(2 * a0 * dist))
     return np.divide(speed * d, dist, out=np.zeros_like(d), where=dist > 0)
+
+
+def distance_to_path(points: ArrayLike, path: ArrayLike, chunk: int = 4096) -> Array:
+    """(n,) distance from each point (n, 3) to the polyline ``path`` (m, 3): the minimum over its segments
+    of the point-to-segment distance (seed 000's path error: measured point to the desired path)."""
+    p = np.atleast_2d(np.asarray(points, dtype=float))
+    a = np.asarray(path, dtype=float)[:-1]
+    seg = np.asarray(path, dtype=float)[1:] - a
+    length2 = np.maximum((seg**2).sum(axis=1), 1e-300)
+    out = np.empty(len(p))
+    for start in range(0, len(p), chunk):  # bounded memory: chunk × segments at a time
+        rel = p[start : start + chunk, None, :] - a[None]
+        s = np.clip((rel * seg[None]).sum(axis=2) / length2, 0.0, 1.0)
+        out[start : start + chunk] = np.sqrt(((rel - s[..., None] * seg[None]) ** 2).sum(axis=2)).min(axis=1)
+    return out

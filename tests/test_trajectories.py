@@ -4,7 +4,14 @@ import numpy as np
 import pytest
 
 from models.kinematics import ArmLengths, vsl_fk, vsl_jacobian
-from models.trajectories import EXPERIMENT1_NAMES, circular, experiment1, linear, velocity_law
+from models.trajectories import (
+    EXPERIMENT1_NAMES,
+    circular,
+    distance_to_path,
+    experiment1,
+    linear,
+    velocity_law,
+)
 
 L = ArmLengths(0.100, 0.250, 0.250)
 
@@ -122,3 +129,13 @@ def test_velocity_law():
     assert np.all(np.einsum("ni,ni->n", v, d) >= 0)
     np.testing.assert_array_equal(velocity_law(d, np.zeros(500), v0, a0), 0)
     np.testing.assert_array_equal(velocity_law(np.zeros(3), 1.0, v0, a0), 0)
+
+
+def test_distance_to_path_is_point_to_segment():
+    path = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0]])
+    points = np.array([[0.5, 0.2, 0.0], [1.3, 0.5, 0.0], [-1.0, 0.0, 0.0], [1.0, 2.0, 0.1], [0.7, 0.0, 0.0]])
+    np.testing.assert_allclose(
+        distance_to_path(points, path), [0.2, 0.3, 1.0, np.hypot(1.0, 0.1), 0.0], atol=1e-12
+    )
+    many = np.random.default_rng(0).uniform(-1, 2, size=(10_000, 3))
+    np.testing.assert_allclose(distance_to_path(many, path, chunk=333), distance_to_path(many, path))
