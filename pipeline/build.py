@@ -97,6 +97,10 @@ def build(
 ) -> BuildReport:
     """Build dataset ``name`` from ``sessions`` into ``<lab>/datasets`` (stage outputs in ``<lab>/cache``)."""
     params = {k: {**DEFAULTS[k], **(parameters or {}).get(k, {})} for k in DEFAULTS}
+    if "from_dataset" in params["register"]:  # pin the borrowed registration's version: part of ours
+        params["register"]["from_dataset"] = _resolve(
+            Path(lab) / "datasets", params["register"]["from_dataset"]
+        )
     cache_root = Path(lab) / "cache"
     own = executor is None
     if own:
@@ -133,14 +137,18 @@ def build(
         robot = RobotDescription.model_validate_json(mine[0][2]["robot_description"])
         static = _tagged([(rec["session"], t["static"]) for _, t, rec in mine])
         trajectory = _tagged([(rec["session"], t["trajectory"]) for _, t, rec in mine])
-        registration = _register(static, robot, params["register"])
+        registration = _register(static, robot, params["register"], Path(lab) / "datasets")
         registrations[robot_name] = registration
         for table, rows in (("data", static), ("trajectories", trajectory)):
             if len(rows):
                 tables[table].append(datasets.assemble(_in_base_frame(rows, registration), robot))
         card_sessions |= {rec["session"]: _session_card(rec) for _, _, rec in mine}
-    data = datasets.add_splits(pd.concat(tables["data"], ignore_index=True), **params["splits"])
     trajectories = pd.concat(tables["trajectories"], ignore_index=True) if tables["trajectories"] else None
+    # D is the static points; sessions of trajectories only (Experiment 1/2) give D of their samples
+    rows = tables["data"] or ([trajectories] if trajectories is not None else [])
+    if not rows:
+        raise ValueError("the sessions have neither settled points nor trajectory repetitions")
+    data = datasets.add_splits(pd.concat(rows, ignore_index=True), **params["splits"])
     out = {"data": data} | ({"trajectories": trajectories} if trajectories is not None else {})
     card = {
         "sources": sources, "failed": failed, "parameters": params, "code_version": code_version(),
@@ -157,10 +165,33 @@ def _tagged(items: list[tuple[str, pd.DataFrame]]) -> pd.DataFrame:
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
-def _register(static: pd.DataFrame, robot: RobotDescription, parameters: dict):
-    from pipeline.register import register
+def _register(static: pd.DataFrame, robot: RobotDescription, parameters: dict, datasets_root: Path):
+    """Fit tracker → base on these sessions' static points, or take it from another dataset of the same
+    setup (``from_dataset: name@version``: trajectory-only sessions such as Experiment 2 have no static
+    points)."""
+    from pipeline.register import FixedRegistration, register
 
+    if "from_dataset" not in parameters and not len(static):
+        raise ValueError(
+            f"no settled static points of {robot.name} to register the tracker on: take the registration of "
+            "another dataset of the same setup (--set register.from_dataset=campaign)"
+        )
+    if "from_dataset" in parameters:
+        name, _, version = parameters["from_dataset"].partition("@")
+        _, card = datasets.load_dataset(datasets_root, name, version, table=None)
+        if robot.name not in card.get("registration", {}):
+            raise ValueError(f"dataset {name}@{version} has no registration for robot {robot.name!r}")
+        return FixedRegistration.from_summary(
+            card["registration"][robot.name], source=parameters["from_dataset"]
+        )
     return register(static, robot, **parameters)
+
+
+def _resolve(root: Path, reference: str) -> str:
+    """``name`` or ``name@version`` → ``name@version`` (the newest version when none is named)."""
+    name, _, version = reference.partition("@")
+    _, card = datasets.load_dataset(root, name, version or None, table=None)
+    return f"{name}@{card['version']}"
 
 
 def _in_base_frame(rows: pd.DataFrame, registration) -> pd.DataFrame:

@@ -129,8 +129,9 @@ def write_dataset(root: Path, name: str, version: str, tables: dict[str, pd.Data
     return final
 
 
-def load_dataset(root: Path, name: str, version: str | None = None) -> tuple[pd.DataFrame, dict]:
-    """A dataset's table and card (the newest version when none is named)."""
+def load_dataset(root: Path, name: str, version: str | None = None, table: str | None = "data"):
+    """A dataset's table (``data``: D; ``trajectories``; None: only the card) and its card, the newest
+    version when none is named: (DataFrame or None, card)."""
     base = Path(root) / name
     if version is None:
         cards = sorted(base.glob("*/card.json"), key=lambda p: p.stat().st_mtime)
@@ -138,4 +139,7 @@ def load_dataset(root: Path, name: str, version: str | None = None) -> tuple[pd.
             raise FileNotFoundError(f"no dataset {name!r} under {root}")
         version = cards[-1].parent.name
     path = base / version
-    return pd.read_parquet(path / "data.parquet"), json.loads((path / "card.json").read_text())
+    if not (path / "card.json").is_file():
+        raise FileNotFoundError(f"no dataset {name}@{version} under {root}")
+    card = json.loads((path / "card.json").read_text())
+    return (pd.read_parquet(path / f"{table}.parquet") if table else None), card

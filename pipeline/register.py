@@ -167,6 +167,26 @@ class Registration:
         }  # fmt: skip
 
 
+@dataclass(frozen=True)
+class FixedRegistration:
+    """A registration fitted elsewhere (another dataset of the same setup), applied as it is."""
+
+    transform: RigidTransform  # tracker frame → robot base frame
+    source: str
+
+    @classmethod
+    def from_summary(cls, summary: dict, source: str) -> FixedRegistration:
+        base_to_tracker = np.asarray(summary["base_to_tracker"], float)
+        fitted = RigidTransform(base_to_tracker[:3, :3], base_to_tracker[:3, 3])
+        return cls(fitted.inverse(), source)
+
+    def to_base(self, x_tracker: ArrayLike) -> np.ndarray:
+        return self.transform.apply(x_tracker)
+
+    def summary(self) -> dict:
+        return {"base_to_tracker": self.transform.inverse().matrix().tolist(), "from_dataset": self.source}
+
+
 def register(points: pd.DataFrame, robot: RobotDescription, deflection: bool = True,
              max_payload_kg: float | None = None, fraction: float = 0.5, min_pairs: int = 12,
              k_mad: float = 3.0, iterations: int = 10) -> Registration:  # fmt: skip

@@ -80,3 +80,37 @@ def test_bad_sessions_are_reported_and_the_others_build(lab, tmp_path):
     else:
         assert "truncated" in report.failed
     shutil.rmtree(bad)
+
+
+@pytest.mark.slow
+def test_trajectory_sessions_borrow_the_campaigns_registration(lab):
+    """Experiment 2 sessions have no settled points: their dataset takes the tracker registration of the
+    campaign of the same setup; its rows are the trajectory samples, in the base frame, by repetition."""
+    from acquisition.plans import protocols
+    from models import trajectories
+
+    campaign = build(sorted((lab / "sessions").iterdir()), lab, "campaign")
+    case = {
+        "cases": [{"payload_g": 75, "pressure_bar": 0.5}],
+        "commands": ["ik", "static"],
+        "rigid_arm": False,
+    }
+    overrides = case | {"repetitions": 1, "points_per_segment": 25, "settle_s": 1.0, "rest_s": 0.5}
+    simulate_protocol("experiment2", lab / "e2", seed=3, overrides=overrides)
+    sessions = sorted((lab / "e2").iterdir())
+    with pytest.raises(ValueError, match=r"register\.from_dataset"):
+        build(sessions, lab, "experiment2")
+    borrowed = {"register": {"from_dataset": f"campaign@{campaign.version}"}}
+    assert (
+        build(sessions, lab, "experiment2", borrowed).version
+        == build(sessions, lab, "experiment2", borrowed).version
+    )
+    report = build(sessions, lab, "experiment2", borrowed)
+    d, card = load_dataset(lab / "datasets", "experiment2", report.version)
+    assert card["parameters"]["register"]["from_dataset"] == f"campaign@{campaign.version}"
+    assert set(d["repetition"]) == {0} and set(d["session"]) == {s.name for s in sessions}
+    path = trajectories.experiment1("curve", protocols.arm_lengths(load_robot("vsl")), 0.02, 400).x
+    error = {s: trajectories.distance_to_path(g[["x_0", "x_1", "x_2"]].to_numpy(), path).mean()
+             for s, g in d.groupby("session")}  # fmt: skip
+    ik, static = (error[s.name] for s in sessions)
+    assert static < 0.5 * ik and static < 2e-3  # the registered tip shows the compensation working
