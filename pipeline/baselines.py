@@ -1,0 +1,319 @@
+"""Baselines the hybrid networks are compared with (seed 000 V): the rigid model, a grey-box pseudo-rigid-body
+model with fitted link stiffness, and two scikit-learn regressors on the networks' own inputs.
+
+Every baseline follows one contract: the constructor only stores parameters, ``fit(train_df)`` returns self,
+``predict(df)`` gives (n, 3) — the tip x (m) for ``direction="forward"``, the joint angles q (rad) for
+``direction="inverse"`` — ``name`` names it in tables and ``to_dict()`` gives its JSON-able parameters.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from scipy.optimize import least_squares
+
+from models import kinematics
+from models.hybrid import FORWARD_INPUTS, FORWARD_TARGETS, INVERSE_INPUTS, INVERSE_TARGETS
+from models.prbm import interp_table
+from models.robot import AnthropomorphicKinematics, RobotDescription, load_robot
+from models.statics import gravity_moments
+from pipeline import metrics
+
+MEASURED_Q = ("q_0", "q_1", "q_2")  # the encoders' joint angles (fk_* is their rigid FK)
+DIRECTIONS = ("forward", "inverse")
+K_MIN_NM_PER_RAD = 0.5  # a fitted k(p) is never let go below this (it would fold the link)
+
+
+class NotFittedError(RuntimeError):
+    """predict() or to_dict() of a fitted quantity before fit()."""
+
+
+def _cols(df: pd.DataFrame, names: tuple[str, ...]) -> np.ndarray:
+    return df.loc[:, list(names)].to_numpy(float)
+
+
+class Baseline:
+    """Common base: direction check, fitted check; subclasses fill ``_fit`` and ``_predict``."""
+
+    name = "baseline"
+
+    def __init__(self, direction: str = "forward") -> None:
+        if direction not in DIRECTIONS:
+            raise ValueError(f"direction must be one of {DIRECTIONS}, got {direction!r}")
+        self.direction = direction
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        return FORWARD_INPUTS if self.direction == "forward" else INVERSE_INPUTS
+
+    @property
+    def targets(self) -> tuple[str, ...]:
+        return FORWARD_TARGETS if self.direction == "forward" else INVERSE_TARGETS
+
+    @property
+    def prior(self) -> tuple[str, ...]:
+        """The model-based columns the learned part corrects (fk for forward, ik for inverse)."""
+        return self.inputs[:3]
+
+    def fit(self, train_df: pd.DataFrame) -> Baseline:
+        self._fit(train_df)
+        self.fitted_ = True
+        return self
+
+    def predict(self, df: pd.DataFrame) -> np.ndarray:
+        if not getattr(self, "fitted_", False):
+            raise NotFittedError(f"{self.name}: call fit() before predict()")
+        return self._predict(df)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "direction": self.direction}
+
+    def _fit(self, df: pd.DataFrame) -> None:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+    def _predict(self, df: pd.DataFrame) -> np.ndarray:  # pragma: no cover - overridden
+        raise NotImplementedError
+
+
+class RigidModel(Baseline):
+    """x̂ = rigid FK of the measured q (forward), q̂ = rigid IK of the measured x (inverse); nothing to fit."""
+
+    name = "rigid"
+
+    def _fit(self, df: pd.DataFrame) -> None:
+        pass
+
+    def _predict(self, df: pd.DataFrame) -> np.ndarray:
+        return _cols(df, self.prior)
+
+
+class PrbmGreyBox(Baseline):
+    """The robot description's statics: each link bends by δ = M(q, δ, m)/k(p) under the arm's point masses
+    and the payload m; the tip is the chain's FK at (q, δ). Inputs: forward the measured q (``q_*``, whose
+    rigid FK is ``fk_*``; the servos' droop is already in it), inverse ``ik_*``; both the link pressures
+    ``p_*`` and the servo currents ``i_*``.
+
+    The payload is not told: it is estimated from the currents (τ = K_t (i − i_idle sgn i) per servo against
+    the description's gravity moments of the arm and of 1 kg at the tool, least squares over J2/J3), then
+    calibrated by a linear regression on the training payloads. With ``fit_stiffness`` each link's
+    k(p) = a + b·p (p in bar) is fitted by least squares on the training tip errors, starting from the
+    description's table; without it the description's table is used as is.
+    Inverse: the q that lands the predicted tip on the target (fixed point on the rigid IK of the tip).
+    """
+
+    name = "prbm"
+
+    def __init__(self, robot: RobotDescription | str | None = None, fit_stiffness: bool = True,
+                 direction: str = "forward", iterations: int = 3) -> None:  # fmt: skip
+        super().__init__(direction)
+        self.robot, self.fit_stiffness, self.iterations = robot, fit_stiffness, iterations
+        if not fit_stiffness:
+            self.name = "prbm_description"
+
+    # ---------------------------------------------------------------------------------------- physics
+    def _setup(self, df: pd.DataFrame) -> None:
+        robot = self.robot if self.robot is not None else str(df["robot"].iloc[0])
+        robot = load_robot(robot) if isinstance(robot, str) else robot
+        if not isinstance(robot.kinematics, AnthropomorphicKinematics) or robot.servo is None:
+            raise ValueError(f"robot {robot.name!r}: the grey box needs the servo-driven VSL-type arm")
+        kin = robot.kinematics
+        self.robot_ = robot
+        self.lengths_ = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+        rows = [r.joint for r in robot.dh_rows()]
+        self.virtual_rows_ = [i for i, r in enumerate(rows) if not r.startswith("q")]
+        servo_names = list((robot.devices.get("servo_bus") or robot.devices["main_board"]).ids)
+        self.servo_rows_ = [rows.index(q) for q in servo_names]
+        links = [robot.link_of(v) for v in robot.virtual_joints]
+        self.channels_ = [link.pressure_channel or 0 for link in links]
+        self.tables_ = [robot.link_table(link.name) for link in links]
+
+    def _stiffness(self, p_pa: np.ndarray, theta: np.ndarray | None) -> np.ndarray:
+        """(n, V) link stiffness: the description's table (theta None) or a + b·p_bar per link."""
+        p = p_pa[:, self.channels_]
+        if theta is None:
+            return np.stack(
+                [
+                    interp_table(p[:, v], t.pressure_pa, t.stiffness_nm_per_rad)
+                    for v, t in enumerate(self.tables_)
+                ],
+                axis=1,
+            )
+        a, b = theta[0::2], theta[1::2]
+        return np.maximum(a + b * p / 1e5, K_MIN_NM_PER_RAD)
+
+    def _payload_raw(self, q: np.ndarray, current: np.ndarray) -> np.ndarray:
+        """Payload (kg) that explains the servo currents under the description's gravity moments."""
+        servo = self.robot_.servo
+        g0 = gravity_moments(self.robot_, q, None, 0.0)[:, self.servo_rows_]
+        g1 = gravity_moments(self.robot_, q, None, 1.0)[:, self.servo_rows_] - g0
+        torque = servo.torque_constant_nm_per_a * (current - servo.idle_current_a * np.sign(current))
+        # the drive holds τ = −G(q, m) = −(G0 + m G1): least squares in m over the servos
+        return -np.sum(g1 * (torque + g0), axis=1) / np.maximum(np.sum(g1 * g1, axis=1), 1e-12)
+
+    def _payload(self, q: np.ndarray, current: np.ndarray) -> np.ndarray:
+        c0, c1 = self.payload_calibration_
+        return np.maximum(c0 + c1 * self._payload_raw(q, current), 0.0)
+
+    def _tip(self, q: np.ndarray, p_pa: np.ndarray, m: np.ndarray, theta: np.ndarray | None) -> np.ndarray:
+        k = self._stiffness(p_pa, theta)
+        delta = np.zeros_like(k)
+        for _ in range(self.iterations):
+            delta = gravity_moments(self.robot_, q, delta, m)[:, self.virtual_rows_] / k
+        return self.robot_.chain().position(q, delta)
+
+    def _theta(self) -> np.ndarray | None:
+        return self.stiffness_ if self.fit_stiffness else None
+
+    # ------------------------------------------------------------------------------------ fit/predict
+    def _fit(self, df: pd.DataFrame) -> None:
+        self._setup(df)
+        q, p, i = _cols(df, MEASURED_Q), _cols(df, ("p_0", "p_1")), _cols(df, ("i_0", "i_1"))
+        raw = self._payload_raw(q, i)
+        design = np.column_stack([np.ones(len(raw)), raw])
+        self.payload_calibration_ = np.linalg.lstsq(design, df["payload_kg"].to_numpy(float), rcond=None)[0]
+        if not self.fit_stiffness:
+            return
+        m = self._payload(q, i)
+        x = _cols(df, FORWARD_TARGETS)
+        start = []
+        lo, hi = self.robot_.pneumatics.min_operating_pa, self.robot_.pneumatics.max_operating_pa
+        for t in self.tables_:  # the description's table, linearised over the operating range
+            k_lo, k_hi = interp_table([lo, hi], t.pressure_pa, t.stiffness_nm_per_rad)
+            b = (k_hi - k_lo) / ((hi - lo) / 1e5)
+            start += [k_lo - b * lo / 1e5, b]
+        x0 = np.asarray(start)
+        scale = np.maximum(np.abs(x0), 10.0)
+        res = least_squares(
+            lambda z: ((self._tip(q, p, m, z * scale) - x) * 1e3).ravel(),
+            x0 / scale,
+            method="trf",
+            x_scale=1.0,
+        )
+        self.stiffness_ = res.x * scale
+        self.fit_cost_mm2_ = float(2 * res.cost / len(x))
+
+    def _predict(self, df: pd.DataFrame) -> np.ndarray:
+        p, i = _cols(df, ("p_0", "p_1")), _cols(df, ("i_0", "i_1"))
+        prior = _cols(df, self.prior)
+        theta = self._theta()
+        if self.direction == "forward":
+            q = _cols(df, MEASURED_Q)  # the measured q that fk_* is the rigid FK of
+            return self._tip(q, p, self._payload(q, i), theta)
+        ok = np.isfinite(prior).all(axis=1)  # ik is NaN where the measured tip is out of reach
+        out = np.full_like(prior, np.nan)
+        goal, p, i = prior[ok], p[ok], i[ok]
+        q = goal.copy()
+        for _ in range(6):
+            q = q + (goal - kinematics.vsl_ik(self._tip(q, p, self._payload(q, i), theta), self.lengths_, 1))
+        out[ok] = q - self._droop(q, self._payload(q, i))  # the command the servos droop from to reach q
+        return out
+
+    def _droop(self, q: np.ndarray, payload_kg: np.ndarray) -> np.ndarray:
+        """How far the position-controlled servos sag below their goals under the static load (rad)."""
+        rows = [r.joint for r in self.robot_.dh_rows()]
+        actuated = [rows.index(j) for j in self.robot_.actuated_joints]
+        moments = gravity_moments(self.robot_, q, None, payload_kg)[:, actuated]
+        servo = np.array([j.drive != "stepper" for j in self.robot_.joints])
+        return np.where(servo, moments / self.robot_.servo.stiffness_nm_per_rad, 0.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        if not getattr(self, "fitted_", False):
+            raise NotFittedError(f"{self.name}: its parameters are learned by fit()")
+        out = super().to_dict() | {"robot": self.robot_.name, "fit_stiffness": self.fit_stiffness}
+        out["payload_calibration"] = [float(v) for v in self.payload_calibration_]
+        if self.fit_stiffness:
+            names = [link.name for link in (self.robot_.link_of(v) for v in self.robot_.virtual_joints)]
+            out["stiffness"] = {
+                name: {"a_nm_per_rad": float(a), "b_nm_per_rad_per_bar": float(b)}
+                for name, a, b in zip(names, self.stiffness_[0::2], self.stiffness_[1::2], strict=True)
+            }
+        return out
+
+
+class SklearnBaseline(Baseline):
+    """A scikit-learn regressor on the networks' 7 inputs, predicting the residual of the rigid model
+    (x − fk forward, q − ik inverse). ``"gbr"``: HistGradientBoostingRegressor per output; ``"knn"``:
+    distance-weighted k-nearest neighbours on standardised inputs. Rows with a NaN input predict NaN."""
+
+    KINDS = ("gbr", "knn")
+
+    def __init__(self, kind: str = "gbr", direction: str = "forward", random_state: int = 0,
+                 n_neighbors: int = 8, max_iter: int = 300) -> None:  # fmt: skip
+        super().__init__(direction)
+        if kind not in self.KINDS:
+            raise ValueError(f"kind must be one of {self.KINDS}, got {kind!r}")
+        self.kind, self.random_state = kind, random_state
+        self.n_neighbors, self.max_iter = n_neighbors, max_iter
+        self.name = kind
+
+    def _estimator(self):
+        from sklearn.ensemble import HistGradientBoostingRegressor
+        from sklearn.multioutput import MultiOutputRegressor
+        from sklearn.neighbors import KNeighborsRegressor
+        from sklearn.pipeline import make_pipeline
+        from sklearn.preprocessing import StandardScaler
+
+        if self.kind == "gbr":
+            hgb = HistGradientBoostingRegressor(max_iter=self.max_iter, random_state=self.random_state)
+            return MultiOutputRegressor(hgb)
+        return make_pipeline(StandardScaler(), KNeighborsRegressor(self.n_neighbors, weights="distance"))
+
+    def _fit(self, df: pd.DataFrame) -> None:
+        x, y = _cols(df, self.inputs), _cols(df, self.targets) - _cols(df, self.prior)
+        ok = np.isfinite(x).all(axis=1) & np.isfinite(y).all(axis=1)
+        self.estimator_ = self._estimator().fit(x[ok], y[ok])
+
+    def _predict(self, df: pd.DataFrame) -> np.ndarray:
+        x = _cols(df, self.inputs)
+        ok = np.isfinite(x).all(axis=1)
+        out = np.full((len(x), 3), np.nan)
+        if ok.any():
+            out[ok] = x[ok, :3] + self.estimator_.predict(x[ok])
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return super().to_dict() | {
+            "kind": self.kind,
+            "random_state": self.random_state,
+            "n_neighbors": self.n_neighbors,
+            "max_iter": self.max_iter,
+        }
+
+
+BASELINES = {
+    "rigid": RigidModel,
+    "prbm_description": functools.partial(PrbmGreyBox, fit_stiffness=False),
+    "prbm": PrbmGreyBox,
+    "gbr": functools.partial(SklearnBaseline, "gbr"),
+    "knn": functools.partial(SklearnBaseline, "knn"),
+}
+
+
+def part_of(data: pd.DataFrame, split: str = "split_random", part: str = "train") -> pd.DataFrame:
+    """The rows of one part ("train"/"val"/"test") of a split column."""
+    return data[data[split] == part]
+
+
+def _report(errors_mm: np.ndarray, rows: pd.DataFrame) -> dict[str, Any]:
+    pressure = _cols(rows, ("p_0", "p_1")).mean(axis=1)  # the campaign drives both links alike
+    cells = metrics.per_cell_long(errors_mm, pressure, rows["payload_kg"].to_numpy(float))
+    return {"summary": metrics.summary(errors_mm), "per_cell": cells.to_dict("records")}
+
+
+def evaluate_forward(model: Baseline, data: pd.DataFrame, split: str = "split_random",
+                     part: str = "test") -> dict[str, Any]:  # fmt: skip
+    """Tip errors (mm) of a fitted forward model on one part: summary and per pressure × payload cell (long
+    records: pressure_bin, payload_g, mean_mm, count)."""
+    rows = part_of(data, split, part)
+    return _report(metrics.tip_errors(model.predict(rows), _cols(rows, FORWARD_TARGETS)), rows)
+
+
+def evaluate_inverse(model: Baseline, data: pd.DataFrame, lengths: kinematics.ArmLengths,
+                     split: str = "split_random", part: str = "test") -> dict[str, Any]:  # fmt: skip
+    """Joint errors of a fitted inverse model seen at the tip: |FK(q̂) − FK(q)| (mm, rigid FK), same report."""
+    rows = part_of(data, split, part)
+    q_hat, q = model.predict(rows), _cols(rows, INVERSE_TARGETS)
+    return _report(metrics.tip_errors(kinematics.vsl_fk(q_hat, lengths), kinematics.vsl_fk(q, lengths)), rows)
