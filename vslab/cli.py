@@ -11,7 +11,10 @@ import typer
 from rich.table import Table
 
 from models.robot import CONFIG_DIR, RobotDescriptionError
-from vslab import recording  # noqa: F401  (registers record, run and sessions on the app)
+from vslab import (
+    models_cmds,  # noqa: F401  (registers train and models on the app)
+    recording,  # noqa: F401  (registers record, run and sessions on the app)
+)
 from vslab.app import Settings, _fail, _overrides, _robot, app, console, robots_app, twin_app
 
 

@@ -1,0 +1,124 @@
+"""Training and inference speed of the hybrid networks on a paper-size dataset (17,568 points, seed 000).
+
+Prints the training time per epoch of the paper network (forward and inverse, batch 256, a few epochs), then
+the single-sample latency (p50/p99 over 2,000 calls after warm-up, one torch thread) of the exported
+TorchScript inverse model — the paper net and the small residual net — against the control loop's budget
+(p99 < 200 µs). The dataset is simulated on the twin and built (``--source sim``, minutes) or synthesised
+from the rigid kinematics with the same columns (``--source synthetic``, the default: seconds; per-epoch
+time depends only on the row count and the net).
+Usage: python bench/train.py [--source synthetic|sim] [--points N] [--epochs E] [--calls C]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from models import kinematics
+from models.hybrid import preset
+from models.robot import load_robot
+from pipeline.registry import load_exported, model_version, save_model
+from pipeline.train import TrainConfig, train
+
+BUDGET_US = 200.0
+
+
+def synthetic(points: int, seed: int = 0) -> pd.DataFrame:
+    """D-shaped rows: random joint angles, pressures, currents; x = rigid FK + a pressure-dependent sag."""
+    kin = load_robot("vsl").kinematics
+    lengths = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+    rng = np.random.default_rng(seed)
+    n = points
+    q = np.column_stack([rng.uniform(-1.5, 1.5, n), rng.uniform(0.2, 1.2, n), rng.uniform(-1.8, -0.4, n)])
+    p = rng.uniform(0.5e5, 2.0e5, (n, 2))
+    i = rng.normal(0.3, 0.1, (n, 2))
+    payload = rng.choice([0.0, 0.1, 0.2], n)
+    fk = kinematics.vsl_fk(q, lengths)
+    x = fk + np.column_stack([np.zeros(n), np.zeros(n), -(0.01 + payload * 0.05) * 1e5 / p[:, 0]])
+    x += rng.normal(0, 2e-4, x.shape)
+    ik = kinematics.vsl_ik(x, lengths, 1)
+    cols = {f"x_{k}": x[:, k] for k in range(3)} | {f"p_{k}": p[:, k] for k in range(2)}
+    cols |= {f"i_{k}": i[:, k] for k in range(2)} | {f"q_{k}": q[:, k] for k in range(3)}
+    cols |= {f"fk_{k}": fk[:, k] for k in range(3)} | {f"ik_{k}": ik[:, k] for k in range(3)}
+    split = rng.choice(["train", "val", "test"], n, p=[0.7, 0.15, 0.15])
+    cols |= {"payload_kg": payload, "robot": "vsl", "split_random": split, "split_group": split}
+    return pd.DataFrame(cols)
+
+
+def simulated(points: int, lab: Path, benches: int) -> pd.DataFrame:
+    """The campaign simulated on the twin and built into D."""
+    from acquisition.plans.sim_runner import simulate_protocol
+    from pipeline.build import build
+    from pipeline.datasets import load_dataset
+
+    start = time.perf_counter()
+    simulate_protocol("campaign", lab / "sessions", benches=benches, overrides={"points": points})
+    report = build(sorted((lab / "sessions").iterdir()), lab, "campaign")
+    print(f"simulated and built {report.rows:,} rows in {time.perf_counter() - start:.0f} s (not timed)")
+    return load_dataset(lab / "datasets", "campaign", report.version)[0]
+
+
+def latency_us(module, calls: int, warmup: int = 300) -> np.ndarray:
+    """Per-call wall time (µs) of ``module`` on one (1, 7) float64 sample, numpy in, numpy out."""
+    x = np.random.default_rng(0).normal(size=(1, 7))
+    out = np.empty(calls)
+    with torch.inference_mode():
+        for _ in range(warmup):
+            module(torch.from_numpy(x)).numpy()
+        for k in range(calls):
+            t0 = time.perf_counter_ns()
+            module(torch.from_numpy(x)).numpy()
+            out[k] = (time.perf_counter_ns() - t0) / 1e3
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--source", choices=("synthetic", "sim"), default="synthetic")
+    parser.add_argument("--points", type=int, default=17568, help="dataset size (the paper's n = 17568)")
+    parser.add_argument("--benches", type=int, default=128, help="twin benches (--source sim)")
+    parser.add_argument("--epochs", type=int, default=3, help="epochs timed per network")
+    parser.add_argument("--calls", type=int, default=2000, help="latency calls after warm-up")
+    parser.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="torch threads for training")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        lab = Path(tmp)
+        data = (
+            synthetic(args.points)
+            if args.source == "synthetic"
+            else simulated(args.points, lab, args.benches)
+        )
+        n_train = int((data["split_random"] == "train").sum())
+        print(f"dataset: {len(data):,} rows ({args.source}), {n_train:,} train; torch {torch.__version__}, "
+              f"{args.threads} threads")  # fmt: skip
+        exported = {}
+        for direction, name in (("forward", "paper"), ("inverse", "paper"), ("inverse", "small-residual")):
+            config = TrainConfig(
+                preset(direction, name), batch_size=256, max_epochs=args.epochs, patience=999
+            )
+            result = train(data, config, threads=args.threads, device="cpu")
+            print(f"train {direction:<8} {name:<15} batch 256: {result.epoch_time_s:6.2f} s/epoch "
+                  f"({result.epoch_time_s / n_train * 1e6:.1f} µs/row, {args.epochs} epochs)")  # fmt: skip
+            if direction == "inverse":
+                path = save_model(lab / "models", f"{direction}-{name}", model_version("bench", config),
+                                  result.model, {"train_config": config.to_dict()})  # fmt: skip
+                exported[name] = (load_exported(path), result.model)
+        torch.set_num_threads(1)
+        for name, (module, eager) in exported.items():
+            for label, fn in (("TorchScript", module), ("eager", eager)):
+                us = latency_us(fn, args.calls)
+                p50, p99 = np.percentile(us, [50, 99])
+                verdict = ("ok" if p99 < BUDGET_US else "MISSED") if label == "TorchScript" else "(reference)"
+                print(f"latency inverse {name:<15} {label:<11} 1 thread: p50 {p50:6.1f} µs  "
+                      f"p99 {p99:6.1f} µs  max {us.max():7.1f} µs  (p99 < 200 µs: {verdict})")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
