@@ -179,11 +179,12 @@ def _register(static: pd.DataFrame, robot: RobotDescription, parameters: dict, d
     if "from_dataset" in parameters:
         name, _, version = parameters["from_dataset"].partition("@")
         _, card = datasets.load_dataset(datasets_root, name, version, table=None)
-        if robot.name not in card.get("registration", {}):
+        fitted = card.get("registration", {})
+        # an arm on the same mount (the rigid-link arm in place of the VSL arm) shares the tracker placement
+        mine = fitted.get(robot.name) or (next(iter(fitted.values())) if len(fitted) == 1 else None)
+        if mine is None:
             raise ValueError(f"dataset {name}@{version} has no registration for robot {robot.name!r}")
-        return FixedRegistration.from_summary(
-            card["registration"][robot.name], source=parameters["from_dataset"]
-        )
+        return FixedRegistration.from_summary(mine, source=parameters["from_dataset"])
     return register(static, robot, **parameters)
 
 

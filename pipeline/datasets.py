@@ -2,9 +2,11 @@
 model-based columns the hybrid networks take (the rigid FK of q, the rigid IK of x), ids and splits.
 
 Columns (SI): ``x_0..2`` (m, base frame), ``p_<c>`` (Pa, one per link channel), ``i_<k>`` (A, one per servo),
-``q_<j>`` (rad, every actuated joint in the robot's order), ``fk_0..2`` (m), ``ik_<j>`` (rad; NaN where x is
-out of reach), ``payload_kg``, ``robot``, ``session``, ``point`` (static point number or −1), ``repetition``
-(−1 for static points), ``split_random`` and ``split_group`` ("train" / "val" / "test").
+``q_<j>`` (rad, every actuated joint in the robot's order, measured by the encoders), ``qc_<j>`` (rad, the
+commanded joint angles: the servo goals in force, which the servos reach only up to their droop under load —
+the inverse model's target), ``fk_0..2`` (m), ``ik_<j>`` (rad; NaN where x is out of reach),
+``payload_kg``, ``robot``, ``session``, ``point`` (static point number or −1), ``repetition`` (−1 for static
+points), ``split_random`` and ``split_group`` ("train" / "val" / "test").
 
 A dataset is written once under ``<lab>/datasets/<name>/<version>/`` (``data.parquet`` + ``card.json``); the
 version is the hash of its source sessions' hashes, the stage parameters and the code version, so building
@@ -30,8 +32,10 @@ SPLITS = ("train", "val", "test")
 FRACTIONS = (0.70, 0.15, 0.15)  # seed 000: 70 / 15 / 15
 
 
-def joint_angles(df: pd.DataFrame, robot: RobotDescription) -> np.ndarray:
-    """(n, A) joint angles in the robot's joint order from the timeline's stepper and servo columns."""
+def joint_angles(df: pd.DataFrame, robot: RobotDescription, servo: str = "servo_position") -> np.ndarray:
+    """(n, A) joint angles in the robot's joint order from the timeline's stepper and servo columns: the
+    measured ones, or (``servo="goal_position"``) the servo goals in force with the stepper's measured angle
+    (a stepper lands on its commanded step; NaN where no goal was recorded)."""
     q = np.full((len(df), len(robot.joints)), np.nan)
     steppers = [k for k, j in enumerate(robot.joints) if j.drive == "stepper"]
     servo_dev = robot.devices.get("servo_bus") or robot.devices.get("main_board")
@@ -40,7 +44,10 @@ def joint_angles(df: pd.DataFrame, robot: RobotDescription) -> np.ndarray:
     if steppers:
         q[:, steppers] = columns(df, "stepper_position")[:, : len(steppers)]
     if servos:
-        q[:, servos] = columns(df, "servo_position")[:, : len(servos)]
+        try:
+            q[:, servos] = columns(df, servo)[:, : len(servos)]
+        except KeyError:  # no goals recorded (a passive recording): unknown, not guessed
+            q[:, servos] = np.nan
     return q
 
 
@@ -60,6 +67,8 @@ def assemble(points: pd.DataFrame, robot: RobotDescription) -> pd.DataFrame:
     current = columns(points, "servo_current")
     out |= {f"i_{k}": current[:, k] for k in range(current.shape[1])}
     out |= {f"q_{j}": q[:, j] for j in range(q.shape[1])}
+    commanded = joint_angles(points, robot, servo="goal_position")
+    out |= {f"qc_{j}": commanded[:, j] for j in range(commanded.shape[1])}
     fk = kinematics.vsl_fk(q, lengths)
     out |= {f"fk_{k}": fk[:, k] for k in range(3)}
     ik = _ik_or_nan(x, lengths)

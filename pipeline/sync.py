@@ -110,9 +110,19 @@ def fit_stream(session: SessionTables, topic: str, **fit_options) -> tuple[str, 
     return device, fit, ticks
 
 
+def hold_last(t_src: np.ndarray, values: np.ndarray, t_query: np.ndarray) -> np.ndarray:
+    """Zero-order hold: at each ``t_query`` the latest ``values`` row (n, k) at or before it (NaN before)."""
+    order = np.argsort(t_src, kind="stable")
+    idx = np.searchsorted(t_src[order], t_query, side="right") - 1
+    out = np.full((len(t_query), values.shape[1]), np.nan)
+    out[idx >= 0] = values[order][idx[idx >= 0]]
+    return out
+
+
 def timeline(session: SessionTables, gap_periods: float = 3.0) -> pd.DataFrame:
     """The tracker's frames at their fitted times (``t``, ``tracker_position_<i>``) with the other streams
-    (:data:`TIMELINE_FIELDS`) interpolated there. Streams must already have ``t`` (see :func:`sync`)."""
+    (:data:`TIMELINE_FIELDS`) interpolated there and the servo goals in force (``goal_position_<i>``).
+    Streams must already have ``t`` (see :func:`sync`)."""
     tracker = session.streams.get(T.TRACKER)
     if tracker is None or "t" not in tracker.columns:
         raise ValueError(f"session {session.session_id}: no synced tracker stream to put the timeline on")
@@ -128,6 +138,10 @@ def timeline(session: SessionTables, gap_periods: float = 3.0) -> pd.DataFrame:
                 continue
     frame_t = tracker["t"].to_numpy(dtype=float)
     out = resample(frame_t, sources, gap_periods)
+    goals = session.streams.get(T.SERVO_GOAL)
+    if goals is not None and len(goals) and "t" in goals.columns:  # commands hold until the next one
+        held = hold_last(goals["t"].to_numpy(float), columns(goals, "position"), frame_t)
+        out = out.assign(**{f"goal_position_{k}": held[:, k] for k in range(held.shape[1])})
     position = pd.DataFrame(columns(tracker, "position"), index=out.index).add_prefix("tracker_position_")
     frame = {"frame": tracker["frame"].to_numpy()} if "frame" in tracker.columns else {}
     return pd.concat([out[["t"]], pd.DataFrame(frame, index=out.index), position, out.drop(columns="t")],

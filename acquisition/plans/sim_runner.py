@@ -165,7 +165,7 @@ def simulate(
     topics = writers[0].topics
     last_goal = np.full(len(plans), -1)
     last_pressure = np.full(len(plans), -1)
-    compensation = _Compensation(robot, plans, compensators)
+    compensation = _Compensation(robot, plans, compensators, block_s)
     messages = 0
     t0 = 0.0
     try:
@@ -190,6 +190,7 @@ def simulate(
                 if taps[b].any():
                     world.tap(taps[b])
                 traces.append(world.step(steps_per_block))
+                compensation.observe(world)
             trace = _concat(traces)
             t1 = float(trace.t[-1])
             for r, c in enumerate(cmds):
@@ -234,27 +235,37 @@ def simulate(
 
 
 class _Compensation:
-    """Per bench: the command sent for the active set-point, computed once when the set-point changes."""
+    """Per bench: the command sent for the active set-point, computed once when the set-point changes from
+    the bench's link pressures and its joint currents low-passed over ``current_filter_s`` (the currents of a
+    servo stepping along a path carry its accelerations; the compensators are fitted on settled currents)."""
 
-    def __init__(self, robot: RobotDescription, plans: list[Plan], compensators: list[Compensator | None]):
+    def __init__(self, robot: RobotDescription, plans: list[Plan], compensators: list[Compensator | None],
+                 block_s: float, current_filter_s: float = 0.2):  # fmt: skip
         self.robot = robot
         self.benches = [r for r, c in enumerate(compensators) if c is not None]
         self.compensators = compensators
         self.index = np.full(len(plans), -1)
         self.command = np.zeros((len(plans), len(robot.actuated_joints)))
+        self.alpha = min(1.0, block_s / current_filter_s)
+        self.current: np.ndarray | None = None
 
-    def apply(self, world: World, goal_index: np.ndarray, goal: np.ndarray) -> None:
-        """Replace the compensated benches' goals (B, A) in place; new set-points see the bench's pressures
-        and currents now."""
+    def observe(self, world: World) -> None:
+        """Update the low-passed currents after a block (an exponential moving average)."""
         if not self.benches:
             return
-        servo = self.robot.servo
+        now = servo_current_a(self.robot.servo, world.state.torque, world.state.out_vel)
+        self.current = now if self.current is None else self.current + self.alpha * (now - self.current)
+
+    def apply(self, world: World, goal_index: np.ndarray, goal: np.ndarray) -> None:
+        """Replace the compensated benches' goals (B, A) in place."""
+        if not self.benches:
+            return
+        if self.current is None:
+            self.observe(world)
         for r in self.benches:
             if goal_index[r] != self.index[r]:
-                torque, qd = world.state.torque[r], world.state.out_vel[r]
-                current = servo_current_a(servo, torque, qd)
                 self.command[r] = self.compensators[r](
-                    goal[r][None], world.state.p_link[r][None], current[None]
+                    goal[r][None], world.state.p_link[r][None], self.current[r][None]
                 )[0]
                 self.index[r] = goal_index[r]
             goal[r] = self.command[r]
