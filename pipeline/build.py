@@ -105,7 +105,7 @@ def build(
     own = executor is None
     if own:
         workers = max(1, min(len(sessions), os.cpu_count() or 1))
-        executor = cf.ProcessPoolExecutor(workers) if workers > 1 else _InlineExecutor()
+        executor = cf.ProcessPoolExecutor(workers) if workers > 1 else InlineExecutor()
     try:
         futures = [executor.submit(process_session, str(d), params, str(cache_root)) for d in sessions]
         results = []
@@ -211,7 +211,7 @@ def _registration_card(registration) -> dict:
     return registration.summary() if hasattr(registration, "summary") else repr(registration)
 
 
-class _InlineExecutor(cf.Executor):
+class InlineExecutor(cf.Executor):
     """One worker: run in this process (no pool to start for a single session or a single core)."""
 
     def submit(self, fn, /, *args, **kwargs):

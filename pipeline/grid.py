@@ -19,6 +19,7 @@ from pathlib import Path
 import yaml
 
 from models.hybrid import NetConfig, preset
+from pipeline.build import InlineExecutor
 from pipeline.registry import CARD, jsonable, load_card, metric, model_version, save_model
 from pipeline.train import TrainConfig
 
@@ -170,7 +171,7 @@ def run_grid(
     own = executor is None
     if own:
         executor = (cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("forkserver"))
-                    if workers > 1 and len(todo) > 1 else _InlineExecutor())  # fmt: skip
+                    if workers > 1 and len(todo) > 1 else InlineExecutor())  # fmt: skip
     threads = max(1, cores // workers)
     for done, summary in enumerate(list(results.values()), 1):
         if progress:
@@ -189,15 +190,3 @@ def run_grid(
         if own:
             executor.shutdown(cancel_futures=True)
     return [results[job["version"]] for job in jobs]
-
-
-class _InlineExecutor(cf.Executor):
-    """One worker: run each job in this process, when submitted."""
-
-    def submit(self, fn, /, *args, **kwargs):
-        future: cf.Future = cf.Future()
-        try:
-            future.set_result(fn(*args, **kwargs))
-        except BaseException as exc:
-            future.set_exception(exc)
-        return future

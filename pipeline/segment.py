@@ -7,7 +7,7 @@ times (ns); the timeline counts ``t`` in seconds from ``t0_ns``.
 
 A window is kept only if the bench really was still in it: the least-squares drift over the window of every
 joint, of the tip and of every link pressure stays below a threshold. A window that fails is counted by reason
-(``points.attrs["rejected"]``, the stage report if one is given, a log warning), never silently averaged.
+(``points.attrs["rejected"]``, the stage report if one is given, a log line), never silently averaged.
 """
 
 from __future__ import annotations
@@ -155,7 +155,7 @@ def static_points(
             report.remove(STREAM, r, n)
         report.values["segment/static_points"] = {"settled": m, "kept": int(keep.sum())}
     if not keep.all():
-        log.warning("%d of %d settled windows rejected: %s", (~keep).sum(), m, out.attrs["rejected"])
+        log.info("%d of %d settled windows rejected: %s", (~keep).sum(), m, out.attrs["rejected"])
     return out
 
 

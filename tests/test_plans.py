@@ -344,14 +344,17 @@ def test_campaign_deals_every_point_once(vsl, campaign_params):
 
 def test_campaign_point_timing_and_values(vsl, campaign_params):
     (plan,) = protocols.campaign(vsl, campaign_params, benches=1, seed=0)
-    n = campaign_params["points"]
-    step = campaign_params["settle_s"] + campaign_params["hold_s"]
-    assert plan.duration_s == pytest.approx(n * step)
-    np.testing.assert_allclose(plan.goal_t, np.arange(n) * step, atol=1e-9)
-    np.testing.assert_allclose(plan.pressure_t, np.arange(n) * step, atol=1e-9)
-    np.testing.assert_allclose(plan.payload_t, np.arange(n) * step, atol=1e-9)
+    # each point: travel (the largest joint move at the move speed), settle, hold
+    travel = np.abs(np.diff(plan.goal_q, axis=0, prepend=plan.goal_q[:1])).max(axis=1)
+    p = campaign_params
+    step = travel / p["move_speed_rad_s"] + p["settle_s"] + p["hold_s"]
+    starts = np.concatenate([[0.0], np.cumsum(step)[:-1]])
+    assert plan.duration_s == pytest.approx(step.sum())
+    np.testing.assert_allclose(plan.goal_t, starts, atol=1e-9)
+    np.testing.assert_allclose(plan.pressure_t, starts, atol=1e-9)
+    np.testing.assert_allclose(plan.payload_t, starts, atol=1e-9)
     settled_t = np.array([t for t, e in plan.events if e.kind == EventKind.SETTLED])
-    np.testing.assert_allclose(settled_t, np.arange(n) * step + campaign_params["settle_s"], atol=1e-9)
+    np.testing.assert_allclose(settled_t, starts + step - campaign_params["hold_s"], atol=1e-9)
     lo, hi = (v * BAR for v in campaign_params["pressure_bar"])
     assert np.all((plan.pressure_pa >= lo) & (plan.pressure_pa <= hi))
     assert np.all(plan.pressure_pa[:, 0] == plan.pressure_pa[:, 1])

@@ -67,3 +67,17 @@ def _overrides(pairs: list[str]) -> dict:
             _fail(f"--set takes key=value, got {pair!r}")
         out[key.strip()] = yaml.safe_load(value)
     return out
+
+
+def inverse_compensator(version: str, robot_name: str):
+    """A registered inverse model as the runners' compensator for ``robot_name`` (fails clearly)."""
+    from pipeline.in_loop import InverseModelCompensator
+    from pipeline.registry import find, load_model
+
+    try:
+        model, _ = load_model(find(Settings.lab / "models", version))
+    except (FileNotFoundError, ValueError) as exc:
+        _fail(str(exc))
+    if model.config.direction != "inverse":
+        _fail(f"model {version} is a {model.config.direction} model; hybrid commands need an inverse one")
+    return InverseModelCompensator(model, _robot(robot_name))

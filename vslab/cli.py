@@ -15,7 +15,17 @@ from vslab import (
     models_cmds,  # noqa: F401  (registers train and models on the app)
     recording,  # noqa: F401  (registers record, run and sessions on the app)
 )
-from vslab.app import Settings, _fail, _overrides, _robot, app, console, robots_app, twin_app
+from vslab.app import (
+    Settings,
+    _fail,
+    _overrides,
+    _robot,
+    app,
+    console,
+    inverse_compensator,
+    robots_app,
+    twin_app,
+)
 
 
 @robots_app.command("list")
@@ -108,10 +118,15 @@ def simulate(
     ] = None,
     benches: Annotated[int, typer.Option(help="Twin benches stepped together (batch size).")] = 128,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    inverse_model: Annotated[
+        str | None,
+        typer.Option(help="Registered inverse model (version) for Experiment 2's hybrid commands."),
+    ] = None,
 ) -> None:
     """Run a protocol on the twin in simulated time: the same sessions as on the rig, much faster."""
     import time
 
+    import numpy as np
     from rich.progress import Progress
 
     from acquisition.plans.sim_runner import simulate_protocol
@@ -119,6 +134,12 @@ def simulate(
 
     start = time.perf_counter()
     sessions_dir = Settings.lab / "sessions"
+    compensators = []
+
+    def hybrid(plan):
+        compensators.append(inverse_compensator(inverse_model, plan.robot))
+        return compensators[-1]
+
     with Progress(console=console, disable=Settings.quiet, transient=True) as bar:
         tasks: dict[str, int] = {}
 
@@ -130,7 +151,7 @@ def simulate(
         try:
             reports = simulate_protocol(
                 protocol, sessions_dir, seed=seed, benches=benches, overrides=_overrides(set_ or []),
-                progress=progress,
+                progress=progress, inverse_model=hybrid if inverse_model else None,
             )  # fmt: skip
         except (ValueError, FileNotFoundError, RobotDescriptionError, SafetyError) as exc:
             _fail(str(exc))
@@ -144,6 +165,12 @@ def simulate(
         f"simulated in {wall:.1f} s ({simulated / wall:,.0f}× real time), {messages:,} messages "
         f"→ {sessions_dir}"
     )
+    latencies = [t * 1e6 for c in compensators for t in c.latencies_s]
+    if latencies:
+        p50, p99 = np.percentile(latencies, [50, 99])
+        console.print(
+            f"inverse model in the loop: {len(latencies)} set-points, {p50:.0f} µs p50, {p99:.0f} µs p99"
+        )
 
 
 @app.command()

@@ -14,7 +14,7 @@ from typing import Annotated
 import typer
 from rich.table import Table
 
-from vslab.app import Settings, _fail, _robot, app, console, sessions_app
+from vslab.app import Settings, _fail, _robot, app, console, inverse_compensator, sessions_app
 
 PORTS_HELP = "ports.json (or the rig's run directory) naming each device's port."
 RIG_HELP = "Start a rig (the twin behind emulators) and use its devices."
@@ -112,6 +112,9 @@ def run(
     ports: Annotated[Path | None, typer.Option(help=PORTS_HELP)] = None,
     rig: Annotated[bool, typer.Option("--rig", help=RIG_HELP)] = False,
     session: Annotated[str | None, typer.Option(help="Session id (default: time, plan).")] = None,
+    inverse_model: Annotated[
+        str | None, typer.Option(help="Registered inverse model for hybrid commands.")
+    ] = None,
     live: LiveOption = False,
     live_host: LiveHost = "127.0.0.1",
     live_port: LivePort = 8765,
@@ -135,11 +138,15 @@ def run(
     the_plan = chosen[0]
     desc = robots[the_plan.robot]
     commands = the_plan.parameters.get("commands", "ik")
-    if commands == "hybrid":
-        _fail("hybrid commands need a trained inverse model (not available yet); use commands=static or ik")
-    compensator = (
-        StaticModelCompensator(desc, the_plan.parameters["payload_kg"]) if commands == "static" else None
-    )
+    compensator = None
+    if commands == "static":
+        compensator = StaticModelCompensator(desc, the_plan.parameters["payload_kg"])
+    elif commands == "hybrid":
+        if inverse_model is None:
+            _fail(
+                "hybrid commands need a trained inverse model: --inverse-model VERSION (`vslab models list`)"
+            )
+        compensator = inverse_compensator(inverse_model, desc.name)
     session_id = session or time.strftime("%Y%m%d-%H%M%S-") + the_plan.name.replace("/", "-")
     console.print(f"{the_plan.name}: {the_plan.duration_s:.1f} s on {desc.name}")
     with _devices(desc, ports, rig, session_id) as (port_map, rig_dir):

@@ -148,9 +148,13 @@ def campaign(robot: RobotDescription, params: dict, benches: int = 1, seed: int 
         b = _builder(
             f"campaign/bench{k:03d}", robot, {"protocol": "campaign", "seed": seed, "points": len(idx)}
         )
+        previous = q[idx[0]]
         for point in idx:
             b.pressure(pressure[point]).payload(payload[point]).goto(q[point], params["move_speed_rad_s"])
+            # the joints travel at the move speed first; settling starts when they arrive
+            b.wait(float(np.abs(q[point] - previous).max()) / params["move_speed_rad_s"])
             b.settle(params["settle_s"], index=int(point), hold_s=params["hold_s"])
+            previous = q[point]
         plans.append(b.build())
     return plans
 
