@@ -20,7 +20,6 @@ from models.robot import PressureTable, load_robot
 from pipeline import baselines as B
 
 
-
 def _scaled_robot(factor: float):
     """The VSL description with every link's own stiffness table scaled (a deliberately wrong k(p))."""
     robot = load_robot("vsl")
