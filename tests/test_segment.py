@@ -74,7 +74,8 @@ def test_static_points_average_to_the_true_tip(twin_pair):
 
 def test_unsettled_windows_are_rejected_and_counted(tmp_path):
     """Too short a settle time: windows that start while the arm moves are left out, counted by reason."""
-    robots, plans, params = expand_protocol("campaign", {"points": 40, "settle_s": 0.1}, benches=4, seed=3)
+    fast = {"points": 40, "settle_s": 0.1, "move_speed_rad_s": 20.0}  # plans a move faster than the servos go
+    robots, plans, params = expand_protocol("campaign", fast, benches=4, seed=3)
     simulate(plans, robots[params["robot"]], tmp_path, seed=3)
     kept, rejected, report = 0, 0, StageReport()
     for s in sessions(tmp_path):
