@@ -46,6 +46,7 @@ def synthetic(points: int, seed: int = 0) -> pd.DataFrame:
     ik = kinematics.vsl_ik(x, lengths, 1)
     cols = {f"x_{k}": x[:, k] for k in range(3)} | {f"p_{k}": p[:, k] for k in range(2)}
     cols |= {f"i_{k}": i[:, k] for k in range(2)} | {f"q_{k}": q[:, k] for k in range(3)}
+    cols |= {f"qc_{k}": q[:, k] for k in range(3)}  # commands = angles here: timing does not care
     cols |= {f"fk_{k}": fk[:, k] for k in range(3)} | {f"ik_{k}": ik[:, k] for k in range(3)}
     split = rng.choice(["train", "val", "test"], n, p=[0.7, 0.15, 0.15])
     cols |= {"payload_kg": payload, "robot": "vsl", "split_random": split, "split_group": split}
