@@ -24,6 +24,15 @@ PAPER_HIDDEN = (64, 256, 1024, 1024, 256, 64)  # seed 000, IV.B
 N_MODEL = 3  # the first three inputs are the model-based prediction of the three outputs
 
 
+def columns_for(direction: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """(input columns, target columns) of D for a forward or an inverse model."""
+    if direction == "forward":
+        return FORWARD_INPUTS, FORWARD_TARGETS
+    if direction == "inverse":
+        return INVERSE_INPUTS, INVERSE_TARGETS
+    raise ValueError(f"direction must be 'forward' or 'inverse', got {direction!r}")
+
+
 @dataclass(frozen=True)
 class NetConfig:
     """What a hybrid network is: its direction, hidden widths, residual or not, ensemble size, a name."""
@@ -43,11 +52,11 @@ class NetConfig:
 
     @property
     def inputs(self) -> tuple[str, ...]:
-        return FORWARD_INPUTS if self.direction == "forward" else INVERSE_INPUTS
+        return columns_for(self.direction)[0]
 
     @property
     def targets(self) -> tuple[str, ...]:
-        return FORWARD_TARGETS if self.direction == "forward" else INVERSE_TARGETS
+        return columns_for(self.direction)[1]
 
     def to_dict(self) -> dict:
         return asdict(self) | {"hidden": list(self.hidden)}

@@ -16,7 +16,7 @@ import pandas as pd
 from scipy.optimize import least_squares
 
 from models import kinematics
-from models.hybrid import FORWARD_INPUTS, FORWARD_TARGETS, INVERSE_INPUTS, INVERSE_TARGETS
+from models.hybrid import FORWARD_TARGETS, INVERSE_TARGETS, columns_for
 from models.prbm import interp_table
 from models.robot import AnthropomorphicKinematics, RobotDescription, load_robot
 from models.statics import gravity_moments
@@ -47,11 +47,11 @@ class Baseline:
 
     @property
     def inputs(self) -> tuple[str, ...]:
-        return FORWARD_INPUTS if self.direction == "forward" else INVERSE_INPUTS
+        return columns_for(self.direction)[0]
 
     @property
     def targets(self) -> tuple[str, ...]:
-        return FORWARD_TARGETS if self.direction == "forward" else INVERSE_TARGETS
+        return columns_for(self.direction)[1]
 
     @property
     def prior(self) -> tuple[str, ...]:
