@@ -135,8 +135,8 @@ def build(
     for robot_name in sorted({rec["robot"] for _, _, rec in loaded}):
         mine = [(r, t, rec) for r, t, rec in loaded if rec["robot"] == robot_name]
         robot = RobotDescription.model_validate_json(mine[0][2]["robot_description"])
-        static = _tagged([(rec["session"], t["static"]) for _, t, rec in mine])
-        trajectory = _tagged([(rec["session"], t["trajectory"]) for _, t, rec in mine])
+        static = _tagged([(rec, t["static"]) for _, t, rec in mine])
+        trajectory = _tagged([(rec, t["trajectory"]) for _, t, rec in mine])
         registration = _register(static, robot, params["register"], Path(lab) / "datasets")
         registrations[robot_name] = registration
         for table, rows in (("data", static), ("trajectories", trajectory)):
@@ -160,8 +160,13 @@ def build(
     return report
 
 
-def _tagged(items: list[tuple[str, pd.DataFrame]]) -> pd.DataFrame:
-    frames = [df.assign(session=sid) for sid, df in items if len(df)]
+def _tagged(items: list[tuple[dict, pd.DataFrame]]) -> pd.DataFrame:
+    """Rows of many sessions, each tagged with its session id and the plan it ran."""
+    frames = [
+        df.assign(session=rec["session"], plan=rec["metadata"].get("plan", ""))
+        for rec, df in items
+        if len(df)
+    ]
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 

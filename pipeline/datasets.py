@@ -5,8 +5,9 @@ Columns (SI): ``x_0..2`` (m, base frame), ``p_<c>`` (Pa, one per link channel), 
 ``q_<j>`` (rad, every actuated joint in the robot's order, measured by the encoders), ``qc_<j>`` (rad, the
 commanded joint angles: the servo goals in force, which the servos reach only up to their droop under load —
 the inverse model's target), ``fk_0..2`` (m), ``ik_<j>`` (rad; NaN where x is out of reach),
-``payload_kg``, ``robot``, ``session``, ``point`` (static point number or −1), ``repetition`` (−1 for static
-points), ``split_random`` and ``split_group`` ("train" / "val" / "test").
+``payload_kg``, ``robot``, ``session``, ``plan`` (the plan the session ran, e.g.
+``experiment1/curve/vsl-1bar/25g``), ``point`` (static point number or −1), ``repetition`` (−1 for static
+points), ``t`` (s since the session's start), ``split_random`` and ``split_group`` ("train" / "val" / "test").
 
 A dataset is written once under ``<lab>/datasets/<name>/<version>/`` (``data.parquet`` + ``card.json``); the
 version is the hash of its source sessions' hashes, the stage parameters and the code version, so building
@@ -76,7 +77,7 @@ def assemble(points: pd.DataFrame, robot: RobotDescription) -> pd.DataFrame:
     n = len(points)
     out["payload_kg"] = points["payload_kg"].to_numpy(float) if "payload_kg" in points else np.zeros(n)
     out["robot"] = np.full(n, robot.name)
-    for name, default in (("session", ""), ("point", -1), ("repetition", -1)):
+    for name, default in (("session", ""), ("plan", ""), ("point", -1), ("repetition", -1), ("t", np.nan)):
         out[name] = points[name].to_numpy() if name in points else np.full(n, default)
     return pd.DataFrame(out)
 
