@@ -137,3 +137,23 @@ def test_ctrl_c_on_vslab_run_is_a_safe_stop(tmp_path):
     stops = [e for _, e in read_events(part) if e.kind == EventKind.SAFETY_STOP]
     assert [e.label for e in stops] == ["operator"]
     assert len(read_fixed_topics(part)[T.SERVO_GOAL]) >= 1
+
+
+def test_compensated_goals_are_sent_and_recorded(host_factory, tmp_path, vsl):
+    """A compensator in the real-time loop (the grey-box static one here; a registered inverse network plugs
+    in the same way): the goals sent are its commands for the measured pressures, not the plan's IK goals."""
+    from acquisition.plans.compensation import StaticModelCompensator
+
+    plan = _plan("test/rt-compensated")
+    compensator = StaticModelCompensator(vsl, payload_kg=0.0)
+    with host_factory(**RIG) as ports:
+        with Recorder(vsl, ports, tmp_path / "s", "s") as rec:
+            report = RealTimeRunner(rec, plan, compensator=compensator, on_payload=lambda kg: None).run()
+    assert report.status == "complete"
+    (part,) = sorted((tmp_path / "s").glob("*.mcap"))
+    sent = read_fixed_topics(part)[T.SERVO_GOAL].rows["position"]
+    pressure = plan.at(plan.goal_t)["pressure_pa"]
+    expected = compensator(plan.goal_q, pressure, np.zeros_like(plan.goal_q))[:, 1:]
+    assert np.abs(sent - plan.goal_q[:, 1:]).max() > 2e-3  # compensated: not the plan's goals
+    # from the second goal on the links are at the plan's pressure (the first is sent as it starts to change)
+    np.testing.assert_allclose(sent[1:], expected[1:], atol=2e-3)
