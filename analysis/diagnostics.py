@@ -1,0 +1,101 @@
+"""Our figures beside the papers': error heatmaps per pressure × payload, learning curves, clock-fit and
+registration diagnostics. Each function writes PDF + PNG and returns the plotted numbers (for tests)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+
+
+def save(fig, out_dir: Path, name: str) -> Path:
+    """``<out_dir>/<name>.pdf`` and ``.png`` (150 dpi); returns the PNG."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_dir / f"{name}.pdf", bbox_inches="tight")
+    fig.savefig(out_dir / f"{name}.png", dpi=150, bbox_inches="tight")
+    plt.close(fig)
+    return out_dir / f"{name}.png"
+
+
+def cell_grid(per_cell: list[dict]) -> pd.DataFrame:
+    """A model card's per-cell records as a pressure-bin × payload table of mean tip error (mm)."""
+    df = pd.DataFrame(per_cell)
+    if {"pressure_lo_bar", "pressure_hi_bar", "payload_g"} <= set(df.columns):
+        value = "tip_mm_mean" if "tip_mm_mean" in df.columns else "mean_mm"
+        df["pressure"] = (
+            df["pressure_lo_bar"].map("{:g}".format) + "–" + df["pressure_hi_bar"].map("{:g}".format)
+        )
+        return df.pivot_table(index="pressure", columns="payload_g", values=value, sort=True)
+    return df.pivot_table(index="pressure_bin", columns="payload_g", values="mean_mm", sort=True)
+
+
+def error_heatmaps(grids: dict[str, pd.DataFrame], out_dir: Path, name: str = "error_heatmaps") -> dict:
+    """One heatmap per model (rigid, hybrid, baselines): mean tip error (mm) per pressure bin × payload, on a
+    shared colour scale, each cell annotated."""
+    vmax = max(float(np.nanmax(g.to_numpy())) for g in grids.values())
+    fig, axes = plt.subplots(1, len(grids), figsize=(3.6 * len(grids), 3.2), squeeze=False, sharey=True)
+    for ax, (label, grid) in zip(axes[0], grids.items(), strict=True):
+        image = ax.imshow(grid.to_numpy(), vmin=0.0, vmax=vmax, cmap="viridis", aspect="auto")
+        ax.set_xticks(range(grid.shape[1]), [f"{c:g}" for c in grid.columns])
+        ax.set_yticks(range(grid.shape[0]), [f"{r} bar" for r in grid.index])
+        ax.set_xlabel("payload (g)")
+        ax.set_title(label)
+        for (r, c), v in np.ndenumerate(grid.to_numpy()):
+            ax.text(
+                c, r, f"{v:.2f}", ha="center", va="center", color="w" if v < 0.6 * vmax else "k", fontsize=8
+            )
+    axes[0][0].set_ylabel("link pressure")
+    fig.colorbar(image, ax=axes[0].tolist(), label="mean tip error (mm)", shrink=0.9)
+    return {"png": save(fig, out_dir, name), "grids": grids}
+
+
+def learning_curves(cards: dict[str, dict], out_dir: Path, name: str = "learning_curves") -> dict:
+    """Training and validation loss per epoch of each model card (log scale), the best epoch marked (epochs
+    counted from 1 on the axis)."""
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    plotted = {}
+    for label, card in cards.items():
+        curves = pd.DataFrame(card.get("curves") or [])  # one record per epoch (from 0)
+        if "val_loss" not in curves:
+            continue
+        epochs, val = curves["epoch"].to_numpy() + 1, curves["val_loss"].to_numpy(float)
+        train = curves["train_loss"].to_numpy(float) if "train_loss" in curves else np.zeros(0)
+        (line,) = ax.plot(epochs, val, label=f"{label} (validation)")
+        if len(train):
+            ax.plot(epochs, train, ls=":", color=line.get_color(), label=f"{label} (training)")
+        best = int(card.get("best_epoch", int(np.argmin(val)))) + 1
+        ax.plot([best], [val[best - 1]], "o", color=line.get_color())
+        plotted[label] = {"train": train, "val": val, "best_epoch": best}
+    ax.set_yscale("log")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("loss (MSE of standardised targets)")
+    ax.legend(fontsize=7)
+    return {"png": save(fig, out_dir, name), "curves": plotted}
+
+
+def clock_fits(sessions: dict[str, dict], out_dir: Path, name: str = "clock_fits") -> dict:
+    """From a dataset card's sessions: each device's fitted drift (ppm) and jitter p95 (ms), per session."""
+    rows = [
+        {"session": sid, "device": key.split("/", 1)[1], "drift_ppm": v["drift_ppm"],
+         "jitter_p95_ms": 1e3 * v["jitter_p95_s"]}
+        for sid, s in sessions.items() for key, v in s.get("values", {}).items() if key.startswith("clock/")
+    ]  # fmt: skip
+    df = pd.DataFrame(rows)
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(9, 3.4))
+    devices = sorted(df["device"].unique()) if len(df) else []
+    for k, device in enumerate(devices):
+        d = df[df["device"] == device]
+        jitter = np.random.default_rng(k).uniform(-0.15, 0.15, len(d))
+        a1.plot(k + jitter, d["drift_ppm"], "o", ms=3)
+        a2.plot(k + jitter, d["jitter_p95_ms"], "o", ms=3)
+    for ax, label in ((a1, "fitted drift (ppm)"), (a2, "receive jitter, p95 (ms)")):
+        ax.set_xticks(range(len(devices)), devices, rotation=20)
+        ax.set_ylabel(label)
+    a1.set_title("device clocks against host time")
+    return {"png": save(fig, out_dir, name), "table": df}

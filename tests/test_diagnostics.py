@@ -1,0 +1,40 @@
+"""Our diagnostic figures plot exactly the numbers they are given."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from analysis import diagnostics
+
+
+def _card(seed):
+    rng = np.random.default_rng(seed)
+    val = np.exp(-np.arange(30) / 8) + rng.uniform(0, 0.01, 30)
+    curves = [{"epoch": e, "train_loss": 1.1 * v, "val_loss": v} for e, v in enumerate(val)]
+    per_cell = [{"pressure_lo_bar": lo, "pressure_hi_bar": lo + 0.5, "payload_g": g, "n": 10,
+                 "tip_mm_mean": lo + g / 100} for lo in (0.5, 1.0, 1.5) for g in (0, 50, 100)]  # fmt: skip
+    return {"curves": curves, "best_epoch": int(np.argmin(val)), "metrics": {"per_cell": per_cell}}
+
+
+def test_heatmaps_and_learning_curves_plot_the_cards_numbers(tmp_path):
+    cards = {"rigid": _card(0), "hybrid": _card(1)}
+    grids = {k: diagnostics.cell_grid(c["metrics"]["per_cell"]) for k, c in cards.items()}
+    assert grids["rigid"].loc["1–1.5", 50] == 1.5 and list(grids["rigid"].columns) == [0, 50, 100]
+    heat = diagnostics.error_heatmaps(grids, tmp_path)
+    assert heat["png"].stat().st_size > 5000 and (tmp_path / "error_heatmaps.pdf").is_file()
+    curves = diagnostics.learning_curves(cards, tmp_path)
+    val = np.array([r["val_loss"] for r in cards["hybrid"]["curves"]])
+    np.testing.assert_array_equal(curves["curves"]["hybrid"]["val"], val)
+    assert curves["curves"]["hybrid"]["best_epoch"] == int(np.argmin(val)) + 1
+
+
+def test_clock_fit_table_from_a_dataset_card(tmp_path):
+    sessions = {f"s{k}": {"values": {"clock/tracker": {"drift_ppm": 10.0 * k, "jitter_p95_s": 0.002},
+                                     "clock/servo_bus": {"drift_ppm": -5.0, "jitter_p95_s": 0.001}}}
+                for k in range(3)}  # fmt: skip
+    out = diagnostics.clock_fits(sessions, tmp_path)
+    table = out["table"]
+    assert len(table) == 6 and set(table["device"]) == {"tracker", "servo_bus"}
+    assert table.loc[table["device"] == "tracker", "drift_ppm"].tolist() == [0.0, 10.0, 20.0]
+    assert isinstance(table, pd.DataFrame) and out["png"].is_file()
