@@ -28,10 +28,9 @@ def cell_grid(per_cell: list[dict]) -> pd.DataFrame:
     df = pd.DataFrame(per_cell)
     if {"pressure_lo_bar", "pressure_hi_bar", "payload_g"} <= set(df.columns):
         value = "tip_mm_mean" if "tip_mm_mean" in df.columns else "mean_mm"
-        df["pressure"] = (
-            df["pressure_lo_bar"].map("{:g}".format) + "–" + df["pressure_hi_bar"].map("{:g}".format)
-        )
-        return df.pivot_table(index="pressure", columns="payload_g", values=value, sort=True)
+        grid = df.pivot_table(index=["pressure_lo_bar", "pressure_hi_bar"], columns="payload_g", values=value)
+        grid.index = [f"{lo:g}–{hi:g}" for lo, hi in grid.index]  # sorted by pressure, then labelled
+        return grid
     return df.pivot_table(index="pressure_bin", columns="payload_g", values="mean_mm", sort=True)
 
 

@@ -21,6 +21,7 @@ def test_heatmaps_and_learning_curves_plot_the_cards_numbers(tmp_path):
     cards = {"rigid": _card(0), "hybrid": _card(1)}
     grids = {k: diagnostics.cell_grid(c["metrics"]["per_cell"]) for k, c in cards.items()}
     assert grids["rigid"].loc["1–1.5", 50] == 1.5 and list(grids["rigid"].columns) == [0, 50, 100]
+    assert list(grids["rigid"].index) == ["0.5–1", "1–1.5", "1.5–2"]  # by pressure, not alphabetically
     heat = diagnostics.error_heatmaps(grids, tmp_path)
     assert heat["png"].stat().st_size > 5000 and (tmp_path / "error_heatmaps.pdf").is_file()
     curves = diagnostics.learning_curves(cards, tmp_path)
