@@ -88,26 +88,33 @@ def rig(
 
 
 @app.command()
-def demo(seed: Annotated[int, typer.Option(help="Random seed.")] = 0) -> None:
-    """The main job, end to end on the twin (grows with the pipeline, training and figures)."""
-    from acquisition.sim.survey import PRESSURES_BAR, experiment1_survey, popup_reach_check
+def demo(
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    quick: Annotated[bool, typer.Option("--quick", help="A smaller campaign and fewer repetitions.")] = False,
+) -> None:
+    """The main job: the whole lab on the twin, end to end (rig session, simulated campaign and experiments,
+    datasets, training, Experiment 2 with the trained inverse model, figures, report)."""
+    import time
 
-    Settings.lab.mkdir(parents=True, exist_ok=True)
-    results = {}
-    for name, pressures in (("vsl", PRESSURES_BAR), ("vsl_rigid", (2.0,))):  # rigid links: pressure n/a
-        grid = experiment1_survey(_robot(name), trajectory="curve", pressures_bar=pressures, seed=seed)
-        _print_grid(grid, f"{name}: mean tip error (mm) on the curve, true tip vs rigid FK of the encoders")
-        results[name] = grid.to_dict()
-    popup = popup_reach_check(_robot("popup"), seed=seed)
-    console.print(
-        f"popup: tip deflection (PRBM − RBM) under 2 kg at 60 kPa, q0 = [0, 60, −120]°: "
-        f"{popup['deflection_mm']:.1f} mm (paper: 6.6 mm; our link masses are assumed)"
+    from vslab import lab_job
+
+    start = time.perf_counter()
+    report = lab_job.run(
+        Settings.lab, seed=seed, quick=quick, say=lambda m: console.print(m, highlight=False)
     )
-    results["popup"] = popup
-    out = Settings.lab / "twin" / "demo.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(results, indent=2))
-    console.print(f"main job done; results in {out.resolve()}")
+    console.print(f"main job done in {time.perf_counter() - start:.0f} s; the report: {report.resolve()}")
+
+
+@app.command()
+def figures() -> None:
+    """Regenerate every figure and table from the lab's newest datasets and models, and the report."""
+    from analysis.lab_figures import all_figures, lab_report
+
+    results = all_figures(Settings.lab)
+    for what, why in results.missing.items():
+        console.print(f"[yellow]not made: {what}:[/] {why}", soft_wrap=True)
+    console.print(f"{len(results.figures)} figures in {Settings.lab / 'figures'}; "
+                  f"report: {lab_report(Settings.lab, results).resolve()}")  # fmt: skip
 
 
 @app.command()
