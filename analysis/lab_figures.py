@@ -124,20 +124,24 @@ def _experiment1(datasets: dict, forward, res: Results, out: Path) -> None:
 
     trajectories = datasets["experiment1"][1]
     versions = {"dataset experiment1": res.versions["dataset experiment1"]}
-    fig5 = vsl_figures.fig5(trajectories, out, versions)
-    res.figures["fig5"] = Path(fig5["png"])
+    _pngs(res, vsl_figures.fig5(trajectories, out, versions))
     if forward is not None:
         model, _ = load_model(forward[1])
-        fig6 = vsl_figures.fig6(trajectories, model, out, versions | {"model forward": forward[0]})
-        res.figures["fig6"] = Path(fig6["png"])
+        _pngs(res, vsl_figures.fig6(trajectories, model, out, versions | {"model forward": forward[0]}))
+
+
+def _pngs(res: Results, figure) -> None:
+    """The PNGs a figure function wrote (it writes its own PDFs and version records)."""
+    for path in figure.paths:
+        if Path(path).suffix == ".png":
+            res.figures[Path(path).stem] = Path(path)
 
 
 def _experiment2(datasets: dict, res: Results, out: Path) -> None:
     from analysis import vsl_figures
 
     data = datasets["experiment2"][0]
-    fig7 = vsl_figures.fig7(data, out, {"dataset experiment2": res.versions["dataset experiment2"]})
-    res.figures["fig7"] = Path(fig7["png"])
+    _pngs(res, vsl_figures.fig7(data, out, {"dataset experiment2": res.versions["dataset experiment2"]}))
     res.tables["Experiment 2: distance to the desired path (mm)"] = vsl_figures.path_errors(data)
 
 
@@ -149,9 +153,8 @@ def _popup(lab: Path, res: Results, out: Path) -> None:
     impact = sorted(sessions.glob("sim-popup_impact-*"))
     curves = popup_tests.link_static_curves(static)
     fig = popup_tests.figure7(curves, out)
-    png = Path(fig["png"]) if "png" in fig else out / "fig7_popup_hysteresis.png"
-    _record(png, {"sessions": [s.name for s in static]})
-    res.figures["popup_fig7"] = png
+    assert fig, "no static curves to plot"
+    res.figures["popup_fig7"] = out / "fig7_popup_hysteresis.png"  # figure7 records its sources beside it
     table = popup_tests.table1(popup_tests.static_stiffness(curves), popup_tests.impact_parameters(impact))
     res.tables["POPUP Table 1: ours (twin) beside the paper's"] = table.set_index("pressure_kpa")
 
@@ -184,6 +187,6 @@ SECTIONS = [
     ("Datasets and models (ours)", ["clock_fits", "error_heatmaps", "learning_curves"],
      ["forward model", "registration"]),
     ("Seed 000, Experiment 1 (Fig. 5)", ["fig5"], []),
-    ("Seed 000, Experiment 2 (Figs. 6 and 7)", ["fig6", "fig7"], ["Experiment 2"]),
+    ("Seed 000, Experiment 2 (Figs. 6 and 7)", ["fig6", "fig7a", "fig7b"], ["Experiment 2"]),
     ("Seed 001, POPUP link tests (Fig. 7, Table 1)", ["popup_fig7"], ["POPUP"]),
 ]  # fmt: skip

@@ -3,9 +3,10 @@
 Commands go through the recorder's device workers (each owns its port), which record them as they are sent:
 servo goals on ``/servo/goal``, pressure set-points and valves on ``/pressure/command``. The plan's clock is
 the host's monotonic clock, paused while the operator is busy (hanging a payload, tapping the link). Every
-``1/check_hz`` the latest measured state is checked against the safety limits; a violation, a lost device
-or Ctrl-C makes a safe stop: the servos hold where they are, the stepper stops, the pressures stay (an
-inflatable arm must not be vented under load), a SAFETY_STOP event says why, and the session stays valid.
+``1/check_hz`` the latest measured state is checked against the safety limits; a violation, a device silent
+for longer than ``stale_s`` or Ctrl-C makes a safe stop: the servos hold where they are, the stepper stops,
+the pressures stay (an inflatable arm must not be vented under load), a SAFETY_STOP event says why, and the
+session stays valid.
 
     with Recorder(robot, ports, directory, session_id) as rec:
         report = RealTimeRunner(rec, plan, on_payload=prompt).run()
@@ -221,12 +222,13 @@ class RealTimeRunner:
     # ---------------------------------------------------------------------------------------- safety
     def _check(self, t: float, payload_kg: float) -> tuple[str, str] | None:
         """A reason to stop now: a safety limit on the latest measurements, or a lost or silent device."""
-        for worker in (self.servo, self.pressure, self.stepper):
-            if worker is not None and not worker.connected:
-                return "device", f"{worker.device_name} lost: {worker.error}"
+        # a device that drops out and reconnects within stale_s (a missed reply, a busy host) is not a stop;
+        # one whose samples are older than that is
         q, pressure, _, oldest = self._measured()
         if host_now_ns() - oldest > self.stale_ns:
-            return "device", f"no fresh samples for {(host_now_ns() - oldest) / 1e9:.2f} s"
+            lost = [w for w in (self.servo, self.pressure, self.stepper) if w is not None and not w.connected]
+            why = "; ".join(f"{w.device_name} lost: {w.error}" for w in lost) or "devices silent"
+            return "device", f"no fresh samples for {(host_now_ns() - oldest) / 1e9:.2f} s ({why})"
         allow = bool(self.plan.parameters.get("allow_wrinkling"))
         cmd = self.plan.at(np.array([t]))
         violations = self.safety.check_state(

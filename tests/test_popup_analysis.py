@@ -1,0 +1,139 @@
+"""Seed 001's Table 1 and Figure 7 from twin link tests (analysis.popup_tests): the twin's configured link-2
+stiffness, damping and damped frequency come back out of the static and impact sessions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from acquisition.plans.sim_runner import simulate_protocol
+from analysis import popup_tests as pt
+from models import prbm
+from models.robot import CONFIG_DIR, load_robot
+
+SEED = 7
+INERTIA = (
+    0.0358  # the twin's link 2 about its virtual hinge: 0.30 kg · 0.295² + 0.0097 (configs/robots/popup.yaml)
+)
+IMPACT = {"pressures_kpa": [10, 50, 90], "taps": 2, "record_s": 1.2, "settle_s": 1.0}
+STATIC = {"pressures_kpa": [10, 50], "repetitions": 2, "pressure_settle_s": 1.0, "settle_s": 1.2,
+          "hold_s": 0.8}  # fmt: skip
+HYSTERESIS = "hysteresis: {delta_h_rad: 0.00436, tau_y_nm: 1.8}"
+
+
+@pytest.fixture(scope="module")
+def link2():
+    return load_robot("popup").link_table("link2")
+
+
+def _configured(table, kpa):
+    p = np.asarray(kpa, float) * 1e3
+    return (np.interp(p, table.pressure_pa, table.stiffness_nm_per_rad),
+            np.interp(p, table.pressure_pa, table.damping_nms_per_rad))  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory):
+    return tmp_path_factory.mktemp("popup_tests")
+
+
+@pytest.fixture(scope="module")
+def impact_dir(root):
+    simulate_protocol("popup_impact", root / "impact", seed=SEED, overrides=IMPACT)
+    return root / "impact"
+
+
+@pytest.fixture(scope="module")
+def elastic_dir(root):
+    """Static sessions on a copy of the twin without the link's hysteresis loop (Table 1's static k came from
+    the paper's loading tests, before its hysteresis study)."""
+    text = (CONFIG_DIR / "popup.yaml").read_text()
+    assert HYSTERESIS in text
+    elastic = root / "popup_elastic.yaml"
+    elastic.write_text(text.replace(HYSTERESIS, "hysteresis: {delta_h_rad: 0.0, tau_y_nm: 1.8}"))
+    simulate_protocol("popup_static", root / "elastic", seed=SEED, overrides=STATIC | {"robot": str(elastic)})
+    return root / "elastic"
+
+
+def _sessions(directory):
+    return sorted(p for p in directory.iterdir() if p.is_dir())
+
+
+@pytest.fixture(scope="module")
+def table(impact_dir, elastic_dir):
+    static_k = pt.static_stiffness(pt.link_static_curves(_sessions(elastic_dir)))
+    return pt.table1(static_k, pt.impact_parameters(_sessions(impact_dir)))
+
+
+def test_table1_recovers_the_twins_link2(table, link2):
+    kpa = table["pressure_kpa"].to_numpy()
+    assert kpa.tolist() == IMPACT["pressures_kpa"]
+    k, c = _configured(link2, kpa)
+    f_s = prbm.damped_frequency_hz(k, c, INERTIA)
+    np.testing.assert_allclose(table["f_s_hz"], f_s, rtol=0.01)
+    np.testing.assert_allclose(table["zeta"], prbm.damping_ratio(k, c, INERTIA), rtol=0.05)
+    np.testing.assert_allclose(table["k_hat"], k, rtol=0.05)
+    np.testing.assert_allclose(table["c_hat"], c, rtol=0.15)
+    assert table["inertia_kgm2"].iloc[0] == pytest.approx(INERTIA, rel=0.05)
+    static = table.dropna(subset=["k"])
+    assert static["pressure_kpa"].tolist() == STATIC["pressures_kpa"]
+    np.testing.assert_allclose(static["k"], _configured(link2, static["pressure_kpa"])[0], rtol=0.10)
+    assert table["paper_k_hat"].tolist() == [321, 382, 405]
+    md = pt.table1_markdown(table)
+    assert md.count("\n| ") == len(table) and "N/A" in md
+
+
+def test_static_points_below_wrinkling(elastic_dir):
+    curves = pt.link_static_curves(_sessions(elastic_dir))
+    assert set(curves["branch"]) == {"loading", "unloading"} and (curves["n_runs"] == 2).all()
+    assert curves["arm_m"].iloc[0] == pytest.approx(0.590)  # the twin's hinge → tip (paper: l2 = 0.570 m)
+    m_w = prbm.wrinkling_moment(curves["pressure_pa"], 0.055)
+    np.testing.assert_allclose(curves["wrinkling_moment_nm"], m_w)
+    k = pt.static_stiffness(curves)
+    assert k.loc[k["pressure_pa"] == 10e3, "n_points"].item() == 6  # 0–200 g on both branches below 2.05 N·m
+
+
+@pytest.fixture(scope="module")
+def hysteresis_curves(root):
+    """Figure 7's sessions: the configured twin (its Bouc–Wen loop), 3 runs."""
+    fig7 = STATIC | {"pressures_kpa": [20, 40], "repetitions": 3}
+    simulate_protocol("popup_static", root / "hysteresis", seed=SEED, overrides=fig7)
+    return pt.link_static_curves(_sessions(root / "hysteresis"))
+
+
+def test_static_stiffness_with_hysteresis_follows_the_link_model(hysteresis_curves, link2):
+    """With the twin's Bouc–Wen loop (τ_y ≈ the test's torque range) the static slope is not k: compare with
+    the same regression on the quasi-static link model over the same load history."""
+    curves = hysteresis_curves
+    measured = pt.static_stiffness(curves)
+    loads = np.array([0, 100, 200, 300, 400]) * 1e-3
+    cycle = np.tile(np.concatenate([loads, loads[::-1][1:]]), 3)
+    arm, own = 0.590, 0.30 * 9.81 * 0.295
+    for p, k_fit in zip(measured["pressure_pa"], measured["k"], strict=True):
+        k = _configured(link2, p / 1e3)[0]
+        torque = np.concatenate([[own], own + cycle * 9.81 * arm])
+        delta = prbm.static_loading_curve(torque, k, 0.00436, 1.8)[1:]
+        model = pd.DataFrame({"delta_rad": (delta - delta[0]).reshape(3, -1).mean(axis=0),
+                              "torque_nm": torque[1:10]})  # fmt: skip
+        k_model = np.polyfit(model["delta_rad"], model["torque_nm"], 1)[0]
+        assert k_fit == pytest.approx(k_model, rel=0.10)
+        assert k_fit > 1.3 * k  # the loop's transition makes the link look stiffer than its spring
+
+
+def test_figure7_plots_the_curves(hysteresis_curves, tmp_path):
+    curves = hysteresis_curves
+    data = pt.figure7(curves, tmp_path)
+    png = tmp_path / "fig7_popup_hysteresis.png"
+    assert png.stat().st_size > 10_000 and (tmp_path / "fig7_popup_hysteresis.pdf").stat().st_size > 0
+    assert set(data) == {(kpa, b) for kpa in (20.0, 40.0) for b in ("loading", "unloading")}
+    for (kpa, branch), line in data.items():
+        c = curves[curves["pressure_pa"] == kpa * 1e3]
+        load, part = c[c["branch"] == "loading"], c[c["branch"] == branch]
+        if branch == "unloading":  # drawn from the top of the loading branch
+            part = pd.concat([load.iloc[-1:], part])
+        np.testing.assert_allclose(line["x_deg"], np.degrees(part["delta_rad"]))
+        np.testing.assert_allclose(line["y_nm"], part["torque_nm"])
+        np.testing.assert_allclose(line["xerr_deg"], np.degrees(part["delta_std_rad"]))
+    loop = data[(20.0, "unloading")]["x_deg"][1:][::-1] - data[(20.0, "loading")]["x_deg"][:-1]
+    assert 0.05 < np.abs(loop).max() < 1.0  # a hysteresis loop of a fraction of a degree (paper: ≈ 0.5°)
