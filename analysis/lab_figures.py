@@ -138,11 +138,11 @@ def _pngs(res: Results, figure) -> None:
 
 
 def _experiment2(datasets: dict, res: Results, out: Path) -> None:
-    from analysis import vsl_figures
+    from analysis import vsl_figures, vsl_paths
 
     data = datasets["experiment2"][0]
     _pngs(res, vsl_figures.fig7(data, out, {"dataset experiment2": res.versions["dataset experiment2"]}))
-    res.tables["Experiment 2: distance to the desired path (mm)"] = vsl_figures.path_errors(data)
+    res.tables["Experiment 2: distance to the desired path (mm)"] = vsl_paths.path_errors(data)
 
 
 def _popup(lab: Path, res: Results, out: Path) -> None:
