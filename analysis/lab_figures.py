@@ -157,6 +157,19 @@ def _popup(lab: Path, res: Results, out: Path) -> None:
     res.figures["popup_fig7"] = out / "fig7_popup_hysteresis.png"  # figure7 records its sources beside it
     table = popup_tests.table1(popup_tests.static_stiffness(curves), popup_tests.impact_parameters(impact))
     res.tables["POPUP Table 1: ours (twin) beside the paper's"] = table.set_index("pressure_kpa")
+    from analysis import popup_reach
+    from models.robot import load_robot
+
+    result = popup_reach.reach(load_robot("popup"))
+    for png in popup_reach.figures_12_13(result, out)["png"]:
+        _record(png, {"robot": "popup", "task": popup_reach.TASK})
+        res.figures[png.stem] = png
+    d = result.difference_mm
+    res.tables["POPUP target reaching (Figs. 12–13): RBM–PRBM difference (mm)"] = pd.DataFrame(
+        {"this twin": [d[0], d[-1]], "paper": [popup_reach.PAPER["difference_start_mm"],
+                                               popup_reach.PAPER["difference_target_mm"]]},
+        index=["at the start", "at the target"],
+    )  # fmt: skip
 
 
 def lab_report(lab: Path, res: Results, timings: dict[str, float] | None = None) -> Path:
@@ -188,5 +201,7 @@ SECTIONS = [
      ["forward model", "registration"]),
     ("Seed 000, Experiment 1 (Fig. 5)", ["fig5"], []),
     ("Seed 000, Experiment 2 (Figs. 6 and 7)", ["fig6", "fig7a", "fig7b"], ["Experiment 2"]),
-    ("Seed 001, POPUP link tests (Fig. 7, Table 1)", ["popup_fig7"], ["POPUP"]),
+    ("Seed 001, POPUP link tests (Fig. 7, Table 1)", ["popup_fig7"], ["POPUP Table 1"]),
+    ("Seed 001, target reaching (Figs. 12–13)", ["fig12_popup_reach_paths", "fig13_popup_reach_difference"],
+     ["POPUP target reaching"]),
 ]  # fmt: skip
