@@ -95,6 +95,7 @@ def static_points(
     ({reason: count}), ``attrs["rejected_points"]`` ({point: reason}) and ``report`` (if given)."""
     still = stillness or Stillness()
     settled = _event_times(events, EventKind.SETTLED, t0_ns)
+    settled = settled[~(settled["value"] <= 0)]  # a SETTLED mark without a hold window measures nothing
     starts = settled["t"].to_numpy(float)
     lengths = settled["value"].to_numpy(float)
     ends = starts + np.nan_to_num(lengths, nan=0.0)
