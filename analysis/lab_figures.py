@@ -12,6 +12,7 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from analysis import diagnostics
@@ -164,6 +165,15 @@ def _popup(lab: Path, res: Results, out: Path) -> None:
     for png in popup_reach.figures_12_13(result, out)["png"]:
         _record(png, {"robot": "popup", "task": popup_reach.TASK})
         res.figures[png.stem] = png
+    servoed = popup_reach.reach(load_robot("popup"), visual_servoing=True)
+    vs = popup_reach.figures_15_16(result, servoed, out)
+    for png in vs["png"]:
+        _record(png, {"robot": "popup", "task": popup_reach.TASK})
+        res.figures[png.stem] = png
+    res.tables["POPUP visual servoing (Figs. 15–16): final tip error (mm)"] = pd.DataFrame(
+        {"RBM-based control": [1e3 * float(np.linalg.norm(result.prbm[-1] - result.target))],
+         "visual servoing": [vs["final_error_mm"]]}, index=["soft arm to target"],
+    )  # fmt: skip
     d = result.difference_mm
     res.tables["POPUP target reaching (Figs. 12–13): RBM–PRBM difference (mm)"] = pd.DataFrame(
         {"this twin": [d[0], d[-1]], "paper": [popup_reach.PAPER["difference_start_mm"],
@@ -204,4 +214,6 @@ SECTIONS = [
     ("Seed 001, POPUP link tests (Fig. 7, Table 1)", ["popup_fig7"], ["POPUP Table 1"]),
     ("Seed 001, target reaching (Figs. 12–13)", ["fig12_popup_reach_paths", "fig13_popup_reach_difference"],
      ["POPUP target reaching"]),
+    ("Seed 001, visual servoing (Figs. 15–16)",
+     ["fig15_popup_visual_servoing_paths", "fig16_popup_visual_servoing_joints"], ["POPUP visual servoing"]),
 ]  # fmt: skip
