@@ -82,3 +82,14 @@ def _virtual_stiffness(robot: RobotDescription, batch: tuple[int, ...], pressure
         p = pressure[..., link.pressure_channel] if link.pressure_channel is not None else np.zeros(batch)
         out[..., v] = interp_table(p, table.pressure_pa, table.stiffness_nm_per_rad)
     return out
+
+
+def servo_droop(robot: RobotDescription, q: ArrayLike, payload_kg: ArrayLike = 0.0) -> Array:
+    """How far the position-controlled drives sit from their goals under the static load, (..., A) rad:
+    output = goal + M/K (M the gravity moment about the joint, K the position loop's stiffness); steppers land
+    on their step (0)."""
+    rows = [r.joint for r in robot.dh_rows()]
+    actuated = [rows.index(j) for j in robot.actuated_joints]
+    moments = gravity_moments(robot, q, None, payload_kg)[..., actuated]
+    servo = np.array([j.drive != "stepper" for j in robot.joints])
+    return np.where(servo, moments / robot.servo.stiffness_nm_per_rad, 0.0)

@@ -19,7 +19,7 @@ from models import kinematics
 from models.hybrid import FORWARD_TARGETS, INVERSE_TARGETS, columns_for
 from models.prbm import interp_table
 from models.robot import AnthropomorphicKinematics, RobotDescription, load_robot
-from models.statics import gravity_moments
+from models.statics import gravity_moments, servo_droop
 from pipeline import metrics
 
 MEASURED_Q = ("q_0", "q_1", "q_2")  # the encoders' joint angles (fk_* is their rigid FK)
@@ -208,16 +208,10 @@ class PrbmGreyBox(Baseline):
         q = goal.copy()
         for _ in range(6):
             q = q + (goal - kinematics.vsl_ik(self._tip(q, p, self._payload(q, i), theta), self.lengths_, 1))
-        out[ok] = q - self._droop(q, self._payload(q, i))  # the command the servos droop from to reach q
+        out[ok] = q - servo_droop(
+            self.robot_, q, self._payload(q, i)
+        )  # the command the servos droop from to reach q
         return out
-
-    def _droop(self, q: np.ndarray, payload_kg: np.ndarray) -> np.ndarray:
-        """How far the position-controlled servos sag below their goals under the static load (rad)."""
-        rows = [r.joint for r in self.robot_.dh_rows()]
-        actuated = [rows.index(j) for j in self.robot_.actuated_joints]
-        moments = gravity_moments(self.robot_, q, None, payload_kg)[:, actuated]
-        servo = np.array([j.drive != "stepper" for j in self.robot_.joints])
-        return np.where(servo, moments / self.robot_.servo.stiffness_nm_per_rad, 0.0)
 
     def to_dict(self) -> dict[str, Any]:
         if not getattr(self, "fitted_", False):

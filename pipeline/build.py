@@ -79,7 +79,7 @@ def process_session(directory: str, parameters: dict, cache_root: str) -> dict:
         trajectory = timeline[timeline["repetition"] >= 0]
         record = {"session": directory.name, "robot": s.robot.name, "source": source,
                   "robot_description": s.robot.model_dump_json(), "report": s.report.as_dict(),
-                  "metadata": s.metadata}  # fmt: skip
+                  "metadata": {k: v for k, v in s.metadata.items() if k != "robot_description"}}  # fmt: skip
         cache.store("session", key, {"static": points, "trajectory": trajectory}, record)
         return {"session": directory.name, "key": key, "source": source, "cached": False}
     except Exception as exc:  # one bad session must not stop the build; its reason goes in the card

@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 from numpy.lib.stride_tricks import sliding_window_view
 
+from acquisition.schemas.stamps import unwrap_ticks
 from acquisition.schemas.topics import PRESSURE, TRACKER
 from pipeline.tables import SessionTables, StageReport, columns
 
@@ -51,15 +52,6 @@ def clean(session: SessionTables, hampel_window: int = 7, hampel_sigmas: float =
             df = drop_outliers(df, "pressure", report, topic, hampel_window, hampel_sigmas)
         streams[topic] = df
     return session.replace(streams=streams, report=report)
-
-
-def unwrap_ticks(ticks: np.ndarray, wrap: int) -> np.ndarray:
-    """Undo counter wraps in a 1-D sequence of wrapped ticks (int64 out, starting at ticks[0]); a step back of
-    more than half a wrap is one wrap forward (so samples must be less than half a wrap apart)."""
-    ticks = np.asarray(ticks, dtype=np.int64)
-    step = np.diff(ticks)
-    turns = np.cumsum((step < -(wrap // 2)).astype(np.int64) - (step > wrap // 2))
-    return ticks + np.concatenate([np.zeros(min(ticks.size, 1), np.int64), turns]) * np.int64(wrap)
 
 
 def clean_stream(topic: str, df: pd.DataFrame, report: StageReport) -> pd.DataFrame:

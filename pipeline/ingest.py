@@ -26,7 +26,7 @@ from pydantic import ValidationError
 
 from acquisition.schemas.cdr import FixedMessage, SchemaError
 from acquisition.schemas.events import Event
-from acquisition.schemas.fast_read import _chunk_records, read_fixed_topics
+from acquisition.schemas.fast_read import chunk_records, read_fixed_topics
 from acquisition.schemas.ros2msg import parse_fixed_message
 from acquisition.schemas.topics import EVENTS, session_topics
 from models.robot import RobotDescription
@@ -178,7 +178,7 @@ def _indexed_messages(f, summary, channel_ids: set[int]) -> Iterable[tuple[int, 
         present = sorted(cid for cid in ci.message_index_offsets if cid in channel_ids)
         if not present:
             continue
-        records = _chunk_records(f, ci.chunk_start_offset, ci.chunk_length)
+        records = chunk_records(f, ci.chunk_start_offset, ci.chunk_length)
         for cid in present:
             f.seek(ci.message_index_offsets[cid] + 1 + 8 + 2)
             (pairs_len,) = struct.unpack("<I", f.read(4))

@@ -11,13 +11,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from mcap.reader import make_reader
 
 from acquisition.recorder.recorder import Recorder
 from acquisition.recorder.sessions import readable_parts, recover_session, session_info
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
-from acquisition.schemas.fast_read import read_fixed_topics
+from acquisition.schemas.fast_read import read_events, read_fixed_topics
 from acquisition.sim.ptyhost import send_control
 from models.robot import load_robot
 
@@ -26,8 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _events(path: Path) -> list[Event]:
-    with open(path, "rb") as f:
-        return [Event.decode(m.data) for _, _, m in make_reader(f).iter_messages(topics=[T.EVENTS])]
+    return [event for _, event in read_events(path)]
 
 
 def test_sigkilled_recorder_loses_at_most_the_last_half_second(host_factory, tmp_path):

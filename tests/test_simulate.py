@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from mcap.reader import make_reader
 
 from acquisition.plans import protocols
 from acquisition.plans.plan import PlanBuilder
@@ -16,7 +15,7 @@ from acquisition.plans.sim_runner import SIM_EPOCH_NS, session_id, simulate, sim
 from acquisition.recorder.sessions import list_sessions, session_info
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
-from acquisition.schemas.fast_read import read_fixed_topics
+from acquisition.schemas.fast_read import read_events, read_fixed_topics
 from acquisition.sim.streams import tracker_spec
 from acquisition.sim.world import World
 from models import trajectories
@@ -37,11 +36,7 @@ def _part(directory: Path) -> Path:
 
 
 def _events(directory: Path) -> list[tuple[int, Event]]:
-    with open(_part(directory), "rb") as f:
-        return [
-            (m.log_time, Event.decode(m.data))
-            for _, _, m in make_reader(f).iter_messages(topics=[T.EVENTS], log_time_order=True)
-        ]
+    return read_events(_part(directory))
 
 
 def _seconds(log_time: np.ndarray) -> np.ndarray:

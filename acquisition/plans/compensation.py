@@ -17,7 +17,7 @@ import numpy as np
 
 from models import kinematics
 from models.robot import AnthropomorphicKinematics, RobotDescription
-from models.statics import gravity_moments, static_deflection
+from models.statics import servo_droop, static_deflection
 
 
 class Compensator(Protocol):
@@ -36,15 +36,10 @@ class StaticModelCompensator:
         kin = robot.kinematics
         self.robot, self.payload_kg, self.iterations = robot, payload_kg, iterations
         self.lengths = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
-        rows = [r.joint for r in robot.dh_rows()]
-        self.actuated_rows = [rows.index(q) for q in robot.actuated_joints]
-        self.servo_stiffness = robot.servo.stiffness_nm_per_rad
 
     def predict_tip(self, q_cmd: np.ndarray, pressure_pa: np.ndarray) -> np.ndarray:
         """Where the tip comes to rest for commands ``q_cmd`` (n, A): servo droop, then link bending."""
-        q_out = q_cmd + gravity_moments(self.robot, q_cmd, None, self.payload_kg)[..., self.actuated_rows] / (
-            self.servo_stiffness
-        )
+        q_out = q_cmd + servo_droop(self.robot, q_cmd, self.payload_kg)
         delta, _ = static_deflection(self.robot, q_out, pressure_pa, self.payload_kg)
         return self.robot.chain().position(q_out, delta)
 

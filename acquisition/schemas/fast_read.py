@@ -53,7 +53,7 @@ def _decompress(compression: str, data: bytes, size: int) -> bytes:
     raise SchemaError(f"unsupported chunk compression {compression!r}")
 
 
-def _chunk_records(f, offset: int, length: int) -> bytes:
+def chunk_records(f, offset: int, length: int) -> bytes:
     """The decompressed records of the Chunk record at ``offset``."""
     f.seek(offset)
     raw = f.read(length)
@@ -107,7 +107,7 @@ def read_fixed_topics(path: str | Path, topics: list[str] | None = None) -> dict
             present = [cid for cid in ci.message_index_offsets if cid in wanted]
             if not present:
                 continue
-            records = np.frombuffer(_chunk_records(f, ci.chunk_start_offset, ci.chunk_length), dtype=np.uint8)
+            records = np.frombuffer(chunk_records(f, ci.chunk_start_offset, ci.chunk_length), dtype=np.uint8)
             first_index = min(ci.message_index_offsets.values())
             indexes = _message_indexes(f, first_index, ci.message_index_length)
             for cid in present:

@@ -13,6 +13,8 @@ from typing import Literal
 
 import numpy as np
 
+from acquisition.schemas.stamps import unwrap_ticks  # noqa: F401  (the twin's counters wrap like the devices')
+
 # A sample taken exactly on a tick boundary must count that tick despite float rounding of (1 + ε)·t + b.
 _TICK_EPS = 1e-9
 
@@ -82,20 +84,6 @@ class DeviceClocks:
     def _count(self, seconds: np.ndarray) -> np.ndarray:
         counts = np.floor(seconds / self.spec.tick_s + _TICK_EPS).astype(np.int64)
         return counts % self.spec.wrap if self.spec.wrap is not None else counts
-
-
-def unwrap_ticks(ticks: np.ndarray, wrap: int) -> np.ndarray:
-    """Undo counter wraps in a 1-D sequence of wrapped ticks (int64 out, starting at ticks[0]).
-
-    Assumes consecutive samples are less than half a wrap apart (a longer gap is ambiguous and is read as the
-    shorter way round); a backward jump of more than half a wrap is taken as one wrap forward.
-    """
-    ticks = np.asarray(ticks, dtype=np.int64)
-    if ticks.ndim != 1:
-        raise ValueError(f"unwrap_ticks takes a 1-D sequence, got shape {ticks.shape}")
-    step = np.diff(ticks)
-    turns = np.cumsum((step < -(wrap // 2)).astype(np.int64) - (step > wrap // 2))
-    return ticks + np.concatenate([np.zeros(min(ticks.size, 1), np.int64), turns]) * np.int64(wrap)
 
 
 JitterKind = Literal["exponential", "uniform"]
