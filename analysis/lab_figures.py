@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from acquisition.recorder.sessions import session_info
 from analysis import diagnostics
 from analysis.report import Report
 from pipeline.datasets import load_dataset
@@ -63,6 +64,7 @@ def all_figures(lab: Path, out: Path | None = None) -> Results:
         ("experiment1", lambda: _experiment1(datasets, forward, res, out)),
         ("experiment2", lambda: _experiment2(datasets, res, out)),
         ("popup", lambda: _popup(lab, res, out)),
+        ("real-time sessions", lambda: _realtime(lab, res)),
     ):
         try:
             step()
@@ -182,6 +184,29 @@ def _popup(lab: Path, res: Results, out: Path) -> None:
     )  # fmt: skip
 
 
+def realtime_sessions(lab: Path) -> pd.DataFrame:
+    """The sessions recorded in real time (through the devices' drivers: the rig or hardware), one row per
+    stream: messages, rate and drops, read from the MCAP summaries; empty when there are none."""
+    rows = []
+    for card in sorted((Path(lab) / "sessions").glob("*/session.json")):
+        meta = json.loads(card.read_text())
+        if meta.get("runner") != "real-time":
+            continue
+        info = session_info(card.parent)
+        for topic, s in sorted(info.streams.items()):
+            rows.append({"session": info.id, "plan": meta.get("plan", ""), "status": info.status,
+                         "topic": topic, "messages": s.messages, "rate (Hz)": round(s.rate_hz, 1),
+                         "dropped": s.dropped})  # fmt: skip
+    columns = ["session", "plan", "status", "topic", "messages", "rate (Hz)", "dropped"]
+    return pd.DataFrame(rows, columns=columns).set_index(["session", "topic"])
+
+
+def _realtime(lab: Path, res: Results) -> None:
+    table = realtime_sessions(lab)
+    if len(table):
+        res.tables["real-time sessions"] = table
+
+
 def lab_report(lab: Path, res: Results, timings: dict[str, float] | None = None) -> Path:
     """``<lab>/report/index.html`` from the figures and tables of :func:`all_figures`."""
     page = Report("vslab: the lab on its digital twin")
@@ -207,6 +232,7 @@ them; the twin's parameters marked ASSUMED in configs/ are ours, so agreement in
 value."""
 
 SECTIONS = [
+    ("Real-time sessions (the devices' drivers against the twin's emulators)", [], ["real-time sessions"]),
     ("Datasets and models (ours)", ["clock_fits", "error_heatmaps", "learning_curves"],
      ["forward model", "registration"]),
     ("Seed 000, Experiment 1 (Fig. 5)", ["fig5"], []),

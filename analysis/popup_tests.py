@@ -133,11 +133,15 @@ def link_static_curves(sessions: list[Path], link: str = "link2", arm_m: float |
     return curves
 
 
-def static_stiffness(curves: pd.DataFrame) -> pd.DataFrame:
-    """Per pressure, k [N·m/rad] = slope of τ on δ over the mean points (both branches) below M_w(p)."""
+def static_stiffness(curves: pd.DataFrame, branch: str = "loading") -> pd.DataFrame:
+    """Per pressure, k [N·m/rad] = slope of τ on δ over the mean points of ``branch`` below M_w(p).
+
+    Seed 001 fitted k on its first static tests, which only loaded the link (the unloading branch came with
+    the later hysteresis study); the loading branch is also the one free of the residual deflection the
+    wrinkles leave. ``branch=None`` fits both branches together."""
     rows = []
     for p, c in curves.groupby("pressure_pa"):
-        lin = c[c["torque_nm"] < c["wrinkling_moment_nm"]]
+        lin = c[(c["torque_nm"] < c["wrinkling_moment_nm"]) & ((c["branch"] == branch) if branch else True)]
         if lin["load_kg"].nunique() < 2:
             continue
         k, b = np.polyfit(lin["delta_rad"], lin["torque_nm"], 1)
@@ -243,7 +247,8 @@ def table1_markdown(table: pd.DataFrame) -> str:
 
 def figure7(curves: pd.DataFrame, out_dir: Path) -> dict:
     """Figure 7: torque [N·m] against angular deflection [deg] per pressure, loading solid, unloading dashed
-    (drawn from the loading branch's top point), mean of the runs with ±1 std error bars in δ. Writes
+    (drawn from the loading branch's top point), mean of the runs with ±1 std error bars in δ, M_w(p) dotted
+    (the end of the linear range). Writes
     ``fig7_popup_hysteresis.{pdf,png}`` (+ ``.json`` with the sources); returns the plotted arrays:
     ``{(pressure_kpa, branch): {"x_deg", "xerr_deg", "y_nm"}}``."""
     import matplotlib
@@ -253,7 +258,7 @@ def figure7(curves: pd.DataFrame, out_dir: Path) -> dict:
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    fig, ax = plt.subplots(figsize=(6.4, 4.6), layout="constrained")
+    fig, ax = plt.subplots(figsize=(7.2, 5.2), layout="constrained")
     colours = plt.get_cmap("viridis")(np.linspace(0.0, 0.85, curves["pressure_pa"].nunique()))
     data: dict = {}
     for colour, (p, c) in zip(colours, curves.groupby("pressure_pa"), strict=True):
@@ -268,12 +273,15 @@ def figure7(curves: pd.DataFrame, out_dir: Path) -> dict:
             ax.errorbar(x, y, xerr=np.nan_to_num(xerr), color=colour, ls=style, marker="o", ms=3, capsize=2,
                         label=label)  # fmt: skip
             data[(p / 1e3, branch)] = {"x_deg": x, "xerr_deg": xerr, "y_nm": y}
+        x_all = np.degrees(c["delta_rad"].to_numpy())
+        ax.hlines(c["wrinkling_moment_nm"].iloc[0], x_all.min(), x_all.max(), color=colour, ls=":", lw=1.0)
     ax.plot([], [], "k-", label="loading")
     ax.plot([], [], "k--", label="unloading")
+    ax.plot([], [], "k:", lw=0.8, label="wrinkling moment $M_w(p)$")
     ax.set_xlabel("angular deflection δ (deg)")
     ax.set_ylabel("torque τ (N·m)")
     ax.set_title("Link 2 static characteristic (mean of runs, ±1 std)", fontsize=10)
-    ax.grid(alpha=0.3)
+    ax.grid(alpha=0.3, axis="x")
     ax.legend(fontsize=8, loc="upper left")
     for ext in ("pdf", "png"):
         fig.savefig(out_dir / f"fig7_popup_hysteresis.{ext}", dpi=150)

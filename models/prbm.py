@@ -1,8 +1,10 @@
 """Pseudo-rigid-body links: pressure tables, inflatable-beam limits, link dynamics with hysteresis, play/PI.
 
 Seed 001 models an inflatable link as two rigid bodies joined by a virtual hinge with a torsional spring and
-damper, eq. (2): I δ̈ + c(p) δ̇ + k(p) δ = τ. We add a Bouc–Wen offset to the spring, k (δ + δ_h z), for the
-static hysteresis of Fig. 7 (loop ≈ 2 δ_h). SI units, float64 throughout.
+damper, eq. (2): I δ̈ + c(p) δ̇ + k(p) δ = τ. We add the non-linear range above the wrinkling moment M_w that
+Fig. 7 shows: a softening towards the collapse moment M_c, and a Bouc–Wen offset to the spring, k (δ + δ_h z),
+driven by the moment in excess of M_w, for the static hysteresis (loop ≈ 2 δ_h once well past M_w). SI units,
+float64 throughout.
 
 Functions marked (K) are "ufunc-style": the twin compiles them with ``numba.njit`` and calls them on scalar
 float64 inside its time loop, while tests and analysis call the same functions on numpy arrays. They therefore
@@ -20,6 +22,7 @@ Float = float | NDArray[np.float64]
 GAMMA_HOWELL = 0.85  # characteristic radius factor: virtual joint at (1 − γ) L from the clamped end
 K_THETA_HOWELL = 2.65  # stiffness coefficient: spring K = γ K_Θ E I / L
 
+WRINKLE_X_MAX = 0.95  # wrinkled compliance held at 95 % of the way from M_w to M_c (collapse: infinite)
 _TINY = 1e-150  # keeps sin(s dt)/s and expm1(−2 s dt)/(2 s) finite at s = 0 (their limit is dt)
 
 
@@ -108,31 +111,51 @@ def link_step(
     delta_dot: Float,
     z: Float,
     torque: Float,
-    torque_prev: Float,
+    load: Float,
+    load_prev: Float,
     k: Float,
     c: Float,
     inertia: Float,
     delta_h: Float,
     tau_y: Float,
+    m_w: Float,
     dt: float,
 ) -> tuple[Float, Float, Float]:
-    """(K) One step of I δ̈ + c δ̇ + k (δ + δ_h z) = τ (eq. 2 with a Bouc–Wen offset); returns (δ, δ̇, z).
+    """(K) One step of I δ̈ + c δ̇ + k (δ − w(M) + δ_h z) = τ (eq. 2 with wrinkling and hysteresis); (δ, δ̇, z).
 
-    z is first advanced by dτ = torque − torque_prev (:func:`bouc_wen_step`); then δ is updated by the exact
-    solution of the linear part with τ and z held over the step (zero-order hold): exact frequency and decay,
-    stable for any dt, k > 0, I > 0, c ≥ 0 (under-, critically and over-damped). At rest δ = τ/k − δ_h z, so
-    the loading branch lies δ_h below τ/k, the unloading branch δ_h above. δ_h = 0: plain spring-damper.
+    ``torque`` τ is the whole moment about the virtual joint (gravity, payload and the drives' accelerations);
+    ``load`` M is its static part (gravity and payload), ``load_prev`` M one step before. M alone drives the
+    quasi-static terms, so the drives' ringing neither relaxes the hysteresis nor wrinkles the link:
+
+    - hysteresis: z advances by the change of :func:`hysteresis_input` (Bouc–Wen, :func:`bouc_wen_step`);
+    - wrinkling: :func:`wrinkle_deflection` w(M) adds the compliance of the wrinkled section above M_w.
+
+    ``m_w`` is the link's wrinkling moment M_w(p); m_w ≤ 0 marks a link that is not an inflatable beam (its
+    hysteresis acts over the whole range, it never wrinkles). δ is then updated by the exact solution of the
+    linear part with τ, z and w held over the step (zero-order hold): exact frequency and decay, stable for
+    any dt, k > 0, I > 0, c ≥ 0 (under-, critically and over-damped). At rest δ = τ/k + w − δ_h z, so the
+    loading branch lies δ_h below the elastic line, the unloading branch δ_h above. δ_h = 0 and m_w = 0: a
+    plain spring-damper.
     """
-    # Bouc–Wen update, same lines as bouc_wen_step (numba cannot call it).
-    g = (torque - torque_prev) / tau_y
+    # hysteresis input, same lines as hysteresis_input (numba cannot call it)
+    onset = np.maximum(m_w, 0.0)
+    e_now = np.sign(load) * np.maximum(np.abs(load) - onset, 0.0)
+    e_prev = np.sign(load_prev) * np.maximum(np.abs(load_prev) - onset, 0.0)
+    # Bouc–Wen update, same lines as bouc_wen_step
+    g = (e_now - e_prev) / tau_y
     s = np.sign(g)
     z = np.minimum(np.maximum(z, -1.0), 1.0)
     lin = np.minimum(np.abs(g), np.maximum(-s * z, 0.0))
     z0 = z + s * lin
     z_new = z0 + s * (1.0 - s * z0) * (-np.expm1(lin - np.abs(g)))
+    # wrinkled compliance, same lines as wrinkle_deflection
+    inflatable = (m_w > 0.0) * 1.0
+    scale = np.maximum(m_w, _TINY)
+    x = inflatable * np.minimum(np.maximum(np.abs(load) - scale, 0.0) / scale, WRINKLE_X_MAX)
+    wrinkle = np.sign(load) * scale / k * (-np.log1p(-x) - x)
     # Exact free response of e = δ − δ_eq: e'' + 2a e' + wn2 e = 0, with x(dt) = C e0 + S (v0 + a e0) and
     # v(dt) = C v0 − S (a v0 + wn2 e0), where C, S include the decay e^(−a dt).
-    delta_eq = torque / k - delta_h * z_new
+    delta_eq = torque / k + wrinkle - delta_h * z_new
     e0 = delta - delta_eq
     a = c / (2.0 * inertia)
     wn2 = k / inertia
@@ -152,27 +175,55 @@ def link_step(
     return delta_eq + e1, v1, z_new
 
 
+def hysteresis_input(load: Float, m_w: Float) -> Float:
+    """(K) The moment that drives an inflatable link's hysteresis: its excess over the wrinkling moment,
+    sgn(M) max(|M| − M_w, 0). Seed 001 finds the link linear below M_w (its static k is the dynamic k̂
+    within 8 %); the loop of Fig. 7 comes from the wrinkles forming and closing above it, and leaves a
+    residual deflection once they close. m_w ≤ 0 (not an inflatable beam): M itself."""
+    onset = np.maximum(m_w, 0.0)
+    return np.sign(load) * np.maximum(np.abs(load) - onset, 0.0)
+
+
+def wrinkle_deflection(load: Float, k: Float, m_w: Float) -> Float:
+    """(K) Extra deflection of a wrinkled inflatable link under a static moment M beyond M_w.
+
+    Above M_w the wrinkled part of the wall carries no tension and the section stiffens less and less; we
+    let the tangent stiffness fall linearly from k at M_w to 0 at the collapse moment M_c = 2 M_w (eq. 1):
+    dM/dδ = k (1 − x), x = (|M| − M_w)/(M_c − M_w). Integrated: w = sgn(M) (M_w/k) (−ln(1 − x) − x), 0 below
+    M_w, with a continuous slope there; x is held at :data:`WRINKLE_X_MAX`. m_w ≤ 0: 0 (not inflatable).
+    """
+    inflatable = (m_w > 0.0) * 1.0
+    scale = np.maximum(m_w, _TINY)
+    x = inflatable * np.minimum(np.maximum(np.abs(load) - scale, 0.0) / scale, WRINKLE_X_MAX)
+    return np.sign(load) * scale / k * (-np.log1p(-x) - x)
+
+
 def static_deflection(torque: Float, k: Float, delta_h: Float = 0.0, z: Float = 0.0) -> Float:
     """(K) Deflection at rest δ = τ/k − δ_h z."""
     return torque / k - delta_h * z
 
 
-def static_loading_curve(torques: ArrayLike, k: ArrayLike, delta_h: ArrayLike, tau_y: ArrayLike) -> NDArray:
+def static_loading_curve(
+    torques: ArrayLike, k: ArrayLike, delta_h: ArrayLike, tau_y: ArrayLike, m_w: ArrayLike = 0.0
+) -> NDArray:
     """Quasi-static deflections along a torque sequence (seed 001 Fig. 7: loading then unloading).
 
-    ``torques`` has time first, (T,) or (T, B); k, δ_h, τ_y broadcast against the batch, e.g. k of shape (B,)
-    for B pressures. The link starts virgin (z = 0 at τ = 0). Returns δ of shape (T, *batch).
+    ``torques`` has time first, (T,) or (T, B); k, δ_h, τ_y and the wrinkling moment m_w broadcast against
+    the batch, e.g. k of shape (B,) for B pressures; m_w = 0: not an inflatable beam (hysteresis over the
+    whole range, no wrinkling), as in :func:`link_step`. The link starts virgin (z = 0 at τ = 0). Returns δ of
+    shape (T, *batch): τ/k + w(τ) − δ_h z.
     """
     tq = np.asarray(torques, dtype=np.float64)
-    k, delta_h, tau_y = (np.asarray(v, dtype=np.float64) for v in (k, delta_h, tau_y))
-    batch = np.broadcast_shapes(tq.shape[1:], k.shape, delta_h.shape, tau_y.shape)
+    k, delta_h, tau_y, m_w = (np.asarray(v, dtype=np.float64) for v in (k, delta_h, tau_y, m_w))
+    batch = np.broadcast_shapes(tq.shape[1:], k.shape, delta_h.shape, tau_y.shape, m_w.shape)
     out = np.empty(tq.shape[:1] + batch, dtype=np.float64)
     z = np.zeros(batch)
     prev = np.zeros(batch)
     for t in range(tq.shape[0]):
-        z = bouc_wen_step(z, tq[t] - prev, tau_y)
-        prev = tq[t]
-        out[t] = tq[t] / k - delta_h * z
+        e = hysteresis_input(tq[t], m_w)
+        z = bouc_wen_step(z, e - prev, tau_y)
+        prev = e
+        out[t] = tq[t] / k + wrinkle_deflection(tq[t], k, m_w) - delta_h * z
     return out
 
 

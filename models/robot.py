@@ -107,7 +107,8 @@ class ScaledTable(_Model):
 
 
 class Hysteresis(_Model):
-    """Bouc–Wen offset on the link angle: loop width ≈ 2·delta_h_rad once |τ| ≫ tau_y_nm."""
+    """Bouc–Wen offset on the link angle: loop width ≈ 2·delta_h_rad once the driving moment's swing ≫
+    tau_y_nm. On an inflatable link (``radius_m``) it is driven by the moment beyond M_w(p) only."""
 
     delta_h_rad: NonNegFloat
     tau_y_nm: PositiveFloat

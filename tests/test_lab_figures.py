@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
-from analysis.lab_figures import all_figures, lab_report
+import numpy as np
+
+from acquisition.recorder.writer import SessionWriter
+from acquisition.schemas.events import Event, EventKind
+from analysis.lab_figures import all_figures, lab_report, realtime_sessions
+from models.robot import load_robot
 from pipeline.grid import run_grid
+from vslab.lab_job import sessions_of
 
 
 def test_figures_and_report_of_a_lab_with_only_a_campaign(campaign_dataset, tmp_path):
@@ -29,3 +35,24 @@ def test_figures_and_report_of_a_lab_with_only_a_campaign(campaign_dataset, tmp_
     assert res.versions["dataset campaign"] == version
     page = lab_report(lab, res).read_text()
     assert "error_heatmaps" in page and "not made (and why)" in page and "dataset experiment1" in page
+
+
+def _session(sessions, name, runner, n_events):
+    meta = {"runner": runner, "plan": "experiment1/curve/vsl-1bar/25g"}
+    with SessionWriter(sessions / name, load_robot("vsl"), name, protocol="experiment1", metadata=meta) as w:
+        for i in range(n_events):
+            w.event(Event(EventKind.PLAN_STEP, index=i, label="step"), int(i * 1e8))
+
+
+def test_real_time_sessions_are_reported_apart_from_the_simulated_ones(tmp_path):
+    sessions = tmp_path / "sessions"
+    _session(sessions, "rig-a", "real-time", 11)
+    _session(sessions, "sim-b", "simulated", 3)
+    table = realtime_sessions(tmp_path)
+    assert table.index.get_level_values("session").unique().tolist() == ["rig-a"]
+    row = table.loc[("rig-a", "/events")]
+    assert row["messages"] == 11 and np.isclose(row["rate (Hz)"], 10.0) and row["status"] == "complete"
+    # the main job builds Experiment 1's dataset from the simulated sessions only
+    assert [d.name for d in sessions_of(sessions, "experiment1", runner="simulated")] == ["sim-b"]
+    assert [d.name for d in sessions_of(sessions, "experiment1")] == ["rig-a", "sim-b"]
+    assert realtime_sessions(tmp_path / "empty").empty

@@ -42,12 +42,17 @@ def _kinds(plan: Plan, kind: EventKind, label: str | None = None) -> list[tuple[
 def test_static_plans(popup):
     params, plans = _plans("popup_static", popup)
     assert [p.name for p in plans] == [f"popup_static/{k}kPa" for k in (10, 20, 30, 40, 50)]
-    n_loads = len(params["loads_g"])
-    for p in plans:
+    n_loads = params["load_steps"] + 1
+    arm, own = 0.590, 0.30 * 9.81 * 0.295  # link 2's hinge (D-H row d22) to tip; its own moment there
+    for p, kpa in zip(plans, params["pressures_kpa"], strict=True):
         assert len(_kinds(p, EventKind.REPETITION_START)) == len(_kinds(p, EventKind.REPETITION_END)) == 3
         settled = _kinds(p, EventKind.SETTLED)
         assert [e.index for _, e in settled] == list(range(3 * (2 * n_loads - 1)))
-        assert p.payload_kg.max() == pytest.approx(max(params["loads_g"]) * 1e-3)
+        # the heaviest mass bends link 2 to 0.8 M_c(p), M_c = (π²/4) p r³, in equal steps from 0
+        top = (0.8 * np.pi**2 / 4 * kpa * 1e3 * 0.055**3 - own) / (9.81 * arm)
+        loads = np.asarray(p.parameters["loads_kg"])
+        np.testing.assert_allclose(loads, np.linspace(0, top, n_loads), atol=0.6e-3)
+        assert p.payload_kg.max() == loads.max()
         assert np.allclose(p.goal_q, np.radians(params["pose_deg"])) and len(p.tap_t) == 0
 
 
@@ -131,8 +136,9 @@ def test_impact_taps_ring_the_link(sessions):
 
 def test_static_loop_follows_the_link_model(sessions, popup):
     """Vertical tip positions averaged over each SETTLED hold follow the quasi-static link model
-    (``prbm.static_loading_curve``: Bouc–Wen on link 2) through the whole load history, within the tracker's
-    noise averaged over a hold; the loading/unloading loop of the second repetition is the model's."""
+    (``prbm.static_loading_curve``: link 2 elastic below M_w, wrinkled and hysteretic above) through the
+    whole load history, within the tracker's noise averaged over a hold; the loading/unloading loop of the
+    second repetition is the model's."""
     ((plan, data, events),) = sessions["popup_static"]
     tracker = data[T.TRACKER]
     t, z = _seconds(tracker.log_time), tracker.rows["position"][:, 2]
@@ -148,7 +154,9 @@ def test_static_loop_follows_the_link_model(sessions, popup):
     k = np.interp(plan.parameters["pressure_pa"], table.pressure_pa, table.stiffness_nm_per_rad)
     arm, own = 0.590, 0.868  # link 2 hinge (D-H row d22) to tip; link 2's own moment there (N·m)
     torque = np.concatenate([[own], own + cycle * 9.81 * arm])  # from the virgin link at rest
-    delta = prbm.static_loading_curve(torque, k, link2.hysteresis.delta_h_rad, link2.hysteresis.tau_y_nm)[1:]
+    m_w = prbm.wrinkling_moment(plan.parameters["pressure_pa"], link2.radius_m)
+    h = link2.hysteresis
+    delta = prbm.static_loading_curve(torque, k, h.delta_h_rad, h.tau_y_nm, m_w)[1:]
     model = (delta - delta[0]) * arm  # tip drop from the first hold
     measured = heights[0] - heights
     noise = popup.sensors.tracker.noise_m / np.sqrt(0.5 * 40)  # a 0.5 s hold of 40 Hz frames

@@ -20,7 +20,9 @@ import numpy as np
 
 from acquisition.plans.plan import Plan, PlanBuilder
 from acquisition.schemas.events import EventKind
+from models.prbm import collapse_moment
 from models.robot import Hysteresis, RobotDescription
+from models.statics import gravity_moments
 
 KPA, GRAM = 1e3, 1e-3
 PRESSURE_CHECK = "pressure-check"
@@ -32,7 +34,9 @@ RIGID_FACTOR = 1000.0  # a "fixed joint": stiffness and damping × 1000, no hyst
 def bench_robot(robot: RobotDescription, params: dict) -> RobotDescription:
     """The robot as set up for the test (the paper's link tests ran on a bare link on a fixed joint):
     masses named in ``without_masses`` taken off, links named in ``rigid_links`` made ``RIGID_FACTOR`` times
-    stiffer without hysteresis, so the tip sees only the link under test."""
+    stiffer without hysteresis, and with ``fixed_joints`` the drives too (``RIGID_FACTOR`` stiffer, no
+    backlash: their droop under the test loads would add to the link's deflection), so the tip sees only the
+    link under test."""
     drop = set(params.get("without_masses") or [])
     rigid = set(params.get("rigid_links") or [])
     unknown = (drop - {m.name for m in robot.masses}) | (rigid - {link.name for link in robot.links})
@@ -49,9 +53,15 @@ def bench_robot(robot: RobotDescription, params: dict) -> RobotDescription:
         else link
         for link in robot.links
     ]
-    return robot.model_copy(
-        update={"masses": [m for m in robot.masses if m.name not in drop], "links": links}
-    )
+    update = {"masses": [m for m in robot.masses if m.name not in drop], "links": links}
+    if params.get("fixed_joints") and robot.servo is not None:
+        update["servo"] = robot.servo.model_copy(
+            update={
+                "stiffness_per_p_gain_nm_per_rad": robot.servo.stiffness_per_p_gain_nm_per_rad * RIGID_FACTOR,
+                "backlash_rad": 0.0,
+            }
+        )
+    return robot.model_copy(update=update)
 
 
 def _builder(name: str, robot: RobotDescription, parameters: dict) -> PlanBuilder:
@@ -62,17 +72,38 @@ def _pose(params: dict) -> np.ndarray:
     return np.radians(np.asarray(params["pose_deg"], float))
 
 
+def static_loads_kg(robot: RobotDescription, params: dict, pressure_pa: float) -> np.ndarray:
+    """Tip masses of one pressure's static test: ``load_steps`` equal steps from 0 up to the mass that bends
+    the link under test to ``max_collapse_fraction`` of its collapse moment M_c(p) (own weight included,
+    at the test pose, as the safety checker computes it), rounded to whole grams like a set of weights.
+
+    The paper gives no loads; Fig. 7 runs past M_w into the non-linear range at every pressure, so the loads
+    scale with M_c ∝ p. Points below M_w (the linear range Table 1's k is fitted on) are then spread evenly.
+    """
+    link = next(ln for ln in robot.links if ln.name == params["link"])
+    rows = [r.joint for r in robot.dh_rows()]
+    axes = [rows.index(v) for v in link.virtual_joints]
+    q = _pose(params)
+    own, per_kg = (np.linalg.norm(gravity_moments(robot, q, payload_kg=kg)[axes]) for kg in (0.0, 1.0))
+    top = params["max_collapse_fraction"] * collapse_moment(pressure_pa, link.radius_m)
+    max_kg = (top - own) / (per_kg - own)  # the moment is affine in the tip mass at a fixed pose
+    if max_kg <= 0:
+        raise ValueError(f"{link.name} at {pressure_pa / KPA:g} kPa: its own weight passes the top load")
+    return np.round(np.linspace(0.0, max_kg, params["load_steps"] + 1), 3)
+
+
 def static_test(robot: RobotDescription, params: dict) -> list[Plan]:
-    """One plan per pressure: loading through ``loads_g`` then unloading back, a SETTLED hold at every load
-    (index = point number in the plan), each repetition bracketed by REPETITION_START/END; PLAN_STEP
-    events 'loading'/'unloading' mark the branches."""
-    loads = np.asarray(params["loads_g"], float) * GRAM
-    branches = (("loading", loads), ("unloading", loads[::-1][1:]))
+    """One plan per pressure: loading through :func:`static_loads_kg` then unloading back, a SETTLED hold at
+    every load (index = point number in the plan), each repetition bracketed by REPETITION_START/END;
+    PLAN_STEP events 'loading'/'unloading' mark the branches."""
     plans = []
     for kpa in params["pressures_kpa"]:
+        loads = static_loads_kg(robot, params, kpa * KPA)
+        branches = (("loading", loads), ("unloading", loads[::-1][1:]))
         cell = {
             "protocol": "popup_static",
             "pressure_pa": kpa * KPA,
+            "link": params["link"],
             "loads_kg": loads.tolist(),
             "allow_wrinkling": bool(params.get("allow_wrinkling", False)),
         }

@@ -3,8 +3,9 @@
 One compiled loop over time steps × robots advances the joint drives (Dynamixel-like profile and position
 loop with a load-dependent steady-state error and backlash, or a microstepping stepper), the pneumatics
 (regulator dead time and lag, valves that hold with a slow leak) and the pseudo-rigid-body link bending
-(``models.prbm``: I δ̈ + c(p) δ̇ + k(p)(δ + δ_h z) = τ, Bouc–Wen hysteresis), and records the true state of
-every step. Sensors, clocks and noise are applied afterwards, vectorised (``sensors``/``clocks``).
+(``models.prbm.link_step``: I δ̈ + c(p) δ̇ + k(p)(δ − w + δ_h z) = τ, an inflatable link softening above
+its wrinkling moment M_w(p) and its Bouc–Wen hysteresis driven by the moment beyond M_w), and records the true
+state of every step. Sensors, clocks and noise are applied afterwards, vectorised (``sensors``/``clocks``).
 
 The per-step physics comes from ``models.prbm`` compiled with numba, so the numbers the twin produces are
 the ones the model functions give (tests call the same functions vectorised).
@@ -30,6 +31,7 @@ from models import prbm
 _link_step = numba.njit(cache=True, error_model="numpy")(prbm.link_step)
 _play = numba.njit(cache=True, error_model="numpy")(prbm.play)
 _interp = numba.njit(cache=True, error_model="numpy")(prbm.interp_table_scalar)
+_wrinkling_moment = numba.njit(cache=True, error_model="numpy")(prbm.wrinkling_moment)
 
 DRIVE_POSITION_LOOP = 0  # Dynamixel servo or geared motor under position control
 DRIVE_STEPPER = 1
@@ -55,6 +57,7 @@ class KernelParams:
     vj_link: np.ndarray  # (V,) int link index
     vj_delta_h: np.ndarray  # (V,)
     vj_tau_y: np.ndarray  # (V,)
+    vj_radius: np.ndarray  # (V,) radius of the virtual joint's inflatable link, 0 = not an inflatable beam
     link_channel: np.ndarray  # (L,) int pressure channel, −1 = pressure independent
     table_n: np.ndarray  # (L,) int entries used in the padded tables
     table_p: np.ndarray  # (L, P)
@@ -141,7 +144,7 @@ def advance(params: KernelParams, state: KernelState, cmd: KernelCommands, n: in
     state.buf_idx = _advance(
         n, p.dt, p.gravity, p.row_a, p.row_alpha_cs, p.row_d, p.row_offset, p.row_virtual, p.row_var,
         p.tool_offset, p.mass_frame, p.mass_pos, p.mass_kg, p.mass_inertia, p.vj_link, p.vj_delta_h,
-        p.vj_tau_y, p.link_channel, p.table_n, p.table_p, p.table_k, p.table_c, p.drive_kind,
+        p.vj_tau_y, p.vj_radius, p.link_channel, p.table_n, p.table_p, p.table_k, p.table_c, p.drive_kind,
         p.drive_stiffness, p.drive_tau, p.drive_backlash_half, p.drive_quantum, p.drive_max_torque,
         p.drive_max_speed, p.reg_alpha, p.reg_max,
         p.leak_factor,
@@ -246,7 +249,8 @@ def _joint_loads(frames, mass_frame, world_pos, mass_kg, mass_inertia, payload, 
 @numba.njit(cache=True, parallel=True, error_model="numpy")
 def _advance(
     n, dt, gravity, row_a, row_alpha_cs, row_d, row_offset, row_virtual, row_var, tool, mass_frame, mass_pos,
-    mass_kg, mass_inertia, vj_link, vj_delta_h, vj_tau_y, link_channel, table_n, table_p, table_k, table_c,
+    mass_kg, mass_inertia, vj_link, vj_delta_h, vj_tau_y, vj_radius, link_channel, table_n, table_p, table_k,
+    table_c,
     drive_kind, drive_stiffness, drive_tau, drive_backlash_half, drive_quantum, drive_max_torque,
     drive_max_speed, reg_alpha, reg_max,
     leak_factor,
@@ -339,13 +343,12 @@ def _advance(
                 k = _interp(p, table_p[link, :m], table_k[link, :m])
                 c = _interp(p, table_p[link, :m], table_c[link, :m])
                 tau = loads[0] - inertia * coupling
-                # the hysteresis state follows the static load (gravity and payload moment), not the ringing
-                # of the drives' accelerations: passing tau − Δ(static) as the previous torque makes the
-                # step's dτ the static change while the spring still balances the full tau
-                static_change = loads[0] - vj_torque[b, v]
+                # the hysteresis and the wrinkling follow the static load (gravity and payload moment), not
+                # the ringing of the drives' accelerations; an inflatable link's M_w is taken per bending axis
+                m_w = _wrinkling_moment(p, vj_radius[v])
                 delta[b, v], delta_dot[b, v], hyst_z[b, v] = _link_step(
-                    delta[b, v], delta_dot[b, v], hyst_z[b, v], tau, tau - static_change, k, c, inertia,
-                    vj_delta_h[v], vj_tau_y[v], dt,
+                    delta[b, v], delta_dot[b, v], hyst_z[b, v], tau, loads[0], vj_torque[b, v], k, c, inertia,
+                    vj_delta_h[v], vj_tau_y[v], m_w, dt,
                 )  # fmt: skip
                 vj_torque[b, v] = loads[0]
             # --- record the true state (tip pose from this step's kinematics)

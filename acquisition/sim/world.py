@@ -76,6 +76,7 @@ def build_params(robot: RobotDescription, dt: float = DEFAULT_DT) -> kernel.Kern
         vj_link=np.array([link_index[robot.link_of(v).name] for v in virtual], dtype=np.int64),
         vj_delta_h=np.array([robot.link_of(v).hysteresis.delta_h_rad for v in virtual]),
         vj_tau_y=np.array([robot.link_of(v).hysteresis.tau_y_nm for v in virtual]),
+        vj_radius=np.array([robot.link_of(v).radius_m or 0.0 for v in virtual]),
         link_channel=np.array([-1 if ln.pressure_channel is None else ln.pressure_channel for ln in links]),
         table_n=np.array([len(t.pressure_pa) for t in tables], dtype=np.int64),
         table_p=np.array([padded(t.pressure_pa) for t in tables]),
