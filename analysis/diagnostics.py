@@ -55,26 +55,31 @@ def error_heatmaps(grids: dict[str, pd.DataFrame], out_dir: Path, name: str = "e
 
 
 def learning_curves(cards: dict[str, dict], out_dir: Path, name: str = "learning_curves") -> dict:
-    """Training and validation loss per epoch of each model card (log scale), the best epoch marked (epochs
-    counted from 1 on the axis)."""
-    fig, ax = plt.subplots(figsize=(6.4, 4.0))
-    plotted = {}
+    """Training and validation loss per epoch of each model card (log scale), one panel per model (their
+    targets differ: a residual net learns the correction, the paper's net the whole pose), the best epoch
+    marked (epochs counted from 1 on the axis)."""
+    runs = {}
     for label, card in cards.items():
         curves = pd.DataFrame(card.get("curves") or [])  # one record per epoch (from 0)
-        if "val_loss" not in curves:
-            continue
+        if "val_loss" in curves:
+            runs[label] = (card, curves)
+    fig, axes = plt.subplots(1, max(len(runs), 1), figsize=(3.6 * max(len(runs), 1) + 0.6, 3.4),
+                             squeeze=False, layout="constrained")  # fmt: skip
+    plotted = {}
+    for ax, (label, (card, curves)) in zip(axes[0], runs.items(), strict=False):
         epochs, val = curves["epoch"].to_numpy() + 1, curves["val_loss"].to_numpy(float)
         train = curves["train_loss"].to_numpy(float) if "train_loss" in curves else np.zeros(0)
-        (line,) = ax.plot(epochs, val, label=f"{label} (validation)")
+        ax.plot(epochs, val, color="tab:blue", label="validation")
         if len(train):
-            ax.plot(epochs, train, ls=":", color=line.get_color(), label=f"{label} (training)")
+            ax.plot(epochs, train, ls=":", color="tab:orange", label="training")
         best = int(card.get("best_epoch", int(np.argmin(val)))) + 1
-        ax.plot([best], [val[best - 1]], "o", color=line.get_color())
+        ax.plot([best], [val[best - 1]], "o", color="tab:blue", label=f"best (epoch {best})")
         plotted[label] = {"train": train, "val": val, "best_epoch": best}
-    ax.set_yscale("log")
-    ax.set_xlabel("epoch")
-    ax.set_ylabel("loss (MSE of standardised targets)")
-    ax.legend(fontsize=7)
+        ax.set_yscale("log")
+        ax.set_title(label, fontsize=9)
+        ax.set_xlabel("epoch")
+        ax.legend(fontsize=7)
+    axes[0][0].set_ylabel("loss (MSE of standardised targets)")
     return {"png": save(fig, out_dir, name), "curves": plotted}
 
 

@@ -107,9 +107,26 @@ def _models(lab: Path, datasets: dict, res: Results, out: Path) -> None:
     clocks = diagnostics.clock_fits(datasets["campaign"][2]["sessions"], out)
     _record(clocks["png"], versions)
     res.figures["clock_fits"] = clocks["png"]
-    res.tables["registration (tracker → base), campaign"] = pd.DataFrame(
-        {k: v for k, v in datasets["campaign"][2]["registration"].items()}
-    ).T.drop(columns=["base_to_tracker"], errors="ignore")
+    res.tables["registration (tracker → base), campaign"] = registration_table(
+        datasets["campaign"][2]["registration"]
+    )
+
+
+def registration_table(registration: dict) -> pd.DataFrame:
+    """One row per robot of a dataset card's registration: points used, residuals in mm (all static points,
+    and the selected ones the transform was fitted on)."""
+    rows = {}
+    for robot, r in registration.items():
+        res_all, res_sel = r.get("residuals", {}), r.get("residuals_selected", {})
+        rows[robot] = {
+            "static points": r.get("points"), "selected": r.get("selected"), "trimmed": r.get("trimmed"),
+            "model deflection": r.get("deflection"),
+            "rms, all (mm)": 1e3 * res_all.get("rms_m", np.nan),
+            "rms, selected (mm)": 1e3 * res_sel.get("rms_m", np.nan),
+            "p95, selected (mm)": 1e3 * res_sel.get("p95_m", np.nan),
+            "max, selected (mm)": 1e3 * res_sel.get("max_m", np.nan),
+        }  # fmt: skip
+    return pd.DataFrame.from_dict(rows, orient="index").rename_axis("robot")
 
 
 def _headline(metrics: dict) -> dict:
@@ -159,7 +176,7 @@ def _popup(lab: Path, res: Results, out: Path) -> None:
     assert fig, "no static curves to plot"
     res.figures["popup_fig7"] = out / "fig7_popup_hysteresis.png"  # figure7 records its sources beside it
     table = popup_tests.table1(popup_tests.static_stiffness(curves), popup_tests.impact_parameters(impact))
-    res.tables["POPUP Table 1: ours (twin) beside the paper's"] = table.set_index("pressure_kpa")
+    res.tables["POPUP Table 1: ours (twin) / the paper's"] = popup_tests.table1_side_by_side(table)
     from analysis import popup_reach
     from models.robot import load_robot
 
@@ -194,6 +211,8 @@ def realtime_sessions(lab: Path) -> pd.DataFrame:
             continue
         info = session_info(card.parent)
         for topic, s in sorted(info.streams.items()):
+            if s.messages == 0:  # a topic of the robot's layout that this bench has no device for
+                continue
             rows.append({"session": info.id, "plan": meta.get("plan", ""), "status": info.status,
                          "topic": topic, "messages": s.messages, "rate (Hz)": round(s.rate_hz, 1),
                          "dropped": s.dropped})  # fmt: skip

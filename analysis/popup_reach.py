@@ -78,9 +78,11 @@ def figures_15_16(rigid: Reach, servoed: Reach, out_dir: Path) -> dict:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(5.6, 4.2))
-    for path, label, style in ((servoed.prbm, "PRBM (the soft arm, seen by the camera)", "-"),
-                               (servoed.rbm, "RBM at the same joint angles", "--")):  # fmt: skip
-        ax.plot(1e3 * np.hypot(path[:, 0], path[:, 1]), 1e3 * path[:, 2], style, label=label)
+    # RBM solid blue, PRBM dashed orange, as in Fig. 12
+    for path, label, style, colour in ((servoed.rbm, "RBM at the same joint angles", "-", "tab:blue"),
+                                       (servoed.prbm, "PRBM (the soft arm, seen by the camera)", "--",
+                                        "tab:orange")):  # fmt: skip
+        ax.plot(1e3 * np.hypot(path[:, 0], path[:, 1]), 1e3 * path[:, 2], style, color=colour, label=label)
     goal = 1e3 * servoed.target
     ax.plot(np.hypot(goal[0], goal[1]), goal[2], "k*", ms=10, label="target")
     ax.set(xlabel="horizontal reach (mm)", ylabel="z (mm)", title="visual servoing: side view")

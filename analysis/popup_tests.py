@@ -226,22 +226,32 @@ def table1(static_k: pd.DataFrame, impact: pd.DataFrame) -> pd.DataFrame:
     return t[cols].merge(paper, on="pressure_kpa", how="left")
 
 
-def table1_markdown(table: pd.DataFrame) -> str:
-    """Table 1 as a Markdown table: ours / the paper's for f_s, k, k̂, ĉ, and our ζ."""
+def table1_side_by_side(table: pd.DataFrame) -> pd.DataFrame:
+    """Table 1 as text cells "ours / paper's" for f_s, k, k̂, ĉ (N/A where a test has no value), our ζ,
+    indexed by pressure (kPa)."""
 
     def pair(a, b, fmt):
         return " / ".join("N/A" if pd.isna(v) else format(v, fmt) for v in (a, b))
 
-    lines = [
-        "| p (kPa) | f_s (Hz) | ζ | k (N·m/rad) | k̂ (N·m/rad) | ĉ (N·m·s/rad) |",
-        "|---|---|---|---|---|---|",
-    ]
-    for r in table.itertuples():
-        lines.append(
-            f"| {r.pressure_kpa:g} | {pair(r.f_s_hz, r.paper_f_s_hz, '.2f')} | {r.zeta:.4f} | "
-            f"{pair(r.k, r.paper_k, '.0f')} | {pair(r.k_hat, r.paper_k_hat, '.0f')} | "
-            f"{pair(r.c_hat, r.paper_c_hat, '.3f')} |"
-        )
+    rows = {
+        f"{r.pressure_kpa:g}": {
+            "f_s (Hz)": pair(r.f_s_hz, r.paper_f_s_hz, ".2f"),
+            "ζ": f"{r.zeta:.4f}",
+            "k (N·m/rad)": pair(r.k, r.paper_k, ".0f"),
+            "k̂ (N·m/rad)": pair(r.k_hat, r.paper_k_hat, ".0f"),
+            "ĉ (N·m·s/rad)": pair(r.c_hat, r.paper_c_hat, ".3f"),
+        }
+        for r in table.itertuples()
+    }
+    return pd.DataFrame.from_dict(rows, orient="index").rename_axis("p (kPa)")
+
+
+def table1_markdown(table: pd.DataFrame) -> str:
+    """Table 1 as a Markdown table: ours / the paper's for f_s, k, k̂, ĉ, and our ζ."""
+    side = table1_side_by_side(table)
+    header = [side.index.name, *side.columns]
+    lines = ["| " + " | ".join(header) + " |", "|---" * len(header) + "|"]
+    lines += ["| " + " | ".join([p, *row]) + " |" for p, row in zip(side.index, side.to_numpy(), strict=True)]
     return "\n".join(lines) + "\n\nEach cell: this work / seed 001 Table 1.\n"
 
 

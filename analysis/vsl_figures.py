@@ -191,7 +191,8 @@ def fig7_data(experiment2_df: pd.DataFrame, path: np.ndarray | None = None, n: i
             out["boxes"].append(vp.box_stats(g["error_m"].to_numpy(), label))
         rigid = rows[rows["pressure_bar"].isna() & np.isclose(rows["payload_g"], grams)]
         if len(rigid):
-            out["boxes"].append(vp.box_stats(rigid["error_m"].to_numpy(), f"{key}\nrigid ik"))
+            # the rigid arm has no pressure: its box is labelled by the payload alone
+            out["boxes"].append(vp.box_stats(rigid["error_m"].to_numpy(), f"{grams:g}g\nrigid ik"))
     return out
 
 
@@ -225,7 +226,8 @@ def fig7(experiment2_df: pd.DataFrame, out_dir: Path, versions: dict, path: np.n
                  medianprops={"color": "black"})  # fmt: skip
     for patch, b in zip(art["boxes"], boxes, strict=True):
         mode = b["label"].split()[-1]
-        patch.set_facecolor("tab:red" if b["label"].split("\n")[-1].startswith("rigid") else COLORS.get(mode))
+        rigid = b["label"].split("\n")[-1].startswith("rigid")
+        patch.set_facecolor("tab:gray" if rigid else COLORS.get(mode))
         patch.set_alpha(0.6)
     ax.set_ylabel("position error (mm)")
     ax.set_title("(b) position error: distance to the desired path", fontsize=9)

@@ -33,6 +33,8 @@ def test_figures_and_report_of_a_lab_with_only_a_campaign(campaign_dataset, tmp_
     table = res.tables["forward model: test error (mm), campaign, random split"]
     assert table.loc["forward-small-residual", "mean"] < 0.5 * table.loc["rigid model", "mean"]
     assert res.versions["dataset campaign"] == version
+    reg = res.tables["registration (tracker → base), campaign"].loc["vsl"]
+    assert 0 < reg["rms, selected (mm)"] < 1.0 and reg["selected"] <= reg["static points"]
     page = lab_report(lab, res).read_text()
     assert "error_heatmaps" in page and "not made (and why)" in page and "dataset experiment1" in page
 

@@ -81,6 +81,9 @@ def test_table1_recovers_the_twins_link2(table, link2):
     assert table["paper_k_hat"].tolist() == [321, 382, 405]
     md = pt.table1_markdown(table)
     assert md.count("\n| ") == len(table) and "N/A" in md
+    side = pt.table1_side_by_side(table)
+    assert side.loc["90", "k (N·m/rad)"] == "N/A / N/A"
+    assert side.loc["10", "k̂ (N·m/rad)"] == f"{table['k_hat'].iloc[0]:.0f} / 321"
 
 
 def test_static_points_below_wrinkling(curves):

@@ -28,7 +28,8 @@ print(len(static), "static sessions,", len(impact), "impact sessions")
 
 # %% [markdown]
 # Static characteristic: torque about link 2's virtual hinge against its angular deflection, mean of the
-# runs, per pressure and branch; then k by linear regression below the wrinkling moment M_w(p).
+# runs, per pressure and branch; then k by linear regression below the wrinkling moment M_w(p), on the
+# loading branch as the paper did (its first static tests only loaded the link).
 
 # %%
 curves = popup_tests.link_static_curves(static)
