@@ -103,3 +103,48 @@ def clock_fits(sessions: dict[str, dict], out_dir: Path, name: str = "clock_fits
         ax.set_ylabel(label)
     a1.set_title("device clocks against host time")
     return {"png": save(fig, out_dir, name), "table": df}
+
+
+def registration_residuals(data: pd.DataFrame, robot, registration: dict, out_dir: Path,
+                           name: str = "registration") -> dict:  # fmt: skip
+    """How well the tracker's registered tip agrees with the robot model at the dataset's static points.
+
+    Residual = measured tip in the base frame (the registered tracker, ``x_*``) − the model's tip at the
+    measured joints with the links' static deflection at the measured pressures and payload
+    (``pipeline.register.model_tip``). Left: |residual| against the sag the model predicts, the points the
+    registration was fitted on (the ``selected`` least-sagging ones, from the dataset card) marked off; right:
+    the residual's components over those points. Returns ``{"sag_mm", "residual_mm" (n, 3), "selected"}``."""
+    from pipeline.register import model_tip
+    from pipeline.tables import columns
+
+    rows = data[data["robot"] == robot.name]
+    q, p = columns(rows, "q"), columns(rows, "p")
+    payload = rows["payload_kg"].to_numpy(float)
+    tip = model_tip(robot, q, p, payload)
+    residual = 1e3 * (columns(rows, "x") - tip)
+    sag = 1e3 * np.linalg.norm(tip - model_tip(robot, q), axis=1)
+    n_selected = int(registration.get("selected", len(rows)))
+    selected = np.zeros(len(rows), bool)
+    selected[np.argsort(sag, kind="stable")[:n_selected]] = True
+    norm = np.linalg.norm(residual, axis=1)
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.8), layout="constrained")
+    a1.plot(sag[~selected], norm[~selected], ".", ms=2, color="tab:gray", alpha=0.5, rasterized=True,
+            label="other static points")  # fmt: skip
+    a1.plot(sag[selected], norm[selected], ".", ms=2, color="tab:blue", alpha=0.5, rasterized=True,
+            label=f"fitted on ({n_selected} least sag)")  # fmt: skip
+    a1.set_xlabel("sag the model predicts (mm)")
+    a1.set_ylabel("|measured − model tip| (mm)")
+    a1.set_title(f"{robot.name}: registration residuals", fontsize=10)
+    a1.legend(fontsize=8, markerscale=4)
+    a1.grid(alpha=0.3)
+    edges = np.linspace(-1.0, 1.0, 41)
+    for k, axis in enumerate("xyz"):
+        r = residual[selected, k]
+        a2.hist(np.clip(r, edges[0], edges[-1]), bins=edges, histtype="step", lw=1.3,
+                label=f"{axis}: mean {r.mean():+.3f}, std {r.std():.3f}")  # fmt: skip
+    a2.set_xlabel("residual component, fitted points (mm)")
+    a2.set_ylabel("points")
+    a2.legend(fontsize=8)
+    a2.grid(alpha=0.3)
+    return {"png": save(fig, out_dir, name), "sag_mm": sag, "residual_mm": residual, "selected": selected}

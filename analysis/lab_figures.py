@@ -107,9 +107,17 @@ def _models(lab: Path, datasets: dict, res: Results, out: Path) -> None:
     clocks = diagnostics.clock_fits(datasets["campaign"][2]["sessions"], out)
     _record(clocks["png"], versions)
     res.figures["clock_fits"] = clocks["png"]
-    res.tables["registration (tracker → base), campaign"] = registration_table(
-        datasets["campaign"][2]["registration"]
-    )
+    registration = datasets["campaign"][2]["registration"]
+    res.tables["registration (tracker → base), campaign"] = registration_table(registration)
+    from models.robot import load_robot
+
+    for robot_name, fitted in registration.items():
+        if "selected" not in fitted:  # borrowed from another dataset: its residuals are that one's
+            continue
+        name = f"registration_{robot_name}"
+        reg = diagnostics.registration_residuals(data, load_robot(robot_name), fitted, out, name)
+        _record(reg["png"], versions)
+        res.figures[name] = reg["png"]
 
 
 def registration_table(registration: dict) -> pd.DataFrame:
@@ -252,7 +260,7 @@ value."""
 
 SECTIONS = [
     ("Real-time sessions (the devices' drivers against the twin's emulators)", [], ["real-time sessions"]),
-    ("Datasets and models (ours)", ["clock_fits", "error_heatmaps", "learning_curves"],
+    ("Datasets and models (ours)", ["clock_fits", "registration_vsl", "error_heatmaps", "learning_curves"],
      ["forward model", "registration"]),
     ("Seed 000, Experiment 1 (Fig. 5)", ["fig5"], []),
     ("Seed 000, Experiment 2 (Figs. 6 and 7)", ["fig6", "fig7a", "fig7b"], ["Experiment 2"]),

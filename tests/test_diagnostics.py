@@ -1,11 +1,15 @@
-"""Our diagnostic figures plot exactly the numbers they are given."""
+"""Our diagnostic figures plot exactly the numbers they are given (or compute from a dataset)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from analysis import diagnostics
+from models.robot import load_robot
+from models.statics import static_deflection
+from pipeline.datasets import load_dataset
 
 
 def _card(seed):
@@ -39,3 +43,23 @@ def test_clock_fit_table_from_a_dataset_card(tmp_path):
     assert len(table) == 6 and set(table["device"]) == {"tracker", "servo_bus"}
     assert table.loc[table["device"] == "tracker", "drift_ppm"].tolist() == [0.0, 10.0, 20.0]
     assert isinstance(table, pd.DataFrame) and out["png"].is_file()
+
+
+def test_registration_residuals_are_the_cards_on_the_fitted_points(campaign_dataset, tmp_path):
+    """The figure's residuals are the registered tip minus the model's deflected tip, and over the points the
+    registration was fitted on they give back the dataset card's residual statistics."""
+    lab, version, data = campaign_dataset
+    _, card = load_dataset(lab / "datasets", "campaign", version)
+    fitted = card["registration"]["vsl"]
+    vsl = load_robot("vsl")
+    out = diagnostics.registration_residuals(data, vsl, fitted, tmp_path)
+    q = data[["q_0", "q_1", "q_2"]].to_numpy()
+    delta, _ = static_deflection(vsl, q, data[["p_0", "p_1"]].to_numpy(), data["payload_kg"].to_numpy())
+    expected = 1e3 * (data[["x_0", "x_1", "x_2"]].to_numpy() - vsl.chain().position(q, delta))
+    np.testing.assert_allclose(out["residual_mm"], expected, atol=1e-9)
+    sel = out["selected"]
+    assert sel.sum() == fitted["selected"]
+    rms = np.sqrt(np.mean(np.sum(expected[sel] ** 2, axis=1)))
+    assert rms == pytest.approx(1e3 * fitted["residuals_selected"]["rms_m"], rel=1e-6)
+    assert out["sag_mm"][sel].max() <= out["sag_mm"][~sel].min()  # the least-sagging points
+    assert out["png"].stat().st_size > 10_000 and (tmp_path / "registration.pdf").is_file()

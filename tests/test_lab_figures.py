@@ -26,7 +26,7 @@ def test_figures_and_report_of_a_lab_with_only_a_campaign(campaign_dataset, tmp_
     }
     run_grid(lab, grid)
     res = all_figures(lab, tmp_path / "figures")
-    assert {"error_heatmaps", "learning_curves", "clock_fits"} <= set(res.figures)
+    assert {"error_heatmaps", "learning_curves", "clock_fits", "registration_vsl"} <= set(res.figures)
     assert all(p.is_file() and p.with_suffix(".pdf").is_file() for p in res.figures.values())
     assert (tmp_path / "figures" / "error_heatmaps.json").is_file()  # which versions it was made from
     assert {"dataset experiment1", "dataset experiment2"} <= set(res.missing)  # named, with the reason
