@@ -24,14 +24,13 @@ def save(fig, out_dir: Path, name: str) -> Path:
 
 
 def cell_grid(per_cell: list[dict]) -> pd.DataFrame:
-    """A model card's per-cell records as a pressure-bin × payload table of mean tip error (mm)."""
+    """Per-cell records (``pipeline.metrics.cell_records``: model cards, baseline reports) as a pressure-bin ×
+    payload table of mean tip error (mm)."""
     df = pd.DataFrame(per_cell)
-    if {"pressure_lo_bar", "pressure_hi_bar", "payload_g"} <= set(df.columns):
-        value = "tip_mm_mean" if "tip_mm_mean" in df.columns else "mean_mm"
-        grid = df.pivot_table(index=["pressure_lo_bar", "pressure_hi_bar"], columns="payload_g", values=value)
-        grid.index = [f"{lo:g}–{hi:g}" for lo, hi in grid.index]  # sorted by pressure, then labelled
-        return grid
-    return df.pivot_table(index="pressure_bin", columns="payload_g", values="mean_mm", sort=True)
+    bins = ["pressure_lo_bar", "pressure_hi_bar"]
+    grid = df.pivot_table(index=bins, columns="payload_g", values="tip_mm_mean")
+    grid.index = [f"{lo:g}–{hi:g}" for lo, hi in grid.index]  # sorted by pressure, then labelled
+    return grid
 
 
 def error_heatmaps(grids: dict[str, pd.DataFrame], out_dir: Path, name: str = "error_heatmaps") -> dict:

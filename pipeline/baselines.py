@@ -292,9 +292,9 @@ def part_of(data: pd.DataFrame, split: str = "split_random", part: str = "train"
 
 
 def _report(errors_mm: np.ndarray, rows: pd.DataFrame) -> dict[str, Any]:
-    pressure = _cols(rows, ("p_0", "p_1")).mean(axis=1)  # the campaign drives both links alike
-    cells = metrics.per_cell_long(errors_mm, pressure, rows["payload_kg"].to_numpy(float))
-    return {"summary": metrics.summary(errors_mm), "per_cell": cells.to_dict("records")}
+    cells = metrics.cell_records({"tip_mm": errors_mm}, metrics.cell_pressure_pa(rows),
+                                 rows["payload_kg"].to_numpy(float))  # fmt: skip
+    return {"summary": metrics.summary(errors_mm), "per_cell": cells}
 
 
 def evaluate_forward(model: Baseline, data: pd.DataFrame, split: str = "split_random",

@@ -7,7 +7,7 @@ Inputs are SI (m, Pa, kg); outputs are in lab units with the unit in the name or
 from __future__ import annotations
 
 import itertools
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 import pandas as pd
@@ -109,3 +109,41 @@ def per_cell(
     table = table.loc[pressure_labels(pressure_edges_bar), list(payloads_g)]
     table.index.name, table.columns.name = "pressure", "payload_g"
     return table
+
+
+def cell_pressure_pa(rows: pd.DataFrame) -> np.ndarray:
+    """The pressure a row of D is binned by: the mean of its link pressures ``p_*`` (the protocols drive
+    both VSL links alike, so this is either of them up to the regulators' noise)."""
+    cols = [c for c in rows.columns if c.startswith("p_") and c[2:].isdigit()]
+    if not cols:
+        raise KeyError("no link pressure columns p_0, p_1, … in the rows")
+    return rows[cols].to_numpy(float).mean(axis=1)
+
+
+def cell_records(
+    errors: Mapping[str, ArrayLike],
+    pressure_pa: ArrayLike,
+    payload_kg: ArrayLike,
+    pressure_edges_bar: Sequence[float] = PRESSURE_EDGES_BAR,
+    payloads_g: Sequence[int] = PAYLOADS_G,
+) -> list[dict]:
+    """The per-cell table as JSON-ready records, the one format of model cards and baseline reports: per
+    non-empty pressure bin × payload, ``pressure_bin`` (label), ``pressure_lo_bar``, ``pressure_hi_bar``,
+    ``payload_g``, ``n`` and ``<name>_mean`` for each error series of ``errors`` (e.g. ``tip_mm``).
+
+    Measured pressures just outside the grid (regulator noise around 0.5 or 2 bar) join the end bins."""
+    edges = np.asarray(pressure_edges_bar, float)
+    p = np.clip(np.asarray(pressure_pa, float), edges[0] * PA_PER_BAR, edges[-1] * PA_PER_BAR)
+    table, keys = None, ["pressure_bin", "payload_g"]
+    for name, e in errors.items():
+        long = per_cell_long(e, p, payload_kg, pressure_edges_bar, payloads_g)
+        long = long.rename(columns={"mean_mm": f"{name}_mean", "count": "n"})
+        table = long if table is None else table.merge(long.drop(columns="n"), on=keys)
+    if table is None:
+        return []
+    labels = pressure_labels(pressure_edges_bar)
+    lo_hi = dict(zip(labels, itertools.pairwise(pressure_edges_bar), strict=True))
+    table.insert(1, "pressure_lo_bar", [lo_hi[b][0] for b in table["pressure_bin"]])
+    table.insert(2, "pressure_hi_bar", [lo_hi[b][1] for b in table["pressure_bin"]])
+    table["payload_g"] = table["payload_g"].astype(int)
+    return table[table["n"] > 0].to_dict("records")

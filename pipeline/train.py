@@ -20,11 +20,9 @@ import torch
 from models import kinematics
 from models.hybrid import HybridNet, NetConfig
 from models.robot import AnthropomorphicKinematics, load_robot
+from pipeline import metrics as pipeline_metrics
 
 log = logging.getLogger(__name__)
-
-PRESSURE_BINS_BAR = (0.5, 1.0, 1.5, 2.0)  # p_0 bins of the per-cell table; outside points join the end bins
-BAR = 1e5
 
 
 @dataclass(frozen=True)
@@ -200,22 +198,6 @@ def _summary(err: np.ndarray, prefix: str, unit: str) -> dict[str, float]:
     }
 
 
-def _per_cell(rows: pd.DataFrame, errs: dict[str, np.ndarray]) -> list[dict]:
-    """Mean errors per p_0 bin × payload (g), as records."""
-    edges = np.asarray(PRESSURE_BINS_BAR) * BAR
-    k = np.clip(np.searchsorted(edges, rows["p_0"].to_numpy(float), side="right") - 1, 0, len(edges) - 2)
-    table = pd.DataFrame(
-        {"bin": k, "payload_g": np.round(rows["payload_kg"].to_numpy(float) * 1e3).astype(int)}
-        | {f"{name}_mean": e for name, e in errs.items()}
-    )
-    out = []
-    for (b, g), cell in table.groupby(["bin", "payload_g"], sort=True):
-        rec = {"pressure_lo_bar": PRESSURE_BINS_BAR[b], "pressure_hi_bar": PRESSURE_BINS_BAR[b + 1]}
-        rec |= {"payload_g": int(g), "n": len(cell)}
-        out.append(rec | {c: float(cell[c].mean()) for c in cell.columns if c.endswith("_mean")})
-    return out
-
-
 def metrics(direction: str, pred: np.ndarray, rows: pd.DataFrame) -> dict:
     """Error summary of predictions ``pred`` (n, 3) for ``rows`` of D (see :func:`evaluate`)."""
     net = NetConfig(direction)
@@ -224,7 +206,9 @@ def metrics(direction: str, pred: np.ndarray, rows: pd.DataFrame) -> dict:
     if direction == "inverse":
         out |= _summary(errs["joint_mrad"], "joint", "mrad")
     out |= _summary(errs["tip_mm"], "tip", "mm")
-    return out | {"per_cell": _per_cell(rows, errs)}
+    payload = rows["payload_kg"].to_numpy(float)
+    cells = pipeline_metrics.cell_records(errs, pipeline_metrics.cell_pressure_pa(rows), payload)
+    return out | {"per_cell": cells}
 
 
 def evaluate(model: HybridNet, data: pd.DataFrame, split: str = "split_random", part: str = "test") -> dict:

@@ -62,8 +62,9 @@ def test_shapes_names_and_json_parameters(forward, parts):
         params = json.loads(json.dumps(model.to_dict()))
         assert params["direction"] == "forward"
         assert report["summary"]["n"] == len(test)
-        assert sum(c["count"] for c in report["per_cell"]) <= len(test)
-        assert {"pressure_bin", "payload_g", "mean_mm", "count"} <= set(report["per_cell"][0])
+        assert sum(c["n"] for c in report["per_cell"]) == len(test)  # the card format (pipeline.metrics)
+        keys = {"pressure_lo_bar", "pressure_hi_bar", "payload_g", "tip_mm_mean", "n"}
+        assert keys <= set(report["per_cell"][0])
 
 
 def test_grey_box_and_regressors_beat_the_rigid_model(forward):

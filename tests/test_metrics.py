@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from pipeline import metrics
@@ -55,3 +56,26 @@ def test_per_cell_custom_edges():
         [2.0, 4.0], [0.6e5, 1.6e5], [0.0, 0.0], pressure_edges_bar=(0.5, 2.0), payloads_g=(0,)
     )
     assert mean.shape == (1, 1) and mean.iloc[0, 0] == 3.0
+
+
+def test_cell_records_one_format_for_cards_and_baselines():
+    """Records per non-empty cell with both error series; pressures just outside the grid join the end
+    bins; the means are those of a plain group-by."""
+    rng = np.random.default_rng(5)
+    n = 400
+    p_bar = rng.uniform(0.48, 2.02, n)
+    grams = rng.choice([0, 50, 100], n)
+    tip, joint = rng.exponential(1.0, n), rng.exponential(3.0, n)
+    records = metrics.cell_records({"tip_mm": tip, "joint_mrad": joint}, p_bar * 1e5, grams / 1e3)
+    assert sum(r["n"] for r in records) == n
+    assert {r["payload_g"] for r in records} == {0, 50, 100}
+    b = np.clip(np.searchsorted([1.0, 1.5], p_bar, side="right"), 0, 2)  # bins [.5,1) [1,1.5) [1.5,2]
+    lo = np.array([0.5, 1.0, 1.5])[b]
+    for r in records:
+        sel = (lo == r["pressure_lo_bar"]) & (grams == r["payload_g"])
+        assert r["pressure_hi_bar"] == r["pressure_lo_bar"] + 0.5 and r["n"] == sel.sum()
+        assert r["tip_mm_mean"] == pytest.approx(tip[sel].mean())
+        assert r["joint_mrad_mean"] == pytest.approx(joint[sel].mean())
+        assert r["pressure_bin"] == f"{r['pressure_lo_bar']:.1f}–{r['pressure_hi_bar']:.1f} bar"
+    rows = pd.DataFrame({"p_0": [1e5, 2e5], "p_1": [1.2e5, 1.8e5]})
+    np.testing.assert_allclose(metrics.cell_pressure_pa(rows), [1.1e5, 1.9e5])

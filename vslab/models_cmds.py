@@ -121,7 +121,7 @@ def models_show(
     console.print(table)
     if cells:
         cols = list(cells[0])
-        cell_table = Table(*cols, title="per cell (p_0 bin × payload)")
+        cell_table = Table(*cols, title="per cell (link pressure bin × payload)")
         for cell in cells:
             cell_table.add_row(
                 *(f"{cell[c]:.3g}" if isinstance(cell[c], float) else str(cell[c]) for c in cols)
