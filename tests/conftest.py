@@ -1,4 +1,4 @@
-"""Shared fixtures: emulator hosts run in their own process, as on the bench."""
+"""Shared fixtures: the robot descriptions; emulator hosts run in their own process, as on the bench."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from mcap_ros2.decoder import DecoderFactory
 
 from acquisition.schemas.fast_read import read_fixed_topics
 from acquisition.sim.ptyhost import wait_for_ports
+from models.robot import load_robot
 
 
 @contextlib.contextmanager
@@ -81,3 +82,19 @@ def campaign_dataset(tmp_path_factory):
     report = build(sorted((lab / "sessions").iterdir()), lab, "campaign")
     data, _ = load_dataset(lab / "datasets", "campaign", report.version)
     return lab, report.version, data
+
+
+# The robot descriptions (frozen models): loaded once for the whole run.
+@pytest.fixture(scope="session")
+def vsl():
+    return load_robot("vsl")
+
+
+@pytest.fixture(scope="session")
+def rigid():
+    return load_robot("vsl_rigid")
+
+
+@pytest.fixture(scope="session")
+def popup():
+    return load_robot("popup")

@@ -8,14 +8,8 @@ import pytest
 
 from acquisition.plans import protocols
 from models import kinematics
-from models.robot import load_robot
 from pipeline import datasets
 from pipeline.cache import StageCache, stage_key
-
-
-@pytest.fixture(scope="module")
-def vsl():
-    return load_robot("vsl")
 
 
 def _rows(vsl, n=200, seed=0):

@@ -15,14 +15,8 @@ from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
 from acquisition.sim.world import World
 from models import kinematics, trajectories
-from models.robot import load_robot
 
 BAR, GRAM = 1e5, 1e-3
-
-
-@pytest.fixture(scope="module")
-def vsl():
-    return load_robot("vsl")
 
 
 def test_static_compensation_lands_the_settled_tip_on_target(vsl):

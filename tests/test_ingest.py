@@ -18,15 +18,9 @@ from acquisition.recorder.writer import RotationPolicy, SessionWriter
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
-from models.robot import load_robot
 from pipeline.clean import OUTLIER, clean
 from pipeline.ingest import IngestError, ingest_session, source_hash
 from pipeline.tables import EVENT_COLUMNS
-
-
-@pytest.fixture(scope="module")
-def vsl():
-    return load_robot("vsl")
 
 
 @pytest.fixture(scope="module")

@@ -9,19 +9,8 @@ from acquisition.plans import protocols
 from acquisition.plans.plan import Plan, PlanBuilder
 from acquisition.schemas.events import Event, EventKind
 from models import kinematics, trajectories
-from models.robot import load_robot
 
 BAR, GRAM = 1e5, 1e-3
-
-
-@pytest.fixture(scope="module")
-def vsl():
-    return load_robot("vsl")
-
-
-@pytest.fixture(scope="module")
-def rigid():
-    return load_robot("vsl_rigid")
 
 
 def _builder(name: str = "test/plan") -> PlanBuilder:

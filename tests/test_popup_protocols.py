@@ -15,7 +15,6 @@ from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.fast_read import read_fixed_topics
 from models import prbm
-from models.robot import load_robot
 
 SEED = 3
 REDUCED = {
@@ -23,11 +22,6 @@ REDUCED = {
     "popup_impact": {"pressures_kpa": [20, 80], "taps": 3, "record_s": 2.0, "settle_s": 2.0},
     "popup_deploy": {},
 }
-
-
-@pytest.fixture(scope="module")
-def popup():
-    return load_robot("popup")
 
 
 def _plans(name: str, popup, **overrides) -> tuple[dict, list[Plan]]:

@@ -20,16 +20,10 @@ from acquisition.schemas import topics as T
 from acquisition.schemas.events import EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
 from acquisition.sim.ptyhost import send_control
-from models.robot import load_robot
 
 RIG = {"module": "acquisition.sim.rig", "extra": ("--robot", "vsl")}
 ROOT = Path(__file__).resolve().parents[1]
 BAR = 1e5
-
-
-@pytest.fixture(scope="module")
-def vsl():
-    return load_robot("vsl")
 
 
 def _plan(name="test/rt"):

@@ -16,16 +16,6 @@ from models.statics import gravity_moments, static_deflection
 BAR, KPA = 1e5, 1e3
 
 
-@pytest.fixture(scope="module")
-def vsl():
-    return load_robot("vsl")
-
-
-@pytest.fixture(scope="module")
-def popup():
-    return load_robot("popup")
-
-
 @pytest.mark.parametrize(
     ("name", "q0", "pressure"), [("vsl", [0.0, 0.9, -1.6], 1.0 * BAR), ("popup", [0.3, 0.8, -1.2], 40 * KPA)]
 )

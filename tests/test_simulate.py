@@ -25,11 +25,6 @@ SEED = 1
 BLOCK_S = 0.01  # simulate()'s default command block
 
 
-@pytest.fixture(scope="module")
-def vsl():
-    return load_robot("vsl")
-
-
 def _part(directory: Path) -> Path:
     (part,) = sorted(directory.glob("*.mcap"))
     return part

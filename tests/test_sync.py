@@ -16,7 +16,6 @@ from acquisition.plans.sim_runner import TWIN_TRUTH, session_id, simulate
 from acquisition.schemas import topics as T
 from acquisition.schemas.fast_read import read_fixed_topics
 from acquisition.sim.clocks import unwrap_ticks
-from models.robot import load_robot
 from pipeline.clock import fit_clock, unwrap_stamps
 from pipeline.sync import STAMPS, interpolate, sync
 from pipeline.tables import EVENT_COLUMNS, SessionTables
@@ -25,11 +24,6 @@ SEED = 2  # World(vsl, batch=2, seed=2) draws pressure-board drifts of ≈ +3599
 SECONDS = 60.0
 DEVICES = {T.SERVO_STATE: "servo_bus", T.PRESSURE: "pressure_board", T.STEPPER: "stepper_board",
            T.TRACKER: "tracker"}  # fmt: skip
-
-
-@pytest.fixture(scope="module")
-def vsl():
-    return load_robot("vsl")
 
 
 def _plans(robot, seconds: float = SECONDS):

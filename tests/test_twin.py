@@ -23,16 +23,6 @@ TABLE1_F_S = {
 }
 
 
-@pytest.fixture(scope="module")
-def vsl():
-    return load_robot("vsl")
-
-
-@pytest.fixture(scope="module")
-def popup():
-    return load_robot("popup")
-
-
 def _link2_bench(popup):
     """POPUP's link 2 alone as the paper's cantilever test: no flange, no hysteresis (small amplitude)."""
     links = [
