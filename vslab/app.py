@@ -69,13 +69,14 @@ def _overrides(pairs: list[str]) -> dict:
     return out
 
 
-def inverse_compensator(version: str, robot_name: str):
-    """A registered inverse model as the runners' compensator for ``robot_name`` (fails clearly)."""
+def inverse_compensator(version: str, robot_name: str, lab: Path | None = None):
+    """A registered inverse model of ``lab`` (default: the CLI's) as the runners' compensator for
+    ``robot_name`` (fails clearly)."""
     from pipeline.in_loop import InverseModelCompensator
     from pipeline.registry import find, load_model
 
     try:
-        model, _ = load_model(find(Settings.lab / "models", version))
+        model, _ = load_model(find(Path(lab or Settings.lab) / "models", version))
     except (FileNotFoundError, ValueError) as exc:
         _fail(str(exc))
     if model.config.direction != "inverse":

@@ -121,7 +121,7 @@ def _experiment2(lab: Path, sessions: Path, inverse_version: str, seed: int, bor
     hybrid = {}
 
     def compensator(plan):
-        hybrid.setdefault(plan.robot, inverse_compensator(inverse_version, plan.robot))
+        hybrid.setdefault(plan.robot, inverse_compensator(inverse_version, plan.robot, lab))
         return hybrid[plan.robot]
 
     simulate_protocol("experiment2", sessions, seed=seed, inverse_model=compensator)
