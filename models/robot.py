@@ -210,12 +210,32 @@ class PneumaticsSpec(_Model):
 
 # ---------------------------------------------------------------------------------------------- sensors
 class PressureSensorSpec(_Model):
+    """The pressure transducers' calibration: gauge 0…full_scale_pa ↔ v_min…v_max V, read by a 16-bit ADC
+    (``adc_lsb_v`` per count). One line, used alike by the recorder (counts → Pa), the twin (Pa → counts,
+    plus noise) and the pipeline."""
+
     full_scale_pa: PositiveFloat
     v_min: float
     v_max: float
     adc_lsb_v: PositiveFloat
     adc_noise_v: NonNegFloat
     sample_rate_hz: PositiveFloat
+
+    @model_validator(mode="after")
+    def _span(self) -> PressureSensorSpec:
+        if self.v_max <= self.v_min:
+            raise ValueError(f"v_max ({self.v_max}) must be above v_min ({self.v_min})")
+        return self
+
+    def counts_to_pa(self, counts: np.ndarray) -> np.ndarray:
+        """Gauge pressure (Pa) of ADC counts."""
+        volts = np.asarray(counts, dtype=float) * self.adc_lsb_v
+        return (volts - self.v_min) / (self.v_max - self.v_min) * self.full_scale_pa
+
+    def pa_to_volts(self, pressure_pa: np.ndarray) -> np.ndarray:
+        """The transducer's output (V) for a gauge pressure, its range clipped (no noise, no ADC)."""
+        p = np.clip(np.asarray(pressure_pa, dtype=float), 0.0, self.full_scale_pa)
+        return self.v_min + p / self.full_scale_pa * (self.v_max - self.v_min)
 
 
 class ServoSensorSpec(_Model):
@@ -283,9 +303,13 @@ class HostLinkModel(_Model):
 
 
 class DeviceSpec(_Model):
-    """One device: where it is plugged in, its clock and its USB link to the host."""
+    """One device: which driver speaks to it, where it is plugged in, how often it is read (``rate_hz``:
+    the poll rate of a polled device, the stream rate of a streaming one, the frame rate of the tracker),
+    its clock and its USB link to the host."""
 
+    driver: str = Field(min_length=1)
     port: str = "auto"
+    rate_hz: PositiveFloat | None = None
     baud: int = Field(default=1_000_000, gt=0)
     ids: dict[str, int] = Field(default_factory=dict)
     clock: ClockSpecModel

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -15,6 +16,10 @@ from mcap_ros2.decoder import DecoderFactory
 from acquisition.schemas.fast_read import read_fixed_topics
 from acquisition.sim.ptyhost import wait_for_ports
 from models.robot import load_robot
+
+# The CLI's batch commands (train, simulate, build) lower their own process's priority for good; the tests
+# call them in this process, which must keep its priority for the real-time tests that follow.
+os.environ.setdefault("VSLAB_BATCH_NICE", "0")
 
 
 @contextlib.contextmanager

@@ -1,7 +1,11 @@
-"""The real-time recorder against the rig (the twin behind its emulators on ptys, in its own process)."""
+"""The real-time recorder (a supervisor, one daemon per device, a writer process) against the rig.
+
+Every test here asserts rates and losses, not only that a session completed; they hold on a busy computer
+(run them under `make test-under-load`)."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -10,7 +14,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+import psutil
 import pytest
+from mcap.reader import make_reader
 
 from acquisition.recorder.recorder import Recorder
 from acquisition.recorder.sessions import readable_parts, recover_session, session_info
@@ -18,86 +24,222 @@ from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
 from acquisition.sim.ptyhost import send_control
-from models.robot import load_robot
 
 RIG = {"module": "acquisition.sim.rig", "extra": ("--robot", "vsl")}
 ROOT = Path(__file__).resolve().parents[1]
+SAMPLED = {T.SERVO_STATE: "seq", T.PRESSURE: "seq", T.STEPPER: "seq", T.TRACKER: "frame"}
+DEVICE = {
+    T.SERVO_STATE: "servo_bus",
+    T.PRESSURE: "pressure_board",
+    T.STEPPER: "stepper_board",
+    T.TRACKER: "tracker",
+}
+SLOT_NUMBERED = {T.SERVO_STATE}  # numbered by poll slot: the numbers go on across a gap
+RATES = {T.SERVO_STATE: 1000.0, T.PRESSURE: 250.0, T.STEPPER: 100.0, T.TRACKER: 40.0}
 
 
-def _events(path: Path) -> list[Event]:
-    return [event for _, event in read_events(path)]
+def file_account(parts: list[Path], robot) -> dict[str, dict]:
+    """Each sampled stream's account computed from the files alone, with mcap's own reader: messages, rate,
+    and samples expected from the sequence numbers; across a gap the events mark (a device that may have
+    reset), or where a number does not follow, the time since the last sample at the stream's rate."""
+    topics = T.session_topics(robot)
+    seen: dict[str, list[tuple[int, int]]] = {topic: [] for topic in SAMPLED}
+    gaps: dict[str, list[int]] = {}
+    for part in parts:
+        with open(part, "rb") as f:
+            for _, channel, message in make_reader(f).iter_messages(topics=[*SAMPLED, T.EVENTS]):
+                if channel.topic == T.EVENTS:
+                    event = Event.decode(message.data)
+                    if event.kind == EventKind.DEVICE_GAP_START:
+                        gaps.setdefault(event.label, []).append(message.log_time)
+                    continue
+                rows = topics[channel.topic].message.decode(message.data)
+                seen[channel.topic].append((message.log_time, int(rows[SAMPLED[channel.topic]][0])))
+    out = {}
+    for topic, pairs in seen.items():
+        t, seq = (np.array(x, dtype=np.int64) for x in zip(*sorted(pairs), strict=True))
+        step = (np.diff(seq) % 2**32).astype(np.int64)
+        bridged = np.maximum(1, np.rint(np.diff(t) * RATES[topic] / 1e9)).astype(np.int64)
+        across_gap = np.zeros(len(step), bool)
+        if topic not in SLOT_NUMBERED:
+            for g in gaps.get(DEVICE[topic], []):
+                across_gap |= (t[:-1] <= g) & (t[1:] > g)
+        step = np.where((step >= 2**31) | across_gap, bridged, step)
+        duration = (t[-1] - t[0]) / 1e9
+        out[topic] = {"messages": len(t), "expected": 1 + int(step.sum()), "rate_hz": (len(t) - 1) / duration,
+                      "longest_gap_s": float(np.diff(t).max() / 1e9)}  # fmt: skip
+    return out
 
 
-def test_sigkilled_recorder_loses_at_most_the_last_half_second(host_factory, tmp_path):
-    """`vslab record` killed with SIGKILL: recovery keeps everything up to ~0.5 s before the kill."""
-    with host_factory(**RIG):
-        run_dir = tmp_path / "run"
-        lab = tmp_path / "lab"
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "vslab.cli", "--lab", str(lab), "--quiet", "record",
-             "--ports", str(run_dir), "--session", "killed"],
-            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-        )  # fmt: skip
-        session = lab / "sessions" / "killed"
-        deadline = time.monotonic() + 60
-        while not list(session.glob("*.mcap")) and time.monotonic() < deadline:
-            time.sleep(0.1)
-        time.sleep(3.0)
-        kill_ns = time.time_ns()
-        os.kill(proc.pid, signal.SIGKILL)
-        proc.wait()
-    info = session_info(session)
-    assert info.status == "recording" and len(info.torn) == 1  # killed: no summary, card never completed
-    (report,) = recover_session(session)
-    assert report.torn and report.messages > 0
-    assert readable_parts(session) == [report.output]
-    data = read_fixed_topics(report.output)
-    for topic in (T.SERVO_STATE, T.PRESSURE, T.TRACKER):
-        t = data[topic].log_time
-        assert kill_ns - t[-1] <= 0.5e9 + 0.1e9, (
-            f"{topic}: lost {(kill_ns - t[-1]) / 1e9:.2f} s"
-        )  # + scheduling
-        steady = t[t > t[0] + 1e9]  # after start-up (devices connect one by one)
-        assert np.max(np.diff(steady)) < 0.2e9, f"{topic}: a hole inside what survived"
-    assert session_info(session).torn == []
+def _card(directory: Path) -> dict:
+    return json.loads((directory / "session.json").read_text())
 
 
-def test_a_lost_device_is_a_marked_gap_and_the_others_keep_recording(host_factory, tmp_path):
+def _events(directory: Path) -> list[tuple[int, Event]]:
+    return [e for part in readable_parts(directory) for e in read_events(part)]
+
+
+def test_a_session_meets_its_rates_loses_nothing_and_its_file_agrees(
+    host_factory, tmp_path, vsl, ros2_agrees
+):
+    """Servo 1 kHz, pressure 250 Hz, stepper 100 Hz, tracker 40 Hz: every sample expected is received and
+    written; the account computed from the file with the mcap reader equals session.json's; the generic
+    ROS 2 decoder reads every message as the fast path does. VSLAB_RECORD_S sets the length (default 8 s)."""
+    seconds = float(os.environ.get("VSLAB_RECORD_S", "8"))
+    with host_factory(**RIG) as ports, Recorder(vsl, ports, tmp_path / "s", "rt") as rec:
+        time.sleep(seconds)
+    card = _card(tmp_path / "s")
+    assert card["status"] == "complete" and rec.write_error is None
+    account = file_account(readable_parts(tmp_path / "s"), vsl)
+    for topic, rate in RATES.items():
+        c, f = card["counters"][topic], account[topic]
+        assert c["lost"] == 0 and c["dropped"] == 0 and c["gaps"] == 0, (topic, c)
+        assert c["expected"] == c["received"] == c["written"] == f["messages"] == f["expected"], (topic, c, f)
+        assert f["rate_hz"] == pytest.approx(rate, rel=0.01), topic
+        assert f["messages"] >= rate * (seconds - 1.5), (topic, f)  # all along, after the connections
+    (part,) = readable_parts(tmp_path / "s")
+    ros2_agrees(part)
+
+
+def test_rate_override_polls_the_servos_faster(host_factory, tmp_path, vsl):
+    with host_factory(**RIG) as ports:
+        with Recorder(vsl, ports, tmp_path / "s", "fast", rates={"servo_bus": 1500}) as rec:
+            time.sleep(3.0)
+    c = rec.final[T.SERVO_STATE]
+    assert c["lost"] == 0 and c["expected"] == c["written"]
+    assert file_account(readable_parts(tmp_path / "s"), vsl)[T.SERVO_STATE]["rate_hz"] == pytest.approx(
+        1500, rel=0.01
+    )
+    assert json.loads(_card(tmp_path / "s")["rates_hz"])["servo_bus"] == 1500
+
+
+def test_an_unplugged_device_is_a_marked_gap_counted_lost_and_the_others_keep_recording(
+    host_factory, tmp_path, vsl
+):
     with host_factory(**RIG) as ports:
         run_dir = tmp_path / "run"
-        with Recorder(load_robot("vsl"), ports, tmp_path / "s", "gap"):
+        with Recorder(vsl, ports, tmp_path / "s", "gap"):
             time.sleep(1.0)
             send_control(run_dir, {"op": "fault", "device": "pressure_board", "kind": "unplug"})
             time.sleep(1.5)
             send_control(run_dir, {"op": "fault", "device": "pressure_board", "kind": "plug"})
-            time.sleep(2.5)
-    (part,) = readable_parts(tmp_path / "s")
-    kinds = [(e.kind, e.label) for e in _events(part)]
+            time.sleep(2.0)
+    kinds = [(e.kind, e.label) for _, e in _events(tmp_path / "s")]
     assert (EventKind.DEVICE_GAP_START, "pressure_board") in kinds
     assert (EventKind.DEVICE_GAP_END, "pressure_board") in kinds
-    data = read_fixed_topics(part)
+    account = file_account(readable_parts(tmp_path / "s"), vsl)
+    card = _card(tmp_path / "s")["counters"]
+    pressure = card[T.PRESSURE]
+    assert pressure["gaps"] == 1 and pressure["lost"] > 250  # > 1 s at 250 Hz
+    assert pressure["expected"] == pressure["received"] + pressure["lost"] == account[T.PRESSURE]["expected"]
+    assert account[T.PRESSURE]["longest_gap_s"] > 1.0
+    for topic in (T.SERVO_STATE, T.STEPPER, T.TRACKER):  # the other streams never noticed
+        assert card[topic]["lost"] == 0, topic
+        assert account[topic]["longest_gap_s"] < 2.5 / RATES[topic], topic
+
+
+def test_corrupted_replies_are_retried_in_place(host_factory, tmp_path, vsl):
+    """A few corrupted Sync Read replies: retried within their slot, no reconnection, no gap."""
+    with host_factory(**RIG) as ports, Recorder(vsl, ports, tmp_path / "s", "corrupt") as rec:
+        time.sleep(1.0)
+        send_control(tmp_path / "run", {"op": "fault", "device": "servo_bus", "kind": "corrupt", "count": 3})
+        time.sleep(1.0)
+    c = rec.final[T.SERVO_STATE]
+    assert c["gaps"] == 0 and c["lost"] <= 3 and c["expected"] == c["received"] + c["lost"]
+    assert not [e for _, e in _events(tmp_path / "s") if e.kind == EventKind.DEVICE_GAP_START]
+
+
+def test_a_killed_daemon_is_restarted_within_a_second_and_only_its_stream_has_a_gap(
+    host_factory, tmp_path, vsl
+):
+    with host_factory(**RIG) as ports, Recorder(vsl, ports, tmp_path / "s", "kill") as rec:
+        time.sleep(1.5)
+        pid = rec._children["servo_bus"].proc.pid
+        killed = time.monotonic_ns()
+        os.kill(pid, signal.SIGKILL)
+        time.sleep(3.0)
+    assert rec.restarts == {"servo_bus": 1}
+    events = _events(tmp_path / "s")
+    starts = [(t, e) for t, e in events if e.kind == EventKind.DEVICE_GAP_START and e.label == "servo_bus"]
+    ends = [(t, e) for t, e in events if e.kind == EventKind.DEVICE_GAP_END and e.label == "servo_bus"]
+    assert len(starts) == 1 and "SIGKILL" in starts[0][1].text and len(ends) == 1
+    assert ends[0][1].value < 1.0, "back within a second"
+    data = read_fixed_topics(readable_parts(tmp_path / "s")[0])
     servo_t = data[T.SERVO_STATE].log_time
-    steady = servo_t[servo_t > servo_t[0] + 0.5e9]  # after start-up (devices connect one by one)
-    assert np.max(np.diff(steady)) < 0.1e9  # the servo stream never stopped
-    pressure_t = data[T.PRESSURE].log_time
-    assert np.max(np.diff(pressure_t)) > 1.0e9  # the pressure stream has the gap ...
-    assert pressure_t[-1] > servo_t[-1] - 0.5e9  # ... and came back
+    offset = time.time_ns() - time.monotonic_ns()
+    after = servo_t[servo_t > killed + offset]
+    assert len(after) and (after[0] - (killed + offset)) / 1e9 < 1.0
+    c = rec.final[T.SERVO_STATE]
+    assert c["gaps"] == 1 and 0 < c["lost"] < 1000 and c["expected"] == c["received"] + c["lost"]
+    account = file_account(readable_parts(tmp_path / "s"), vsl)
+    assert account[T.SERVO_STATE]["expected"] == c["expected"]
+    for topic in (T.PRESSURE, T.STEPPER, T.TRACKER):  # no other stream with a gap over two periods
+        assert account[topic]["longest_gap_s"] <= 2.0 / RATES[topic] + 0.004, topic
+        assert rec.final[topic]["lost"] == 0, topic
 
 
-@pytest.mark.slow
-def test_a_real_time_session_meets_the_rates_and_reads_back_identically(host_factory, tmp_path, ros2_agrees):
-    """Acceptance: servo ≥ 500 Hz, pressure ≥ 200 Hz, tracker 40 Hz, nothing dropped, and the generic ROS 2
-    decoder agrees with the fast path on every message. VSLAB_RECORD_S sets the length (default 60 s)."""
-    seconds = float(os.environ.get("VSLAB_RECORD_S", "60"))
-    with host_factory(**RIG) as ports, Recorder(load_robot("vsl"), ports, tmp_path / "s", "rt") as rec:
-        time.sleep(seconds)
+def test_a_killed_writer_is_restarted_and_loses_at_most_a_fifth_of_a_second(host_factory, tmp_path, vsl):
+    with host_factory(**RIG) as ports, Recorder(vsl, ports, tmp_path / "s", "writer") as rec:
+        time.sleep(1.5)
+        os.kill(rec._children["writer"].proc.pid, signal.SIGKILL)
+        time.sleep(2.0)
+    assert rec.restarts == {"writer": 1} and rec.write_error is None
     info = session_info(tmp_path / "s")
+    assert info.status == "complete" and len(info.parts) == 2 and len(info.torn) == 1  # the killed part
+    (report,) = recover_session(tmp_path / "s")
+    assert report.torn and report.messages > 0
+    for topic, rate in RATES.items():
+        c = rec.final[topic]
+        assert c["lost"] == 0 and c["written"] + c["dropped"] == c["received"], (topic, c)
+        assert c["dropped"] <= 0.2 * rate + 1, (topic, c)  # what the killed writer had not made durable
+        account = file_account(readable_parts(tmp_path / "s"), vsl)[topic]
+        assert account["messages"] == c["written"], topic
+        assert account["longest_gap_s"] <= 0.2 + 2 / rate, topic
+
+
+def _record_cli(lab: Path, session: str, *args: str) -> subprocess.Popen:
+    cli = [sys.executable, "-m", "vslab.cli", "--lab", str(lab), "--quiet"]
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+    return subprocess.Popen([*cli, "record", "--session", session, *args], cwd=ROOT, **quiet)
+
+
+def test_a_killed_supervisor_leaves_no_process_and_a_whole_file(tmp_path, vsl):
+    """`vslab record --rig` killed with SIGKILL: every daemon, the writer and the rig end by themselves
+    within a second; the writer closes the session (whole, not torn) with ≤ 0.2 s lost per stream."""
+    lab = tmp_path / "lab"
+    proc = _record_cli(lab, "killed", "--rig")
+    session = lab / "sessions" / "killed"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not (session / "session.json").exists():
+        time.sleep(0.1)
+    time.sleep(3.0)
+    children = psutil.Process(proc.pid).children(recursive=True)
+    assert len(children) >= 6  # the rig, four daemons, the writer
+    kill_ns = time.time_ns()
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    _, alive = psutil.wait_procs(children, timeout=3.0)
+    assert not alive, f"orphans: {[(p.pid, p.cmdline()) for p in alive]}"
+    info = session_info(session)
     assert info.status == "complete" and not info.torn
-    rates = {topic: s.rate_hz for topic, s in info.streams.items()}
-    assert rates[T.SERVO_STATE] >= 500
-    assert rates[T.PRESSURE] >= 200
-    assert abs(rates[T.TRACKER] - 40.0) < 0.5
-    for topic, c in rec.writer.counters.items():
-        assert c.dropped == 0 and c.written == c.received, topic
-    (part,) = info.parts
-    ros2_agrees(part)
+    kinds = [e for _, e in _events(session) if e.kind == EventKind.SESSION_END]
+    assert kinds and "supervisor died" in kinds[-1].text
+    data = read_fixed_topics(readable_parts(session)[0])
+    for topic in RATES:
+        t = data[topic].log_time
+        assert kill_ns - t[-1] <= 0.2e9, f"{topic}: lost {(kill_ns - t[-1]) / 1e9:.2f} s"
+    assert not list(Path("/dev/shm").glob(f"vslab-{proc.pid}-*"))
+
+
+def test_a_failing_live_view_never_stops_the_recording(host_factory, tmp_path, vsl, caplog):
+    class Broken:
+        def publish(self, *args):
+            raise OSError("viewer gone")
+
+    with host_factory(**RIG) as ports, Recorder(vsl, ports, tmp_path / "s", "broken", live=Broken()) as rec:
+        rec.event(Event(EventKind.NOTE, text="still recorded"))
+        time.sleep(0.5)
+    assert rec.write_error is None and rec.live_errors > 1
+    assert sum("live view failed" in r.message for r in caplog.records) == 1  # logged once
+    assert rec.final[T.SERVO_STATE]["lost"] == 0
+    assert session_info(tmp_path / "s").status == "complete"

@@ -62,7 +62,7 @@ def test_bad_control_commands_get_an_error_reply(host_factory, tmp_path, command
 
 def test_pressure_board_regulates_the_twin_and_streams_on_its_own_clock(host_factory, tmp_path):
     from acquisition.devices.boards import PressureBoard
-    from acquisition.sim import sensors, streams
+    from acquisition.sim import streams
 
     robot = load_robot("vsl")
     spec = streams.pressure_spec(robot)
@@ -78,7 +78,7 @@ def test_pressure_board_regulates_the_twin_and_streams_on_its_own_clock(host_fac
         board.stop_stream()
         assert len(samples) > 50
         counts = np.array([s.counts for s in samples[-20:]])
-        pa = sensors.adc_counts_to_pressure(counts, spec).mean(axis=0)
+        pa = spec.counts_to_pa(counts).mean(axis=0)
         np.testing.assert_allclose(pa, [120_000, 80_000], atol=1_500)
         truth = send_control(tmp_path / "run", {"op": "state"})["pressure_pa"]
         np.testing.assert_allclose(truth, [120_000, 80_000], rtol=1e-3)

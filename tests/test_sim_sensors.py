@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from acquisition.sim import sensors
+from models.robot import PressureSensorSpec
 
 
 def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -59,18 +60,22 @@ def test_signed_conversion_of_sdk_reads():
 
 
 def test_pressure_chain_round_trip():
-    spec = sensors.PressureSensorSpec(4e5, 0.5, 4.5, 125e-6, 30e-6)
+    spec = PressureSensorSpec(
+        full_scale_pa=4e5, v_min=0.5, v_max=4.5, adc_lsb_v=125e-6, adc_noise_v=30e-6, sample_rate_hz=250
+    )
     p = np.linspace(0, 2.5e5, 5000)
     counts = sensors.pressure_to_adc_counts(p, spec, np.random.default_rng(2))
     assert counts.dtype == np.int64
-    back = sensors.adc_counts_to_pressure(counts, spec)
+    back = spec.counts_to_pa(counts)
     pa_per_volt = 4e5 / 4.0
     assert np.abs(back - p).max() < (0.5 * 125e-6 + 5 * 30e-6) * pa_per_volt
     assert np.std(back - p) == pytest.approx(np.hypot(30e-6, 125e-6 / np.sqrt(12)) * pa_per_volt, rel=0.1)
 
 
 def test_pressure_clips_to_transducer_and_adc_ranges():
-    spec = sensors.PressureSensorSpec(4e5, 0.5, 4.5, 125e-6, 0.0)
+    spec = PressureSensorSpec(
+        full_scale_pa=4e5, v_min=0.5, v_max=4.5, adc_lsb_v=125e-6, adc_noise_v=0.0, sample_rate_hz=250
+    )
     counts = sensors.pressure_to_adc_counts(np.array([-1e5, 0.0, 3.9e5, 1e6]), spec, np.random.default_rng(0))
     np.testing.assert_array_equal(counts, [4000, 4000, 32767, 32767])  # 4.5 V is beyond the ±4.096 V range
 

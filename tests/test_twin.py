@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from acquisition.sim import sensors, streams
+from acquisition.sim import streams
 from acquisition.sim.survey import encoder_tip_error_mm, experiment1_survey
 from acquisition.sim.world import World
 from models import prbm
@@ -206,7 +206,7 @@ def test_pressure_stream_reads_back_within_sensor_noise(vsl):
     trace = world.run_for(1.0)
     s = streams.pressure_stream(vsl, world.clocks["pressure_board"], trace, world.dt, world.rng)
     spec = vsl.sensors.pressure
-    p = sensors.adc_counts_to_pressure(s["counts"], streams.pressure_spec(vsl))
+    p = vsl.sensors.pressure.counts_to_pa(s["counts"])
     pa_per_volt = spec.full_scale_pa / (spec.v_max - spec.v_min)
     assert np.abs(p - 1.5e5).max() < 6 * (spec.adc_noise_v + spec.adc_lsb_v) * pa_per_volt
     assert len(p) == pytest.approx(spec.sample_rate_hz, rel=0.02)

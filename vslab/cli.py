@@ -100,7 +100,11 @@ def demo(
 
     start = time.perf_counter()
     report = lab_job.run(
-        Settings.lab, seed=seed, quick=quick, say=lambda m: console.print(m, highlight=False)
+        Settings.lab,
+        seed=seed,
+        quick=quick,
+        say=lambda m: console.print(m, highlight=False),
+        batch_priority=True,
     )
     console.print(f"main job done in {time.perf_counter() - start:.0f} s; the report: {report.resolve()}")
 
@@ -132,6 +136,10 @@ def simulate(
 ) -> None:
     """Run a protocol on the twin in simulated time: the same sessions as on the rig, much faster."""
     import time
+
+    from acquisition.processes import lower_priority
+
+    lower_priority()  # batch work: a recording on this computer goes first
 
     import numpy as np
     from rich.progress import Progress
@@ -196,6 +204,10 @@ def build(
     Every stage is cached: building again with nothing changed does no work."""
     import concurrent.futures as cf
     import time
+
+    from acquisition.processes import lower_priority
+
+    lower_priority()  # batch work: a recording on this computer goes first
 
     from rich.progress import Progress
 

@@ -24,8 +24,11 @@ from pathlib import Path
 QUICK = {"campaign": {"points": 4000}, "experiment1": {"repetitions": 3}}  # --quick: a smaller lab
 
 
-def run(lab: Path, seed: int = 0, quick: bool = False, say: Callable[[str], None] = print) -> Path:
-    """Run every step into ``lab``; returns the report's path."""
+def run(lab: Path, seed: int = 0, quick: bool = False, say: Callable[[str], None] = print,
+        batch_priority: bool = False) -> Path:  # fmt: skip
+    """Run every step into ``lab``; returns the report's path. ``batch_priority``: this process runs the
+    steps after the real-time session at a batch priority (the CLI's choice; a caller that goes on with other
+    work, a test run, keeps its own)."""
     from acquisition.plans.sim_runner import simulate_protocol
     from pipeline.build import build
 
@@ -44,6 +47,12 @@ def run(lab: Path, seed: int = 0, quick: bool = False, say: Callable[[str], None
     step("real-time session on the rig")
     _rig_session(lab)
     done("real-time session on the rig")
+    if (
+        batch_priority
+    ):  # the rest is batch work (lowered after the real-time session: it cannot be raised back)
+        from acquisition.processes import lower_priority
+
+        lower_priority()
 
     step("simulated campaign, Experiment 1, POPUP tests")
     for protocol in ("campaign", "experiment1", "popup_static", "popup_impact", "popup_deploy"):

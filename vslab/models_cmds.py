@@ -37,6 +37,10 @@ def train(
     import concurrent.futures as cf
     import multiprocessing
 
+    from acquisition.processes import lower_priority
+
+    lower_priority()  # batch work (and its worker processes): a recording on this computer goes first
+
     from rich.progress import Progress
 
     from pipeline.grid import GridError, expand, load_grid, run_grid

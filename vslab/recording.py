@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -21,6 +22,30 @@ RIG_HELP = "Start a rig (the twin behind emulators) and use its devices."
 LiveOption = Annotated[bool, typer.Option("--live", help="Serve the streams to Foxglove over WebSocket.")]
 LiveHost = Annotated[str, typer.Option(help="Address the live view binds to.")]
 LivePort = Annotated[int, typer.Option(help="Port of the live view (0: any free one).")]
+RateOption = Annotated[
+    list[str] | None,
+    typer.Option("--rate", help="A device's rate over the robot description's: DEVICE=HZ (repeatable)."),
+]
+
+
+def _rates(pairs: list[str] | None, desc) -> dict[str, float]:
+    """``--rate servo_bus=1000`` → {"servo_bus": 1000.0}, each checked against the robot's devices."""
+    out = {}
+    for pair in pairs or []:
+        name, sep, value = pair.partition("=")
+        name = name.strip()
+        try:
+            hz = float(value)
+        except ValueError:
+            hz = float("nan")
+        if not sep or not hz > 0 or hz == float("inf"):
+            _fail(f"--rate takes DEVICE=HZ with a positive rate, got {pair!r}")
+        if name not in desc.devices:
+            _fail(
+                f"--rate {pair}: {desc.name} has no device {name!r} (its devices: {', '.join(desc.devices)})"
+            )
+        out[name] = hz
+    return out
 
 
 @contextlib.contextmanager
@@ -32,17 +57,33 @@ def _devices(desc, ports: Path | None, rig: bool, session_id: str):
     rig_proc = None
     if rig:
         ports = Settings.lab / "rig" / session_id
+        # its own session (Ctrl-C reaches only us, who stop it in order); it dies with us, even by SIGKILL
         rig_proc = subprocess.Popen(
-            [sys.executable, "-m", "acquisition.sim.rig", "--robot", desc.name, "--run-dir", str(ports)]
-        )
-    if ports is None:
-        _fail("say where the devices are: --ports <ports.json | rig run dir>, or --rig")
+            [sys.executable, "-m", "acquisition.sim.rig", "--robot", desc.name, "--run-dir", str(ports),
+             "--parent-pid", str(os.getpid())], start_new_session=True,
+        )  # fmt: skip
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
-        if rig or ports.is_dir():
-            yield wait_for_ports(ports, timeout_s=60), ports
+        if ports is None:
+            configured = {n: d.port for n, d in desc.devices.items() if d.port != "auto"}
+            if not configured:
+                _fail(f"say where the devices are: --ports <ports.json | rig run dir>, --rig, or a port for "
+                      f"each device in {desc.name}'s description (devices.<name>.port)")  # fmt: skip
+            yield configured, None
+        elif rig or ports.is_dir():
+            try:
+                yield wait_for_ports(ports, timeout_s=60), ports
+            except TimeoutError as exc:
+                _fail(str(exc))
         elif ports.is_file():
-            yield json.loads(ports.read_text()), None
+            try:
+                port_map = json.loads(ports.read_text())
+            except (ValueError, OSError) as exc:
+                _fail(f"{ports}: not a ports file ({exc})")
+            port_map = port_map.get("ports", port_map) if isinstance(port_map, dict) else None
+            if not isinstance(port_map, dict) or not all(isinstance(v, str) for v in port_map.values()):
+                _fail(f"{ports}: expected a JSON object of device name → port path")
+            yield port_map, None
         else:
             _fail(f"no ports file or rig directory at {ports}")
     finally:
@@ -52,14 +93,39 @@ def _devices(desc, ports: Path | None, rig: bool, session_id: str):
             rig_proc.wait(timeout=10)
 
 
-def _recorder(desc, port_map: dict, session_id: str, protocol: str, live: bool, host: str, port: int, **meta):
+def _recorder(desc, port_map: dict, session_id: str, protocol: str, rates: dict, live: bool, host: str,
+              port: int, **meta):  # fmt: skip
     """The session's Recorder (not started) and its live view (or a null context)."""
-    from acquisition.recorder.recorder import Recorder
+    from acquisition.recorder.recorder import Recorder, RecorderError
 
+    directory = Settings.lab / "sessions" / session_id
+    if directory.exists() and any(directory.glob("*.mcap")):
+        _fail(f"session {session_id} exists already in {directory.parent}: choose another --session")
+    try:
+        rec = Recorder(desc, port_map, directory, session_id, protocol=protocol, rates=rates,
+                       metadata={k: str(v) for k, v in meta.items()})  # fmt: skip
+    except RecorderError as exc:
+        _fail(str(exc))
+    if not rec.devices:
+        _fail(f"none of {desc.name}'s devices ({', '.join(desc.devices)}) is in the port map "
+              f"({', '.join(port_map) or 'empty'})")  # fmt: skip
     view = _live_view(desc, host, port) if live else contextlib.nullcontext()
-    rec = Recorder(desc, port_map, Settings.lab / "sessions" / session_id, session_id, protocol=protocol,
-                   metadata={k: str(v) for k, v in meta.items()})  # fmt: skip
     return rec, view
+
+
+@contextlib.contextmanager
+def _recording(rec):
+    """``with rec``, with a recorder that cannot start reported as one line."""
+    from acquisition.recorder.recorder import RecorderError
+
+    try:
+        rec.start()
+    except RecorderError as exc:
+        _fail(str(exc))
+    try:
+        yield rec
+    finally:
+        rec.stop()
 
 
 def _finish(rec) -> None:
@@ -67,8 +133,13 @@ def _finish(rec) -> None:
         console.print(f"[yellow]the live view failed {rec.live_errors} time(s); the file is complete[/]")
     if rec.write_error:
         _fail(f"the session writer failed: {rec.write_error}")
-    console.print(f"session {rec.writer.session_id}: {', '.join(p.name for p in rec.writer.parts)} in "
-                  f"{rec.writer.directory}")  # fmt: skip
+    lost = {t: c for t, c in (rec.final or {}).items() if c["lost"] or c["dropped"]}
+    for topic, c in lost.items():
+        console.print(f"[yellow]{topic}: {c['lost']:,} samples lost in {c['gaps']} gap(s), "
+                      f"{c['dropped']:,} dropped[/]")  # fmt: skip
+    for name, n in rec.restarts.items():
+        console.print(f"[yellow]{name} was restarted {n} time(s) (see /events)[/]")
+    console.print(f"session {rec.session_id}: {', '.join(p.name for p in rec.parts)} in {rec.directory}")
 
 
 @app.command()
@@ -79,6 +150,7 @@ def record(
     duration: Annotated[float, typer.Option(help="Seconds to record (0: until Ctrl-C).")] = 0.0,
     session: Annotated[str | None, typer.Option(help="Session id (default: time, robot).")] = None,
     protocol: Annotated[str, typer.Option(help="What this session is (stored in its metadata).")] = "manual",
+    rate: RateOption = None,
     live: LiveOption = False,
     live_host: LiveHost = "127.0.0.1",
     live_port: LivePort = 8765,
@@ -87,13 +159,16 @@ def record(
     from rich.live import Live
 
     desc = _robot(robot)
+    rates = _rates(rate, desc)
+    if duration < 0:
+        _fail(f"--duration must be ≥ 0 s, got {duration}")
     session_id = session or time.strftime("%Y%m%d-%H%M%S") + f"-{desc.name}"
     with _devices(desc, ports, rig, session_id) as (port_map, _):
-        rec, view = _recorder(desc, port_map, session_id, protocol, live, live_host, live_port)
+        rec, view = _recorder(desc, port_map, session_id, protocol, rates, live, live_host, live_port)
         with view as live_server:
             rec.live = live_server
             start = time.monotonic()
-            with rec, Live(console=console, refresh_per_second=2, transient=False) as counters:
+            with _recording(rec), Live(console=console, refresh_per_second=2, transient=False) as counters:
                 try:
                     while duration <= 0 or time.monotonic() - start < duration:
                         time.sleep(0.5)
@@ -115,6 +190,7 @@ def run(
     inverse_model: Annotated[
         str | None, typer.Option(help="Registered inverse model for hybrid commands.")
     ] = None,
+    rate: RateOption = None,
     live: LiveOption = False,
     live_host: LiveHost = "127.0.0.1",
     live_port: LivePort = 8765,
@@ -137,6 +213,7 @@ def run(
         _fail(f"{protocol} has no plan {plan!r}; its plans: " + ", ".join(p.name for p in plans[:10]) + " …")
     the_plan = chosen[0]
     desc = robots[the_plan.robot]
+    rates = _rates(rate, desc)
     commands = the_plan.parameters.get("commands", "ik")
     compensator = None
     if commands == "static":
@@ -151,11 +228,12 @@ def run(
     console.print(f"{the_plan.name}: {the_plan.duration_s:.1f} s on {desc.name}")
     with _devices(desc, ports, rig, session_id) as (port_map, rig_dir):
         on_payload, on_tap = _operator(rig_dir if rig else None)
-        rec, view = _recorder(desc, port_map, session_id, the_plan.parameters.get("protocol", protocol), live,
-                              live_host, live_port, plan=the_plan.name, runner="real-time")  # fmt: skip
+        name = the_plan.parameters.get("protocol", protocol)
+        rec, view = _recorder(desc, port_map, session_id, name, rates, live, live_host, live_port,
+                              plan=the_plan.name, runner="real-time")  # fmt: skip
         with view as live_server:
             rec.live = live_server
-            with rec:
+            with _recording(rec):
                 try:
                     report = RealTimeRunner(rec, the_plan, compensator, on_payload, on_tap).run()
                 except (SafetyError, RunnerError) as exc:
@@ -211,10 +289,12 @@ def _live_view(desc, host: str, port: int):
 
 
 def _counter_table(snapshot: dict, elapsed: float) -> Table:
-    table = Table("topic", "received", "written", "dropped", "rate Hz", title=f"recording {elapsed:.0f} s")
+    table = Table("topic", "expected", "received", "lost", "written", "dropped", "rate Hz",
+                  title=f"recording {elapsed:.0f} s")  # fmt: skip
     for topic, c in sorted(snapshot.items()):
         rate = c["received"] / elapsed if elapsed > 0 else 0.0
-        table.add_row(topic, f"{c['received']:,}", f"{c['written']:,}", str(c["dropped"]), f"{rate:.0f}")
+        counts = [f"{c[k]:,}" for k in ("expected", "received", "lost", "written", "dropped")]
+        table.add_row(topic, *counts, f"{rate:.0f}")
     return table
 
 
@@ -223,11 +303,13 @@ def sessions_list() -> None:
     """Sessions in the lab: robot, protocol, status, duration, streams, drops."""
     from acquisition.recorder.sessions import list_sessions
 
-    table = Table("session", "robot", "protocol", "status", "duration s", "messages", "dropped", "torn parts")
+    table = Table("session", "robot", "protocol", "status", "duration s", "messages", "lost", "dropped",
+                  "torn parts")  # fmt: skip
     for info in list_sessions(Settings.lab / "sessions"):
         table.add_row(
             info.id, info.robot, info.protocol, info.status, f"{info.duration_s:.1f}",
-            f"{sum(s.messages for s in info.streams.values()):,}", str(info.dropped), str(len(info.torn)),
+            f"{sum(s.messages for s in info.streams.values()):,}", f"{info.lost:,}", f"{info.dropped:,}",
+            str(len(info.torn)),
         )  # fmt: skip
     console.print(table)
 
@@ -241,16 +323,19 @@ def _session_dir(session: str) -> Path:
 
 @sessions_app.command("info")
 def sessions_info(session: Annotated[str, typer.Argument(help="Session id or directory.")]) -> None:
-    """One session's streams: messages, time span, rate, drops."""
+    """One session's streams: messages, time span, rate, and the recorder's account (expected, lost in
+    gaps, dropped)."""
     from acquisition.recorder.sessions import session_info
 
     info = session_info(_session_dir(session))
     table = Table(
-        "topic", "messages", "duration s", "rate Hz", "dropped",
+        "topic", "messages", "duration s", "rate Hz", "expected", "lost", "gaps", "dropped",
         title=f"{info.id}: {info.robot}, {info.protocol}, {info.status}, {len(info.parts)} part(s)",
     )  # fmt: skip
     for s in info.streams.values():
-        table.add_row(s.topic, f"{s.messages:,}", f"{s.duration_s:.2f}", f"{s.rate_hz:.1f}", str(s.dropped))
+        expected = "—" if s.expected is None else f"{s.expected:,}"
+        table.add_row(s.topic, f"{s.messages:,}", f"{s.duration_s:.2f}", f"{s.rate_hz:.1f}", expected,
+                      f"{s.lost:,}", str(s.gaps), f"{s.dropped:,}")  # fmt: skip
     console.print(table)
     for part in info.torn:
         console.print(f"[yellow]torn part[/yellow] {part.name}: run `vslab sessions recover {info.id}`")

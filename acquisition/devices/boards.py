@@ -115,6 +115,11 @@ class _Board(Device):
             f"{self.kind} on {self.port}: no answer to ID? within {self.open_timeout_s} s ({last})"
         )
 
+    def fileno(self) -> int:
+        """The port's file descriptor: readable when a line (a streamed sample, a reply) arrives."""
+        self._require_open()
+        return self._ser.fileno()
+
     def _close(self) -> None:
         if self._ser is not None:
             try:

@@ -1,6 +1,6 @@
 """The real-time runner: a plan executed on the devices (hardware or the rig) while a Recorder records.
 
-Commands go through the recorder's device workers (each owns its port), which record them as they are sent:
+Commands go through the recorder to the device daemons (each owns its port), which record them as sent:
 servo goals on ``/servo/goal``, pressure set-points and valves on ``/pressure/command``. The plan's clock is
 the host's monotonic clock, paused while the operator is busy (hanging a payload, tapping the link). Every
 ``1/check_hz`` the latest measured state is checked against the safety limits; a violation, a device silent
@@ -25,7 +25,6 @@ from acquisition.devices.base import host_now_ns
 from acquisition.plans.compensation import Compensator
 from acquisition.plans.plan import Plan
 from acquisition.recorder.recorder import Recorder
-from acquisition.recorder.workers import Sample
 from acquisition.safety import SafetyChecker, Violation
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
@@ -73,9 +72,6 @@ class RealTimeRunner:
         if servo_dev is not None:  # goals in the bus's id order
             names = [j.name for j in joints]
             self.servo_joints = [names.index(n) for n in servo_dev.ids if n in names]
-        self.servo = recorder.worker("servo_bus")
-        self.pressure = recorder.worker("pressure_board")
-        self.stepper = recorder.worker("stepper_board")
         self.commands = 0
         self._goal_seq = self._pressure_seq = 0
 
@@ -131,21 +127,21 @@ class RealTimeRunner:
         action(value)
         return time.monotonic() - before
 
+    def _needed(self) -> list[str]:
+        """The streams the plan commands by (and watches)."""
+        needed = [T.SERVO_STATE] if self.servo_joints else []
+        needed.append(T.PRESSURE)
+        return needed + ([T.STEPPER] if self.stepper_joints else [])
+
     def _require_devices(self, timeout_s: float = 5.0) -> None:
         """Every device the plan commands must be connected and streaming before the first command."""
-        needed = [(self.servo, T.SERVO_STATE)] if self.servo_joints else []
-        needed += [(self.pressure, T.PRESSURE)]
-        if self.stepper_joints:
-            needed.append((self.stepper, T.STEPPER))
         deadline = time.monotonic() + timeout_s
-        for worker, topic in needed:
-            if worker is None:
+        for topic in self._needed():
+            if not self.rec.has(topic):
                 raise RunnerError(f"plan {self.plan.name} needs a {topic} device; the recorder has none")
-            while topic not in worker.latest:
+            while self.rec.latest(topic) is None:
                 if time.monotonic() > deadline:
-                    raise RunnerError(
-                        f"no {topic} samples from {worker.device_name} ({worker.error or 'silent'})"
-                    )
+                    raise RunnerError(f"no {topic} samples ({self.rec.error(topic) or 'silent'})")
                 time.sleep(0.01)
 
     # --------------------------------------------------------------------------------------- sending
@@ -155,15 +151,15 @@ class RealTimeRunner:
         current = np.zeros(len(self.robot.joints))
         stamps = []
         if self.servo_joints:
-            s = self.servo.latest[T.SERVO_STATE]
+            s = self.rec.latest(T.SERVO_STATE)
             q[self.servo_joints] = s.values["position"]
             current[self.servo_joints] = s.values["current"]
             stamps.append(s.host_ns)
         if self.stepper_joints:
-            s = self.stepper.latest[T.STEPPER]
+            s = self.rec.latest(T.STEPPER)
             q[self.stepper_joints] = s.values["position"]
             stamps.append(s.host_ns)
-        s = self.pressure.latest[T.PRESSURE]
+        s = self.rec.latest(T.PRESSURE)
         stamps.append(s.host_ns)
         return q, np.asarray(s.values["pressure"], float), current, min(stamps)
 
@@ -173,51 +169,31 @@ class RealTimeRunner:
             _, pressure, current, _ = self._measured()
             q_cmd = self.compensator(q_cmd[None], pressure[None], current[None])[0]
         self._goal_seq += 1
-        seq, servo = self._goal_seq, self.robot.servo
         if self.servo_joints:
             joints = self.servo_joints
-            speed_s = np.where(speed[joints] > 0, speed[joints], servo.profile_velocity_rad_s)
-
-            def servo_goals() -> Sample:
-                bus = self.servo.bus
-                bus.set_profile_velocity(speed_s)
-                bus.write_goals(q_cmd[joints])
-                values = {"seq": seq, "position": q_cmd[joints], "profile_velocity": speed_s,
-                          "profile_acceleration": np.zeros(len(joints))}  # fmt: skip
-                return Sample(T.SERVO_GOAL, host_now_ns(), values)
-
-            self.servo.submit(servo_goals)
+            speed_s = np.where(speed[joints] > 0, speed[joints], self.robot.servo.profile_velocity_rad_s)
+            self.rec.command(T.SERVO_GOAL, {"op": "goals", "seq": self._goal_seq,
+                                            "position": q_cmd[joints].tolist(),
+                                            "profile_velocity": speed_s.tolist()})  # fmt: skip
         if self.stepper_joints:
             spec, j = self.robot.stepper, self.stepper_joints[0]
             steps = round(q_cmd[j] / spec.rad_per_microstep)
             rate = (speed[j] if speed[j] > 0 else spec.max_speed_rad_s) / spec.rad_per_microstep
             accel = spec.acceleration_rad_s2 / spec.rad_per_microstep
-
-            def stepper_goal() -> None:
-                self.stepper.board.set_speed(min(max(rate, 1.0), 4000.0), min(max(accel, 1.0), 100_000.0))
-                self.stepper.board.move_to(steps)
-
-            self.stepper.submit(stepper_goal)
+            self.rec.command(T.STEPPER, {"op": "move", "steps": steps, "speed": min(max(rate, 1.0), 4000.0),
+                                         "accel": min(max(accel, 1.0), 100_000.0)})  # fmt: skip
         self.commands += 1
 
     def _send_pressures(self, pressure_pa: np.ndarray, valves: np.ndarray) -> None:
         self._pressure_seq += 1
-        seq = self._pressure_seq
-
-        def pressures() -> Sample:
-            board = self.pressure.board
-            for ch, (pa, open_) in enumerate(zip(pressure_pa, valves, strict=True)):
-                board.set_pressure(ch, float(pa))
-                board.set_valve(ch, bool(open_))
-            values = {"seq": seq, "setpoint": pressure_pa, "valve_open": valves}
-            return Sample(T.PRESSURE_COMMAND, host_now_ns(), values)
-
-        self.pressure.submit(pressures)
+        self.rec.command(T.PRESSURE_COMMAND, {"op": "pressures", "seq": self._pressure_seq,
+                                              "setpoint": np.asarray(pressure_pa, float).tolist(),
+                                              "valve_open": np.asarray(valves, bool).tolist()})  # fmt: skip
         self.commands += 1
 
     def _send_torque(self, on: bool) -> None:
         if self.servo_joints:
-            self.servo.submit(lambda: self.servo.bus.set_torque(on))
+            self.rec.command(T.SERVO_GOAL, {"op": "torque", "on": on})
 
     # ---------------------------------------------------------------------------------------- safety
     def _check(self, t: float, payload_kg: float) -> tuple[str, str] | None:
@@ -226,8 +202,8 @@ class RealTimeRunner:
         # one whose samples are older than that is
         q, pressure, _, oldest = self._measured()
         if host_now_ns() - oldest > self.stale_ns:
-            lost = [w for w in (self.servo, self.pressure, self.stepper) if w is not None and not w.connected]
-            why = "; ".join(f"{w.device_name} lost: {w.error}" for w in lost) or "devices silent"
+            lost = [topic for topic in self._needed() if not self.rec.connected(topic)]
+            why = "; ".join(f"{topic} lost: {self.rec.error(topic)}" for topic in lost) or "devices silent"
             return "device", f"no fresh samples for {(host_now_ns() - oldest) / 1e9:.2f} s ({why})"
         allow = bool(self.plan.parameters.get("allow_wrinkling"))
         cmd = self.plan.at(np.array([t]))
@@ -243,9 +219,8 @@ class RealTimeRunner:
         """Hold the servos where they are, stop the stepper, keep the pressures; mark why."""
         log.warning("plan %s: safe stop at %.2f s: %s: %s", self.plan.name, t, limit, why)
         self.rec.event(Event(EventKind.SAFETY_STOP, label=limit, text=why))
-        if self.servo_joints and self.servo.connected and T.SERVO_STATE in self.servo.latest:
-            here = np.asarray(self.servo.latest[T.SERVO_STATE].values["position"], float)
-            self.servo.submit(lambda: self.servo.bus.write_goals(here))
-        if self.stepper_joints and self.stepper.connected:
-            self.stepper.submit(self.stepper.board.stop)
+        if self.servo_joints:
+            self.rec.command(T.SERVO_GOAL, {"op": "hold"})  # where its daemon last read them
+        if self.stepper_joints:
+            self.rec.command(T.STEPPER, {"op": "stop"})
         return RunReport(self.plan.name, status, t, f"{limit}: {why}", self.commands)

@@ -7,8 +7,7 @@ import numpy as np
 
 from acquisition.protocols import dynamixel as dx
 from acquisition.schemas import topics as T
-from acquisition.sim import sensors
-from acquisition.sim.streams import Stream, pressure_spec
+from acquisition.sim.streams import Stream
 from models.robot import RobotDescription
 
 TopicRows = tuple[np.ndarray, np.ndarray, np.ndarray]  # robot index, host log time (ns), message rows
@@ -40,7 +39,7 @@ def stream_rows(robot: RobotDescription, topics: dict[str, T.Topic], streams: di
                 "seq": s["seq"] % 2**32,
                 "micros": s["micros"],
                 "counts": counts,
-                "pressure": sensors.adc_counts_to_pressure(counts, pressure_spec(robot)),
+                "pressure": robot.sensors.pressure.counts_to_pa(counts),
                 "valve_open": valve_open[s["robot"]],
             }
         )

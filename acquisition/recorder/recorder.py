@@ -1,35 +1,47 @@
-"""The real-time recorder: device workers → one queue → one writer thread → one MCAP session.
+"""The recorder: a supervisor of one OS process per device, plus a writer process, for one MCAP session.
 
     with Recorder(robot, ports, sessions_dir / "s1", "s1") as rec:
-        time.sleep(60)              # or run a plan; rec.snapshot() gives live counters
-    # the session is closed: indexed parts, session.json with counters
+        time.sleep(60)              # or run a plan: rec.latest(topic), rec.command(topic, {...})
+    # the session is closed: indexed parts, session.json with every stream's account
 
-The writer thread drains the queue every ``batch_s`` and writes each topic's samples as one batch; the session
-writer flushes at least every ``flush_s``, so a killed recorder loses at most ``batch_s + flush_s`` of data.
+Each device the robot description names (``devices:``, with ``ports`` saying where each is plugged in) gets
+a daemon (:mod:`acquisition.recorder.daemon`) that owns its port and streams its samples into shared-memory
+rings (:mod:`acquisition.recorder.ring`); the writer process (:mod:`acquisition.recorder.writer_process`) is
+the only one that writes the file. The supervisor starts them, watches their heartbeats, restarts a daemon
+that dies or hangs (the gap marked in ``/events``; the other streams never notice) and a writer that dies (it
+goes on in a new part), and stops everything in order: daemons first, then the writer. Every child ends
+with the supervisor, even a SIGKILLed one, leaving its device safe: each holds one end of a socket whose
+other end only the supervisor process holds (its commands, and its lifeline: the kernel closes it when the
+supervisor dies; ``PR_SET_PDEATHSIG`` is no use here, it fires when the thread that started a child ends,
+and the watchdog thread restarts children). A plan runner reads the newest samples with
+:meth:`latest` and sends commands with :meth:`command`; the daemons record them as sent.
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
 import logging
-import queue
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
 import threading
 import time
-from collections import defaultdict
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from acquisition.devices.base import host_now_ns
-from acquisition.recorder.workers import (
-    DeviceWorker,
-    PressureWorker,
-    Sample,
-    ServoWorker,
-    StepperWorker,
-    TrackerWorker,
-)
-from acquisition.recorder.writer import RotationPolicy, SessionWriter
+from acquisition.recorder.daemon import EVENT_BYTES, push_event
+from acquisition.recorder.layout import SUPERVISOR, DeviceEntry, Layout
+from acquisition.recorder.ring import Ring
+from acquisition.recorder.sources import SOURCES, make_source
+from acquisition.recorder.status import DaemonStatus, Phase
+from acquisition.recorder.writer import RotationPolicy
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from models.robot import RobotDescription
@@ -39,21 +51,46 @@ if TYPE_CHECKING:  # the live view (foxglove) is imported only by those who use 
 
 log = logging.getLogger(__name__)
 
+RING_SECONDS = 30.0  # each ring holds this much of its stream: the writer may stall (or restart) this long
+WATCH_S = 0.05  # the supervisor looks at its children this often
+HANG_S = 2.0  # a daemon whose heartbeat is older than this (while not connecting) is killed and restarted
+CONNECT_S = 30.0  # a first connection (the tracker's handshake takes seconds) may take this long
+WRITER_RESTARTS = 5  # a writer that keeps dying (disk full, …) is not restarted forever
 
-def make_workers(robot: RobotDescription, ports: dict[str, str], out: queue.Queue, stop: threading.Event,
-                 servo_rate_hz: float = 550.0, board_rate_hz: int = 250) -> list[DeviceWorker]:  # fmt: skip
-    """One worker per device the robot has and ``ports`` names."""
-    workers: list[DeviceWorker] = []
-    if "servo_bus" in ports and "servo_bus" in robot.devices:
-        workers.append(ServoWorker(robot, ports["servo_bus"], servo_rate_hz, out, stop))
-    if "pressure_board" in ports:
-        workers.append(PressureWorker(robot, ports["pressure_board"], board_rate_hz, out, stop))
-    if "stepper_board" in ports and robot.stepper is not None:
-        rate = min(board_rate_hz, int(robot.stepper.report_rate_hz))
-        workers.append(StepperWorker(robot, ports["stepper_board"], rate, out, stop))
-    if "tracker" in ports:
-        workers.append(TrackerWorker(ports["tracker"], out, stop))
-    return workers
+
+class RecorderError(RuntimeError):
+    """The recording cannot start (no device to record, a device vslab has no driver for)."""
+
+
+@dataclass(frozen=True)
+class Latest:
+    """The newest sample of a topic: host receive time (monotonic ns) and its fields (``values["seq"]``)."""
+
+    host_ns: int
+    values: np.void
+
+
+class _Child:
+    """One child process (a daemon or the writer) and, for a daemon, its command socket."""
+
+    def __init__(self, name: str, proc: subprocess.Popen, commands: socket.socket | None) -> None:
+        self.name, self.proc, self.commands = name, proc, commands
+        self.started = time.monotonic()
+        self.lock = threading.Lock()
+
+    def send(self, cmd: dict) -> bool:
+        if self.commands is None or self.proc.poll() is not None:
+            return False
+        with self.lock:
+            try:
+                self.commands.sendall(json.dumps(cmd).encode() + b"\n")
+                return True
+            except OSError:
+                return False
+
+    def close(self) -> None:
+        if self.commands is not None:
+            self.commands.close()
 
 
 class Recorder:
@@ -65,31 +102,58 @@ class Recorder:
         session_id: str,
         protocol: str = "manual",
         metadata: dict[str, str] | None = None,
-        servo_rate_hz: float = 550.0,  # margin over the 500 Hz the lab needs: other threads steal the GIL
-        board_rate_hz: int = 250,
-        batch_s: float = 0.1,
-        flush_s: float = 0.4,
+        rates: dict[str, float] | None = None,  # device → Hz, over the robot description's
         rotation: RotationPolicy | None = None,
-        queue_size: int = 200_000,
+        batch_s: float = 0.05,
+        flush_s: float = 0.1,
+        stale_s: float = 0.5,
         live: LiveServer | None = None,  # started by the caller; shown what the file gets
     ) -> None:
         self.robot = robot
-        # drivers stamp with the monotonic clock (no jumps within a session); the file's log times are UNIX
-        # ns: monotonic + this offset, measured once and stored in the metadata
-        self.unix_offset_ns = time.time_ns() - time.monotonic_ns()
-        metadata = {**(metadata or {}), "host_clock": f"log_time = monotonic_ns + {self.unix_offset_ns}"}
-        self.writer = SessionWriter(directory, robot, session_id, protocol, metadata, flush_s=flush_s,
-                                    rotation=rotation)  # fmt: skip
-        self.queue: queue.Queue[Sample] = queue.Queue(maxsize=queue_size)
-        self.stop_event = threading.Event()
-        self.workers = make_workers(robot, ports, self.queue, self.stop_event, servo_rate_hz, board_rate_hz)
-        self.batch_s = batch_s
-        self._done = threading.Event()
-        self._thread = threading.Thread(target=self._write_loop, name="session-writer", daemon=True)
-        self.write_error: BaseException | None = None
+        self.directory = Path(directory)
+        self.session_id = session_id
+        rates = dict(rates or {})
+        unknown = sorted(set(rates) - set(robot.devices))
+        if unknown:
+            raise RecorderError(f"--rate names {', '.join(unknown)}: {robot.name}'s devices are "
+                                f"{', '.join(robot.devices)}")  # fmt: skip
+        devices = {}
+        for name, port in ports.items():
+            if name not in robot.devices:
+                continue
+            try:
+                source = make_source(robot, name, port, rates.get(name))
+            except ValueError as exc:
+                raise RecorderError(str(exc)) from None
+            devices[name] = DeviceEntry(name, source.driver, port, source.rate_hz, list(source.topics),
+                                        list(source.sampled_topics))  # fmt: skip
+        rotation = rotation or RotationPolicy()
+        now = time.monotonic_ns()
+        self.layout = Layout(
+            run_dir=Path(), session_dir=self.directory, session_id=session_id, protocol=protocol,
+            robot_json=robot.model_dump_json(), parent_pid=os.getpid(), t0_ns=now,
+            unix_offset_ns=time.time_ns() - time.monotonic_ns(), devices=devices,
+            metadata={**{k: str(v) for k, v in (metadata or {}).items()},
+                      "rates_hz": json.dumps({n: d.rate_hz for n, d in devices.items()})},
+            batch_s=batch_s, flush_s=flush_s, rotate_bytes=rotation.max_bytes,
+            rotate_seconds=rotation.max_seconds, stale_s=stale_s,
+        )  # fmt: skip
         self.live = live
         self.live_errors = 0  # live-view failures: logged once, counted, never stop the recording
+        self.write_error: str | None = None
+        self.restarts: dict[str, int] = {}
+        self.final: dict[str, dict] | None = None
+        self._children: dict[str, _Child] = {}
+        self._rings: dict[str, Ring] = {}
+        self._events: Ring | None = None
+        self._statuses: dict[str, DaemonStatus] = {}
+        self._owner = {topic: name for name, d in devices.items() for topic in d.topics}
+        self._event_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._started = self._stopped = False
 
+    # ----------------------------------------------------------------------------------- lifecycle
     def __enter__(self) -> Recorder:
         self.start()
         return self
@@ -97,90 +161,237 @@ class Recorder:
     def __exit__(self, *exc) -> None:
         self.stop()
 
+    @property
+    def devices(self) -> list[str]:
+        return list(self.layout.devices)
+
+    @property
+    def parts(self) -> list[Path]:
+        return sorted(self.directory.glob(f"{self.session_id}_[0-9][0-9][0-9].mcap"))
+
     def start(self) -> None:
-        self.writer.open()
-        self.event(Event(EventKind.SESSION_START, label=self.writer.session_id))
-        self._thread.start()
-        # one device at a time: a slow connection (the tracker's, whose library holds the GIL) must not stall
-        # the devices already streaming
-        for w in self.workers:
-            w.start()
-            w.ready.wait(timeout=30.0)
-
-    def worker(self, device: str) -> DeviceWorker | None:
-        """The worker that owns ``device`` ("servo_bus", "pressure_board", "stepper_board", "tracker")."""
-        return next((w for w in self.workers if w.device_name == device), None)
-
-    def event(self, event: Event) -> None:
-        """Mark something (plan step, payload change, note) at the current host time."""
-        self.queue.put(Sample(T.EVENTS, host_now_ns(), event))
+        """Create the rings, start the writer and every daemon; return once each device has answered (or
+        failed to: it then starts in a gap, and its daemon keeps trying)."""
+        layout = self.layout
+        self.directory.mkdir(parents=True, exist_ok=True)
+        layout.run_dir = Layout.new_run_dir(self.session_id)
+        self._started = True
+        try:
+            for entry in layout.devices.values():
+                for topic in entry.topics:
+                    message = T.session_topics(self.robot)[topic].message
+                    slots = max(1024, int(entry.rate_hz * RING_SECONDS)) if topic in entry.sampled else 4096
+                    self._rings[topic] = Ring.create(layout.ring(topic), slots, message.size)
+                self._statuses[entry.name] = DaemonStatus.create(layout.status(entry.name))
+            for producer in layout.producers:
+                ring = Ring.create(layout.events(producer), 2048, EVENT_BYTES)
+                if producer == SUPERVISOR:
+                    self._events = ring
+            self._layout_path = layout.save()
+            self.event(Event(EventKind.SESSION_START, label=self.session_id))
+            self._children["writer"] = self._spawn_writer(restarted=False)
+            for name in layout.devices:
+                self._children[name] = self._spawn_daemon(name, restarted=False)
+            self._wait_connected()
+        except BaseException:
+            self.stop()
+            raise
+        self._threads = [threading.Thread(target=self._watch, name="recorder-watch", daemon=True)]
+        if self.live is not None:
+            self._threads.append(threading.Thread(target=self._feed_live, name="recorder-live", daemon=True))
+        for t in self._threads:
+            t.start()
 
     def stop(self) -> None:
-        """Stop the workers, write what they queued, close the session (summary, counters)."""
-        if self._done.is_set():
+        """Stop the daemons (their devices left as they are), then the writer (it closes the session)."""
+        if self._stopped or not self._started:
             return
-        self.stop_event.set()
-        for w in self.workers:
-            w.join(timeout=5.0)
-        self.event(Event(EventKind.SESSION_END, label=self.writer.session_id))
-        self._done.set()
-        self._thread.join()
-        for w in self.workers:
-            for topic, n in w.received.items():
-                self.writer.counters[topic].received = n
-            for topic, n in w.dropped.items():
-                self.writer.counters[topic].dropped = n
-        self.writer.close()
+        self._stopped = True
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=2.0)
+        daemons = [c for name, c in self._children.items() if name != "writer"]
+        for child in daemons:
+            child.send({"op": "stop"})
+        for child in daemons:
+            _end(child.proc, 5.0)
+        self.event(Event(EventKind.SESSION_END, label=self.session_id))
+        writer = self._children.get("writer")
+        if writer is not None:
+            writer.send({"op": "stop"})
+            code = _end(writer.proc, 30.0)
+            if code != 0 and self.write_error is None:
+                self.write_error = f"the session writer exited with {code} (see {self.layout.log('writer')})"
+        self.final = self.snapshot()
+        for child in self._children.values():
+            child.close()
+        for ring in [*self._rings.values(), self._events]:
+            if ring is not None:
+                ring.close()
+        for status in self._statuses.values():
+            status.close()
+        shutil.rmtree(self.layout.run_dir, ignore_errors=True)
+
+    # ------------------------------------------------------------------------------ for the runner
+    def event(self, event: Event) -> None:
+        """Mark something (plan step, payload change, note) at the current host time."""
+        if self._events is not None:
+            with self._event_lock:
+                push_event(self._events, event)
+
+    def has(self, topic: str) -> bool:
+        """Whether a device of this recording writes (or takes commands on) ``topic``."""
+        return topic in self._owner
+
+    def latest(self, topic: str) -> Latest | None:
+        """The newest sample of ``topic`` (None before the first, or when no device writes it)."""
+        ring = self._rings.get(topic)
+        got = ring.latest() if ring is not None else None
+        if got is None:
+            return None
+        message = T.session_topics(self.robot)[topic].message
+        return Latest(got[0], np.frombuffer(got[1][: message.size].tobytes(), message.dtype)[0])
+
+    def command(self, topic: str, cmd: dict) -> bool:
+        """Send ``cmd`` to the daemon of the device that owns ``topic``; False when it cannot take it (the
+        daemon is restarting). A daemon whose device is lost drops it and says so in the events."""
+        child = self._children.get(self._owner.get(topic, ""))
+        return child is not None and child.send(cmd)
+
+    def connected(self, topic: str) -> bool:
+        status = self._statuses.get(self._owner.get(topic, ""))
+        return status is not None and status.connected
+
+    def error(self, topic: str) -> str:
+        name = self._owner.get(topic, "")
+        status = self._statuses.get(name)
+        return (status.error if status is not None else "") or f"no device writes {topic}"
 
     def snapshot(self) -> dict[str, dict[str, int]]:
-        """Live counters per topic: received (workers), written (writer), dropped (queue full)."""
-        out: dict[str, dict[str, int]] = defaultdict(lambda: {"received": 0, "written": 0, "dropped": 0})
-        for w in self.workers:
-            for topic, n in w.received.items():
-                out[topic]["received"] += n
-            for topic, n in w.dropped.items():
-                out[topic]["dropped"] += n
-        for topic, c in self.writer.counters.items():
-            if c.written or topic in out:
-                out[topic]["written"] = c.written
-        return dict(out)
+        """Every stream's account now: expected, received, lost, written, dropped, gaps."""
+        if self.final is not None:
+            return self.final
+        out = {}
+        for topic, ring in self._rings.items():
+            counts = ring.counts().as_dict()
+            if not any(topic in d.sampled for d in self.layout.devices.values()):
+                counts["expected"], counts["lost"] = counts["received"], 0
+            out[topic] = counts
+        return out
 
-    def _write_loop(self) -> None:
-        try:
-            while not self._done.is_set():
-                self._done.wait(self.batch_s)
-                self._drain()
-            self._drain()
-        except BaseException as exc:  # the session must still close; the caller sees the error
-            self.write_error = exc
-            log.exception("session writer failed")
+    def priorities(self) -> dict[str, str]:
+        """The scheduling each daemon got (SCHED_FIFO, a nice value, or normal)."""
+        return {name: s.priority for name, s in self._statuses.items()}
 
-    def _drain(self) -> None:
-        by_topic: dict[str, list[Sample]] = defaultdict(list)
-        while True:
-            try:
-                s = self.queue.get_nowait()
-            except queue.Empty:
-                break
-            by_topic[s.topic].append(s)
-        for topic, samples in by_topic.items():
-            if topic == T.EVENTS:
-                for s in samples:
-                    self.writer.event(s.values, s.host_ns + self.unix_offset_ns)
-                    self._feed_live(topic, [s.host_ns + self.unix_offset_ns], [s.values.encode()])
-                continue
-            message = self.writer.topics[topic].message
-            columns = {k: np.array([s.values[k] for s in samples]) for k in samples[0].values}
-            log_time = np.array([s.host_ns for s in samples], dtype=np.int64) + self.unix_offset_ns
-            rows = message.pack(columns, n=len(samples))
-            self.writer.write(topic, log_time, rows)
-            self._feed_live(topic, log_time, rows)
-        self.writer.flush_if_due()
+    # -------------------------------------------------------------------------------- children
+    def _spawn_daemon(self, name: str, restarted: bool) -> _Child:
+        ours, theirs = socket.socketpair()
+        cmd = [sys.executable, "-m", "acquisition.recorder.daemon", str(self._layout_path), name,
+               "--commands", str(theirs.fileno())] + (["--restarted"] if restarted else [])  # fmt: skip
+        proc = self._popen(name, cmd, pass_fds=(theirs.fileno(),))
+        theirs.close()
+        ours.settimeout(1.0)
+        return _Child(name, proc, ours)
 
-    def _feed_live(self, topic: str, log_time, messages) -> None:
-        """Show what was just written in the live view, if any; its failures never reach the file."""
-        if self.live is None:
+    def _spawn_writer(self, restarted: bool) -> _Child:
+        ours, theirs = socket.socketpair()
+        cmd = [sys.executable, "-m", "acquisition.recorder.writer_process", str(self._layout_path),
+               "--commands", str(theirs.fileno())] + (["--restarted"] if restarted else [])  # fmt: skip
+        proc = self._popen("writer", cmd, pass_fds=(theirs.fileno(),))
+        theirs.close()
+        ours.settimeout(1.0)
+        return _Child("writer", proc, ours)
+
+    def _popen(self, name: str, cmd: list[str], pass_fds: tuple[int, ...] = ()) -> subprocess.Popen:
+        log_path = self.layout.log(name)
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        with open(log_path, "ab") as stderr:  # tracebacks of a crashing child end up beside the session
+            return subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=stderr,
+                                    pass_fds=pass_fds, start_new_session=True)  # fmt: skip
+
+    def _wait_connected(self) -> None:
+        deadline = time.monotonic() + CONNECT_S
+        for name, status in self._statuses.items():
+            while status.phase in (Phase.STARTING, Phase.CONNECTING) and time.monotonic() < deadline:
+                if self._children[name].proc.poll() is not None:
+                    raise RecorderError(f"the {name} daemon failed to start (see {self.layout.log(name)})")
+                time.sleep(0.01)
+
+    def _watch(self) -> None:
+        """Restart what died or hangs, until the recording stops."""
+        while not self._stop.wait(WATCH_S):
+            now = time.monotonic_ns()
+            for name, child in list(self._children.items()):
+                if self._stop.is_set():
+                    return
+                code = child.proc.poll()
+                if name == "writer":
+                    if code is not None:
+                        self._restart_writer(code)
+                    continue
+                status = self._statuses[name]
+                if code is not None:
+                    self._restart_daemon(name, f"daemon exited ({_exit_text(code)})")
+                elif (
+                    status.phase in (Phase.STREAMING, Phase.GAP) and now - status.heartbeat_ns > HANG_S * 1e9
+                ):
+                    log.warning("%s daemon hangs (no heartbeat for %.1f s): killing it", name,
+                                (now - status.heartbeat_ns) / 1e9)  # fmt: skip
+                    child.proc.kill()
+                    child.proc.wait()
+                    self._restart_daemon(name, f"daemon hung (no heartbeat for {HANG_S} s)")
+
+    def _restart_daemon(self, name: str, why: str) -> None:
+        log.warning("%s: %s; restarting it", name, why)
+        self.restarts[name] = self.restarts.get(name, 0) + 1
+        entry = self.layout.devices[name]
+        if self._statuses[name].phase != Phase.GAP:  # a daemon already in a gap marked it
+            self.event(Event(EventKind.DEVICE_GAP_START, label=name, text=why))
+            for topic in entry.sampled:
+                self._rings[topic].note_gap()
+        if not SOURCES[entry.driver].slot_numbered:
+            for topic in entry.sampled:
+                self._rings[topic].restart_sequence()
+        self._children[name].close()
+        self._children[name] = self._spawn_daemon(name, restarted=True)
+
+    def _restart_writer(self, code: int) -> None:
+        self.restarts["writer"] = self.restarts.get("writer", 0) + 1
+        if self.restarts["writer"] > WRITER_RESTARTS:
+            self.write_error = (
+                f"the session writer keeps dying ({_exit_text(code)}; see {self.layout.log('writer')})"
+            )
+            self._stop.set()
             return
+        log.warning("the session writer %s; restarting it (a new part)", _exit_text(code))
+        self.event(Event(EventKind.NOTE, label="writer", text=f"writer {_exit_text(code)}; restarted"))
+        self._children["writer"] = self._spawn_writer(restarted=True)
+
+    def _feed_live(self) -> None:
+        """Show what the daemons produce in the live view (peeking: the writer still gets everything)."""
+        peekers = {topic: Ring.attach(ring.path) for topic, ring in self._rings.items()}
+        events = [Ring.attach(self.layout.events(p)) for p in self.layout.producers]
+        messages = T.session_topics(self.robot)
+        offset = self.layout.unix_offset_ns
+        while not self._stop.wait(0.02):
+            for topic, ring in peekers.items():
+                host_ns, _, payload = ring.peek()
+                if len(host_ns):
+                    size = messages[topic].message.size
+                    rows = (
+                        np.ascontiguousarray(payload[:, :size])
+                        .view(messages[topic].message.dtype)
+                        .reshape(-1)
+                    )
+                    self._publish(topic, host_ns + offset, rows)
+            for ring in events:
+                host_ns, lengths, payload = ring.peek()
+                for t, n, data in zip(host_ns, lengths, payload, strict=True):
+                    self._publish(T.EVENTS, [int(t) + offset], [bytes(data[:n])])
+        for ring in [*peekers.values(), *events]:
+            ring.close()
+
+    def _publish(self, topic: str, log_time, messages) -> None:
         try:
             self.live.publish(topic, log_time, messages)
         except Exception:
@@ -188,3 +399,23 @@ class Recorder:
             if self.live_errors == 1:
                 log.exception("live view failed on %s; recording goes on without it (counted in live_errors)",
                               topic)  # fmt: skip
+
+
+def _end(proc: subprocess.Popen, timeout_s: float) -> int:
+    """Wait for ``proc``; SIGTERM, then SIGKILL, if it will not end. Returns its exit code."""
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        return proc.wait(timeout=timeout_s)
+    proc.terminate()
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        return proc.wait(timeout=2.0)
+    proc.kill()
+    return proc.wait()
+
+
+def _exit_text(code: int) -> str:
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    return f"exited with code {code}"

@@ -25,7 +25,10 @@ class StreamInfo:
     messages: int = 0
     start_ns: int | None = None
     end_ns: int | None = None
+    expected: int | None = None  # the recorder's account (session.json); None for files without one
+    lost: int = 0
     dropped: int = 0
+    gaps: int = 0
 
     @property
     def duration_s(self) -> float:
@@ -56,6 +59,10 @@ class SessionInfo:
     @property
     def dropped(self) -> int:
         return sum(s.dropped for s in self.streams.values())
+
+    @property
+    def lost(self) -> int:
+        return sum(s.lost for s in self.streams.values())
 
 
 def readable_parts(directory: Path) -> list[Path]:
@@ -90,7 +97,9 @@ def session_info(directory: Path) -> SessionInfo:
         _stream_spans(part, summary, info.streams)
     for topic, c in counters.items():
         if topic in info.streams:
-            info.streams[topic].dropped = int(c.get("dropped", 0))
+            stream = info.streams[topic]
+            stream.expected = c.get("expected")
+            stream.lost, stream.dropped, stream.gaps = (int(c.get(k, 0)) for k in ("lost", "dropped", "gaps"))
     return info
 
 

@@ -42,11 +42,17 @@ def vslab_version() -> str:
 
 @dataclass
 class StreamCounters:
-    """Samples per topic: received from the device, written to the file, dropped (never written)."""
+    """Samples per topic: expected from the device (its rate, its sequence numbers), received from it, lost
+    (expected, never received: gaps, skipped polls), written to the file, dropped (received, never written:
+    a full ring, a killed writer), and the gaps the stream had. ``expected = received + lost`` and
+    ``received = written + dropped`` once the session is closed."""
 
+    expected: int = 0
     received: int = 0
+    lost: int = 0
     written: int = 0
     dropped: int = 0
+    gaps: int = 0
     first_ns: int | None = None
     last_ns: int | None = None
 
@@ -86,6 +92,7 @@ class SessionWriter:
         flush_s: float = 0.5,
         rotation: RotationPolicy | None = None,
         clock=time.monotonic,
+        resume: bool = False,
     ) -> None:
         self.directory = Path(directory)
         self.robot = robot
@@ -106,7 +113,10 @@ class SessionWriter:
             "python_version": platform.python_version(),
             **(metadata or {}),
         }
-        self.parts: list[Path] = []
+        # resume: a writer restarted after its predecessor was killed goes on in a new part after the old ones
+        self.parts: list[Path] = (
+            sorted(self.directory.glob(f"{session_id}_[0-9][0-9][0-9].mcap")) if resume else []
+        )
         self._part: _Part | None = None
         self._last_flush = clock()
         self._sequence: dict[str, int] = dict.fromkeys(self.topics, 0)
@@ -133,6 +143,10 @@ class SessionWriter:
             )
             self._finish_part()
             self._write_card("complete")
+
+    def write_card(self, status: str = "recording") -> None:
+        """Rewrite ``session.json`` now (a long recording keeps it current for whoever looks)."""
+        self._write_card(status)
 
     def _write_card(self, status: str) -> None:
         """``session.json`` beside the parts: what the session is, and how far it got."""
@@ -224,6 +238,7 @@ class SessionWriter:
         c = self.counters[topic]
         c.written += len(log_time)
         c.received = max(c.received, c.written + c.dropped)  # direct writers (the simulator) do not note
+        c.expected = max(c.expected, c.received + c.lost)
         first, last = int(log_time.min()), int(log_time.max())
         c.first_ns = first if c.first_ns is None else min(c.first_ns, first)
         c.last_ns = last if c.last_ns is None else max(c.last_ns, last)

@@ -1,4 +1,4 @@
-"""Serve emulators on pseudo-terminals: one select loop, stable port paths, faults, clean SIGTERM.
+"""Serve emulators on pseudo-terminals: an event-driven select loop, stable port paths, faults, clean SIGTERM.
 
 Each device gets a pty; its path is published as a symlink ``<run_dir>/<name>`` (stable across unplug and
 replug, which create a new pty) and listed in ``<run_dir>/ports.json``. A unix socket
@@ -77,7 +77,17 @@ class _Port:
 
 
 class PtyHost:
-    """Serve ``emulators`` until SIGTERM/SIGINT; ``tick(now)`` runs every loop (the twin steps there),
+    """Serve ``emulators`` until SIGTERM/SIGINT, event-driven: the loop sleeps in ``select`` until a port or
+    the control socket has input, an emulator's unsolicited output is due (``Emulator.next_output_s``), a
+    signal arrives (wake-up fd) or ``housekeeping_s`` has passed, whichever comes first. No fixed-period
+    polling: an idle host wakes 1/housekeeping_s times a second.
+
+    ``tick(now)`` brings what stands behind the emulators up to ``now`` (the rig steps its twin there). The
+    emulators' hardware advances itself whenever a device is read, written or streams, so the host calls
+    ``tick`` only (a) before each control command, so operator inputs and state queries apply at the present
+    rather than at the last instant a device was touched, and (b) at least every ``housekeeping_s``, so a
+    quiet spell never leaves more than that to catch up at once: the first read after an idle hour would
+    otherwise step the twin 3.6 million times (and allocate its trace) before answering.
     ``control(cmd)`` handles commands the host does not know (operator inputs)."""
 
     def __init__(
@@ -86,14 +96,14 @@ class PtyHost:
         emulators: dict[str, Emulator],
         tick: Callable[[float], None] | None = None,
         control: Callable[[dict], dict] | None = None,
-        period_s: float = 0.0005,
+        housekeeping_s: float = 0.05,
     ) -> None:
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.ports = {name: _Port(name, emu, self.run_dir) for name, emu in emulators.items()}
         self.tick = tick
         self.control = control
-        self.period_s = period_s
+        self.housekeeping_s = housekeeping_s
         self._stop = False
         self._t0 = time.monotonic()
 
@@ -112,36 +122,66 @@ class PtyHost:
         server.bind(str(sock_path))
         server.listen()
         server.setblocking(False)
+        wake_r, wake_w = socket.socketpair()  # a signal writes here, so select returns at once
+        wake_r.setblocking(False)
+        wake_w.setblocking(False)
+        old_wakeup_fd = signal.set_wakeup_fd(wake_w.fileno(), warn_on_full_buffer=False)
         self._publish()
         sel = selectors.DefaultSelector()
         sel.register(server, selectors.EVENT_READ, ("accept", None))
+        sel.register(wake_r, selectors.EVENT_READ, ("wake", wake_r))
         registered: dict[str, int] = {}
+        self._sync_registrations(sel, registered)
+        next_tick = self.now() + self.housekeeping_s
         try:
             while not self._stop:
-                self._sync_registrations(sel, registered)
-                for key, _ in sel.select(timeout=self.period_s):
+                now = self.now()
+                if self.tick is not None and now >= next_tick:
+                    self.tick(now)
+                    next_tick = now + self.housekeeping_s
+                wake_at = min(next_tick, now + self.housekeeping_s)
+                due = self._emit_due(now)
+                if due is not None:
+                    wake_at = min(wake_at, due)
+                for key, _ in sel.select(timeout=max(0.0, wake_at - self.now())):
                     kind, obj = key.data
-                    if kind == "accept":
+                    if kind == "port":
+                        self._serve_port(obj)
+                    elif kind == "accept":
                         conn, _ = server.accept()
                         conn.setblocking(True)
                         sel.register(conn, selectors.EVENT_READ, ("control", conn))
                     elif kind == "control":
                         self._serve_control(sel, obj)
+                        self._sync_registrations(sel, registered)  # a fault may have (un)plugged a port
                     else:
-                        self._serve_port(obj)
-                now = self.now()
-                if self.tick is not None:
-                    self.tick(now)
-                for port in self.ports.values():
-                    if not port.faults.unplugged:
-                        port.write(port.emulator.poll(now))
+                        _drain(obj)
         finally:
+            signal.set_wakeup_fd(old_wakeup_fd)
             for port in self.ports.values():
                 if not port.faults.unplugged:
                     port.unplug()
             (self.run_dir / PORTS_FILE).unlink(missing_ok=True)
             sock_path.unlink(missing_ok=True)
             server.close()
+            wake_r.close()
+            wake_w.close()
+            sel.close()
+
+    def _emit_due(self, now: float) -> float | None:
+        """Write every plugged emulator's output that is due by ``now``; the earliest next due time."""
+        earliest = None
+        for port in self.ports.values():
+            if port.faults.unplugged:
+                continue
+            emulator = port.emulator
+            due = emulator.next_output_s(now)
+            if due is not None and due <= now:
+                port.write(emulator.poll(now))
+                due = emulator.next_output_s(now)
+            if due is not None and (earliest is None or due < earliest):
+                earliest = due
+        return earliest
 
     def _sync_registrations(self, sel: selectors.BaseSelector, registered: dict[str, int]) -> None:
         for name, port in self.ports.items():
@@ -183,6 +223,8 @@ class PtyHost:
 
     def _command(self, cmd: dict) -> dict:
         op = cmd["op"]
+        if self.tick is not None:
+            self.tick(self.now())  # the command acts at the present, not at the last touched instant
         if op == "fault":
             port = self.ports[cmd["device"]]
             kind = cmd["kind"]
@@ -210,6 +252,15 @@ class PtyHost:
         tmp = path.with_suffix(".tmp")
         tmp.write_text(json.dumps({"pid": os.getpid(), "ports": self._port_paths()}, indent=2))
         tmp.replace(path)
+
+
+def _drain(sock: socket.socket) -> None:
+    """Empty the signal wake-up socket (the handlers have run already)."""
+    try:
+        while sock.recv(4096):
+            pass
+    except BlockingIOError:
+        pass
 
 
 def send_control(run_dir: Path, command: dict, timeout_s: float = 5.0) -> dict:

@@ -5,6 +5,10 @@
 Drivers (and the recorder) find the ports in ``<run-dir>/ports.json``. The control socket takes the
 operator's inputs ({"op": "payload", "kg": 0.05}), test faults of the twin ({"op": "coil", "inside": false}:
 the tracker coil leaves the field volume) and queries ({"op": "state"}) besides the port faults.
+
+The twin is stepped lazily, in whole 1 ms steps up to the rig time, by whichever emulator needs it (a read, a
+command, a streamed line is due) and by the host's ``tick`` before each control command and on its slow
+housekeeping wake-up (see ``PtyHost``): an idle rig costs almost nothing, a busy one steps once per ms.
 """
 
 from __future__ import annotations
@@ -28,16 +32,18 @@ from acquisition.sim.world import World
 from models.robot import RobotDescription, load_robot
 
 log = logging.getLogger(__name__)
+_ROBOT0 = np.array([0])
 
 
 class Rig:
-    """One simulated bench, advanced to the wall clock whenever a device is touched or the host loop ticks."""
+    """One simulated bench, advanced to the wall clock whenever a device is touched or the host ticks."""
 
     def __init__(self, robot: RobotDescription, seed: int = 0, q0: np.ndarray | None = None) -> None:
         self.robot = robot
         home = np.deg2rad([0.0, 30.0, -60.0]) if q0 is None else q0
         self.world = World(robot, batch=1, seed=seed, q0=home)
         self.steps = 0
+        self._ticks: dict[str, tuple[float, int]] = {}  # device → (twin time, its counter then)
         self.emulators: dict[str, Emulator] = {}
         if "servo_bus" in robot.devices:
             self.emulators["servo_bus"] = self._servo_bus()
@@ -64,11 +70,24 @@ class Rig:
         return bus
 
     def advance(self, now_s: float) -> None:
-        """Step the twin up to ``now_s`` (rig time)."""
+        """Step the twin up to ``now_s`` (rig time): it has then taken ``int(now_s / dt)`` steps."""
         n = int(now_s / self.world.dt) - self.steps
         if n > 0:
             self.world.step(n)
             self.steps += n
+
+    def step_due_s(self, steps: int) -> float:
+        """The rig time from which ``advance`` has taken ``steps`` steps (a hair after ``steps · dt``)."""
+        return (steps + 1e-3) * self.world.dt
+
+    def ticks(self, device: str) -> int:
+        """``device``'s own counter at the twin's current time (computed once per step)."""
+        t = self.world.t
+        cached = self._ticks.get(device)
+        if cached is None or cached[0] != t:
+            value = int(self.world.clocks[device].ticks_at(_ROBOT0, np.array([t]))[0])
+            cached = self._ticks[device] = (t, value)
+        return cached[1]
 
     def control(self, cmd: dict) -> dict:
         """Operator inputs and queries from the control socket."""
@@ -93,7 +112,7 @@ def serve_rig(robot: RobotDescription, run_dir: Path, seed: int = 0) -> None:
     """Run the rig until SIGTERM/SIGINT."""
     numba.set_num_threads(1)  # one robot: worker threads would only steal the client's core
     rig = Rig(robot, seed=seed)
-    host = PtyHost(run_dir, rig.emulators, tick=rig.advance, control=rig.control)
+    host = PtyHost(run_dir, rig.emulators, tick=rig.advance, control=rig.control)  # tick: see PtyHost
     log.info("rig for %s serving %s in %s", robot.name, ", ".join(rig.emulators), run_dir)
     host.serve_forever()
 

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from acquisition.protocols import dynamixel as dx
+from models.robot import PressureSensorSpec
 
 # the XM430's register units live with the protocol; named here as the sensor model uses them
 POSITION_COUNTS_PER_REV = dx.POSITION_COUNTS_PER_REV
@@ -71,42 +72,16 @@ def to_signed(raw: np.ndarray, nbytes: int) -> np.ndarray:
 
 
 # ------------------------------------------------------------------------------ pressure transducer
-@dataclass(frozen=True)
-class PressureSensorSpec:
-    """Linear transducer (gauge 0…full_scale_pa → v_min…v_max V) read by a 16-bit ADC (LSB, rms noise, V)."""
-
-    full_scale_pa: float
-    v_min: float
-    v_max: float
-    adc_lsb_v: float
-    adc_noise_v: float
-
-    def __post_init__(self) -> None:
-        if not (
-            self.full_scale_pa > 0
-            and self.v_max > self.v_min
-            and self.adc_lsb_v > 0
-            and self.adc_noise_v >= 0
-        ):
-            raise ValueError(f"invalid pressure sensor spec {self}")
-
-
 def pressure_to_adc_counts(
     pressure_pa: np.ndarray, spec: PressureSensorSpec, rng: np.random.Generator
 ) -> np.ndarray:
-    """ADS1115 counts (int64) of a gauge pressure: transducer range clipped, voltage noise, nearest LSB, then
-    the ADC's own saturation (at ±4.096 V gain a 4.5 V output clips at 32767 ≈ 4.096 V)."""
-    p = np.clip(np.asarray(pressure_pa, dtype=float), 0.0, spec.full_scale_pa)
-    volts = spec.v_min + p / spec.full_scale_pa * (spec.v_max - spec.v_min)
+    """ADS1115 counts (int64) of a gauge pressure: the configured transducer line (range clipped), voltage
+    noise, nearest LSB, then the ADC's own saturation (at ±4.096 V gain a 4.5 V output clips at 32767).
+    The way back is the robot description's ``PressureSensorSpec.counts_to_pa``."""
+    volts = spec.pa_to_volts(pressure_pa)
     if spec.adc_noise_v > 0:
         volts = volts + rng.normal(0.0, spec.adc_noise_v, size=volts.shape)
     return np.clip(np.rint(volts / spec.adc_lsb_v), ADC_MIN_COUNTS, ADC_MAX_COUNTS).astype(np.int64)
-
-
-def adc_counts_to_pressure(counts: np.ndarray, spec: PressureSensorSpec) -> np.ndarray:
-    """Gauge pressure (Pa) of ADS1115 counts (inverse of the transducer line)."""
-    volts = np.asarray(counts, dtype=float) * spec.adc_lsb_v
-    return (volts - spec.v_min) / (spec.v_max - spec.v_min) * spec.full_scale_pa
 
 
 # ----------------------------------------------------------------------------------- accelerometer

@@ -13,7 +13,7 @@ import numpy as np
 from acquisition.sim import sensors
 from acquisition.sim.clocks import DeviceClocks, HostLinkSpec, host_receive_ns
 from acquisition.sim.kernel import Trace
-from models.robot import RobotDescription
+from models.robot import PressureSensorSpec, RobotDescription
 
 Stream = dict[str, np.ndarray]
 
@@ -110,10 +110,9 @@ def pressure_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace,
     }
 
 
-def pressure_spec(robot: RobotDescription) -> sensors.PressureSensorSpec:
-    """The sensor model's view of the configured transducer + ADC chain."""
-    s = robot.sensors.pressure
-    return sensors.PressureSensorSpec(s.full_scale_pa, s.v_min, s.v_max, s.adc_lsb_v, s.adc_noise_v)
+def pressure_spec(robot: RobotDescription) -> PressureSensorSpec:
+    """The configured transducer + ADC chain (the robot description's calibration)."""
+    return robot.sensors.pressure
 
 
 def stepper_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float,

@@ -2,11 +2,17 @@
 
 Each adapter brings the twin up to the emulator's time (``rig.advance``), maps the device's commands onto the
 world's commands, and reads the world's true state through the same sensor models the simulated streams use
-(``streams``/``sensors``), stamped by the device's own clock.
+(``streams``/``sensors``), stamped by the device's own clock. A reading depends only on the twin's state,
+which changes once per step: the servos are sensed once per step for all of them (a Sync Read of N servos
+draws the noise once, vectorised), and the device counters are computed once per step (``Rig.ticks``).
+The boards' adapters also invert their device clock (``micros_due_s``) so the pty host can sleep until the
+next streamed line is due.
 """
 
 from __future__ import annotations
 
+import math
+import struct
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -19,12 +25,38 @@ from acquisition.sim.emulators.dynamixel import ControlTable
 if TYPE_CHECKING:
     from acquisition.sim.rig import Rig
 
-_ROBOT0 = np.array([0])
+# The present values a read refreshes, packed straight into the control table (what ControlTable.set writes).
+_TICK_MOVING = struct.Struct("<HB")  # Realtime Tick, Moving
+_PRESENT = struct.Struct("<HII")  # Present Current, Velocity, Position
+assert dx.MOVING[0] == dx.REALTIME_TICK[0] + dx.REALTIME_TICK[1]
+assert (
+    dx.PRESENT_VELOCITY[0] == dx.PRESENT_CURRENT[0] + 2
+    and dx.PRESENT_POSITION[0] == dx.PRESENT_VELOCITY[0] + 4
+)
 
 
-def _ticks(rig: Rig, device: str) -> int:
-    """The device's own counter at the twin's current time."""
-    return int(rig.world.clocks[device].ticks_at(_ROBOT0, np.array([rig.world.t]))[0])
+def _counter_due_s(rig: Rig, device: str, target: int, now_s: float) -> float:
+    """The rig time at which the twin's ``device`` counter (``DeviceClocks.ticks_at`` at the twin's time: it
+    moves once per step) first reads ``target`` (modulo its wrap, within half a wrap); ``now_s`` if it
+    already does. The clock's arithmetic inverted; float rounding at a step boundary can at worst make it
+    one step late, and a not-yet-due answer is always after the next step (so the host never spins)."""
+    rig.advance(now_s)
+    clocks = rig.world.clocks[device]
+    spec = clocks.spec
+    drift, offset = float(clocks.drift_ppm[0]), float(clocks.offset_s[0])
+    rate = 1.0 + drift * 1e-6
+    raw = math.floor((rate * rig.world.t + offset) / spec.tick_s + 1e-9)  # unwrapped counter now
+    if spec.wrap is None:
+        ahead = target - raw
+        if ahead <= 0:
+            return now_s
+    else:
+        ahead = (target - raw) % spec.wrap
+        if ahead == 0 or ahead >= spec.wrap // 2:
+            return now_s
+    true_s = ((raw + ahead - 1e-9) * spec.tick_s - offset) / rate
+    step = max(math.ceil(true_s / rig.world.dt), rig.steps + 1)
+    return rig.step_due_s(step)
 
 
 class TwinServos:
@@ -34,6 +66,10 @@ class TwinServos:
         self.rig = rig
         self.joints = joints
         self.zero = rig.robot.servo.zero_count
+        self._ids = sorted(joints)
+        self._columns = np.array([joints[i] for i in self._ids], dtype=np.intp)
+        self._sensed_t: float | None = None  # twin time of the cached readings
+        self._present: dict[int, tuple[int, int, int, int, float]] = {}
 
     def apply(self, dxl_id: int, table: ControlTable, now_s: float) -> None:
         self.rig.advance(now_s)
@@ -50,18 +86,37 @@ class TwinServos:
         )
 
     def sense(self, dxl_id: int, table: ControlTable, now_s: float) -> None:
-        self.rig.advance(now_s)
-        world, j = self.rig.world, self.joints[dxl_id]
-        st = world.state
-        counts = streams.servo_counts(
-            self.rig.robot, st.out_pos[0, j], st.out_vel[0, j], st.torque[0, j], world.rng
+        tick, position, velocity, current, speed = self._sensed(now_s)[dxl_id]
+        moving = abs(table.get(dx.GOAL_POSITION, signed=True) - position) > 1 or speed > 0.01
+        _TICK_MOVING.pack_into(table.data, dx.REALTIME_TICK[0], tick & 0xFFFF, int(moving))
+        _PRESENT.pack_into(
+            table.data, dx.PRESENT_CURRENT[0], current & 0xFFFF, velocity & 0xFFFFFFFF, position & 0xFFFFFFFF
         )
-        goal = table.get(dx.GOAL_POSITION, signed=True)
-        table.set(dx.PRESENT_POSITION, int(counts["position"]))
-        table.set(dx.PRESENT_VELOCITY, int(counts["velocity"]))
-        table.set(dx.PRESENT_CURRENT, int(counts["current"]))
-        table.set(dx.REALTIME_TICK, _ticks(self.rig, "servo_bus"))
-        table.set(dx.MOVING, int(abs(goal - int(counts["position"])) > 1 or abs(st.out_vel[0, j]) > 0.01))
+
+    def _sensed(self, now_s: float) -> dict[int, tuple[int, int, int, int, float]]:
+        """Every servo's (tick, position, velocity, current counts, true speed) at the twin's current step:
+        sensed once per step, so the N reads of a Sync Read (and repeated reads within a step) share it."""
+        rig = self.rig
+        rig.advance(now_s)
+        world = rig.world
+        if self._sensed_t != world.t:
+            st, j = world.state, self._columns
+            qd = st.out_vel[0, j]
+            counts = streams.servo_counts(rig.robot, st.out_pos[0, j], qd, st.torque[0, j], world.rng)
+            tick = rig.ticks("servo_bus")
+            self._present = {
+                i: (tick, p, v, c, s)
+                for i, p, v, c, s in zip(
+                    self._ids,
+                    counts["position"].tolist(),
+                    counts["velocity"].tolist(),
+                    counts["current"].tolist(),
+                    np.abs(qd).tolist(),
+                    strict=True,
+                )
+            }
+            self._sensed_t = world.t
+        return self._present
 
 
 class TwinPressure:
@@ -79,6 +134,9 @@ class TwinPressure:
     def set_valve(self, channel: int, open_: bool) -> None:
         self.rig.world.commands.valve_open[0, channel] = bool(open_)
 
+    def advance(self, now_s: float) -> None:
+        self.rig.advance(now_s)
+
     def sample(self, now_s: float) -> tuple[int, int]:
         self.rig.advance(now_s)
         counts = sensors.pressure_to_adc_counts(
@@ -88,7 +146,10 @@ class TwinPressure:
 
     def micros(self, now_s: float) -> int:
         self.rig.advance(now_s)
-        return _ticks(self.rig, "pressure_board")
+        return self.rig.ticks("pressure_board")
+
+    def micros_due_s(self, micros: int, now_s: float) -> float:
+        return _counter_due_s(self.rig, "pressure_board", micros, now_s)
 
 
 class TwinStepper:
@@ -123,7 +184,10 @@ class TwinStepper:
 
     def micros(self, now_s: float) -> int:
         self.rig.advance(now_s)
-        return _ticks(self.rig, "stepper_board")
+        return self.rig.ticks("stepper_board")
+
+    def micros_due_s(self, micros: int, now_s: float) -> float:
+        return _counter_due_s(self.rig, "stepper_board", micros, now_s)
 
 
 class TwinTrackerSource:
@@ -146,7 +210,7 @@ class TwinTrackerSource:
             tip = tip + 10.0  # far outside any field volume
         reading = sensors.tracker_measurement(tip[None], pose[None, :3, :3], self.spec, self.rig.world.rng)
         return TrackerSample(
-            frame=_ticks(self.rig, "tracker"),
+            frame=self.rig.ticks("tracker"),
             position_m=reading.position_m[0],
             quaternion=reading.quaternion[0],
             rms_error=float(reading.rms_error[0]) * 1e-3,  # the sensor model reports mm

@@ -1,13 +1,16 @@
 """Emulators speak a device's real wire protocol as a byte-stream state machine.
 
 ``feed`` takes the bytes the host wrote and returns the device's reply; ``poll`` returns what the device
-sends unprompted (streamed samples). No I/O here: the pty host moves the bytes, so every emulator is
+sends unprompted (streamed samples) and ``next_output_s`` says when that is next due, so the pty host sleeps
+until then instead of polling. No I/O here: the pty host moves the bytes, so every emulator is
 unit-testable byte for byte, and the same object serves a pseudo-terminal in the rig.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+LEGACY_POLL_S = 0.001  # how often an emulator that streams but cannot say when is polled
 
 
 class Emulator:
@@ -21,6 +24,14 @@ class Emulator:
     def poll(self, now_s: float) -> bytes:
         """Unsolicited output (default: none)."""
         return b""
+
+    def next_output_s(self, now_s: float) -> float | None:
+        """Rig time at which ``poll`` next has output (≤ ``now_s``: due now; None: nothing scheduled until the
+        next ``feed``). It may be early (``poll`` then returns nothing and is asked again), never late.
+        Default: None, or every millisecond for an emulator that overrides ``poll`` but not this."""
+        if type(self).poll is Emulator.poll:
+            return None
+        return now_s + LEGACY_POLL_S
 
     def reset_link(self) -> None:
         """The host reopened the port after an unplug: drop half-received input (default: nothing)."""

@@ -3,9 +3,10 @@
 Both speak firmware/PROTOCOL.md: input is buffered until ``\\n``, every line gets exactly one reply, a bad
 checksum gets ``ERR - 1 CHECKSUM``. What stands behind a board is a small "hardware" interface (the twin in
 the rig; ``SimplePressureHardware``/``SimpleStepperHardware`` here). Setters carry no time, so before each
-command the emulator brings the hardware up to ``now_s`` by reading it once. Streaming is scheduled on the
-board's own (drifting, wrapping) clock exactly like the firmware: at most one line per loop, never faster
-than the rate, missed periods are skipped.
+command the emulator brings the hardware up to ``now_s`` (``advance``/``position``). Streaming is scheduled on
+the board's own (drifting, wrapping) clock exactly like the firmware: at most one line per loop, never faster
+than the rate, missed periods are skipped. The hardware also inverts its clock (``micros_due_s``), so the
+emulator can tell the pty host when the next line is due (``next_output_s``) and the host need not poll.
 """
 
 from __future__ import annotations
@@ -35,12 +36,20 @@ class PressureHardware(Protocol):
     def set_valve(self, channel: int, open: bool) -> None:
         """Energise (open) or release a solenoid valve."""
 
+    def advance(self, now_s: float) -> None:
+        """Bring the pneumatics up to ``now_s`` (before a setter changes them)."""
+
     def sample(self, now_s: float) -> tuple[int, int]:
         """ADS1115 counts of channels 0 and 1 at ``now_s``."""
         ...
 
     def micros(self, now_s: float) -> int:
         """The board's ``micros()`` (own clock, wraps at 2³²)."""
+        ...
+
+    def micros_due_s(self, micros: int, now_s: float) -> float:
+        """The earliest rig time at which ``micros()`` reads ``micros`` or later (modulo 2³², within half a
+        wrap; ``now_s`` if it already does)."""
         ...
 
 
@@ -68,6 +77,11 @@ class StepperHardware(Protocol):
         """The board's ``micros()`` (own clock, wraps at 2³²)."""
         ...
 
+    def micros_due_s(self, micros: int, now_s: float) -> float:
+        """The earliest rig time at which ``micros()`` reads ``micros`` or later (modulo 2³², within half a
+        wrap; ``now_s`` if it already does)."""
+        ...
+
 
 # ---------------------------------------------------------------------------------- simple hardware
 class DriftingClock:
@@ -80,6 +94,16 @@ class DriftingClock:
     def micros(self, now_s: float) -> int:
         """The wrapping microsecond counter at host time ``now_s``."""
         return int((self.offset_s + now_s * (1.0 + self.drift_ppm * 1e-6)) * 1e6) % bp.MICROS_MODULO
+
+    def due_s(self, micros: int, now_s: float) -> float:
+        """The host time at which the counter reaches ``micros`` (0.1 µs late, so that ``micros()`` surely
+        reads it then); ``now_s`` if it already has (within half a wrap)."""
+        rate = 1.0 + self.drift_ppm * 1e-6
+        raw = int((self.offset_s + now_s * rate) * 1e6)
+        ahead = (micros - raw) % bp.MICROS_MODULO
+        if ahead == 0 or ahead >= _HALF_WRAP:
+            return now_s
+        return max(now_s, ((raw + ahead) * 1e-6 - self.offset_s) / rate + 1e-7)
 
 
 class SimplePressureHardware:
@@ -131,6 +155,10 @@ class SimplePressureHardware:
         """The Uno's resonator clock."""
         return self.clock.micros(now_s)
 
+    def micros_due_s(self, micros: int, now_s: float) -> float:
+        """When the Uno's clock reads ``micros``."""
+        return self.clock.due_s(micros, now_s)
+
 
 class SimpleStepperHardware:
     """Constant-speed moves (acceleration ignored), instant stop, on a crystal clock (default +40 ppm)."""
@@ -177,6 +205,10 @@ class SimpleStepperHardware:
         """The Nano's clock."""
         return self.clock.micros(now_s)
 
+    def micros_due_s(self, micros: int, now_s: float) -> float:
+        """When the Nano's clock reads ``micros``."""
+        return self.clock.due_s(micros, now_s)
+
 
 # ---------------------------------------------------------------------------------------- emulators
 class _LineBoard(Emulator):
@@ -193,12 +225,14 @@ class _LineBoard(Emulator):
         self._next_us = 0
         self.seq = 0
         self._booted = False
+        self._due_s: float | None = None  # cached rig time of the next streamed line (None: not known)
 
     def reset_link(self) -> None:
         self._rx.clear()
         self._overflow = False
 
     def feed(self, data: bytes, now_s: float) -> bytes:
+        self._due_s = None  # a command may change the stream
         out = bytearray()
         for byte in data:
             if byte == 0x0A:
@@ -246,7 +280,19 @@ class _LineBoard(Emulator):
             return f"OK {cmd.tag} STREAM"
         raise _Reject(bp.E_UNKNOWN)
 
+    def next_output_s(self, now_s: float) -> float | None:
+        """READY at once after power-up; then the next streamed line, at the rig time the board's clock
+        reaches it (exact: the hardware inverts its clock; cached until the next poll or command)."""
+        if not self._booted:
+            return now_s
+        if not self.stream_hz:
+            return None
+        if self._due_s is None:
+            self._due_s = self._micros_due_s(self._next_us, now_s)
+        return self._due_s
+
     def poll(self, now_s: float) -> bytes:
+        self._due_s = None
         out = b""
         if not self._booted:
             self._booted = True
@@ -268,6 +314,10 @@ class _LineBoard(Emulator):
         """Bring the hardware model up to ``now_s`` before a command changes it."""
 
     def _micros(self, now_s: float) -> int:
+        raise NotImplementedError
+
+    def _micros_due_s(self, micros: int, now_s: float) -> float:
+        """The rig time at which the board's clock reads ``micros`` (see the hardware's ``micros_due_s``)."""
         raise NotImplementedError
 
     def _sample_body(self, now_s: float, now_us: int) -> str:
@@ -309,10 +359,13 @@ class PressureBoardEmulator(_LineBoard):
         self.valves = 0
 
     def _touch(self, now_s: float) -> None:
-        self.hw.sample(now_s)
+        self.hw.advance(now_s)
 
     def _micros(self, now_s: float) -> int:
         return self.hw.micros(now_s)
+
+    def _micros_due_s(self, micros: int, now_s: float) -> float:
+        return self.hw.micros_due_s(micros, now_s)
 
     def _command(self, cmd: bp.Command, now_s: float) -> str:
         if cmd.verb == "SET":
@@ -357,6 +410,9 @@ class StepperBoardEmulator(_LineBoard):
 
     def _micros(self, now_s: float) -> int:
         return self.hw.micros(now_s)
+
+    def _micros_due_s(self, micros: int, now_s: float) -> float:
+        return self.hw.micros_due_s(micros, now_s)
 
     def _command(self, cmd: bp.Command, now_s: float) -> str:
         if cmd.verb == "MOVE":

@@ -1,0 +1,303 @@
+"""How each kind of device is acquired: the part of a device daemon that knows its driver.
+
+A source wraps one driver (``acquisition/devices``) and turns its readings into rows of the session's
+topics, stamped with the host receive time and numbered (a poll slot, or the device's own sequence or
+frame counter, which is how lost samples are counted). It accepts the commands that device takes (goals,
+set-points, valves, moves), returns the rows that record them as sent, and knows the device's safe state
+(servos hold where they are, the stepper stops, pressures stay: an inflatable arm must not be vented under
+load). Sources are registered by the driver name the robot description gives each device (``devices.<name>
+.driver``), so adding a device is a driver, a source, an emulator and a schema.
+
+Two ways of reading: a **polled** source is read once per slot of a host schedule at ``rate_hz`` (the servo
+bus's Sync Reads; the tracker, polled faster than its frames); a **streamed** source has a file descriptor
+that becomes readable when the device sends (the boards' sample lines).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from acquisition.devices.base import host_now_ns
+from acquisition.devices.boards import PressureBoard, StepperBoard
+from acquisition.devices.servo_bus import ServoBus
+from acquisition.devices.tracker import Tracker
+from acquisition.schemas import topics as T
+from acquisition.schemas.cdr import FixedMessage
+from models.robot import DeviceSpec, RobotDescription
+
+SEQ_MODULO = 1 << 32  # every counter the sources number samples with is a uint32 field
+
+
+@dataclass(frozen=True)
+class Row:
+    """One message of ``topic``: host receive time, the number it is counted by (None: a command, which is
+    not a sampled stream), and its bytes (one row of the topic's message dtype)."""
+
+    topic: str
+    host_ns: int
+    seq: int | None
+    data: np.ndarray
+
+
+class Source:
+    """Base of every source; a subclass names its ``driver`` and fills the hooks."""
+
+    driver: ClassVar[str] = ""
+    polled: ClassVar[bool] = True
+    slot_numbered: ClassVar[bool] = False  # samples numbered by poll slot (continuous across reconnections)
+    sampled_topics: ClassVar[tuple[str, ...]] = ()  # streams counted against their sequence numbers
+    command_topics: ClassVar[tuple[str, ...]] = ()  # commands recorded as sent
+
+    def __init__(self, robot: RobotDescription, name: str, spec: DeviceSpec, port: str,
+                 rate_hz: float) -> None:  # fmt: skip
+        self.robot, self.name, self.spec, self.port = robot, name, spec, port
+        self.rate_hz = float(rate_hz)
+        topics = T.session_topics(robot)
+        self.messages: dict[str, FixedMessage] = {}
+        for topic in (*self.sampled_topics, *self.command_topics):
+            if topic not in topics or topics[topic].message is None:
+                raise ValueError(
+                    f"{robot.name}: {name} ({self.driver}) writes {topic}, not a topic of this robot"
+                )
+            self.messages[topic] = topics[topic].message
+        self._rows = {topic: m.empty(1) for topic, m in self.messages.items()}
+
+    @property
+    def topics(self) -> tuple[str, ...]:
+        return (*self.sampled_topics, *self.command_topics)
+
+    @property
+    def poll_hz(self) -> float:
+        """How often a polled source is read (default: its rate)."""
+        return self.rate_hz
+
+    def row(self, topic: str, host_ns: int, number: int | None, **values: object) -> Row:
+        """A row of ``topic`` with ``values`` set, counted as sample ``number`` (None: a command). The
+        buffer is reused: the daemon copies it into its ring before the next row."""
+        rows = self._rows[topic]
+        for field, value in values.items():
+            rows[field] = value
+        return Row(topic, host_ns, number, rows.view(np.uint8))
+
+    # hooks ------------------------------------------------------------------------------------
+    def open(self) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def fileno(self) -> int | None:
+        """A descriptor that becomes readable when a streamed source has data (None: polled)."""
+        return None
+
+    def read(self, slot: int) -> list[Row]:
+        """Take what the device has: one poll (``slot`` numbers it) or every line that arrived."""
+        raise NotImplementedError
+
+    def command(self, cmd: dict) -> list[Row]:
+        """Carry out one command (a dict with ``op``); returns the rows recording it as sent."""
+        raise ValueError(f"{self.name} takes no command {cmd.get('op')!r}")
+
+    def safe(self) -> None:
+        """Leave the device safe (the supervisor is gone, or a safe stop): default nothing to do."""
+
+
+# ------------------------------------------------------------------------------------------ servos
+class ServoSource(Source):
+    """The Dynamixel bus: one Sync Read of every servo per slot; goals in one Sync Write."""
+
+    driver = "dynamixel"
+    slot_numbered = True
+    sampled_topics = (T.SERVO_STATE,)
+    command_topics = (T.SERVO_GOAL,)
+
+    def __init__(self, robot, name, spec, port, rate_hz) -> None:
+        super().__init__(robot, name, spec, port, rate_hz)
+        self.bus = ServoBus(
+            port, ids=list(spec.ids.values()), baud=spec.baud, zero_count=robot.servo.zero_count
+        )
+        self.position: np.ndarray | None = None  # the last position read: where a hold holds
+
+    def open(self) -> None:
+        self.bus.open()
+
+    def close(self) -> None:
+        self.bus.close()
+
+    def read(self, slot: int) -> list[Row]:
+        st = self.bus.read_state()
+        self.position = st.position_rad
+        return [self.row(T.SERVO_STATE, st.host_ns, slot, seq=slot % SEQ_MODULO, tick_ms=int(st.tick_ms[0]),
+                         position=st.position_rad, velocity=st.velocity_rad_s, current=st.current_a,
+                         moving=st.moving)]  # fmt: skip
+
+    def command(self, cmd: dict) -> list[Row]:
+        op = cmd["op"]
+        if op == "torque":
+            self.bus.set_torque(bool(cmd["on"]))
+            return []
+        if op == "goals":
+            position = np.asarray(cmd["position"], float)
+            velocity = np.asarray(cmd["profile_velocity"], float)
+            self.bus.set_profile_velocity(velocity)
+            self.bus.write_goals(position)
+            return [self.row(T.SERVO_GOAL, host_now_ns(), None, seq=int(cmd.get("seq", 0)), position=position,
+                             profile_velocity=velocity, profile_acceleration=0.0)]  # fmt: skip
+        if op == "hold":
+            self.safe()
+            return []
+        return super().command(cmd)
+
+    def safe(self) -> None:
+        if self.position is not None:
+            self.bus.write_goals(self.position)
+
+
+# ------------------------------------------------------------------------------------------- boards
+class _BoardSource(Source):
+    polled = False
+    board_type: ClassVar[type] = PressureBoard
+
+    def __init__(self, robot, name, spec, port, rate_hz) -> None:
+        super().__init__(robot, name, spec, port, rate_hz)
+        self.board = self.board_type(port, baud=spec.baud)
+
+    def open(self) -> None:
+        self.board.open()
+        self.board.start_stream(round(self.rate_hz))
+
+    def close(self) -> None:
+        self.board.close()
+
+    def fileno(self) -> int:
+        return self.board.fileno()
+
+    def read(self, slot: int) -> list[Row]:
+        return [self.sample_row(s) for s in self.board.read_samples()]
+
+    def sample_row(self, sample) -> Row:
+        raise NotImplementedError
+
+
+class PressureSource(_BoardSource):
+    """The pressure board (Uno): streamed transducer counts, converted with the robot's calibration."""
+
+    driver = "vslab_pressure_board"
+    sampled_topics = (T.PRESSURE,)
+    command_topics = (T.PRESSURE_COMMAND,)
+    board_type = PressureBoard
+
+    def __init__(self, robot, name, spec, port, rate_hz) -> None:
+        super().__init__(robot, name, spec, port, rate_hz)
+        self.calibration = robot.sensors.pressure
+        self.channels = robot.pneumatics.channels
+
+    def sample_row(self, s) -> Row:
+        counts = np.asarray(s.counts)
+        valves = [(s.valves >> c) & 1 == 1 for c in range(self.channels)]
+        return self.row(T.PRESSURE, s.host_ns, s.seq, seq=s.seq, micros=s.micros, counts=counts,
+                        pressure=self.calibration.counts_to_pa(counts), valve_open=valves)  # fmt: skip
+
+    def command(self, cmd: dict) -> list[Row]:
+        if cmd["op"] != "pressures":
+            return super().command(cmd)
+        setpoint = np.asarray(cmd["setpoint"], float)
+        valves = np.asarray(cmd["valve_open"], bool)
+        for ch, (pa, open_) in enumerate(zip(setpoint, valves, strict=True)):
+            self.board.set_pressure(ch, float(pa))
+            self.board.set_valve(ch, bool(open_))
+        sent = dict(seq=int(cmd.get("seq", 0)), setpoint=setpoint, valve_open=valves)
+        return [self.row(T.PRESSURE_COMMAND, host_now_ns(), None, **sent)]
+
+
+class StepperSource(_BoardSource):
+    """The stepper board (Nano): streamed position reports; moves; STOP as the safe state."""
+
+    driver = "vslab_stepper_board"
+    sampled_topics = (T.STEPPER,)
+    board_type = StepperBoard
+
+    def __init__(self, robot, name, spec, port, rate_hz) -> None:
+        super().__init__(robot, name, spec, port, rate_hz)
+        self.rad_per_step = robot.stepper.rad_per_microstep
+
+    def sample_row(self, s) -> Row:
+        return self.row(T.STEPPER, s.host_ns, s.seq, seq=s.seq or 0, micros=s.micros,
+                        position_steps=[s.position_steps], position=[s.position_steps * self.rad_per_step],
+                        moving=s.moving)  # fmt: skip
+
+    def command(self, cmd: dict) -> list[Row]:
+        if cmd["op"] == "move":
+            self.board.set_speed(float(cmd["speed"]), float(cmd["accel"]))
+            self.board.move_to(int(cmd["steps"]))
+            return []
+        if cmd["op"] == "stop":
+            self.board.stop()
+            return []
+        return super().command(cmd)
+
+    def safe(self) -> None:
+        self.board.stop()
+
+
+# ------------------------------------------------------------------------------------------ tracker
+class TrackerSource(Source):
+    """The NDI Aurora: polled a little faster than its frames (``rate_hz`` is its frame rate); each new
+    frame is kept once, numbered by the tracker's frame counter."""
+
+    driver = "ndi_aurora"
+    sampled_topics = (T.TRACKER,)
+    POLLS_PER_FRAME = 2.5
+
+    def __init__(self, robot, name, spec, port, rate_hz) -> None:
+        super().__init__(robot, name, spec, port, rate_hz)
+        self.tracker = Tracker(port)
+        self.last_frame: int | None = None
+
+    @property
+    def poll_hz(self) -> float:
+        return self.rate_hz * self.POLLS_PER_FRAME
+
+    def open(self) -> None:
+        self.tracker.open()
+        self.last_frame = None
+
+    def close(self) -> None:
+        self.tracker.close()
+
+    def read(self, slot: int) -> list[Row]:
+        out = []
+        for f in self.tracker.read_all()[:1]:  # the tip coil: the first wired tool
+            if f.frame == self.last_frame:
+                continue
+            self.last_frame = f.frame
+            frame = f.frame % SEQ_MODULO
+            out.append(self.row(T.TRACKER, f.host_ns, frame, frame=frame, port_handle=f.port_handle,
+                                port_status=f.port_status, missing=f.missing, position=f.position_m,
+                                quaternion=f.quaternion, rms_error=f.rms_error))  # fmt: skip
+        return out
+
+
+SOURCES: dict[str, type[Source]] = {
+    cls.driver: cls for cls in (ServoSource, PressureSource, StepperSource, TrackerSource)
+}
+
+
+def make_source(robot: RobotDescription, name: str, port: str, rate_hz: float | None = None) -> Source:
+    """The source of device ``name`` of ``robot`` on ``port`` (its configured rate unless ``rate_hz``)."""
+    spec = robot.devices.get(name)
+    if spec is None:
+        raise ValueError(f"{robot.name} has no device {name!r} (its devices: {', '.join(robot.devices)})")
+    cls = SOURCES.get(spec.driver)
+    if cls is None:
+        raise ValueError(
+            f"{robot.name}: device {name} uses driver {spec.driver!r}, which vslab cannot record yet "
+            f"(drivers: {', '.join(sorted(SOURCES))})"
+        )
+    rate = rate_hz or spec.rate_hz
+    if not rate or rate <= 0:
+        raise ValueError(f"{robot.name}: device {name} has no rate_hz to read it at")
+    return cls(robot, name, spec, port, rate)

@@ -1,0 +1,121 @@
+"""A daemon's status block: a few words in shared memory that the supervisor reads to watch it.
+
+The daemon writes its pid, a heartbeat (monotonic ns, every loop), its phase, whether its device answers,
+the scheduling it got and its last error; the supervisor only reads. A file on tmpfs like the rings, so it
+outlives the daemon: the supervisor reads why a daemon died after it has gone.
+"""
+
+from __future__ import annotations
+
+import enum
+import mmap
+import os
+from pathlib import Path
+
+import numpy as np
+
+_WORDS = 8
+_TEXT = 512
+_PID, _HEARTBEAT, _PHASE, _CONNECTED, _STARTS = range(5)
+_ERROR, _PRIORITY = 0, 1  # text fields
+
+
+class Phase(enum.IntEnum):
+    STARTING = 0
+    CONNECTING = 1  # first connection attempt under way
+    STREAMING = 2
+    GAP = 3  # the device is lost; reconnecting
+    CLOSED = 4  # exited in order
+
+
+class DaemonStatus:
+    """The status block of one daemon, in the file ``path``."""
+
+    def __init__(self, path: Path, mm: mmap.mmap) -> None:
+        self.path = Path(path)
+        self._mm = mm
+        self.words = np.ndarray((_WORDS,), np.int64, buffer=mm, offset=0)
+        self._text = np.ndarray((2, _TEXT), np.uint8, buffer=mm, offset=_WORDS * 8)
+
+    @classmethod
+    def create(cls, path: Path) -> DaemonStatus:
+        path = Path(path)
+        with open(path, "wb") as f:
+            f.truncate(_WORDS * 8 + 2 * _TEXT)
+        return cls.attach(path)
+
+    @classmethod
+    def attach(cls, path: Path) -> DaemonStatus:
+        with open(path, "r+b") as f:
+            mm = mmap.mmap(f.fileno(), 0)
+        return cls(path, mm)
+
+    def close(self) -> None:
+        self.words = self._text = None  # type: ignore[assignment]
+        try:
+            self._mm.close()
+        except BufferError:
+            pass
+
+    # the daemon's side
+    def begin(self) -> None:
+        """A new daemon process took over this device."""
+        self.words[_PID] = os.getpid()
+        self.words[_STARTS] += 1
+        self.words[_CONNECTED] = 0
+        self.phase = Phase.STARTING
+        self.beat(0)
+
+    def beat(self, now_ns: int) -> None:
+        self.words[_HEARTBEAT] = now_ns
+
+    @property
+    def phase(self) -> Phase:
+        return Phase(int(self.words[_PHASE]))
+
+    @phase.setter
+    def phase(self, value: Phase) -> None:
+        self.words[_PHASE] = int(value)
+        self.words[_CONNECTED] = int(value == Phase.STREAMING)
+
+    @property
+    def error(self) -> str:
+        return self._get(_ERROR)
+
+    @error.setter
+    def error(self, text: str) -> None:
+        self._set(_ERROR, text)
+
+    @property
+    def priority(self) -> str:
+        return self._get(_PRIORITY)
+
+    @priority.setter
+    def priority(self, text: str) -> None:
+        self._set(_PRIORITY, text)
+
+    # the supervisor's side
+    @property
+    def pid(self) -> int:
+        return int(self.words[_PID])
+
+    @property
+    def heartbeat_ns(self) -> int:
+        return int(self.words[_HEARTBEAT])
+
+    @property
+    def connected(self) -> bool:
+        return bool(self.words[_CONNECTED])
+
+    @property
+    def starts(self) -> int:
+        return int(self.words[_STARTS])
+
+    def _get(self, k: int) -> str:
+        raw = bytes(self._text[k])
+        return raw.split(b"\0", 1)[0].decode("utf-8", "replace")
+
+    def _set(self, k: int, text: str) -> None:
+        raw = text.encode("utf-8")[: _TEXT - 1]
+        self._text[k, :] = 0
+        self._text[k, : len(raw)] = np.frombuffer(raw, np.uint8)
