@@ -63,6 +63,17 @@ def elevate(fifo_priority: int = RT_PRIORITY, nice: int = -10) -> str:
         return "normal (no privilege to raise it)"
 
 
+def relinquish() -> None:
+    """Back to the ordinary scheduling (a daemon that has stopped acquiring: its teardown must not hold up
+    the daemons still reading)."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        if os.getpriority(os.PRIO_PROCESS, 0) < 0:
+            os.setpriority(os.PRIO_PROCESS, 0, 0)
+    except (PermissionError, OSError, AttributeError):
+        pass
+
+
 def lower_priority() -> None:
     """Batch work: let acquisition and people's programs go first (this process and its children; a nice
     value cannot be raised back without privilege, so only processes that do nothing else call this)."""

@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 from acquisition.errors import DeviceDisconnectedError, DeviceError, DeviceNotFoundError
-from acquisition.processes import elevate, parent_alive
+from acquisition.processes import elevate, parent_alive, relinquish
 from acquisition.recorder.layout import Layout
 from acquisition.recorder.ring import Ring
 from acquisition.recorder.sources import SEQ_MODULO, Row, Source, make_source
@@ -138,9 +138,10 @@ class Daemon:
     def _put(self, rows: list[Row]) -> None:
         for row in rows:
             ring = self.rings[row.topic]
+            if row.seq is not None and not ring.account(row.seq, row.host_ns, SEQ_MODULO, self.rate_hz):
+                log.info("%s: sample %d repeated; kept once", self.device, row.seq)
+                continue
             ring.put(row.host_ns, row.data)
-            if row.seq is not None:
-                ring.account(row.seq, row.host_ns, SEQ_MODULO, self.rate_hz)
 
     def _wait(self, timeout_s: float, fd: int | None = None) -> None:
         """Sleep until ``timeout_s``, a readable ``fd`` or a command; run the commands that came."""
@@ -245,6 +246,7 @@ class Daemon:
                 self.terminating = True
 
     def _finish(self) -> None:
+        relinquish()  # closing and exiting is no real-time work
         if self.terminating and self.connected:
             try:
                 self.source.safe()

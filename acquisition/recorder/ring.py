@@ -179,11 +179,12 @@ class Ring:
         return self._times[idx].copy(), self._lengths[idx].copy(), self.slots[idx, SLOT_HEAD:]
 
     # ------------------------------------------------------------------------------ the account
-    def account(self, seq: int, host_ns: int, modulo: int, rate_hz: float) -> None:
+    def account(self, seq: int, host_ns: int, modulo: int, rate_hz: float) -> bool:
         """The producer took the sample numbered ``seq`` (the device's counter, wrapping at ``modulo``, or a
         poll slot): count it as expected, and every number it skipped as expected and lost. A number that
         does not follow (the device was reset, or the counter jumped back) is bridged by the time since the
-        last sample at ``rate_hz``. The first sample of a session starts the account."""
+        last sample at ``rate_hz``. The first sample of a session starts the account. False: the number
+        was the last one again (a repeated sample, not a new one)."""
         h = self.header
         last = int(h[_LAST_SEQ])
         if last == _NO_SEQ:
@@ -191,7 +192,7 @@ class Ring:
         else:
             step = (seq - last) % modulo
             if step == 0 and not h[_BRIDGE]:
-                return
+                return False
             if step >= modulo // 2 or h[_BRIDGE]:  # not a successor: bridge the time instead
                 step = max(1, round((host_ns - int(h[_LAST_NS])) * rate_hz / 1e9))
             n = step
@@ -200,6 +201,7 @@ class Ring:
         h[_LAST_SEQ] = seq % modulo
         h[_LAST_NS] = host_ns
         h[_BRIDGE] = 0
+        return True
 
     def restart_sequence(self) -> None:
         """The device's counter starts afresh (a reconnection reset it): bridge the next sample by time."""

@@ -75,12 +75,12 @@ class Source:
         return self.rate_hz
 
     def row(self, topic: str, host_ns: int, number: int | None, **values: object) -> Row:
-        """A row of ``topic`` with ``values`` set, counted as sample ``number`` (None: a command). The
-        buffer is reused: the daemon copies it into its ring before the next row."""
+        """A row of ``topic`` with ``values`` set, counted as sample ``number`` (None: a command); its bytes
+        are its own (a read may return several rows before any reaches a ring)."""
         rows = self._rows[topic]
         for field, value in values.items():
             rows[field] = value
-        return Row(topic, host_ns, number, rows.view(np.uint8))
+        return Row(topic, host_ns, number, rows.view(np.uint8).copy())
 
     # hooks ------------------------------------------------------------------------------------
     def open(self) -> None:

@@ -21,6 +21,7 @@ import json
 import logging
 import os
 import select
+import shutil
 import signal
 import socket
 import sys
@@ -154,6 +155,8 @@ class WriterProcess:
         self.flush()
         self.sync_counters()
         self.writer.close()
+        if self.supervisor_gone:  # nobody else is left to remove the rings
+            shutil.rmtree(self.layout.run_dir, ignore_errors=True)
 
     @staticmethod
     def _daemon_done(status: DaemonStatus) -> bool:

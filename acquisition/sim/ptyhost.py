@@ -136,10 +136,11 @@ class PtyHost:
         try:
             while not self._stop:
                 now = self.now()
-                if self.tick is not None and now >= next_tick:
-                    self.tick(now)
+                if now >= next_tick:
+                    if self.tick is not None:
+                        self.tick(now)
                     next_tick = now + self.housekeeping_s
-                wake_at = min(next_tick, now + self.housekeeping_s)
+                wake_at = next_tick
                 due = self._emit_due(now)
                 if due is not None:
                     wake_at = min(wake_at, due)

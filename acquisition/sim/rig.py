@@ -15,13 +15,16 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 from pathlib import Path
 
 import numba
 import numpy as np
 
+from acquisition.processes import RT_PRIORITY, die_with_parent, elevate
 from acquisition.protocols import dynamixel as dx
 from acquisition.sim import sensors
+from acquisition.sim.clocks import _TICK_EPS as TICK_EPS
 from acquisition.sim.emulators.aurora import AuroraEmulator
 from acquisition.sim.emulators.base import Emulator
 from acquisition.sim.emulators.boards import PressureBoardEmulator, StepperBoardEmulator
@@ -32,7 +35,6 @@ from acquisition.sim.world import World
 from models.robot import RobotDescription, load_robot
 
 log = logging.getLogger(__name__)
-_ROBOT0 = np.array([0])
 
 
 class Rig:
@@ -43,7 +45,6 @@ class Rig:
         home = np.deg2rad([0.0, 30.0, -60.0]) if q0 is None else q0
         self.world = World(robot, batch=1, seed=seed, q0=home)
         self.steps = 0
-        self._ticks: dict[str, tuple[float, int]] = {}  # device → (twin time, its counter then)
         self.emulators: dict[str, Emulator] = {}
         if "servo_bus" in robot.devices:
             self.emulators["servo_bus"] = self._servo_bus()
@@ -81,13 +82,12 @@ class Rig:
         return (steps + 1e-3) * self.world.dt
 
     def ticks(self, device: str) -> int:
-        """``device``'s own counter at the twin's current time (computed once per step)."""
-        t = self.world.t
-        cached = self._ticks.get(device)
-        if cached is None or cached[0] != t:
-            value = int(self.world.clocks[device].ticks_at(_ROBOT0, np.array([t]))[0])
-            cached = self._ticks[device] = (t, value)
-        return cached[1]
+        """``device``'s own counter at the twin's current time: ``DeviceClocks.ticks_at`` in Python floats
+        (the same IEEE operations in the same order, so the same count, without numpy's per-call cost)."""
+        clocks = self.world.clocks[device]
+        seconds = (1.0 + float(clocks.drift_ppm[0]) * 1e-6) * self.world.t + float(clocks.offset_s[0])
+        count = math.floor(seconds / clocks.spec.tick_s + TICK_EPS)
+        return count % clocks.spec.wrap if clocks.spec.wrap is not None else count
 
     def control(self, cmd: dict) -> dict:
         """Operator inputs and queries from the control socket."""
@@ -122,8 +122,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--robot", default="vsl")
     parser.add_argument("--run-dir", type=Path, required=True)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--parent-pid", type=int, help="end (in order) when this process dies")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
+    if args.parent_pid is not None:  # a rig started for one recording dies with it, even by SIGKILL
+        die_with_parent(args.parent_pid)
+    # the rig stands in for hardware, which a busy computer does not slow down: a real-time priority where
+    # the OS allows it (the daemons get a higher one)
+    log.info("rig priority: %s", elevate(fifo_priority=RT_PRIORITY - 1))
     serve_rig(load_robot(args.robot), args.run_dir, args.seed)
 
 

@@ -4,7 +4,8 @@ Each adapter brings the twin up to the emulator's time (``rig.advance``), maps t
 world's commands, and reads the world's true state through the same sensor models the simulated streams use
 (``streams``/``sensors``), stamped by the device's own clock. A reading depends only on the twin's state,
 which changes once per step: the servos are sensed once per step for all of them (a Sync Read of N servos
-draws the noise once, vectorised), and the device counters are computed once per step (``Rig.ticks``).
+draws the noise once, vectorised; repeated reads within a step share it), and the device counters are read
+with ``Rig.ticks`` (the clock model in plain floats).
 The boards' adapters also invert their device clock (``micros_due_s``) so the pty host can sleep until the
 next streamed line is due.
 """
@@ -19,6 +20,7 @@ import numpy as np
 
 from acquisition.protocols import dynamixel as dx
 from acquisition.sim import sensors, streams
+from acquisition.sim.clocks import _TICK_EPS as TICK_EPS
 from acquisition.sim.emulators.aurora import TrackerSample
 from acquisition.sim.emulators.dynamixel import ControlTable
 
@@ -45,7 +47,7 @@ def _counter_due_s(rig: Rig, device: str, target: int, now_s: float) -> float:
     spec = clocks.spec
     drift, offset = float(clocks.drift_ppm[0]), float(clocks.offset_s[0])
     rate = 1.0 + drift * 1e-6
-    raw = math.floor((rate * rig.world.t + offset) / spec.tick_s + 1e-9)  # unwrapped counter now
+    raw = math.floor((rate * rig.world.t + offset) / spec.tick_s + TICK_EPS)  # unwrapped counter now
     if spec.wrap is None:
         ahead = target - raw
         if ahead <= 0:
@@ -54,7 +56,7 @@ def _counter_due_s(rig: Rig, device: str, target: int, now_s: float) -> float:
         ahead = (target - raw) % spec.wrap
         if ahead == 0 or ahead >= spec.wrap // 2:
             return now_s
-    true_s = ((raw + ahead - 1e-9) * spec.tick_s - offset) / rate
+    true_s = ((raw + ahead - TICK_EPS) * spec.tick_s - offset) / rate
     step = max(math.ceil(true_s / rig.world.dt), rig.steps + 1)
     return rig.step_due_s(step)
 

@@ -72,6 +72,21 @@ class DynamixelBusEmulator(Emulator):
         self.hardware = hardware
         self.reader = dx.PacketReader()
         self._registered: dict[int, tuple[int, bytes]] = {}
+        self._handlers = {
+            dx.PING: self._ping,
+            dx.READ: self._read,
+            dx.WRITE: self._write,
+            dx.REG_WRITE: self._reg_write,
+            dx.ACTION: self._action,
+            dx.REBOOT: self._reboot,
+            dx.FACTORY_RESET: self._no_op,
+            dx.CLEAR: self._no_op,
+            dx.SYNC_READ: self._sync_read,
+            dx.SYNC_WRITE: self._sync_write,
+            dx.FAST_SYNC_READ: self._fast_sync_read,
+            dx.BULK_READ: self._bulk_read,
+            dx.BULK_WRITE: self._bulk_write,
+        }
 
     def reset_link(self) -> None:
         self.reader.reset()
@@ -87,21 +102,7 @@ class DynamixelBusEmulator(Emulator):
 
     # ------------------------------------------------------------------------------------ dispatch
     def _execute(self, p: dx.Packet, now_s: float) -> bytes:
-        handler = {
-            dx.PING: self._ping,
-            dx.READ: self._read,
-            dx.WRITE: self._write,
-            dx.REG_WRITE: self._reg_write,
-            dx.ACTION: self._action,
-            dx.REBOOT: self._reboot,
-            dx.FACTORY_RESET: self._no_op,
-            dx.CLEAR: self._no_op,
-            dx.SYNC_READ: self._sync_read,
-            dx.SYNC_WRITE: self._sync_write,
-            dx.FAST_SYNC_READ: self._fast_sync_read,
-            dx.BULK_READ: self._bulk_read,
-            dx.BULK_WRITE: self._bulk_write,
-        }.get(p.inst)
+        handler = self._handlers.get(p.inst)
         if handler is None:
             return self._reply_each(p.dxl_id, lambda i: dx.status(i, dx.ERR_INSTRUCTION))
         return handler(p, now_s)
