@@ -6,7 +6,7 @@ VENV   ?= .venv
 BIN     = $(VENV)/bin
 LAB    ?= lab
 
-.PHONY: demo test lint format bench clean
+.PHONY: demo test test-under-load lint format bench clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -22,10 +22,16 @@ test: $(BIN)/.installed
 	$(BIN)/ruff format --check .
 	$(BIN)/python -m pytest
 
+# the whole suite with every core busy (a CPU-bound process per core): real-time tests must hold there too
+test-under-load: $(BIN)/.installed
+	$(BIN)/python bench/load.py -- $(BIN)/python -m pytest
+
 bench: $(BIN)/.installed
 	$(BIN)/python bench/twin.py
 	$(BIN)/python bench/devices.py
 	$(BIN)/python bench/record.py
+	$(BIN)/python bench/rig.py
+	$(BIN)/python bench/acquisition.py --seconds 60
 	$(BIN)/python bench/simulate.py
 	$(BIN)/python bench/ingest.py
 

@@ -240,7 +240,7 @@ def test_session_card(session):
     servo = card["counters"][SERVO_STATE]
     n = len(streams[SERVO_STATE].rows)
     assert servo == {
-        "received": n + 5, "written": n, "dropped": 5,
+        "expected": n + 5, "received": n + 5, "lost": 0, "written": n, "dropped": 5, "gaps": 0,
         "first_ns": int(streams[SERVO_STATE].log_time[0]), "last_ns": int(streams[SERVO_STATE].log_time[-1]),
     }  # fmt: skip
     for name, s in streams.items():

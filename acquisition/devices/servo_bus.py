@@ -64,11 +64,11 @@ class _WaitingPortHandler(PortHandler):
         super().__init__(port_name)
         self.reply_timeout_ms = reply_timeout_s * 1e3
 
-    def setPacketTimeout(self, packet_length):  # noqa: N802 (the SDK's name)
+    def setPacketTimeout(self, packet_length):  # the SDK's names
         self.packet_start_time = self.getCurrentTime()
         self.packet_timeout = self.tx_time_per_byte * packet_length + self.reply_timeout_ms
 
-    def readPort(self, length):  # noqa: N802
+    def readPort(self, length):
         data = self.ser.read(length)
         if data:
             return data

@@ -162,7 +162,9 @@ class SessionWriter:
 
     def note_received(self, topic: str, n: int = 1) -> None:
         """A worker took ``n`` samples of ``topic`` from its device (written or not)."""
-        self.counters[topic].received += n
+        c = self.counters[topic]
+        c.received += n
+        c.expected = max(c.expected, c.received + c.lost)
 
     def note_dropped(self, topic: str, n: int = 1) -> None:
         """``n`` received samples of ``topic`` will never be written (queue full, encode error)."""
