@@ -31,7 +31,7 @@ bench: $(BIN)/.installed
 	$(BIN)/python bench/devices.py
 	$(BIN)/python bench/record.py
 	$(BIN)/python bench/rig.py
-	$(BIN)/python bench/acquisition.py --seconds 60
+	$(BIN)/python bench/acquire.py --seconds 60
 	$(BIN)/python bench/simulate.py
 	$(BIN)/python bench/ingest.py
 

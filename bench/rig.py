@@ -63,6 +63,17 @@ def wakeups(pid: int) -> int:
     return total
 
 
+def scheduling(pid: int) -> str:
+    """The rig's scheduling class and priority (it asks for a real-time one where it may)."""
+    try:
+        policy = os.sched_getscheduler(pid)
+    except OSError:
+        return "scheduling unknown"
+    if policy == os.SCHED_FIFO:
+        return f"SCHED_FIFO {os.sched_getparam(pid).sched_priority}"
+    return f"nice {os.getpriority(os.PRIO_PROCESS, pid)}"
+
+
 @dataclass
 class Usage:
     """What the rig spent over one measurement."""
@@ -245,7 +256,7 @@ def main() -> None:
         try:
             ports = wait_for_ports(run_dir, timeout_s=60)
             time.sleep(1.0)  # let start-up work (imports, JIT cache loads) finish
-            print(f"rig for vsl, pid {rig.pid}, servos {ids}, {seconds:g} s per measurement")
+            print(f"rig for vsl, pid {rig.pid} ({scheduling(rig.pid)}), servos {ids}, {seconds:g} s each")
             with Meter(rig.pid) as idle:
                 time.sleep(seconds)
             show_usage("idle (no client)", idle.usage)

@@ -11,7 +11,7 @@ from conftest import emulator_host
 
 from acquisition.protocols import boards as bp
 from acquisition.protocols import dynamixel as dx
-from acquisition.sim import streams
+from acquisition.sim import sensors, streams
 from acquisition.sim.emulators.base import LEGACY_POLL_S, Emulator
 from acquisition.sim.emulators.boards import (
     PressureBoardEmulator,
@@ -153,9 +153,11 @@ def test_a_sync_read_senses_the_twin_once_per_step(rig, monkeypatch):
         table = bus.tables[dxl_id]
         assert packet.params == bytes(table.data[120:136])
         assert table.get(dx.REALTIME_TICK) == rig.ticks("servo_bus") % 32768
-        joint = rig.world.state.out_pos[0, rig.robot.actuated_joints.index(
-            next(q for q, i in rig.robot.devices["servo_bus"].ids.items() if i == dxl_id))]  # fmt: skip
-        assert table.get(dx.PRESENT_POSITION, signed=True) == round(joint / dx.RAD_PER_POSITION_COUNT) + 2048
+        joint = rig.emulators["servo_bus"].hardware.joints[dxl_id]
+        angle = rig.world.state.out_pos[0, joint]
+        assert table.get(dx.PRESENT_POSITION, signed=True) == sensors.encoder_counts(
+            angle, rig.robot.servo.zero_count
+        )
 
 
 def test_twin_stays_deterministic_for_a_seed(vsl):
@@ -212,7 +214,7 @@ def test_control_commands_see_the_present(live_rig):
     t1, w1 = send_control(run_dir, {"op": "state"})["t"], time.monotonic()
     time.sleep(0.2)
     t2, w2 = send_control(run_dir, {"op": "state"})["t"], time.monotonic()
-    assert t2 - t1 == pytest.approx(w2 - w1, abs=0.01), "the twin is brought up to now before a command"
+    assert t2 - t1 == pytest.approx(w2 - w1, abs=0.02), "the twin is brought up to now before a command"
 
 
 def test_streamed_lines_at_the_boards_rate_with_consecutive_seq(live_rig):
@@ -236,6 +238,11 @@ def test_streamed_lines_at_the_boards_rate_with_consecutive_seq(live_rig):
             assert np.all(np.diff([s.seq for s in got]) == 1), "consecutive sequence numbers"
             gaps = np.diff(np.array([s.micros for s in got], dtype=np.int64)) % bp.MICROS_MODULO
             period = 1_000_000 // hz
-            assert gaps.min() > period - 1100, "never faster than the rate (the twin's clock moves by 1 ms steps)"
+            ahead = period * np.arange(1, len(gaps) + 1) - np.cumsum(gaps)  # of the board's own schedule
+            assert ahead.max() < 1100, (
+                "never faster than the rate (a late line may be followed by an early-looking one)"
+            )
             rate = len(gaps) / (gaps.sum() * 1e-6)
-            assert rate == pytest.approx(hz, rel=0.05), "the board's rate on the board's clock"
+            assert 0.9 * hz < rate < 1.001 * hz, (
+                "the board's rate on its clock (a line >1 period late is skipped)"
+            )

@@ -16,7 +16,7 @@ Targets (issue "acquisition daemons"): servo ≥ 1000 Hz sustained, 0 lost sampl
 period jitter < 1 ms, with ``--load train`` and ``--load none``; ``--rate servo_bus=2000`` reports what it
 reaches.
 
-Usage: python bench/acquisition.py [--seconds S] [--load none|train|cpu] [--rate DEVICE=HZ]... [--no-elevate]
+Usage: python bench/acquire.py [--seconds S] [--load none|train|cpu] [--rate DEVICE=HZ]... [--no-elevate]
 """
 
 from __future__ import annotations
@@ -33,15 +33,14 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from acquisition.recorder.recorder import Recorder
+from acquisition.recorder.sessions import readable_parts
+from acquisition.schemas import topics as T
+from acquisition.schemas.fast_read import read_fixed_topics
+from acquisition.sim.ptyhost import wait_for_ports
+from models.robot import load_robot
 
-from acquisition.recorder.recorder import Recorder  # noqa: E402
-from acquisition.recorder.sessions import readable_parts  # noqa: E402
-from acquisition.schemas import topics as T  # noqa: E402
-from acquisition.schemas.fast_read import read_fixed_topics  # noqa: E402
-from acquisition.sim.ptyhost import wait_for_ports  # noqa: E402
-from models.robot import load_robot  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 STREAMS = {T.SERVO_STATE: "servo_bus", T.PRESSURE: "pressure_board", T.STEPPER: "stepper_board",
            T.TRACKER: "tracker"}  # fmt: skip
