@@ -53,3 +53,30 @@ def test_survey_writes_its_grid_to_the_lab(tmp_path):
     assert result.exit_code == 0, result.output
     assert (tmp_path / "twin" / "survey_vsl_linear.json").exists()
     assert "0.5 bar" in result.output
+
+
+@pytest.mark.parametrize(
+    ("args", "says"),
+    [
+        (["--rig", "--rate", "servo_bus=fast"], "--rate takes DEVICE=HZ"),
+        (["--rig", "--rate", "gripper=10"], "has no device 'gripper'"),
+        (["--ports", "{missing}"], "no ports file or rig directory"),
+        (["--ports", "{broken}"], "not a ports file"),
+    ],
+)
+def test_record_refuses_bad_options_with_one_line(tmp_path, args, says):
+    broken = tmp_path / "broken.json"
+    broken.write_text("{not json")
+    args = [a.format(missing=tmp_path / "nothing", broken=broken) for a in args]
+    result = runner.invoke(app, ["--lab", str(tmp_path / "lab"), "record", *args])
+    assert result.exit_code == 2 and says in result.output, result.output
+    assert "Traceback" not in result.output
+
+
+def test_a_recording_where_no_device_answers_fails_and_says_why(tmp_path):
+    ports = tmp_path / "ports.json"
+    ports.write_text('{"servo_bus": "%s"}' % (tmp_path / "no-such-port"))
+    result = runner.invoke(app, ["--lab", str(tmp_path / "lab"), "--quiet", "record", "--ports", str(ports),
+                                 "--duration", "0.5"])  # fmt: skip
+    assert result.exit_code == 2, result.output
+    assert "servo_bus gave no sample" in result.output and "no-such-port" in result.output

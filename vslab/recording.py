@@ -139,7 +139,11 @@ def _finish(rec) -> None:
                       f"{c['dropped']:,} dropped[/]")  # fmt: skip
     for name, n in rec.restarts.items():
         console.print(f"[yellow]{name} was restarted {n} time(s) (see /events)[/]")
+    for name, why in rec.silent.items():
+        console.print(f"[red]{name} gave no sample:[/] {why}", soft_wrap=True, highlight=False)
     console.print(f"session {rec.session_id}: {', '.join(p.name for p in rec.parts)} in {rec.directory}")
+    if rec.silent and len(rec.silent) == len(rec.devices):
+        _fail("no device gave a sample: check the ports (`--ports`, or devices.<name>.port)")
 
 
 @app.command()

@@ -143,6 +143,7 @@ class Recorder:
         self.write_error: str | None = None
         self.restarts: dict[str, int] = {}
         self.final: dict[str, dict] | None = None
+        self.silent: dict[str, str] = {}  # after stop: devices that never gave a sample, and why
         self._children: dict[str, _Child] = {}
         self._rings: dict[str, Ring] = {}
         self._events: Ring | None = None
@@ -223,6 +224,11 @@ class Recorder:
             if code != 0 and self.write_error is None:
                 self.write_error = f"the session writer exited with {code} (see {self.layout.log('writer')})"
         self.final = self.snapshot()
+        self.silent = {
+            name: self._statuses[name].error or "no samples"
+            for name, entry in self.layout.devices.items()
+            if entry.sampled and all(self.final[t]["received"] == 0 for t in entry.sampled)
+        }
         for child in self._children.values():
             child.close()
         for ring in [*self._rings.values(), self._events]:
