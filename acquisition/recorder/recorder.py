@@ -138,6 +138,7 @@ class Recorder:
             batch_s=batch_s, flush_s=flush_s, rotate_bytes=rotation.max_bytes,
             rotate_seconds=rotation.max_seconds, stale_s=stale_s,
         )  # fmt: skip
+        self._messages = {n: t.message for n, t in T.session_topics(robot).items() if t.message is not None}
         self.live = live
         self.live_errors = 0  # live-view failures: logged once, counted, never stop the recording
         self.write_error: str | None = None
@@ -180,7 +181,7 @@ class Recorder:
         try:
             for entry in layout.devices.values():
                 for topic in entry.topics:
-                    message = T.session_topics(self.robot)[topic].message
+                    message = self._messages[topic]
                     slots = max(1024, int(entry.rate_hz * RING_SECONDS)) if topic in entry.sampled else 4096
                     self._rings[topic] = Ring.create(layout.ring(topic), slots, message.size)
                 self._statuses[entry.name] = DaemonStatus.create(layout.status(entry.name))
@@ -255,7 +256,7 @@ class Recorder:
         got = ring.latest() if ring is not None else None
         if got is None:
             return None
-        message = T.session_topics(self.robot)[topic].message
+        message = self._messages[topic]
         return Latest(got[0], np.frombuffer(got[1][: message.size].tobytes(), message.dtype)[0])
 
     def command(self, topic: str, cmd: dict) -> bool:
@@ -377,18 +378,13 @@ class Recorder:
         """Show what the daemons produce in the live view (peeking: the writer still gets everything)."""
         peekers = {topic: Ring.attach(ring.path) for topic, ring in self._rings.items()}
         events = [Ring.attach(self.layout.events(p)) for p in self.layout.producers]
-        messages = T.session_topics(self.robot)
         offset = self.layout.unix_offset_ns
         while not self._stop.wait(0.02):
             for topic, ring in peekers.items():
                 host_ns, _, payload = ring.peek()
                 if len(host_ns):
-                    size = messages[topic].message.size
-                    rows = (
-                        np.ascontiguousarray(payload[:, :size])
-                        .view(messages[topic].message.dtype)
-                        .reshape(-1)
-                    )
+                    message = self._messages[topic]
+                    rows = np.ascontiguousarray(payload[:, : message.size]).view(message.dtype).reshape(-1)
                     self._publish(topic, host_ns + offset, rows)
             for ring in events:
                 host_ns, lengths, payload = ring.peek()
