@@ -186,6 +186,12 @@ def simulate(
         console.print(
             f"inverse model in the loop: {len(latencies)} set-points, {p50:.0f} µs p50, {p99:.0f} µs p99"
         )
+    stopped = {sid: why for r in reports for sid, why in r.stopped.items()}
+    for sid, why in sorted(stopped.items())[:10]:
+        console.print(f"  {sid} stopped early: {why}", soft_wrap=True, highlight=False)
+    if stopped:
+        _fail(f"{len(stopped)} session(s) stopped early (a safety limit or a refused command; their events say "
+              "why): they ran only up to the stop")  # fmt: skip
 
 
 @app.command()

@@ -6,7 +6,9 @@ the host's monotonic clock, paused while the operator is busy (hanging a payload
 ``1/check_hz`` the latest measured state is checked against the safety limits; a violation, a device silent
 for longer than ``stale_s`` or Ctrl-C makes a safe stop: the servos hold where they are, the stepper stops,
 the pressures stay (an inflatable arm must not be vented under load), a SAFETY_STOP event says why, and the
-session stays valid.
+session stays valid. Every command passes the command guard before it is sent (a compensator's output
+included): one outside the robot's limits, or not a number, is a safe stop too, and nothing of it is sent. The
+daemons check again where the ports are; a refusal there also stops the plan.
 
     with Recorder(robot, ports, directory, session_id) as rec:
         report = RealTimeRunner(rec, plan, on_payload=prompt).run()
@@ -21,6 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from acquisition.command_guard import CommandGuard, CommandRefused
 from acquisition.devices.base import host_now_ns
 from acquisition.plans.compensation import Compensator
 from acquisition.plans.plan import Plan
@@ -65,6 +68,7 @@ class RealTimeRunner:
         self.on_payload, self.on_tap = on_payload, on_tap
         self.tick_s, self.check_period, self.stale_ns = tick_s, 1.0 / check_hz, int(stale_s * 1e9)
         self.safety = SafetyChecker(self.robot)
+        self.guard = CommandGuard(self.robot)
         joints = self.robot.joints
         self.servo_joints = [i for i, j in enumerate(joints) if j.drive != "stepper"]
         self.stepper_joints = [i for i, j in enumerate(joints) if j.drive == "stepper"]
@@ -74,6 +78,7 @@ class RealTimeRunner:
             self.servo_joints = [names.index(n) for n in servo_dev.ids if n in names]
         self.commands = 0
         self._goal_seq = self._pressure_seq = 0
+        self._refused = 0  # refusals by the daemons' guards before this plan started
 
     # --------------------------------------------------------------------------------------- running
     def run(self) -> RunReport:
@@ -81,6 +86,7 @@ class RealTimeRunner:
         plan = self.plan
         self.safety.require_safe(plan)
         self._require_devices()
+        self._refused = self.rec.refusals()[0]
         self.rec.event(Event(EventKind.PLAN_STEP, 0, label="plan-start", text=plan.name))
         self._send_torque(True)
         cursor = {"goal": -1, "pressure": -1, "payload": -1, "tap": -1, "event": 0}
@@ -90,13 +96,17 @@ class RealTimeRunner:
             while t <= plan.duration_s:
                 t = time.monotonic() - start - paused
                 g = int(np.searchsorted(plan.goal_t, t, side="right")) - 1
-                if g != cursor["goal"]:
-                    cursor["goal"] = g
-                    self._send_goals(plan.goal_q[g], plan.goal_speed[g])
-                p = int(np.searchsorted(plan.pressure_t, t, side="right")) - 1
-                if p != cursor["pressure"]:
-                    cursor["pressure"] = p
-                    self._send_pressures(plan.pressure_pa[p], plan.valve_open[p])
+                try:
+                    if g != cursor["goal"]:
+                        cursor["goal"] = g
+                        self._send_goals(plan.goal_q[g], plan.goal_speed[g])
+                    p = int(np.searchsorted(plan.pressure_t, t, side="right")) - 1
+                    if p != cursor["pressure"]:
+                        cursor["pressure"] = p
+                        self._send_pressures(plan.pressure_pa[p], plan.valve_open[p])
+                except CommandRefused as exc:
+                    self.rec.event(Event(EventKind.COMMAND_REFUSED, label="runner", text=str(exc)))
+                    return self._safe_stop("stopped", t, "command", f"refused: {exc}")
                 m = int(np.searchsorted(plan.payload_t, t, side="right")) - 1
                 if m != cursor["payload"]:
                     cursor["payload"], payload = m, float(plan.payload_kg[m])
@@ -164,31 +174,45 @@ class RealTimeRunner:
         return q, np.asarray(s.values["pressure"], float), current, min(stamps)
 
     def _send_goals(self, q_goal: np.ndarray, speed: np.ndarray) -> None:
+        """Send the goals (compensated where a compensator is set); CommandRefused before anything is sent
+        when one is outside the limits or not a number."""
         q_cmd = np.asarray(q_goal, float)
         if self.compensator is not None:
             _, pressure, current, _ = self._measured()
-            q_cmd = self.compensator(q_cmd[None], pressure[None], current[None])[0]
-        self._goal_seq += 1
+            q_cmd = np.asarray(self.compensator(q_cmd[None], pressure[None], current[None]), float)
+            if q_cmd.shape != (1, len(self.robot.joints)):
+                raise CommandRefused(f"the compensator returned shape {q_cmd.shape} for one set of goals")
+            q_cmd = q_cmd[0]
+        q_cmd = self.guard.joint_goals(q_cmd)
+        servo, stepper = None, None
         if self.servo_joints:
             joints = self.servo_joints
             speed_s = np.where(speed[joints] > 0, speed[joints], self.robot.servo.profile_velocity_rad_s)
-            self.rec.command(T.SERVO_GOAL, {"op": "goals", "seq": self._goal_seq,
-                                            "position": q_cmd[joints].tolist(),
-                                            "profile_velocity": speed_s.tolist()})  # fmt: skip
+            names = [self.robot.joints[i].name for i in joints]
+            servo = self.guard.servo_goals(names, q_cmd[joints], speed_s)
         if self.stepper_joints:
             spec, j = self.robot.stepper, self.stepper_joints[0]
             steps = round(q_cmd[j] / spec.rad_per_microstep)
             rate = (speed[j] if speed[j] > 0 else spec.max_speed_rad_s) / spec.rad_per_microstep
             accel = spec.acceleration_rad_s2 / spec.rad_per_microstep
-            self.rec.command(T.STEPPER, {"op": "move", "steps": steps, "speed": min(max(rate, 1.0), 4000.0),
-                                         "accel": min(max(accel, 1.0), 100_000.0)})  # fmt: skip
+            stepper = self.guard.stepper_move(self.robot.joints[j].name, steps, min(max(rate, 1.0), 4000.0),
+                                              min(max(accel, 1.0), 100_000.0))  # fmt: skip
+        self._goal_seq += 1
+        if servo is not None:
+            position, velocity = servo[0].tolist(), servo[1].tolist()
+            self.rec.command(T.SERVO_GOAL, {"op": "goals", "seq": self._goal_seq, "position": position,
+                                            "profile_velocity": velocity})  # fmt: skip
+        if stepper is not None:
+            steps, rate, accel = stepper
+            self.rec.command(T.STEPPER, {"op": "move", "steps": steps, "speed": rate, "accel": accel})
         self.commands += 1
 
     def _send_pressures(self, pressure_pa: np.ndarray, valves: np.ndarray) -> None:
+        setpoint, valves = self.guard.pressures(pressure_pa, valves)
         self._pressure_seq += 1
         self.rec.command(T.PRESSURE_COMMAND, {"op": "pressures", "seq": self._pressure_seq,
-                                              "setpoint": np.asarray(pressure_pa, float).tolist(),
-                                              "valve_open": np.asarray(valves, bool).tolist()})  # fmt: skip
+                                              "setpoint": setpoint.tolist(),
+                                              "valve_open": valves.tolist()})  # fmt: skip
         self.commands += 1
 
     def _send_torque(self, on: bool) -> None:
@@ -200,6 +224,9 @@ class RealTimeRunner:
         """A reason to stop now: a safety limit on the latest measurements, or a lost or silent device."""
         # a device that drops out and reconnects within stale_s (a missed reply, a busy host) is not a stop;
         # one whose samples are older than that is
+        refused, why = self.rec.refusals()
+        if refused > self._refused:
+            return "command", f"refused by a device daemon: {why}"
         q, pressure, _, oldest = self._measured()
         if host_now_ns() - oldest > self.stale_ns:
             lost = [topic for topic in self._needed() if not self.rec.connected(topic)]

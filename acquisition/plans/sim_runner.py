@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from acquisition.command_guard import CommandGuard, CommandRefused
 from acquisition.plans.compensation import Compensator, StaticModelCompensator
 from acquisition.plans.plan import Plan
 from acquisition.plans.twin_topics import stream_rows
@@ -42,6 +43,7 @@ class SimReport:
     simulated_s: float  # bench-seconds simulated (sum over benches)
     wall_s: float
     messages: int
+    stopped: dict[str, str] = dataclasses.field(default_factory=dict)  # session id → why it stopped early
 
     @property
     def speedup(self) -> float:
@@ -83,10 +85,17 @@ def session_id(plan: Plan) -> str:
 
 
 def _complete(directory: Path) -> bool:
-    import json
+    """Was this twin session written whole? Not when its session.json is missing or damaged (it is then
+    simulated again, as an interrupted one is)."""
+    from acquisition.recorder.sessions import SessionError, read_card
 
-    card = directory / SESSION_CARD
-    return card.is_file() and json.loads(card.read_text()).get("status") == "complete"
+    if not (directory / SESSION_CARD).is_file():
+        return False
+    try:
+        return read_card(directory).get("status") == "complete"
+    except SessionError as exc:
+        log.warning("simulated again: %s", exc)
+        return False
 
 
 def _concat(traces: list[Trace]) -> Trace:
@@ -115,7 +124,9 @@ def simulate(
     ``compensators[i]`` (if given) turns plan i's goals into commands at each new set-point, from the bench's
     pressures and currents at that instant. With ``check_safety`` every plan is checked before anything runs
     (:class:`SafetyError`), and the benches' state while they run: a bench that breaks a limit gets a
-    SAFETY_STOP event and its session ends there."""
+    SAFETY_STOP event and its session ends there. A compensator's output passes the command guard before
+    it is used: a goal that is not a number or outside the joints' ranges is never commanded; the bench holds
+    where it is, a COMMAND_REFUSED and a SAFETY_STOP event say why, and its session ends there."""
     if any(p.robot != robot.name for p in plans):
         raise ValueError(f"every plan of a batch must be for {robot.name}")
     compensators = list(compensators) if compensators is not None else [None] * len(plans)
@@ -167,6 +178,7 @@ def simulate(
     last_pressure = np.full(len(plans), -1)
     compensation = _Compensation(robot, plans, compensators, block_s)
     messages = 0
+    stopped: dict[str, str] = {}
     t0 = 0.0
     try:
         while t0 < end - 1e-12:
@@ -182,7 +194,7 @@ def simulate(
             goal_index = np.stack([c["goal_index"] for c in cmds], axis=1)
             traces = []
             for b in range(blocks_per_window):
-                compensation.apply(world, goal_index[b], goal[b])  # in place: what is sent
+                compensation.apply(world, goal_index[b], goal[b], float(tb[b]))  # in place: what is sent
                 world.command_joints(goal[b], profile_vel=speed[b])
                 world.command_pressure(pressure[b])
                 world.set_valves(valves[b])
@@ -198,8 +210,13 @@ def simulate(
             stops = (
                 _safety_stops(safety, plans, trace, (payload, pressure, valves), durations) if safety else {}
             )
-            for r, (t_stop, _) in stops.items():
+            refused = compensation.take_refusals()
+            for r, (t_refused, event) in refused.items():
+                if t_refused <= durations[r] and (r not in stops or t_refused <= stops[r][0]):
+                    stops[r] = (t_refused, event)
+            for r, (t_stop, event) in stops.items():
                 durations[r] = t_stop  # the bench's session ends at the stop
+                stopped[session_id(plans[r])] = f"{event.label}: {event.text}"
             rows = stream_rows(robot, topics, world.read(trace, servo_rate_hz), valves[-1])
             for r, (p, w) in enumerate(zip(plans, writers, strict=True)):
                 if t0 >= durations[r]:
@@ -219,6 +236,10 @@ def simulate(
                 for t_event, event in p.events[e_lo:e_hi]:
                     w.event(event, SIM_EPOCH_NS + round(t_event * 1e9))
                     messages += 1
+                if r in refused and stops.get(r) == refused[r]:
+                    w.event(Event(EventKind.COMMAND_REFUSED, label="compensator", text=refused[r][1].text),
+                            SIM_EPOCH_NS + round(refused[r][0] * 1e9))  # fmt: skip
+                    messages += 1
                 if r in stops:
                     w.event(stops[r][1], SIM_EPOCH_NS + round(stops[r][0] * 1e9))
                     messages += 1
@@ -231,7 +252,7 @@ def simulate(
         for w in writers:
             w.close()
     wall = time.perf_counter() - start
-    return SimReport([session_id(p) for p in plans], skipped, float(durations.sum()), wall, messages)
+    return SimReport([session_id(p) for p in plans], skipped, float(durations.sum()), wall, messages, stopped)
 
 
 class _Compensation:
@@ -248,6 +269,9 @@ class _Compensation:
         self.command = np.zeros((len(plans), len(robot.actuated_joints)))
         self.alpha = min(1.0, block_s / current_filter_s)
         self.current: np.ndarray | None = None
+        self.guard = CommandGuard(robot)
+        self.halted: set[int] = set()
+        self.refusals: dict[int, tuple[float, Event]] = {}
 
     def observe(self, world: World) -> None:
         """Update the low-passed currents after a block (an exponential moving average)."""
@@ -256,19 +280,40 @@ class _Compensation:
         now = servo_current_a(self.robot.servo, world.state.torque, world.state.out_vel)
         self.current = now if self.current is None else self.current + self.alpha * (now - self.current)
 
-    def apply(self, world: World, goal_index: np.ndarray, goal: np.ndarray) -> None:
-        """Replace the compensated benches' goals (B, A) in place."""
+    def apply(self, world: World, goal_index: np.ndarray, goal: np.ndarray, t: float) -> None:
+        """Replace the compensated benches' goals (B, A) in place; a refused command holds the bench where
+        it is (kept for :meth:`take_refusals`)."""
         if not self.benches:
             return
         if self.current is None:
             self.observe(world)
         for r in self.benches:
             if goal_index[r] != self.index[r]:
-                self.command[r] = self.compensators[r](
-                    goal[r][None], world.state.p_link[r][None], self.current[r][None]
-                )[0]
                 self.index[r] = goal_index[r]
+                if r in self.halted:
+                    continue
+                try:
+                    out = np.asarray(self.compensators[r](
+                        goal[r][None], world.state.p_link[r][None], self.current[r][None]
+                    ), float)  # fmt: skip
+                    if out.shape != (1, goal.shape[1]):
+                        raise CommandRefused(
+                            f"the compensator returned shape {out.shape} for one set of goals"
+                        )
+                    self.command[r] = self.guard.joint_goals(out[0])
+                except CommandRefused as exc:
+                    self.halted.add(r)
+                    self.command[r] = world.state.out_pos[r]  # hold where it is
+                    self.refusals[r] = (
+                        t,
+                        Event(EventKind.SAFETY_STOP, label="command", text=f"refused: {exc}"),
+                    )
             goal[r] = self.command[r]
+
+    def take_refusals(self) -> dict[int, tuple[float, Event]]:
+        """The benches whose compensator gave a refused command since the last call: (time, stop event)."""
+        out, self.refusals = self.refusals, {}
+        return out
 
 
 def _safety_stops(

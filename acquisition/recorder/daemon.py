@@ -30,6 +30,7 @@ import sys
 import time
 from pathlib import Path
 
+from acquisition.command_guard import CommandRefused
 from acquisition.errors import DeviceDisconnectedError, DeviceError, DeviceNotFoundError
 from acquisition.processes import elevate, parent_alive, relinquish
 from acquisition.recorder.layout import Layout
@@ -186,10 +187,11 @@ class Daemon:
         except DeviceError as exc:
             self._lose(f"{op}: {exc}")
             return
-        except (ValueError, KeyError, TypeError) as exc:
-            push_event(
-                self.events, Event(EventKind.NOTE, label=self.device, text=f"command refused: {op}: {exc}")
-            )
+        except (CommandRefused, ValueError, KeyError, TypeError) as exc:  # nothing of it was sent
+            why = f"{op}: {exc}"
+            log.warning("%s: command refused: %s", self.device, why)
+            self.status.refuse(why)
+            push_event(self.events, Event(EventKind.COMMAND_REFUSED, label=self.device, text=why))
             return
         self._put(rows)
 

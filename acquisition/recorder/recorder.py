@@ -274,6 +274,16 @@ class Recorder:
         status = self._statuses.get(name)
         return (status.error if status is not None else "") or f"no device writes {topic}"
 
+    def refusals(self) -> tuple[int, str]:
+        """How many commands the daemons' guards refused so far, and the last reason (``device: op: why``)."""
+        total, last = 0, ""
+        for name, status in self._statuses.items():
+            n, why = status.refusals
+            total += n
+            if n and why:
+                last = f"{name}: {why}"
+        return total, last
+
     def snapshot(self) -> dict[str, dict[str, int]]:
         """Every stream's account now: expected, received, lost, written, dropped, gaps."""
         if self.final is not None:

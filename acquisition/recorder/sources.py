@@ -3,7 +3,9 @@
 A source wraps one driver (``acquisition/devices``) and turns its readings into rows of the session's
 topics, stamped with the host receive time and numbered (a poll slot, or the device's own sequence or
 frame counter, which is how lost samples are counted). It accepts the commands that device takes (goals,
-set-points, valves, moves), returns the rows that record them as sent, and knows the device's safe state
+set-points, valves, moves) once the command guard (:mod:`acquisition.command_guard`) has passed them — this
+process owns the port, so nothing reaches the device without that check — returns the rows that record them
+as sent, and knows the device's safe state
 (servos hold where they are, the stepper stops, pressures stay: an inflatable arm must not be vented under
 load). Sources are registered by the driver name the robot description gives each device (``devices.<name>
 .driver``), so adding a device is a driver, a source, an emulator and a schema.
@@ -20,6 +22,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from acquisition.command_guard import CommandGuard
 from acquisition.devices.base import host_now_ns
 from acquisition.devices.boards import PressureBoard, StepperBoard
 from acquisition.devices.servo_bus import ServoBus
@@ -55,6 +58,7 @@ class Source:
                  rate_hz: float) -> None:  # fmt: skip
         self.robot, self.name, self.spec, self.port = robot, name, spec, port
         self.rate_hz = float(rate_hz)
+        self.guard = CommandGuard(robot)
         topics = T.session_topics(robot)
         self.messages: dict[str, FixedMessage] = {}
         for topic in (*self.sampled_topics, *self.command_topics):
@@ -98,7 +102,8 @@ class Source:
         raise NotImplementedError
 
     def command(self, cmd: dict) -> list[Row]:
-        """Carry out one command (a dict with ``op``); returns the rows recording it as sent."""
+        """Carry out one command (a dict with ``op``); returns the rows recording it as sent. A command the
+        guard refuses raises :class:`~acquisition.command_guard.CommandRefused` before any byte is sent."""
         raise ValueError(f"{self.name} takes no command {cmd.get('op')!r}")
 
     def safe(self) -> None:
@@ -119,6 +124,7 @@ class ServoSource(Source):
         self.bus = ServoBus(
             port, ids=list(spec.ids.values()), baud=spec.baud, zero_count=robot.servo.zero_count
         )
+        self.joints = list(spec.ids)  # joint names in the bus's id order (the goals' order)
         self.position: np.ndarray | None = None  # the last position read: where a hold holds
 
     def open(self) -> None:
@@ -140,8 +146,7 @@ class ServoSource(Source):
             self.bus.set_torque(bool(cmd["on"]))
             return []
         if op == "goals":
-            position = np.asarray(cmd["position"], float)
-            velocity = np.asarray(cmd["profile_velocity"], float)
+            position, velocity = self.guard.servo_goals(self.joints, cmd["position"], cmd["profile_velocity"])
             self.bus.set_profile_velocity(velocity)
             self.bus.write_goals(position)
             return [self.row(T.SERVO_GOAL, host_now_ns(), None, seq=int(cmd.get("seq", 0)), position=position,
@@ -204,8 +209,7 @@ class PressureSource(_BoardSource):
     def command(self, cmd: dict) -> list[Row]:
         if cmd["op"] != "pressures":
             return super().command(cmd)
-        setpoint = np.asarray(cmd["setpoint"], float)
-        valves = np.asarray(cmd["valve_open"], bool)
+        setpoint, valves = self.guard.pressures(cmd["setpoint"], cmd["valve_open"])
         for ch, (pa, open_) in enumerate(zip(setpoint, valves, strict=True)):
             self.board.set_pressure(ch, float(pa))
             self.board.set_valve(ch, bool(open_))
@@ -223,6 +227,7 @@ class StepperSource(_BoardSource):
     def __init__(self, robot, name, spec, port, rate_hz) -> None:
         super().__init__(robot, name, spec, port, rate_hz)
         self.rad_per_step = robot.stepper.rad_per_microstep
+        self.joint = next(j.name for j in robot.joints if j.drive == "stepper")
 
     def sample_row(self, s) -> Row:
         return self.row(T.STEPPER, s.host_ns, s.seq, seq=s.seq or 0, micros=s.micros,
@@ -231,8 +236,11 @@ class StepperSource(_BoardSource):
 
     def command(self, cmd: dict) -> list[Row]:
         if cmd["op"] == "move":
-            self.board.set_speed(float(cmd["speed"]), float(cmd["accel"]))
-            self.board.move_to(int(cmd["steps"]))
+            steps, speed, accel = self.guard.stepper_move(
+                self.joint, cmd["steps"], cmd["speed"], cmd["accel"]
+            )
+            self.board.set_speed(speed, accel)
+            self.board.move_to(steps)
             return []
         if cmd["op"] == "stop":
             self.board.stop()

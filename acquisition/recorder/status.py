@@ -16,8 +16,9 @@ import numpy as np
 
 _WORDS = 8
 _TEXT = 512
-_PID, _HEARTBEAT, _PHASE, _CONNECTED, _STARTS = range(5)
-_ERROR, _PRIORITY = 0, 1  # text fields
+_PID, _HEARTBEAT, _PHASE, _CONNECTED, _STARTS, _REFUSED = range(6)
+_ERROR, _PRIORITY, _REFUSAL = 0, 1, 2  # text fields
+_TEXTS = 3
 
 
 class Phase(enum.IntEnum):
@@ -35,13 +36,13 @@ class DaemonStatus:
         self.path = Path(path)
         self._mm = mm
         self.words = np.ndarray((_WORDS,), np.int64, buffer=mm, offset=0)
-        self._text = np.ndarray((2, _TEXT), np.uint8, buffer=mm, offset=_WORDS * 8)
+        self._text = np.ndarray((_TEXTS, _TEXT), np.uint8, buffer=mm, offset=_WORDS * 8)
 
     @classmethod
     def create(cls, path: Path) -> DaemonStatus:
         path = Path(path)
         with open(path, "wb") as f:
-            f.truncate(_WORDS * 8 + 2 * _TEXT)
+            f.truncate(_WORDS * 8 + _TEXTS * _TEXT)
         return cls.attach(path)
 
     @classmethod
@@ -93,6 +94,16 @@ class DaemonStatus:
     @priority.setter
     def priority(self, text: str) -> None:
         self._set(_PRIORITY, text)
+
+    def refuse(self, why: str) -> None:
+        """The command guard refused a command (counted; the last reason kept)."""
+        self._set(_REFUSAL, why)
+        self.words[_REFUSED] += 1
+
+    @property
+    def refusals(self) -> tuple[int, str]:
+        """How many commands were refused, and why the last one was."""
+        return int(self.words[_REFUSED]), self._get(_REFUSAL)
 
     # the supervisor's side
     @property

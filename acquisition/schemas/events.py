@@ -30,6 +30,7 @@ class EventKind(enum.IntEnum):
     DEVICE_GAP_END = 8  # the worker reconnected; value = gap length in s
     SAFETY_STOP = 9  # label = which limit, text = why
     PLAN_STEP = 10  # index = step number, label = step kind
+    COMMAND_REFUSED = 11  # the command guard kept a command from a device; label = device, text = why
 
 
 EVENT_SCHEMA = (

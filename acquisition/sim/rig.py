@@ -103,8 +103,10 @@ class Rig:
             return {"ok": True}
         if op == "state":
             st = self.world.state
+            cmd = self.world.commands  # what the emulators passed on to the twin (what the devices took)
             return {"ok": True, "t": st.t, "q": st.out_pos[0].tolist(), "delta": st.delta[0].tolist(),
-                    "pressure_pa": st.p_link[0].tolist()}  # fmt: skip
+                    "pressure_pa": st.p_link[0].tolist(), "goal_q": cmd.goal[0].tolist(),
+                    "pressure_set_pa": cmd.pressure_set[0].tolist()}  # fmt: skip
         raise ValueError(f"unknown command {op!r}")
 
 
