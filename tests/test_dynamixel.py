@@ -48,7 +48,16 @@ def test_corrupted_packet_is_flagged():
     raw = bytearray(dx.instruction(1, dx.PING))
     raw[-1] ^= 0xFF
     (bad,) = dx.PacketReader().feed(bytes(raw))
-    assert isinstance(bad, dx.CrcError)
+    assert isinstance(bad, dx.CrcError) and isinstance(bad, dx.PacketError)
+    assert isinstance(dx.decode(dx.HEADER + b"\x01\x00\x00"), dx.PacketError), "LEN 0: not a packet"
+
+
+def test_emulator_drops_a_packet_cut_short():
+    """A packet whose rest never comes (a corrupted LEN) is dropped after the servo's packet timeout."""
+    bus = demo_bus()
+    assert bus.feed(dx.HEADER + b"\x01\xff\x00\x02", 0.0) == b"", "waits for 255 more bytes"
+    (pong,) = _status(bus.feed(dx.instruction(1, dx.PING), 1.0))
+    assert pong.dxl_id == 1 and pong.error == 0
 
 
 # ---------------------------------------------------------------------------------------- emulator
@@ -66,10 +75,13 @@ def test_emulator_ping_read_write_and_errors():
     assert ok.error == 0
     (denied,) = _status(bus.feed(dx.instruction(1, dx.WRITE, struct.pack("<HB", 11, 1)), 0.0))
     assert denied.error == dx.ERR_ACCESS, "EEPROM is read-only with torque on"
-    (bad,) = _status(bus.feed(dx.instruction(1, dx.READ, struct.pack("<HH", 250, 10)), 0.0))
-    assert bad.error == dx.ERR_DATA_RANGE
+    (bad,) = _status(bus.feed(dx.instruction(1, dx.READ, struct.pack("<HH", 655, 10)), 0.0))
+    assert bad.error == dx.ERR_ACCESS and bad.params == bytes(10), "past address 661: zeros, Access Error"
+    (gap,) = _status(bus.feed(dx.instruction(1, dx.READ, struct.pack("<HH", 250, 10)), 0.0))
+    assert gap.error == 0 and len(gap.params) == 10, "unused addresses read as zeros"
     (unknown,) = _status(bus.feed(dx.instruction(1, 0x77), 0.0))
     assert unknown.error == dx.ERR_INSTRUCTION
+    assert bus.feed(dx.instruction(dx.BROADCAST_ID, 0x77), 0.0) == b"", "no status to a broadcast"
     assert bus.feed(dx.instruction(dx.BROADCAST_ID, dx.WRITE, struct.pack("<HB", 65, 1)), 0.0) == b""
 
 

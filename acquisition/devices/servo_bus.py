@@ -3,12 +3,19 @@
 One Sync Read of addresses 120–135 returns each servo's Realtime Tick, current, velocity and position in one
 transaction; goals go out in one Sync Write. Values are converted to SI (rad, rad/s, A); every read carries
 the host receive time (int64 ns) and the servos' own tick (ms, wraps at 32768).
+
+A servo that answers a ping, read or write with an error status raises a ``ServoStatusError`` subclass
+(``servo_errors``: one per Protocol 2.0 error number, and the hardware Alert) whose message names the servo,
+the item, what the servo said and what to do. A Sync Read carries each servo's Alert bit in ``ServoState``
+instead (the readings are still good); Sync Writes get no status by design, so what a servo refuses there
+goes unreported (the command guard checks every goal before it leaves).
 """
 
 from __future__ import annotations
 
 import logging
 import select
+import struct
 import termios
 from dataclasses import dataclass
 
@@ -25,18 +32,22 @@ from dynamixel_sdk import (
 )
 
 from acquisition.devices.base import Device, host_now_ns
+from acquisition.devices.servo_errors import ServoHardwareAlert, ServoStatusError, status_error
 from acquisition.errors import (
     DeviceDisconnectedError,
     DeviceNotFoundError,
     DeviceProtocolError,
-    DeviceReplyError,
     DeviceTimeoutError,
 )
 from acquisition.protocols import dynamixel as dx
 
+__all__ = ["ServoBus", "ServoHardwareAlert", "ServoState", "ServoStatusError"]
+
 log = logging.getLogger(__name__)
 
 _BLOCK_START, _BLOCK_LEN = dx.REALTIME_TICK[0], 16  # 120 … 135
+_BLOCK = struct.Struct("<HBBhhii")  # tick, moving, moving status, PWM, current, velocity, position
+assert _BLOCK.size == _BLOCK_LEN
 
 
 @dataclass(frozen=True)
@@ -52,6 +63,7 @@ class ServoState:
     position_counts: np.ndarray
     current_counts: np.ndarray
     moving: np.ndarray
+    alert: np.ndarray | None = None  # per servo: its status carried the hardware Alert bit
 
 
 class _WaitingPortHandler(PortHandler):
@@ -77,11 +89,6 @@ class _WaitingPortHandler(PortHandler):
             select.select([self.ser.fileno()], [], [], remaining_ms / 1e3)
             data = self.ser.read(length)
         return data
-
-
-def _signed(value: int, nbytes: int) -> int:
-    bits = 8 * nbytes
-    return value - (1 << bits) if value >= 1 << (bits - 1) else value
 
 
 class ServoBus(Device):
@@ -178,10 +185,44 @@ class ServoBus(Device):
         """One Sync Read of tick, current, velocity and position of every servo, with retries."""
         return self._retrying("sync read", self._sync_read_once)
 
+    def reboot(self, dxl_id: int) -> None:
+        """Reboot one servo (the only way to clear a latched hardware error; its torque comes back off)."""
+
+        def attempt() -> None:
+            result, error = self._call(self._packet.reboot, self._port, dxl_id)
+            self._check(result, error & ~dx.ERR_HARDWARE_ALERT, dxl_id=dxl_id, doing="a reboot")
+
+        self._retrying(f"reboot ID {dxl_id}", attempt)
+
+    def write_item(self, dxl_id: int, item: tuple[int, int], value: int) -> None:
+        """Write one control-table item, (address, size), of one servo; a refusal raises its
+        ``ServoStatusError`` (e.g. an EEPROM item with torque on: ``ServoAccessError``)."""
+        self._write(dxl_id, item, value)
+
+    def read_item(self, dxl_id: int, item: tuple[int, int], signed: bool = False) -> int:
+        """Read one control-table item, (address, size), of one servo (an Alert bit alone does not raise:
+        the value is good)."""
+        address, size = item
+
+        def attempt() -> int:  # readTxRx, not readNByteTxRx: those index an error reply's missing data
+            data, result, error = self._call(self._packet.readTxRx, self._port, dxl_id, address, size)
+            error &= ~dx.ERR_HARDWARE_ALERT  # the value read is good all the same (see read_state's alert)
+            self._check(result, error, dxl_id=dxl_id, doing="reading", address=address, size=size)
+            if len(data) != size:
+                raise DeviceProtocolError(
+                    f"read address {address} of ID {dxl_id}: {len(data)} of {size} bytes"
+                )
+            return int.from_bytes(bytes(data), "little", signed=signed)
+
+        return self._retrying(f"read address {address} of ID {dxl_id}", attempt)
+
     # ----------------------------------------------------------------------------------- internals
     def _ping(self, dxl_id: int) -> int:
         model, result, error = self._call(self._packet.ping, self._port, dxl_id)
-        self._check(result, error, f"ping ID {dxl_id}")
+        if error == dx.ERR_HARDWARE_ALERT:  # present, but with a hardware error latched: say so, open anyway
+            log.warning("%s", self._status_error(dxl_id, error, "a ping"))
+            error = 0
+        self._check(result, error, dxl_id=dxl_id, doing="a ping")
         return model
 
     def _write(self, dxl_id: int, item: tuple[int, int], value: int) -> None:
@@ -195,7 +236,11 @@ class ServoBus(Device):
 
         def attempt() -> None:
             result, error = self._call(write[size], self._port, dxl_id, address, data)
-            self._check(result, error, f"write address {address} of ID {dxl_id}")
+            if error == dx.ERR_HARDWARE_ALERT and item == dx.TORQUE_ENABLE and not value:
+                error = 0  # torque off: what the servo has already done about its hardware error
+            self._check(
+                result, error, dxl_id=dxl_id, doing=f"writing {int(value)} to", address=address, size=size
+            )
 
         self._retrying(f"write address {address} of ID {dxl_id}", attempt)
 
@@ -205,25 +250,24 @@ class ServoBus(Device):
         for dxl_id, value in zip(self.ids, values, strict=True):
             writer.addParam(dxl_id, (int(value) & ((1 << (8 * size)) - 1)).to_bytes(size, "little"))
         result = self._call(writer.txPacket)
-        self._check(result, 0, f"sync write address {address}")
+        self._check(result, 0, what=f"sync write address {address}")
 
     def _sync_read_once(self) -> ServoState:
-        result = self._call(self._reader.txRxPacket)
-        host_ns = host_now_ns()
-        self._check(result, 0, "sync read")
-        rows = []
+        # GroupSyncRead.txRxPacket, unrolled: the SDK's own calls, keeping each servo's status byte
+        result = self._call(self._reader.txPacket)
+        self._check(result, 0, what="sync read")
+        rows, alerts = [], []
         for dxl_id in self.ids:
-            get = self._reader.getData
-            rows.append(
-                (
-                    get(dxl_id, 120, 2),
-                    get(dxl_id, 122, 1),
-                    _signed(get(dxl_id, 126, 2), 2),
-                    _signed(get(dxl_id, 128, 4), 4),
-                    _signed(get(dxl_id, 132, 4), 4),
-                )
-            )
-        tick, moving, current, velocity, position = (np.array(col) for col in zip(*rows, strict=True))
+            data, result, error = self._call(self._packet.readRx, self._port, dxl_id, _BLOCK_LEN)
+            self._check(result, 0, what="sync read")
+            if len(data) != _BLOCK_LEN:
+                raise DeviceProtocolError(f"sync read: ID {dxl_id} sent {len(data)} of {_BLOCK_LEN} bytes")
+            if error & ~dx.ERR_HARDWARE_ALERT:
+                self._check(COMM_SUCCESS, error, dxl_id=dxl_id, doing="reading", address=_BLOCK_START)
+            rows.append(_BLOCK.unpack(bytes(data)))
+            alerts.append(bool(error & dx.ERR_HARDWARE_ALERT))
+        host_ns = host_now_ns()
+        tick, moving, _, _, current, velocity, position = (np.array(col) for col in zip(*rows, strict=True))
         return ServoState(
             host_ns=host_ns,
             ids=self.ids,
@@ -234,6 +278,7 @@ class ServoBus(Device):
             position_counts=position,
             current_counts=current,
             moving=moving.astype(bool),
+            alert=np.array(alerts),
         )
 
     def _call(self, fn, *args):
@@ -244,7 +289,12 @@ class ServoBus(Device):
         except (serial.SerialException, OSError, termios.error) as exc:  # a vanished tty raises termios.error
             raise DeviceDisconnectedError(f"{self.kind} on {self.port}: port lost ({exc})") from exc
 
-    def _check(self, result: int, error: int, what: str) -> None:
+    def _check(self, result: int, error: int, what: str = "", dxl_id: int | None = None, doing: str = "",
+               address: int | None = None, size: int | None = None) -> None:  # fmt: skip
+        """Raise for a failed transaction (timeout, corrupted reply) or an error status from ``dxl_id``."""
+        if not what:
+            target = f" address {address}" if address is not None else ""
+            what = f"{doing}{target} of ID {dxl_id}"
         if result == COMM_RX_TIMEOUT:
             raise DeviceTimeoutError(f"{what}: no reply")
         if result == COMM_RX_CORRUPT:
@@ -252,6 +302,17 @@ class ServoBus(Device):
         if result != COMM_SUCCESS:
             raise DeviceTimeoutError(f"{what}: {self._packet.getTxRxResult(result)}")
         if error:
-            raise DeviceReplyError(
-                f"{self.kind} on {self.port}: {what}: {self._packet.getRxPacketError(error)}"
-            )
+            raise self._status_error(dxl_id, error, doing, address, size)
+
+    def _status_error(self, dxl_id: int, error: int, doing: str, address: int | None = None,
+                      size: int | None = None) -> ServoStatusError:  # fmt: skip
+        """The error for ``dxl_id``'s status byte; after an Alert, Hardware Error Status (70) is read once
+        to say which hardware error it is."""
+        hardware = None
+        if error & dx.ERR_HARDWARE_ALERT:
+            try:
+                data, result, _ = self._call(self._packet.readTxRx, self._port, dxl_id, 70, 1)
+                hardware = data[0] if result == COMM_SUCCESS and len(data) == 1 else None
+            except DeviceDisconnectedError:
+                hardware = None
+        return status_error(f"{self.kind} on {self.port}", dxl_id, error, doing, address, size, hardware)

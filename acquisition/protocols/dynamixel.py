@@ -33,6 +33,15 @@ ERR_RESULT_FAIL, ERR_INSTRUCTION, ERR_CRC, ERR_DATA_RANGE, ERR_DATA_LENGTH, ERR_
     range(1, 8)
 )
 ERR_HARDWARE_ALERT = 0x80
+ERROR_NAMES = {
+    ERR_RESULT_FAIL: "Result Fail",
+    ERR_INSTRUCTION: "Instruction Error",
+    ERR_CRC: "CRC Error",
+    ERR_DATA_RANGE: "Data Range Error",
+    ERR_DATA_LENGTH: "Data Length Error",
+    ERR_DATA_LIMIT: "Data Limit Error",
+    ERR_ACCESS: "Access Error",
+}
 
 # XM430-W350 control table (address, size)
 MODEL_NUMBER = (0, 2)
@@ -67,8 +76,9 @@ PRESENT_VELOCITY = (128, 4)
 PRESENT_POSITION = (132, 4)
 PRESENT_INPUT_VOLTAGE = (144, 2)
 PRESENT_TEMPERATURE = (146, 1)
+PROTOCOL_VERSION = (13, 1)
 EEPROM_END = 64  # addresses below are writable only with torque off
-CONTROL_TABLE_SIZE = 256
+CONTROL_TABLE_SIZE = 662  # addresses 0 … 661 (Indirect Data 56); the items: acquisition.protocols.xm430
 XM430_W350_MODEL = 1020
 OPERATING_MODE_POSITION = 3
 
@@ -153,8 +163,15 @@ class Packet:
     error: int = 0
 
 
-class CrcError(ValueError):
+class PacketError(ValueError):
+    """Bytes that do not decode as a packet (too short, a length that does not match, a failed CRC)."""
+
+
+class CrcError(PacketError):
     """A packet failed its CRC."""
+
+
+MIN_PACKET = 10  # header, ID, LEN, INST, CRC: an instruction without parameters
 
 
 class PacketReader:
@@ -166,10 +183,10 @@ class PacketReader:
     def reset(self) -> None:
         self._buf.clear()
 
-    def feed(self, data: bytes) -> list[Packet | CrcError]:
-        """Append bytes; return every complete packet (or a CrcError in its place)."""
+    def feed(self, data: bytes) -> list[Packet | PacketError]:
+        """Append bytes; return every complete packet (or the PacketError it gave, in its place)."""
         self._buf += data
-        out: list[Packet | CrcError] = []
+        out: list[Packet | PacketError] = []
         while True:
             start = self._buf.find(HEADER)
             if start < 0:
@@ -190,11 +207,19 @@ class PacketReader:
         return len(self._buf)
 
 
-def decode(raw: bytes) -> Packet | CrcError:
-    """Decode one complete packet (header through CRC)."""
+def decode(raw: bytes) -> Packet | PacketError:
+    """Decode one complete packet (header through CRC); any other bytes give a PacketError (returned, not
+    raised: a reader hands it on in the packet's place)."""
+    if len(raw) < MIN_PACKET or raw[:4] != HEADER:
+        return PacketError(f"not a packet: {len(raw)} bytes starting {bytes(raw[:4]).hex(' ')}")
+    length = struct.unpack_from("<H", raw, 5)[0]
+    if length != len(raw) - 7:
+        return PacketError(f"packet from ID {raw[4]}: LEN {length} but {len(raw) - 7} bytes follow it")
     if crc16(raw[:-2]) != struct.unpack_from("<H", raw, len(raw) - 2)[0]:
         return CrcError(f"CRC mismatch in packet from ID {raw[4]}")
     body = unstuff(raw[7:-2])
-    if body[:1] == bytes([STATUS]):
+    if body[0] == STATUS:
+        if len(body) < 2:
+            return PacketError(f"status packet from ID {raw[4]} without an error byte")
         return Packet(raw[4], STATUS, body[2:], body[1])
     return Packet(raw[4], body[0], body[1:])

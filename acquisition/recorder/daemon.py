@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 from acquisition.command_guard import CommandRefused
-from acquisition.errors import DeviceDisconnectedError, DeviceError, DeviceNotFoundError
+from acquisition.errors import DeviceDisconnectedError, DeviceError, DeviceNotFoundError, DeviceReplyError
 from acquisition.processes import elevate, parent_alive, relinquish
 from acquisition.recorder.layout import Layout
 from acquisition.recorder.ring import Ring
@@ -184,16 +184,22 @@ class Daemon:
             return
         try:
             rows = self.source.command(cmd)
+        except DeviceReplyError as exc:  # the device answered and refused it: it is there, not lost
+            self._refused(f"{op}: the device refused it: {exc}")
+            return
         except DeviceError as exc:
             self._lose(f"{op}: {exc}")
             return
         except (CommandRefused, ValueError, KeyError, TypeError) as exc:  # nothing of it was sent
-            why = f"{op}: {exc}"
-            log.warning("%s: command refused: %s", self.device, why)
-            self.status.refuse(why)
-            push_event(self.events, Event(EventKind.COMMAND_REFUSED, label=self.device, text=why))
+            self._refused(f"{op}: {exc}")
             return
         self._put(rows)
+
+    def _refused(self, why: str) -> None:
+        """A command refused (by the guard, or by the device): counted, and an event says why."""
+        log.warning("%s: command refused: %s", self.device, why)
+        self.status.refuse(why)
+        push_event(self.events, Event(EventKind.COMMAND_REFUSED, label=self.device, text=why))
 
     # -------------------------------------------------------------------------------- connection
     def _connect(self) -> bool:

@@ -1,10 +1,21 @@
 """A Dynamixel Protocol 2.0 bus of XM430 servos, byte for byte (the real dynamixel-sdk talks to it).
 
-Each servo has a 256-byte control table. Writes go to the table (EEPROM only with torque off) and then to
-the hardware behind it (``ServoHardware``: the twin in the rig, a simple model in ``demo_bus``); reads
-first refresh the present values from the hardware. Replies follow the SDK's expectations (devices.md):
-status packets in the order the IDs were asked, stuffed; no reply to broadcast writes; a servo that does not
-exist stays silent.
+Each servo keeps the XM430-W350's full control table (``xm430_table``: EEPROM 0–63, RAM 64–227, Indirect
+Address/Data to 661) and refuses what the servo refuses, with its error number: read-only items and EEPROM
+with torque on (Access Error), values outside an item's range (Data Range Error) or outside its limit items
+(Data Limit Error), writes that cut an item (Data Length Error), Action without Reg Write and unknown
+instructions (Instruction Error). Nothing is stored on error. Accepted writes go on to the hardware behind
+the table (``ServoHardware``: the twin in the rig, a simple model in ``demo_bus``); reads first refresh the
+present values from it.
+
+Replies follow the servo and the SDK's expectations (devices.md, errors-and-foxglove.md): status packets in
+the order the IDs were asked, stuffed; the Alert bit (0x80) while a hardware error is latched; Status Return
+Level 68 honoured (0: ping only, 1: + reads, 2: all); no reply to broadcast writes (nor to a Sync/Bulk
+Write, which applies the same checks per servo); a servo that does not exist stays silent. A packet that
+fails its CRC is dropped without a reply: a real servo stays silent (a bad-CRC ping gets no answer,
+Dynamixel2Arduino issue #93; ROBOTIS's own slave code drops it) although Protocol 2.0 defines a CRC Error
+number. A new ID (address 7) is acknowledged from the old one (dynamixel-workbench's ``changeID`` relies on
+that ack, and the SDK discards a reply from another ID); the servo answers at the new ID afterwards.
 """
 
 from __future__ import annotations
@@ -16,44 +27,16 @@ import numpy as np
 
 from acquisition.protocols import dynamixel as dx
 from acquisition.sim.emulators.base import Emulator
+from acquisition.sim.emulators.xm430_table import ControlTable
 
-_RAM_REFRESH_FROM = dx.REALTIME_TICK[0]
+__all__ = ["ControlTable", "DynamixelBusEmulator", "ServoHardware", "SimpleServos", "demo_bus"]
 
-
-class ControlTable:
-    """One servo's control table with typed access by (address, size)."""
-
-    def __init__(self, dxl_id: int, model: int = dx.XM430_W350_MODEL) -> None:
-        self.data = bytearray(dx.CONTROL_TABLE_SIZE)
-        self.set(dx.MODEL_NUMBER, model)
-        self.set(dx.FIRMWARE_VERSION, 46)
-        self.set(dx.ID, dxl_id)
-        self.set(dx.BAUD_RATE, 3)
-        self.set(dx.RETURN_DELAY_TIME, 250)
-        self.set(dx.OPERATING_MODE, dx.OPERATING_MODE_POSITION)
-        self.set(dx.CURRENT_LIMIT, 1193)
-        self.set(dx.VELOCITY_LIMIT, 200)
-        self.set(dx.MAX_POSITION_LIMIT, 4095)
-        self.set(dx.STATUS_RETURN_LEVEL, 2)
-        self.set(dx.POSITION_P_GAIN, 800)
-        self.set(dx.PRESENT_INPUT_VOLTAGE, 120)
-        self.set(dx.PRESENT_TEMPERATURE, 30)
-
-    def get(self, item: tuple[int, int], signed: bool = False) -> int:
-        address, size = item
-        return int.from_bytes(self.data[address : address + size], "little", signed=signed)
-
-    def set(self, item: tuple[int, int], value: int) -> None:
-        address, size = item
-        self.data[address : address + size] = (int(value) & ((1 << (8 * size)) - 1)).to_bytes(size, "little")
-
-    @property
-    def torque_on(self) -> bool:
-        return bool(self.get(dx.TORQUE_ENABLE))
+PACKET_TIMEOUT_S = 0.1  # a half-received packet older than this is dropped (the servo's parser resets)
+_REPLY_ALL, _REPLY_READ = 2, 1  # Status Return Level
 
 
 class ServoHardware(Protocol):
-    """What stands behind the control tables."""
+    """What stands behind the control tables; ``dxl_id`` is the servo's ``serial`` (its first ID)."""
 
     def apply(self, dxl_id: int, table: ControlTable, now_s: float) -> None:
         """The host wrote to the table: act on goal, profile, torque."""
@@ -63,15 +46,18 @@ class ServoHardware(Protocol):
 
 
 class DynamixelBusEmulator(Emulator):
-    """Servos on one bus; ``ids`` are the servos present."""
+    """Servos on one bus; ``ids`` are the servos present. ``tables`` maps each servo's present ID to its
+    table (rebuilt when the host changes an ID)."""
 
     name = "servo_bus"
 
     def __init__(self, ids: list[int], hardware: ServoHardware) -> None:
-        self.tables = {i: ControlTable(i) for i in ids}
+        self.servos = [ControlTable(i) for i in ids]
         self.hardware = hardware
         self.reader = dx.PacketReader()
-        self._registered: dict[int, tuple[int, bytes]] = {}
+        self._last_rx_s = 0.0
+        self._registered: dict[int, tuple[int, bytes]] = {}  # serial → Reg Write waiting for Action
+        self._index()
         self._handlers = {
             dx.PING: self._ping,
             dx.READ: self._read,
@@ -88,14 +74,25 @@ class DynamixelBusEmulator(Emulator):
             dx.BULK_WRITE: self._bulk_write,
         }
 
+    def _index(self) -> None:
+        """Which servos answer which ID (a servo set to Protocol 1.0 no longer understands any)."""
+        self._by_id: dict[int, list[ControlTable]] = {}
+        for table in self.servos:
+            if table.get(dx.PROTOCOL_VERSION) == 2:
+                self._by_id.setdefault(table.dxl_id, []).append(table)
+        self.tables = {i: tables[0] for i, tables in self._by_id.items()}
+
     def reset_link(self) -> None:
         self.reader.reset()
 
     def feed(self, data: bytes, now_s: float) -> bytes:
+        if self.reader.pending() and now_s - self._last_rx_s > PACKET_TIMEOUT_S:
+            self.reader.reset()  # the rest of a cut packet never came (a corrupted LEN, a reset host)
+        self._last_rx_s = now_s
         out = bytearray()
         for packet in self.reader.feed(data):
-            if isinstance(packet, dx.CrcError):
-                continue  # a servo cannot tell who a corrupted packet was for: it stays silent
+            if isinstance(packet, dx.PacketError):
+                continue  # a servo cannot trust the ID of a corrupted packet: it stays silent
             if packet.inst != dx.STATUS:
                 out += self._execute(packet, now_s)
         return bytes(out)
@@ -104,114 +101,154 @@ class DynamixelBusEmulator(Emulator):
     def _execute(self, p: dx.Packet, now_s: float) -> bytes:
         handler = self._handlers.get(p.inst)
         if handler is None:
-            return self._reply_each(p.dxl_id, lambda i: dx.status(i, dx.ERR_INSTRUCTION))
+            return self._status(p.dxl_id, dx.ERR_INSTRUCTION)
         return handler(p, now_s)
 
-    def _targets(self, dxl_id: int) -> list[int]:
+    def _targets(self, dxl_id: int) -> list[ControlTable]:
         if dxl_id == dx.BROADCAST_ID:
-            return sorted(self.tables)
-        return [dxl_id] if dxl_id in self.tables else []
+            return [t for tables in self._by_id.values() for t in tables]
+        return self._by_id.get(dxl_id, [])
 
-    def _reply_each(self, dxl_id: int, make) -> bytes:
-        return b"".join(make(i) for i in self._targets(dxl_id))
+    def _status(self, dxl_id: int, error: int = 0, params: bytes = b"", level: int = _REPLY_ALL) -> bytes:
+        """Each addressed servo's status (none to a broadcast; none below Status Return Level ``level``)."""
+        if dxl_id == dx.BROADCAST_ID:
+            return b""
+        return b"".join(
+            dx.status(dxl_id, error | t.alert, params)
+            for t in self._by_id.get(dxl_id, [])
+            if t.get(dx.STATUS_RETURN_LEVEL) >= level
+        )
 
-    def _read_bytes(self, dxl_id: int, address: int, length: int, now_s: float) -> tuple[int, bytes]:
-        if address + length > dx.CONTROL_TABLE_SIZE:
-            return dx.ERR_DATA_RANGE, b""
-        table = self.tables[dxl_id]
-        if address + length > _RAM_REFRESH_FROM:
-            self.hardware.sense(dxl_id, table, now_s)
-        return 0, bytes(table.data[address : address + length])
+    def _read_bytes(self, table: ControlTable, address: int, length: int, now_s: float) -> tuple[int, bytes]:
+        if table.senses(address, length):
+            self.hardware.sense(table.serial, table, now_s)
+        error, data = table.read(address, length)
+        return error | table.alert, data
 
-    def _write_bytes(self, dxl_id: int, address: int, data: bytes, now_s: float) -> int:
-        table = self.tables[dxl_id]
-        if address + len(data) > dx.CONTROL_TABLE_SIZE:
-            return dx.ERR_DATA_RANGE
-        if address < dx.EEPROM_END and table.torque_on and address != dx.TORQUE_ENABLE[0]:
-            return dx.ERR_ACCESS
-        table.data[address : address + len(data)] = data
-        self.hardware.apply(dxl_id, table, now_s)
+    def _write_bytes(self, table: ControlTable, address: int, data: bytes, now_s: float) -> int:
+        old_id = table.dxl_id
+        error = table.write(address, data)
+        if error:
+            return error
+        if table.dxl_id != old_id or address <= dx.PROTOCOL_VERSION[0] < address + len(data):
+            self._index()
+        self.hardware.apply(table.serial, table, now_s)
         return 0
 
     # ---------------------------------------------------------------------------------- instructions
     def _ping(self, p: dx.Packet, now_s: float) -> bytes:
-        def reply(i: int) -> bytes:
-            t = self.tables[i]
-            return dx.status(i, 0, struct.pack("<HB", t.get(dx.MODEL_NUMBER), t.get(dx.FIRMWARE_VERSION)))
-
-        return self._reply_each(p.dxl_id, reply)
+        out = bytearray()
+        for t in self._targets(p.dxl_id):  # a broadcast ping: every servo answers, in ID order here
+            out += dx.status(t.dxl_id, t.alert, struct.pack("<HB", t.get(dx.MODEL_NUMBER), t.data[6]))
+        return bytes(out)
 
     def _read(self, p: dx.Packet, now_s: float) -> bytes:
-        if p.dxl_id not in self.tables or len(p.params) != 4:
+        if p.dxl_id == dx.BROADCAST_ID:
             return b""
+        if len(p.params) != 4:
+            return self._status(p.dxl_id, dx.ERR_DATA_LENGTH, level=_REPLY_READ)
         address, length = struct.unpack("<HH", p.params)
-        error, data = self._read_bytes(p.dxl_id, address, length, now_s)
-        return dx.status(p.dxl_id, error, data)
+        out = bytearray()
+        for t in self._targets(p.dxl_id):
+            if t.get(dx.STATUS_RETURN_LEVEL) >= _REPLY_READ:
+                error, data = self._read_bytes(t, address, length, now_s)
+                out += dx.status(p.dxl_id, error, data)
+        return bytes(out)
 
     def _write(self, p: dx.Packet, now_s: float) -> bytes:
+        if len(p.params) < 3:
+            return self._status(p.dxl_id, dx.ERR_DATA_LENGTH)
         address = struct.unpack_from("<H", p.params)[0]
-        errors = {i: self._write_bytes(i, address, p.params[2:], now_s) for i in self._targets(p.dxl_id)}
-        if p.dxl_id == dx.BROADCAST_ID or p.dxl_id not in errors:
+        # answered as the packet found the servo: from the ID it named (a servo whose ID it changes acks
+        # from the old one) and at the Status Return Level it had
+        answers = [(t, t.get(dx.STATUS_RETURN_LEVEL) >= _REPLY_ALL) for t in self._targets(p.dxl_id)]
+        errors = [self._write_bytes(t, address, p.params[2:], now_s) for t, _ in answers]
+        if p.dxl_id == dx.BROADCAST_ID:
             return b""
-        return dx.status(p.dxl_id, errors[p.dxl_id])
+        return b"".join(
+            dx.status(p.dxl_id, error | t.alert)
+            for (t, answer), error in zip(answers, errors, strict=True)
+            if answer
+        )
 
     def _reg_write(self, p: dx.Packet, now_s: float) -> bytes:
-        address = struct.unpack_from("<H", p.params)[0]
-        for i in self._targets(p.dxl_id):
-            self._registered[i] = (address, p.params[2:])
-        return dx.status(p.dxl_id) if p.dxl_id in self.tables else b""
+        if len(p.params) < 3:
+            return self._status(p.dxl_id, dx.ERR_DATA_LENGTH)
+        address, data = struct.unpack_from("<H", p.params)[0], p.params[2:]
+        errors = []
+        for t in self._targets(p.dxl_id):
+            probe = ControlTable(t.serial)  # the checks of a write, on a copy: nothing changes until Action
+            probe.data[:] = t.data
+            error = probe.write(address, data)
+            if not error:
+                self._registered[t.serial] = (address, data)
+                t.data[69] = 1  # Registered Instruction
+            errors.append(error)
+        return self._status(p.dxl_id, errors[0] if errors else 0)
 
     def _action(self, p: dx.Packet, now_s: float) -> bytes:
-        for i in self._targets(p.dxl_id):
-            if i in self._registered:
-                address, data = self._registered.pop(i)
-                self._write_bytes(i, address, data, now_s)
-        return dx.status(p.dxl_id) if p.dxl_id in self.tables else b""
+        error = 0
+        for t in self._targets(p.dxl_id):
+            if t.serial not in self._registered:
+                error = dx.ERR_INSTRUCTION  # Action without Reg Write
+                continue
+            address, data = self._registered.pop(t.serial)
+            t.data[69] = 0
+            error = self._write_bytes(t, address, data, now_s)
+        return self._status(p.dxl_id, error)
 
     def _reboot(self, p: dx.Packet, now_s: float) -> bytes:
-        for i in self._targets(p.dxl_id):
-            self.tables[i].set(dx.TORQUE_ENABLE, 0)
-            self.tables[i].set(dx.HARDWARE_ERROR_STATUS, 0)
-            self.hardware.apply(i, self.tables[i], now_s)
-        return dx.status(p.dxl_id) if p.dxl_id in self.tables else b""
+        for t in self._targets(p.dxl_id):
+            t.set(dx.TORQUE_ENABLE, 0)
+            t.set(dx.HARDWARE_ERROR_STATUS, 0)
+            t.data[69] = 0
+            self._registered.pop(t.serial, None)
+            self.hardware.apply(t.serial, t, now_s)
+        return self._status(p.dxl_id)
 
     def _no_op(self, p: dx.Packet, now_s: float) -> bytes:
-        return dx.status(p.dxl_id) if p.dxl_id in self.tables else b""
+        return self._status(p.dxl_id)
 
     def _sync_read(self, p: dx.Packet, now_s: float) -> bytes:
+        if len(p.params) < 5:
+            return b""
         address, length = struct.unpack_from("<HH", p.params)
         out = bytearray()
         for i in p.params[4:]:  # in the order asked: the SDK reads one status per ID, in order
-            if i in self.tables:
-                error, data = self._read_bytes(i, address, length, now_s)
+            for t in self._by_id.get(i, ()):
+                error, data = self._read_bytes(t, address, length, now_s)
                 out += dx.status(i, error, data)
         return bytes(out)
 
     def _fast_sync_read(self, p: dx.Packet, now_s: float) -> bytes:
+        if len(p.params) < 5:
+            return b""
         address, length = struct.unpack_from("<HH", p.params)
         replies = []
         for i in p.params[4:]:
-            if i not in self.tables:
+            tables = self._by_id.get(i)
+            if not tables:
                 return b""  # one missing servo breaks the shared packet: the host times out
-            error, data = self._read_bytes(i, address, length, now_s)
+            error, data = self._read_bytes(tables[0], address, length, now_s)
             replies.append((error, i, data))
         return dx.fast_sync_read_status(replies)
 
     def _sync_write(self, p: dx.Packet, now_s: float) -> bytes:
+        if len(p.params) < 4:
+            return b""
         address, length = struct.unpack_from("<HH", p.params)
         body = p.params[4:]
-        for k in range(0, len(body) - length, length + 1):
-            i = body[k]
-            if i in self.tables:
-                self._write_bytes(i, address, body[k + 1 : k + 1 + length], now_s)
+        for k in range(0, len(body) - length, length + 1):  # whole entries only
+            for t in self._by_id.get(body[k], ()):
+                self._write_bytes(t, address, body[k + 1 : k + 1 + length], now_s)
         return b""
 
     def _bulk_read(self, p: dx.Packet, now_s: float) -> bytes:
         out = bytearray()
         for k in range(0, len(p.params) - 4, 5):
             i, address, length = struct.unpack_from("<BHH", p.params, k)
-            if i in self.tables:
-                error, data = self._read_bytes(i, address, length, now_s)
+            for t in self._by_id.get(i, ()):
+                error, data = self._read_bytes(t, address, length, now_s)
                 out += dx.status(i, error, data)
         return bytes(out)
 
@@ -219,8 +256,10 @@ class DynamixelBusEmulator(Emulator):
         k = 0
         while k + 5 <= len(p.params):
             i, address, length = struct.unpack_from("<BHH", p.params, k)
-            if i in self.tables:
-                self._write_bytes(i, address, p.params[k + 5 : k + 5 + length], now_s)
+            data = p.params[k + 5 : k + 5 + length]
+            if len(data) == length:
+                for t in self._by_id.get(i, ()):
+                    self._write_bytes(t, address, data, now_s)
             k += 5 + length
         return b""
 
@@ -259,4 +298,7 @@ class SimpleServos:
 
 def demo_bus() -> DynamixelBusEmulator:
     """Two XM430s (IDs 1, 2) on the simple model, for ``python -m acquisition.sim.serve``."""
-    return DynamixelBusEmulator([1, 2], SimpleServos())
+    bus = DynamixelBusEmulator([1, 2], SimpleServos())
+    for table in bus.servos:  # the goal starts where the shaft is: torque-on does not jump
+        table.set(dx.GOAL_POSITION, 2048)
+    return bus
