@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from acquisition.recorder.sessions import session_info
+from acquisition.recorder.sessions import SessionError, read_card, session_info
 from analysis import diagnostics
 from analysis.report import Report
 from pipeline.datasets import load_dataset
@@ -214,10 +214,14 @@ def realtime_sessions(lab: Path) -> pd.DataFrame:
     stream: messages, rate and drops, read from the MCAP summaries; empty when there are none."""
     rows = []
     for card in sorted((Path(lab) / "sessions").glob("*/session.json")):
-        meta = json.loads(card.read_text())
-        if meta.get("runner") != "real-time":
+        try:
+            meta = read_card(card.parent)
+            if meta.get("runner") != "real-time":
+                continue
+            info = session_info(card.parent)
+        except SessionError as exc:  # a damaged session is left out of the table, and named
+            log.warning("left out of the real-time sessions: %s", exc)
             continue
-        info = session_info(card.parent)
         for topic, s in sorted(info.streams.items()):
             if s.messages == 0:  # a topic of the robot's layout that this bench has no device for
                 continue

@@ -10,14 +10,20 @@ Two levels of work:
 Parallel work goes through any ``concurrent.futures.Executor``: local processes by default; a distributed
 engine's executor (Dask's ``Client.get_executor()``, Ray's) runs the same top-level function on many machines
 (the cache directory must then be shared storage). A session that fails (torn beyond reading, not MCAP, empty)
-is reported with its reason in the card; the others still build.
+is reported with its reason in the card; the others still build. When none can be read, ``BuildError`` says
+so and nothing is written. Stage parameters are checked first: an unknown stage or key, or a value of the
+wrong type, is a ``ValueError`` naming it and the allowed ones.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import dataclasses
+import inspect
 import logging
 import os
+import types
+import typing
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +45,76 @@ DEFAULTS: dict = {
 }
 
 
+class BuildError(ValueError):
+    """No session of the build could be read: ``failed`` maps each session to its reason."""
+
+    def __init__(self, failed: dict[str, str]) -> None:
+        self.failed = dict(failed)
+        reasons = set(failed.values())
+        why = f": {reasons.pop()}" if len(reasons) == 1 else " (each session's reason is above)"
+        super().__init__(f"none of the {len(failed)} session(s) could be read{why}")
+
+
+def stage_parameters() -> dict[str, dict[str, object]]:
+    """Every stage's parameters and their types, from the stage functions themselves (what ``--set
+    stage.key=value`` may name): {stage: {key: type}}."""
+    from pipeline import clean, register, segment
+
+    def keyword(fn: Callable, skip: int) -> dict[str, object]:
+        hints = typing.get_type_hints(fn)
+        names = list(inspect.signature(fn).parameters)[skip:]
+        return {n: hints.get(n, object) for n in names}
+
+    still = typing.get_type_hints(segment.Stillness)
+    return {
+        "clean": keyword(clean.clean, 1),
+        "segment": {f.name: still[f.name] for f in dataclasses.fields(segment.Stillness)},
+        "register": keyword(register.register, 2) | {"from_dataset": str},
+        "splits": keyword(datasets.add_splits, 1),
+    }
+
+
+def check_parameters(parameters: dict) -> None:
+    """``ValueError`` naming the first unknown stage, unknown key or value of the wrong type (and what is
+    allowed) in ``{stage: {key: value}}``."""
+    allowed = stage_parameters()
+    if not isinstance(parameters, dict):
+        raise ValueError(f"stage parameters must be a mapping stage → {{key: value}}, got {parameters!r}")
+    for stage, values in parameters.items():
+        if stage not in allowed:
+            raise ValueError(f"unknown stage {stage!r} (stage parameters are stage.key=value; stages: "
+                             f"{', '.join(allowed)})")  # fmt: skip
+        if not isinstance(values, dict):
+            raise ValueError(f"stage {stage!r}: parameters must be key=value pairs, got {values!r}")
+        for key, value in values.items():
+            if key not in allowed[stage]:
+                raise ValueError(f"{stage}.{key}: no such parameter (those of {stage}: "
+                                 f"{', '.join(allowed[stage]) or 'none'})")  # fmt: skip
+            want = allowed[stage][key]
+            if not _fits(value, want):
+                raise ValueError(f"{stage}.{key}={value!r}: expected {_type_name(want)}")
+
+
+def _fits(value: object, want: object) -> bool:
+    """Is ``value`` (parsed from YAML) of type ``want`` (int, float, bool, str, or a union with None)?"""
+    if isinstance(want, types.UnionType) or typing.get_origin(want) is typing.Union:
+        return any(_fits(value, w) for w in typing.get_args(want))
+    if want is type(None):
+        return value is None
+    if want is float:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    if want is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return want is object or (isinstance(want, type) and isinstance(value, want))
+
+
+def _type_name(want: object) -> str:
+    if isinstance(want, types.UnionType) or typing.get_origin(want) is typing.Union:
+        return " or ".join(_type_name(w) for w in typing.get_args(want))
+    names = {int: "an integer", float: "a number", bool: "true or false", str: "a string", type(None): "null"}
+    return names.get(want, getattr(want, "__name__", str(want)))
+
+
 @dataclass
 class BuildReport:
     name: str
@@ -55,7 +131,7 @@ def process_session(directory: str, parameters: dict, cache_root: str) -> dict:
     """Per-session stages of one session (a top-level function: any executor can run it). Returns a small
     record: the cache key of its outputs, or the reason it failed."""
     from pipeline.clean import clean
-    from pipeline.ingest import ingest_session, session_parts, source_hash
+    from pipeline.ingest import IngestError, ingest_session, session_parts, source_hash
     from pipeline.segment import Stillness, repetitions, static_points
     from pipeline.sync import sync
 
@@ -64,7 +140,7 @@ def process_session(directory: str, parameters: dict, cache_root: str) -> dict:
     try:
         parts = session_parts(directory)
         if not parts:
-            raise ValueError(f"{directory}: no MCAP parts")
+            raise IngestError(directory, "no MCAP parts (*.mcap)")
         source = source_hash(parts)
         session_params = {k: parameters[k] for k in ("clean", "segment")}
         key = stage_key("session", [source], session_params)
@@ -83,8 +159,16 @@ def process_session(directory: str, parameters: dict, cache_root: str) -> dict:
         cache.store("session", key, {"static": points, "trajectory": trajectory}, record)
         return {"session": directory.name, "key": key, "source": source, "cached": False}
     except Exception as exc:  # one bad session must not stop the build; its reason goes in the card
-        log.warning("session %s: %s", directory.name, exc)
-        return {"session": directory.name, "error": f"{type(exc).__name__}: {exc}"}
+        log.debug("session %s failed", directory.name, exc_info=True)  # the caller shows the reason
+        return {"session": directory.name, "error": _reason(exc)}
+
+
+def _reason(exc: BaseException) -> str:
+    """One line: an IngestError says which file and why; anything else is prefixed with its type."""
+    from pipeline.ingest import IngestError
+
+    text = " ".join(str(exc).split("\n")[0].split()) or type(exc).__name__
+    return text if isinstance(exc, IngestError) else f"{type(exc).__name__}: {text}"
 
 
 def build(
@@ -95,7 +179,10 @@ def build(
     executor: cf.Executor | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> BuildReport:
-    """Build dataset ``name`` from ``sessions`` into ``<lab>/datasets`` (stage outputs in ``<lab>/cache``)."""
+    """Build dataset ``name`` from ``sessions`` into ``<lab>/datasets`` (stage outputs in ``<lab>/cache``).
+    ``ValueError`` for bad parameters or a registration to borrow that is not there; ``BuildError`` when no
+    session can be read."""
+    check_parameters(parameters or {})
     params = {k: {**DEFAULTS[k], **(parameters or {}).get(k, {})} for k in DEFAULTS}
     if "from_dataset" in params["register"]:  # pin the borrowed registration's version: part of ours
         params["register"]["from_dataset"] = _resolve(
@@ -128,7 +215,7 @@ def build(
         report.rows = int(pd.read_parquet(report.path / "data.parquet", columns=["robot"]).shape[0])
         return report
     if not good:
-        raise ValueError(f"no session could be read: {failed}")
+        raise BuildError(failed)
     cache = StageCache(cache_root)
     loaded = [(r, *cache.load("session", r["key"])) for r in good]
     tables, card_sessions, registrations = {"data": [], "trajectories": []}, {}, {}
@@ -183,21 +270,50 @@ def _register(static: pd.DataFrame, robot: RobotDescription, parameters: dict, d
         )
     if "from_dataset" in parameters:
         name, _, version = parameters["from_dataset"].partition("@")
-        _, card = datasets.load_dataset(datasets_root, name, version, table=None)
-        fitted = card.get("registration", {})
+        card = _dataset_card(datasets_root, name, version)
+        fitted = card.get("registration") or {}
         # an arm on the same mount (the rigid-link arm in place of the VSL arm) shares the tracker placement
         mine = fitted.get(robot.name) or (next(iter(fitted.values())) if len(fitted) == 1 else None)
-        if mine is None:
-            raise ValueError(f"dataset {name}@{version} has no registration for robot {robot.name!r}")
-        return FixedRegistration.from_summary(mine, source=parameters["from_dataset"])
+        if not isinstance(mine, dict):
+            raise ValueError(
+                f"dataset {name}@{version} has no registration for robot {robot.name!r} (its card has "
+                f"{', '.join(fitted) or 'none'}): borrow one from a dataset of {robot.name}'s sessions"
+            )
+        try:
+            return FixedRegistration.from_summary(mine, source=parameters["from_dataset"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"dataset {name}@{version}: its registration for {robot.name!r} is damaged "
+                             f"({type(exc).__name__}: {exc}); build that dataset again") from exc  # fmt: skip
     return register(static, robot, **parameters)
 
 
 def _resolve(root: Path, reference: str) -> str:
     """``name`` or ``name@version`` → ``name@version`` (the newest version when none is named)."""
     name, _, version = reference.partition("@")
-    _, card = datasets.load_dataset(root, name, version or None, table=None)
-    return f"{name}@{card['version']}"
+    card = _dataset_card(root, name, version or None)
+    return f"{name}@{card.get('version') or version}"
+
+
+def _dataset_card(root: Path, name: str, version: str | None) -> dict:
+    """The card of the dataset whose registration a build borrows; ``ValueError`` that says which dataset is
+    missing or damaged and what to do."""
+    where = f"{name}@{version}" if version else name
+    if not name:
+        raise ValueError("register.from_dataset names no dataset: give NAME or NAME@VERSION")
+    try:
+        _, card = datasets.load_dataset(root, name, version, table=None)
+    except FileNotFoundError:
+        known = sorted(p.name for p in Path(root).glob("*") if p.is_dir()) if Path(root).is_dir() else []
+        raise ValueError(
+            f"register.from_dataset={where}: no such dataset under {root} (datasets there: "
+            f"{', '.join(known) or 'none'}); build it first (`vslab build --name {name}`)"
+        ) from None
+    except (ValueError, OSError) as exc:  # a card that is not JSON, or cannot be read
+        raise ValueError(f"register.from_dataset={where}: its card.json under {root} cannot be read "
+                         f"({type(exc).__name__}: {exc}); build that dataset again") from exc  # fmt: skip
+    if not isinstance(card, dict):
+        raise ValueError(f"register.from_dataset={where}: its card.json under {root} is not a JSON object")
+    return card
 
 
 def _in_base_frame(rows: pd.DataFrame, registration) -> pd.DataFrame:

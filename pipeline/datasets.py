@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -128,14 +129,18 @@ def write_dataset(root: Path, name: str, version: str, tables: dict[str, pd.Data
         return final
     final.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{version}-", dir=final.parent))
-    for table, df in tables.items():
-        df.to_parquet(tmp / f"{table}.parquet", index=False)
-    data = tables["data"]
-    counts = {"rows": len(data), **{f"rows_{s}": int((data["split_random"] == s).sum()) for s in SPLITS}}
-    counts |= {f"rows_{t}": len(df) for t, df in tables.items() if t != "data"}
-    (tmp / "card.json").write_text(json.dumps({"name": name, "version": version, **card, "counts": counts},
-                                              indent=1, default=str))  # fmt: skip
-    os.replace(tmp, final)
+    try:
+        for table, df in tables.items():
+            df.to_parquet(tmp / f"{table}.parquet", index=False)
+        data = tables["data"]
+        counts = {"rows": len(data), **{f"rows_{s}": int((data["split_random"] == s).sum()) for s in SPLITS}}
+        counts |= {f"rows_{t}": len(df) for t, df in tables.items() if t != "data"}
+        whole = {"name": name, "version": version, **card, "counts": counts}
+        (tmp / "card.json").write_text(json.dumps(whole, indent=1, default=str))
+        os.replace(tmp, final)
+    except BaseException:  # a failed or interrupted write leaves nothing behind
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     return final
 
 

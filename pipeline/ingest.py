@@ -1,9 +1,10 @@
 """Ingest: a session directory's MCAP parts → one table per topic (see ``pipeline.tables``).
 
 Fixed-layout topics take the chunk-speed path (``read_fixed_topics``: whole chunks viewed as structured
-arrays, turned into columns without a per-message loop). Any other topic is decoded message by message with
-mcap-ros2-support (correct, not fast). A torn part (killed recorder, no summary) is read in memory up to the
-tear, with a warning; the session directory is never written. User-causable problems raise ``IngestError``.
+arrays, turned into columns without a per-message loop). Any other topic is decoded message by message by
+``acquisition.schemas.dynamic`` (correct, not fast; mcap-ros2-support is the tests' oracle for it, not a
+dependency). A torn part (killed recorder, no summary) is read in memory up to the tear, with a warning; the
+session directory is never written. User-causable problems raise ``IngestError`` (which file, and why).
 """
 
 from __future__ import annotations
@@ -21,10 +22,10 @@ from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
-from mcap_ros2.decoder import DecoderFactory
 from pydantic import ValidationError
 
 from acquisition.schemas.cdr import FixedMessage, SchemaError
+from acquisition.schemas.dynamic import DynamicMessage
 from acquisition.schemas.events import Event
 from acquisition.schemas.fast_read import chunk_records, read_fixed_topics
 from acquisition.schemas.ros2msg import parse_fixed_message
@@ -78,7 +79,7 @@ def source_hash(parts: Iterable[Path]) -> str:
 
 def ingest_session(directory: Path, generic_topics: Collection[str] = ()) -> SessionTables:
     """Every part of the session in ``directory`` as tables. Topics in ``generic_topics`` are decoded by the
-    generic (mcap-ros2) path even when the fast path could read them (for checks and comparisons)."""
+    generic (message by message) path even when the fast path could read them (for checks and comparisons)."""
     directory = Path(directory)
     if not directory.is_dir():
         raise IngestError(directory, "not a session directory")
@@ -87,10 +88,10 @@ def ingest_session(directory: Path, generic_topics: Collection[str] = ()) -> Ses
         what = "empty directory" if not any(directory.iterdir()) else "no MCAP parts (*.mcap)"
         raise IngestError(directory, f"session has no parts: {what}")
     report = StageReport()
-    read = [_read_part(p, set(generic_topics), report) for p in parts]
+    read = [_read_part_checked(p, set(generic_topics), report) for p in parts]
     metadata = next((r.metadata for r in read if r.metadata), None)
     if metadata is None:
-        raise IngestError(parts[0], f"no {SESSION_METADATA!r} metadata record: not a vslab session")
+        raise IngestError(parts[0], f"no {SESSION_METADATA!r} metadata record: not recorded by vslab")
     robot = _robot(parts[0], metadata)
     expected = set(session_topics(robot))
     for path, r in zip(parts, read, strict=True):
@@ -124,11 +125,20 @@ def _robot(path: Path, metadata: dict[str, str]) -> RobotDescription:
 
 
 # ------------------------------------------------------------------------------------------ one part
+def _read_part_checked(path: Path, generic_topics: set[str], report: StageReport) -> _Part:
+    """``_read_part``, with any damage it meets (a garbled schema, record or payload) as an IngestError."""
+    try:
+        return _read_part(path, generic_topics, report)
+    except (SchemaError, *_READ_ERRORS) as exc:
+        raise IngestError(path, f"unreadable ({_first_line(exc)}); truncated or corrupt?") from exc
+
+
 def _read_part(path: Path, generic_topics: set[str], report: StageReport) -> _Part:
     with open(path, "rb") as f:
         head = f.read(len(MCAP_MAGIC))
         if head != MCAP_MAGIC:
-            raise IngestError(path, "not an MCAP file (no MCAP magic)" if head else "empty file")
+            what = "not an MCAP file (no MCAP magic)" if head else "empty file (0 bytes)"
+            raise IngestError(path, f"{what}: move it out of the session folder")
         f.seek(0)
         try:
             summary = make_reader(f).get_summary()
@@ -156,7 +166,7 @@ def _read_part(path: Path, generic_topics: set[str], report: StageReport) -> _Pa
             data = read_fixed_topics(path, sorted(fixed)) if fixed else {}
             for topic, d in data.items():
                 part.fixed[topic] = [(d.message, d.log_time, d.publish_time, d.rows)]
-            decoders = DecoderFactory()
+            decoders = _Decoders()
             wanted = {cid: c for cid, c in summary.channels.items() if c.topic in generic | {EVENTS}}
             for cid, log_time, publish_time, payload in _indexed_messages(f, summary, set(wanted)):
                 channel = wanted[cid]
@@ -210,7 +220,7 @@ def _read_torn(path: Path, generic_topics: set[str], report: StageReport) -> _Pa
             reason = _first_line(exc)
     if not part.metadata and not raw:
         raise IngestError(path, f"truncated: nothing readable before the tear ({reason})")
-    decoders = DecoderFactory()
+    decoders = _Decoders()
     for cid, messages in raw.items():
         channel, schema = channels[cid], schemas.get(channels[cid].schema_id)
         messages.sort(key=lambda m: m.log_time)
@@ -278,12 +288,24 @@ def fixed_columns(message: FixedMessage, log_time, publish_time, rows: np.ndarra
     return pd.DataFrame(data, copy=False)
 
 
-def _decode_generic(
-    decoders: DecoderFactory, schema, channel, log_time: int, publish_time: int, data
-) -> dict:
-    decode = decoders.decoder_for(channel.message_encoding, schema)
-    if decode is None:
-        raise SchemaError(f"{channel.topic}: no decoder for {channel.message_encoding!r} messages")
+class _Decoders:
+    """One ``DynamicMessage`` per schema, made when its first message comes."""
+
+    def __init__(self) -> None:
+        self._by_schema: dict[int, DynamicMessage] = {}
+
+    def decoder_for(self, channel: Channel, schema: Schema | None) -> DynamicMessage:
+        if channel.message_encoding != "cdr" or schema is None or schema.encoding != "ros2msg":
+            what = f"{schema.encoding!r} schema" if schema is not None else "no schema"
+            encoding = channel.message_encoding
+            raise SchemaError(f"{channel.topic}: cannot decode {encoding!r} messages ({what})")
+        if schema.id not in self._by_schema:
+            self._by_schema[schema.id] = DynamicMessage(schema.name, schema.data.decode("utf-8", "replace"))
+        return self._by_schema[schema.id]
+
+
+def _decode_generic(decoders: _Decoders, schema, channel, log_time: int, publish_time: int, data) -> dict:
+    decode = decoders.decoder_for(channel, schema).decode
     row = {"log_time": log_time, "publish_time": publish_time}
     _flatten(decode(data), "", row)
     return row
@@ -291,7 +313,10 @@ def _decode_generic(
 
 def _flatten(value, name: str, out: dict) -> None:
     """Nested messages → ``<field>_<sub>``, sequences → ``<field>_<i>``, scalars as they are."""
-    if hasattr(value, "__slots__") and not isinstance(value, (str, bytes)):
+    if isinstance(value, dict):
+        for key, item in value.items():
+            _flatten(item, f"{name}_{key}" if name else key, out)
+    elif hasattr(value, "__slots__") and not isinstance(value, (str, bytes)):
         for slot in value.__slots__:
             _flatten(getattr(value, slot), f"{name}_{slot}" if name else slot, out)
     elif isinstance(value, (list, tuple, bytes, bytearray, np.ndarray)):

@@ -190,8 +190,8 @@ def simulate(
     for sid, why in sorted(stopped.items())[:10]:
         console.print(f"  {sid} stopped early: {why}", soft_wrap=True, highlight=False)
     if stopped:
-        _fail(f"{len(stopped)} session(s) stopped early (a safety limit or a refused command; their events say "
-              "why): they ran only up to the stop")  # fmt: skip
+        _fail(f"{len(stopped)} session(s) stopped early (a safety limit or a refused command; their events "
+              "say why): they ran only up to the stop")  # fmt: skip
 
 
 @app.command()
@@ -207,29 +207,37 @@ def build(
     workers: Annotated[int, typer.Option(help="Parallel processes (0: one per core).")] = 0,
 ) -> None:
     """Build a versioned dataset from recorded sessions: ingest, clean, sync, register, segment, D + splits.
-    Every stage is cached: building again with nothing changed does no work."""
+    Every stage is cached: building again with nothing changed does no work. A session that cannot be read
+    (a damaged session.json or MCAP part, a folder without session.json) gets a `warning:` line with its
+    reason and is left out; the others build (exit 0). No usable session: one `error:` line, exit 2."""
     import concurrent.futures as cf
     import time
+    from concurrent.futures.process import BrokenProcessPool
 
     from acquisition.processes import lower_priority
 
     lower_priority()  # batch work: a recording on this computer goes first
 
+    from rich.markup import escape
     from rich.progress import Progress
 
+    from pipeline.build import BuildError
     from pipeline.build import build as build_dataset
 
+    parameters = _stage_parameters(set_ or [])
     wanted = protocol or name
-    sessions = [d for d in sorted((Settings.lab / "sessions").glob(pattern)) if d.is_dir()]
-    sessions = [d for d in sessions if _session_protocol(d) in (wanted, None) or wanted == "all"]
+    sessions, bad = _sessions_of(wanted, pattern)
+
+    def warn(skipped: dict[str, str]) -> None:
+        for session, reason in sorted(skipped.items()):
+            console.print(f"[yellow]warning:[/] skipped {escape(session)}: {escape(reason)}", soft_wrap=True,
+                          highlight=False)  # fmt: skip
+
     if not sessions:
-        _fail(
-            f"no sessions of protocol {wanted!r} in {Settings.lab / 'sessions'} (see `vslab sessions list`)"
-        )
-    parameters: dict = {}
-    for key, value in _overrides(set_ or []).items():
-        stage, _, param = key.partition(".")
-        parameters.setdefault(stage, {})[param] = value
+        warn(bad)
+        unusable = f" ({len(bad)} folder(s) skipped, see above)" if bad else ""
+        _fail(escape(f"no usable session of protocol {wanted!r} in {Settings.lab / 'sessions'}{unusable} "
+                     "(see `vslab sessions list`)"))  # fmt: skip
     start = time.perf_counter()
     executor = cf.ProcessPoolExecutor(workers) if workers > 0 else None
     with Progress(console=console, disable=Settings.quiet, transient=True) as bar:
@@ -237,25 +245,90 @@ def build(
         try:
             report = build_dataset(sessions, Settings.lab, name, parameters, executor=executor,
                                    progress=lambda done, total: bar.update(task, completed=done))  # fmt: skip
-        except ValueError as exc:
-            _fail(str(exc))
+        except BuildError as exc:
+            bar.stop()
+            warn(bad | exc.failed)
+            _fail(escape(str(exc)))
+        except (ValueError, OSError) as exc:
+            bar.stop()
+            warn(bad)
+            _fail(escape(str(exc)))
+        except BrokenProcessPool:
+            bar.stop()
+            _fail("a build worker process died (out of memory?): try fewer --workers")
         finally:
             if executor is not None:
                 executor.shutdown()
     wall = time.perf_counter() - start
     what = "built" if report.built else "already built (nothing to do)"
     sources = f"{len(report.sessions)} sessions ({report.cached} cached)"
-    console.print(
-        f"dataset {name} {report.version}: {what}, {report.rows:,} rows from {sources} in {wall:.1f} s"
-    )
-    console.print(f"  → {report.path}")
-    for session, reason in report.failed.items():
-        console.print(f"[yellow]skipped {session}:[/] {reason}", soft_wrap=True)
+    line = f"dataset {name} {report.version}: {what}, {report.rows:,} rows from {sources} in {wall:.1f} s"
+    console.print(line, soft_wrap=True)
+    console.print(f"  → {report.path}", soft_wrap=True, highlight=False, markup=False)
+    warn(bad | report.failed)
 
 
-def _session_protocol(directory: Path) -> str | None:
-    card = directory / "session.json"
-    return json.loads(card.read_text()).get("protocol") if card.is_file() else None
+def _stage_parameters(pairs: list[str]) -> dict:
+    """``--set stage.key=value`` pairs → {stage: {key: value}}, checked against the stages' parameters (one
+    error line naming a bad key or value and the allowed ones)."""
+    import yaml
+    from rich.markup import escape
+
+    from pipeline.build import check_parameters, stage_parameters
+
+    try:
+        pairs_parsed = _overrides(pairs)
+    except yaml.YAMLError as exc:  # a value that is not YAML: say which
+        bad = next((p for p in pairs if _not_yaml(p.partition("=")[2])), " ".join(pairs))
+        _fail(escape(f"--set {bad}: the value is not YAML ({str(exc).splitlines()[0]})"))
+    parameters: dict = {}
+    for key, value in pairs_parsed.items():
+        stage, dot, param = key.partition(".")
+        if not (dot and stage and param):
+            _fail(escape(f"--set {key}=…: a stage parameter is stage.key=value (stages: "
+                         f"{', '.join(stage_parameters())})"))  # fmt: skip
+        parameters.setdefault(stage, {})[param] = value
+    try:
+        check_parameters(parameters)
+    except ValueError as exc:
+        _fail(escape(f"--set {exc}"))
+    return parameters
+
+
+def _not_yaml(text: str) -> bool:
+    import yaml
+
+    try:
+        yaml.safe_load(text)
+    except yaml.YAMLError:
+        return True
+    return False
+
+
+def _sessions_of(wanted: str, pattern: str) -> tuple[list[Path], dict[str, str]]:
+    """The session folders of protocol ``wanted`` ("all": every one) matching ``pattern``, and the folders
+    that are not readable sessions with the reason (a folder without session.json never joins a build)."""
+    from rich.markup import escape
+
+    from acquisition.recorder.sessions import SessionError, read_card
+
+    root = Settings.lab / "sessions"
+    if not root.is_dir():
+        _fail(escape(f"no sessions folder at {root}: record or simulate sessions first (`vslab simulate`)"))
+    selected, bad = [], {}
+    try:
+        folders = [d for d in sorted(root.glob(pattern)) if d.is_dir() and not d.name.startswith(".")]
+    except (OSError, ValueError) as exc:
+        _fail(escape(f"--sessions {pattern!r}: cannot list {root} ({exc})"))
+    for d in folders:
+        try:
+            card = read_card(d)
+        except SessionError as exc:
+            bad[d.name] = str(exc)
+            continue
+        if wanted == "all" or card["protocol"] == wanted:
+            selected.append(d)
+    return selected, bad
 
 
 def _print_grid(grid, title: str) -> None:

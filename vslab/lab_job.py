@@ -15,11 +15,14 @@ run is quick. Each step is timed; the report page says where everything came fro
 from __future__ import annotations
 
 import json
+import logging
 import subprocess
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+
+log = logging.getLogger(__name__)
 
 QUICK = {"campaign": {"points": 4000}, "experiment1": {"repetitions": 3}}  # --quick: a smaller lab
 
@@ -89,10 +92,17 @@ def run(lab: Path, seed: int = 0, quick: bool = False, say: Callable[[str], None
 def sessions_of(sessions: Path, protocol: str, runner: str | None = None) -> list[Path]:
     """The session directories of one protocol, of one runner ("simulated", "real-time") if given (their
     session.json says which)."""
+    from acquisition.recorder.sessions import SessionError, read_card
+
     out = []
     for d in sorted(sessions.iterdir()):
-        path = d / "session.json"
-        card = json.loads(path.read_text()) if path.is_file() else {}
+        if not d.is_dir() or d.name.startswith("."):
+            continue
+        try:
+            card = read_card(d)
+        except SessionError as exc:  # never joins a dataset; named, and the rest go on
+            log.warning("skipped %s", exc)
+            continue
         if card.get("protocol") == protocol and (runner is None or card.get("runner") == runner):
             out.append(d)
     return out

@@ -44,6 +44,19 @@ def recover(source: str | Path, output: str | Path | None = None) -> RecoveryRep
     output = recovered_path(source) if output is None else Path(output)
     if output.resolve() == source.resolve() or (output.exists() and os.path.samefile(output, source)):
         raise ValueError("recovery writes a new file; it never overwrites the original")
+    partial = output.with_name(f".{output.name}.partial")  # renamed into place whole: never a half file
+    try:
+        messages, channels, torn, reason = _copy(source, partial)
+        os.replace(partial, output)
+    finally:
+        partial.unlink(missing_ok=True)
+    if torn:
+        log.warning("%s: torn after %d messages (%s); recovered to %s", source, messages, reason, output)
+    return RecoveryReport(source, output, messages, channels, torn, reason if torn else "")
+
+
+def _copy(source: Path, output: Path) -> tuple[int, int, bool, str]:
+    """Every readable record of ``source`` into a new file ``output``: (messages, channels, torn, reason)."""
     messages, reason, torn = 0, "", True
     schema_ids: dict[int, int] = {}
     channel_ids: dict[int, int] = {}
@@ -74,10 +87,9 @@ def recover(source: str | Path, output: str | Path | None = None) -> RecoveryRep
                 elif isinstance(record, Footer):
                     torn = False
         except (McapError, struct.error, zstandard.ZstdError, EOFError, ValueError, KeyError) as exc:
-            reason = f"{type(exc).__name__}: {exc}".splitlines()[0][:200]
+            text = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+            reason = text.splitlines()[0][:200]
         if not header_seen:
             writer.start(profile="", library="vslab recover")
         writer.finish()
-    if torn:
-        log.warning("%s: torn after %d messages (%s); recovered to %s", source, messages, reason, output)
-    return RecoveryReport(source, output, messages, len(channel_ids), torn, reason if torn else "")
+    return messages, len(channel_ids), torn, reason

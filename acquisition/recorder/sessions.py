@@ -2,6 +2,8 @@
 
 ``lab/sessions/<id>/`` holds the MCAP parts and ``session.json``. A part without a readable summary is torn
 (its writer was killed): ``recover_session`` writes ``<part>.recovered.mcap`` beside it and never edits it.
+A folder that is not a readable session (no or a damaged ``session.json``, no parts, a part that is not MCAP)
+raises ``SessionError``, one line naming the file, what is wrong and what to do; nothing here writes to it.
 """
 
 from __future__ import annotations
@@ -17,6 +19,49 @@ from mcap.reader import make_reader
 
 from acquisition.recorder.recover import RECOVERED_SUFFIX, RecoveryReport, recover, recovered_path
 from acquisition.recorder.writer import SESSION_CARD
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+CARD_FIELDS = ("robot", "protocol")  # what every session.json names (the writer always writes them)
+_SUMMARY_ERRORS = (McapError, struct.error, OSError, EOFError, ValueError, KeyError)
+
+
+class SessionError(ValueError):
+    """A folder under ``sessions/`` that is not a readable session: ``path`` (the file or folder), ``reason``
+    (what is wrong) and ``hint`` (what to do), said in one line."""
+
+    def __init__(self, path: str | Path, reason: str, hint: str = "") -> None:
+        self.path, self.reason, self.hint = Path(path), reason, hint
+        super().__init__(f"{path}: {reason}" + (f"; {hint}" if hint else ""))
+
+
+def read_card(directory: Path) -> dict:
+    """A session's ``session.json`` as a dict; ``SessionError`` when it is missing, empty, not JSON
+    (truncated, garbled) or lacks the fields every session has (robot, protocol)."""
+    path = Path(directory) / SESSION_CARD
+    aside = f"move the folder out of {Path(directory).parent} (or restore session.json from a backup)"
+    if not path.is_file():
+        raise SessionError(Path(directory), f"not a recorded session: no {SESSION_CARD}", aside)
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise SessionError(path, f"cannot be read ({exc.strerror or exc})", "check its permissions") from exc
+    if not raw.strip():
+        raise SessionError(path, "empty file", aside)
+    try:
+        card = json.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise SessionError(path, f"not text (byte {exc.start} is not UTF-8): garbled", aside) from exc
+    except json.JSONDecodeError as exc:
+        raise SessionError(
+            path, f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg}): truncated or edited?",
+            aside,
+        ) from exc  # fmt: skip
+    if not isinstance(card, dict):
+        raise SessionError(path, f"expected a JSON object, found {type(card).__name__}", aside)
+    missing = [k for k in CARD_FIELDS if not isinstance(card.get(k), str) or not card[k]]
+    if missing:
+        raise SessionError(path, f"no {' or '.join(repr(k) for k in missing)} field", aside)
+    return card
 
 
 @dataclass
@@ -45,10 +90,11 @@ class SessionInfo:
     directory: Path
     robot: str = "?"
     protocol: str = "?"
-    status: str = "?"  # recording (or killed), complete
+    status: str = "?"  # recording (or killed), complete; "bad" when ``problem`` says why
     parts: list[Path] = field(default_factory=list)
     torn: list[Path] = field(default_factory=list)  # parts without a summary and no recovered copy
     streams: dict[str, StreamInfo] = field(default_factory=dict)
+    problem: str = ""  # why the folder is not a readable session (list_sessions); "" for a good one
 
     @property
     def duration_s(self) -> float:
@@ -72,61 +118,105 @@ def readable_parts(directory: Path) -> list[Path]:
 
 
 def session_info(directory: Path) -> SessionInfo:
+    """What a session holds, from its ``session.json`` and its parts' summaries. ``SessionError`` when the
+    folder is not a readable session; a torn part (no readable summary or indexes) is not an error: it is
+    listed in ``torn`` (``recover_session`` mends it)."""
     directory = Path(directory)
-    info = SessionInfo(directory.name, directory)
-    card_path = directory / SESSION_CARD
-    counters = {}
-    if card_path.is_file():
-        card = json.loads(card_path.read_text())
-        info.robot, info.protocol = card.get("robot", "?"), card.get("protocol", "?")
-        info.status = card.get("status", "?")
-        counters = card.get("counters", {})
+    if not directory.is_dir():
+        raise SessionError(directory, "no such session folder")
+    card = read_card(directory)
+    status = str(card.get("status", "?"))
+    info = SessionInfo(directory.name, directory, card["robot"], card["protocol"], status)
     info.parts = readable_parts(directory)
+    if not info.parts:
+        raise SessionError(directory, "no MCAP parts (*.mcap)", "nothing was recorded: remove the folder")
     for part in info.parts:
-        try:
-            with open(part, "rb") as f:
-                summary = make_reader(f).get_summary()
-        except (McapError, struct.error, OSError, EOFError):
-            summary = None
-        if summary is None or summary.statistics is None:
+        _check_part(part)
+        streams = _part_streams(part)
+        if streams is None:
             info.torn.append(part)
             continue
-        for cid, channel in summary.channels.items():
-            stream = info.streams.setdefault(channel.topic, StreamInfo(channel.topic))
-            stream.messages += summary.statistics.channel_message_counts.get(cid, 0)
-        _stream_spans(part, summary, info.streams)
-    for topic, c in counters.items():
-        if topic in info.streams:
-            stream = info.streams[topic]
-            stream.expected = c.get("expected")
-            stream.lost, stream.dropped, stream.gaps = (int(c.get(k, 0)) for k in ("lost", "dropped", "gaps"))
+        for topic, (messages, lo, hi) in streams.items():
+            s = info.streams.setdefault(topic, StreamInfo(topic))
+            s.messages += messages
+            if lo is not None:
+                s.start_ns = lo if s.start_ns is None else min(s.start_ns, lo)
+                s.end_ns = hi if s.end_ns is None else max(s.end_ns, hi)
+    _add_counters(info, card.get("counters") or {}, directory / SESSION_CARD)
     return info
 
 
-def _stream_spans(part: Path, summary, streams: dict[str, StreamInfo]) -> None:
-    """Each topic's first and last log time, from the message indexes of the chunks that hold it."""
-    with open(part, "rb") as f:
-        for ci in summary.chunk_indexes:
-            for cid, offset in ci.message_index_offsets.items():
-                f.seek(offset + 9)
-                _channel, length = struct.unpack("<HI", f.read(6))
-                pairs = np.frombuffer(f.read(length), dtype="<u8").reshape(-1, 2)
-                if len(pairs) == 0:
-                    continue
-                s = streams[summary.channels[cid].topic]
-                lo, hi = int(pairs[:, 0].min()), int(pairs[:, 0].max())
-                s.start_ns = lo if s.start_ns is None else min(s.start_ns, lo)
-                s.end_ns = hi if s.end_ns is None else max(s.end_ns, hi)
+def _check_part(part: Path) -> None:
+    """``SessionError`` for a part that holds no MCAP at all (empty, or another kind of file)."""
+    try:
+        with open(part, "rb") as f:
+            head = f.read(len(MCAP_MAGIC))
+    except OSError as exc:
+        raise SessionError(part, f"cannot be read ({exc.strerror or exc})", "check its permissions") from exc
+    if not head:
+        raise SessionError(part, "empty file (0 bytes): no data", "move it out of the session folder")
+    if head != MCAP_MAGIC:
+        raise SessionError(part, "not an MCAP file (no MCAP magic)", "move it out of the session folder")
+
+
+def _part_streams(part: Path) -> dict[str, tuple[int, int | None, int | None]] | None:
+    """Per topic of one part: (messages, first log time, last log time) from its summary and message
+    indexes; None when either cannot be read (a torn or damaged part)."""
+    try:
+        with open(part, "rb") as f:
+            summary = make_reader(f).get_summary()
+            if summary is None or summary.statistics is None:
+                return None
+            out = {}
+            for cid, channel in summary.channels.items():
+                out[channel.topic] = (summary.statistics.channel_message_counts.get(cid, 0), None, None)
+            for ci in summary.chunk_indexes:
+                for cid, offset in ci.message_index_offsets.items():
+                    f.seek(offset + 9)
+                    _channel, length = struct.unpack("<HI", f.read(6))
+                    pairs = np.frombuffer(f.read(length), dtype="<u8").reshape(-1, 2)
+                    if len(pairs) == 0:
+                        continue
+                    n, lo, hi = out[summary.channels[cid].topic]
+                    first, last = int(pairs[:, 0].min()), int(pairs[:, 0].max())
+                    out[summary.channels[cid].topic] = (
+                        n, first if lo is None else min(lo, first), last if hi is None else max(hi, last)
+                    )  # fmt: skip
+            return out
+    except _SUMMARY_ERRORS:
+        return None
+
+
+def _add_counters(info: SessionInfo, counters: object, card: Path) -> None:
+    """The recorder's account (session.json ``counters``) onto the streams the parts hold."""
+    try:
+        for topic, c in dict(counters).items():
+            if topic in info.streams:
+                s = info.streams[topic]
+                s.expected = None if c.get("expected") is None else int(c["expected"])
+                s.lost, s.dropped, s.gaps = (int(c.get(k, 0)) for k in ("lost", "dropped", "gaps"))
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise SessionError(card, f"bad 'counters' ({exc})", "restore session.json from a backup") from exc
 
 
 def list_sessions(sessions_dir: Path) -> list[SessionInfo]:
-    """Every session under ``sessions_dir`` (directories holding MCAP parts), by id."""
+    """Every folder under ``sessions_dir``, by id: readable sessions, and the others with ``problem`` saying
+    why they are not (a bad session never hides the rest)."""
     sessions_dir = Path(sessions_dir)
     if not sessions_dir.is_dir():
         return []
-    return [session_info(d) for d in sorted(sessions_dir.iterdir()) if d.is_dir() and any(d.glob("*.mcap"))]
+    out = []
+    for d in sorted(sessions_dir.iterdir()):
+        if not d.is_dir() or d.name.startswith("."):
+            continue
+        try:
+            out.append(session_info(d))
+        except SessionError as exc:
+            out.append(SessionInfo(d.name, d, status="bad", problem=str(exc)))
+    return out
 
 
 def recover_session(directory: Path) -> list[RecoveryReport]:
-    """Recover every torn part of a session (each into a new ``.recovered.mcap`` file)."""
+    """Recover every torn part of a session (each into a new ``.recovered.mcap`` file); ``SessionError`` (and
+    nothing written) when the folder is not a readable session."""
     return [recover(part) for part in session_info(directory).torn]
