@@ -118,12 +118,15 @@ def test_an_unplugged_device_is_a_marked_gap_counted_lost_and_the_others_keep_re
 ):
     with host_factory(**RIG) as ports:
         run_dir = tmp_path / "run"
-        with Recorder(vsl, ports, tmp_path / "s", "gap"):
+        with Recorder(vsl, ports, tmp_path / "s", "gap") as rec:
             time.sleep(1.0)
             send_control(run_dir, {"op": "fault", "device": "pressure_board", "kind": "unplug"})
             time.sleep(1.5)
             send_control(run_dir, {"op": "fault", "device": "pressure_board", "kind": "plug"})
-            time.sleep(2.0)
+            deadline = time.monotonic() + 10.0  # the Uno resets when the port opens again (~1.4 s boot)
+            while not rec.connected(T.PRESSURE) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(0.5)
     kinds = [(e.kind, e.label) for _, e in _events(tmp_path / "s")]
     assert (EventKind.DEVICE_GAP_START, "pressure_board") in kinds
     assert (EventKind.DEVICE_GAP_END, "pressure_board") in kinds

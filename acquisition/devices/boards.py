@@ -1,10 +1,14 @@
 """The Arduino boards (firmware/PROTOCOL.md) on pyserial: the pressure board (Uno) and the stepper (Nano).
 
-Each command carries a tag; the driver waits for the reply with that tag and sets streamed sample lines
-aside, stamped with the host receive time (int64 ns, the time the chunk holding the line was read). Every
-command is idempotent (absolute targets, set-points, rates), so a timed-out or corrupted exchange is simply
-repeated by :meth:`Device._retrying`. Samples stay raw (ADC counts, microsteps, the board's ``micros()``);
-conversion to Pa/rad and clock alignment belong to the pipeline.
+Opening the port resets an Uno/Nano (DTR): ``open`` waits for the board's ``READY`` line (bootloader, then
+``setup()``: about 1.4 s) without sending anything the bootloader would swallow, then identifies it with
+``ID?``. Each command carries a tag; the driver waits for the reply with that tag and sets streamed sample
+lines aside, stamped with the host receive time (int64 ns, the time the chunk holding the line was read).
+Every command is idempotent (absolute targets, set-points, rates), so a timed-out or corrupted exchange is
+simply repeated by :meth:`Device._retrying`; an ``ERR`` reply with a tag is the board refusing the command
+and raises :class:`BoardReplyError` naming the board, the port, the command and what the board said.
+Samples stay raw (ADC counts, microsteps, the board's ``micros()``); conversion to Pa/rad and clock
+alignment belong to the pipeline.
 """
 
 from __future__ import annotations
@@ -31,6 +35,38 @@ log = logging.getLogger(__name__)
 _READ_SLICE_S = 0.005  # serial read timeout: how long one blocking read waits for a first byte
 _MAX_RX = 4096  # bytes without a newline before the receive buffer is dropped
 _MAX_SAMPLES = 100_000  # samples kept between read_samples() calls (oldest dropped beyond)
+_STALE_S = 0.1  # lines arriving this soon after opening were sent before the board's reset
+
+
+class BoardReplyError(DeviceReplyError):
+    """The board answered ``ERR <tag> <code> <name>``: it refused the command (nothing was applied)."""
+
+    def __init__(self, message: str, board: str, port: str, command: str, code: int, name: str) -> None:
+        super().__init__(message)
+        self.board = board
+        self.port = port
+        self.command = command
+        self.code = code
+        self.name = name
+
+
+_VERBS = {
+    bp.BOARD_PRESSURE: frozenset({"ID?", "STREAM", "STOP", "SET", "VALVE"}),
+    bp.BOARD_STEPPER: frozenset({"ID?", "STREAM", "STOP", "MOVE", "SPEED", "POS?"}),
+}
+
+
+def describe_error(board: str, command: str, err: bp.Err) -> str:
+    """What an ``ERR`` reply to ``command`` means, for a message: the code, its meaning and a hint."""
+    verb = (command.split() or [""])[0]
+    text = f"ERR {err.code} {err.name}: {bp.ERROR_MEANINGS.get(err.code, 'an error code of another version')}"
+    if err.code in (bp.E_ARGS, bp.E_RANGE) and verb in bp.VERB_USAGE:
+        text += f" (usage: {bp.VERB_USAGE[verb]})"
+    elif err.code == bp.E_UNKNOWN:
+        other = [name for name, verbs in _VERBS.items() if name != board and verb in verbs]
+        if other:
+            text += f" ({verb} is a {other[0]} board command: is this the right port?)"
+    return text
 
 
 @dataclass(frozen=True)
@@ -74,7 +110,7 @@ class _Board(Device):
         super().__init__(port, retries)
         self.baud = baud
         self.timeout_s = timeout_s
-        self.open_timeout_s = open_timeout_s  # an Uno resets when the port opens: ~1.6 s of bootloader
+        self.open_timeout_s = open_timeout_s  # how long open() waits for READY (the reset takes ~1.4 s)
         self.identity: BoardIdentity | None = None
         self.bad_lines = 0  # lines dropped for a bad checksum or an unknown shape
         self.dropped_samples = 0
@@ -85,6 +121,10 @@ class _Board(Device):
         self._samples: deque = deque(maxlen=_MAX_SAMPLES)
         self._tag = 0
         self._corrupt_since_send = False
+        self._opening = False
+        self._readies = 0  # READY lines received since the port was opened
+        self._lines = 0  # valid lines received since the port was opened
+        self.resets = 0  # READY lines while open: the board reset and lost its state (streaming, outputs)
 
     # ------------------------------------------------------------------------------------ lifecycle
     def _open(self) -> None:
@@ -93,27 +133,45 @@ class _Board(Device):
         self._rx.clear()
         self._replies.clear()
         self._samples.clear()
-        deadline = time.monotonic() + self.open_timeout_s
-        last: Exception | None = None
-        while time.monotonic() < deadline:
+        self._readies = self._lines = 0
+        self._opening = True
+        try:
+            ready = self._await_ready()
             try:
-                ident = self._transact("ID?", min(self.timeout_s, max(0.0, deadline - time.monotonic())))
+                ident = self._retrying("ID?", lambda: self._transact("ID?", self.timeout_s))
             except (DeviceTimeoutError, DeviceProtocolError) as exc:
-                last = exc
-                continue
+                seen = "after its READY" if ready else f"and no READY within {self.open_timeout_s} s"
+                raise DeviceNotFoundError(f"{exc}, {seen}") from exc
             except DeviceReplyError as exc:
                 raise DeviceNotFoundError(f"{self.kind} on {self.port}: ID? refused ({exc})") from exc
-            if not isinstance(ident, bp.Ident) or ident.board != self.board:
-                raise DeviceNotFoundError(
-                    f"{self.kind} on {self.port}: the board there is not a {self.board} board ({ident})"
-                )
-            self.identity = BoardIdentity(ident.board, ident.firmware, ident.serial)
-            log.info("%s on %s: %s firmware %s serial %s", self.kind, self.port, ident.board, ident.firmware,
-                     ident.serial)  # fmt: skip
-            return
-        raise DeviceNotFoundError(
-            f"{self.kind} on {self.port}: no answer to ID? within {self.open_timeout_s} s ({last})"
-        )
+        finally:
+            self._opening = False
+        self._samples.clear()  # lines of a stream from before the reset, or of one that will be restarted
+        if not isinstance(ident, bp.Ident) or ident.board != self.board:
+            raise DeviceNotFoundError(
+                f"{self.kind} on {self.port}: the board there is not a {self.board} board ({ident})"
+            )
+        self.identity = BoardIdentity(ident.board, ident.firmware, ident.serial)
+        log.info("%s on %s: %s firmware %s serial %s", self.kind, self.port, ident.board, ident.firmware,
+                 ident.serial)  # fmt: skip
+
+    def _await_ready(self) -> bool:
+        """Wait up to ``open_timeout_s`` for READY: opening the port reset the board, and bytes sent to the
+        bootloader are lost (Optiboot even answers some). True when READY came. Lines in the first
+        ``_STALE_S`` were sent before the reset (bridge and tty buffers); a line after that without READY
+        means the board did not reset (auto-reset disabled): False at once. A silent board: False at the
+        deadline."""
+        start = time.monotonic()
+        while (now := time.monotonic()) < start + self.open_timeout_s:
+            lines = self._lines
+            self._pump(block=True)
+            if self._readies:
+                return True
+            if self._lines > lines and now - start > _STALE_S:
+                log.info("%s on %s: lines but no READY: the board did not reset", self.kind, self.port)
+                return False
+        log.info("%s on %s: no READY within %s s, trying ID?", self.kind, self.port, self.open_timeout_s)
+        return False
 
     def fileno(self) -> int:
         """The port's file descriptor: readable when a line (a streamed sample, a reply) arrives."""
@@ -129,12 +187,13 @@ class _Board(Device):
 
     # ----------------------------------------------------------------------------------- commands
     def command(self, body: str) -> bp.Message:
-        """Send ``body`` (without tag) and return the board's reply, with retries; ERR → DeviceReplyError."""
+        """Send ``body`` (without tag) and return the board's reply, with retries on timeouts and corrupted
+        lines; an ``ERR`` reply raises BoardReplyError (board, port, command, code and name)."""
         self._require_open()
         return self._retrying(body, lambda: self._transact(body, self.timeout_s))
 
     def start_stream(self, rate_hz: int) -> None:
-        """Stream samples at ``rate_hz`` (1–200 Hz, board clock)."""
+        """Stream samples at ``rate_hz`` (1–250 Hz, board clock)."""
         self.command(f"STREAM {int(rate_hz)}")
 
     def stop_stream(self) -> None:
@@ -167,14 +226,16 @@ class _Board(Device):
             while self._replies:
                 reply_ns, reply = self._replies.popleft()
                 if isinstance(reply, bp.Err) and reply.tag is None:
-                    raise DeviceProtocolError(f"the board could not read {body!r} ({reply.name})")
+                    raise DeviceProtocolError(
+                        f"the board could not read {body!r}: {describe_error(self.board, body, reply)}"
+                    )
                 if getattr(reply, "tag", None) != tag:
                     log.debug("%s on %s: stale reply %s", self.kind, self.port, reply)
                     continue
                 if isinstance(reply, bp.Err):
-                    raise DeviceReplyError(
-                        f"{self.kind} on {self.port}: {body!r} refused: ERR {reply.code} {reply.name}"
-                    )
+                    what = describe_error(self.board, body, reply)
+                    raise BoardReplyError(f"{self.kind} on {self.port} refused {body!r}: {what}",
+                                          self.board, self.port, body, reply.code, reply.name)  # fmt: skip
                 self.last_reply_ns = reply_ns
                 return reply
             if time.monotonic() >= deadline:
@@ -221,6 +282,7 @@ class _Board(Device):
             self._corrupt_since_send = True
             log.warning("%s on %s: bad line dropped: %s", self.kind, self.port, exc)
             return
+        self._lines += 1
         if isinstance(message, bp.PressureLine | bp.StepperLine):
             sample = self._sample(message, host_ns)
             if sample is not None:
@@ -228,7 +290,13 @@ class _Board(Device):
                     self.dropped_samples += 1
                 self._samples.append(sample)
         elif isinstance(message, bp.Ready):
-            log.info("%s on %s: board reset (%s %s)", self.kind, self.port, message.board, message.firmware)
+            self._readies += 1
+            if self._opening:
+                log.info("%s on %s: %s %s ready", self.kind, self.port, message.board, message.firmware)
+            else:
+                self.resets += 1
+                log.warning("%s on %s: the board reset (READY): streaming stopped, outputs at their defaults",
+                            self.kind, self.port)  # fmt: skip
         else:
             self._replies.append((host_ns, message))
 
@@ -245,7 +313,8 @@ class PressureBoard(_Board):
     board = bp.BOARD_PRESSURE
 
     def set_pressure(self, channel: int, pa: float) -> None:
-        """Regulator ``channel`` (0/1) set-point in gauge Pa (0–400 kPa, sent rounded to 1 Pa)."""
+        """Regulator ``channel`` (0/1) set-point in gauge Pa, sent rounded to 1 Pa; the board refuses one
+        outside its regulators' span (0–300 kPa: BoardReplyError, RANGE)."""
         if channel not in (0, 1) or not math.isfinite(pa):
             raise ValueError(f"{self.kind} on {self.port}: bad set-point channel {channel} / {pa} Pa")
         self.command(f"SET {channel} {round(pa)}")

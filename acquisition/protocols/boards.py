@@ -24,16 +24,40 @@ E_CHECKSUM, E_MALFORMED, E_UNKNOWN, E_ARGS, E_RANGE = 1, 2, 3, 4, 5
 ERROR_NAMES = {E_CHECKSUM: "CHECKSUM", E_MALFORMED: "MALFORMED", E_UNKNOWN: "UNKNOWN", E_ARGS: "ARGS",
                E_RANGE: "RANGE"}  # fmt: skip
 
-# limits enforced by the firmware (PROTOCOL.md, "Limits")
-MAX_SET_PA = 400_000  # set-point limit: the transducers' 0–4 bar range
+# what each error code means (PROTOCOL.md, "Errors"), for messages a user can act on
+ERROR_MEANINGS = {
+    E_CHECKSUM: "the line's checksum did not match (a transport error: resend)",
+    E_MALFORMED: "the board could not read the line (no *XX, too long, non-printable bytes, no tag or verb)",
+    E_UNKNOWN: "the board has no such command",
+    E_ARGS: "wrong number of arguments, or one is not a decimal integer",
+    E_RANGE: "an argument is outside its limits (nothing was applied)",
+}
+
+# limits enforced by the firmware (PROTOCOL.md, "Commands"); keep firmware/*.ino in step
+MAX_SET_PA = 300_000  # set-point limit: the regulators' 0–3 bar span (robot description: regulator_max_pa)
 REGULATOR_FULL_SCALE_PA = 1_000_000  # ASSUMPTION: K8P 0–10 V ↔ 0–10 bar
 MAX_STREAM_HZ = 250  # the ADS1115 at 860 SPS, two channels multiplexed: ~430 Hz each; 250 Hz = 11 kB/s of 25
 MAX_SPEED_STEPS_S = 4000  # AccelStepper on a 16 MHz AVR
 MAX_ACCEL_STEPS_S2 = 100_000
 MAX_ABS_STEPS = 2_000_000
+MAX_TAG_DIGITS = 5  # the firmware refuses longer tags (leading zeros included) as MALFORMED
+MAX_ARGS = 3  # the firmware answers ARGS to a line with more arguments, whatever the verb
+BOOT_S = 1.4  # DTR reset → READY: Optiboot's 3 LED flashes (6 × 62.5 ms) + its 1 s watchdog, then setup()
 MICROSTEPS = 16  # A4988 with MS1–MS3 high
 FULL_STEPS_PER_REV = 200
 ADC_LSB_V = 125e-6  # ADS1115 at ±4.096 V
+
+# each verb's arguments and limits, for error messages (PROTOCOL.md, "Commands")
+VERB_USAGE = {
+    "ID?": "ID? takes no argument",
+    "STREAM": f"STREAM <rate_hz 0–{MAX_STREAM_HZ}>",
+    "STOP": "STOP takes no argument",
+    "SET": f"SET <channel 0–1> <pa 0–{MAX_SET_PA}>",
+    "VALVE": "VALVE <channel 0–1> <0|1>",
+    "MOVE": f"MOVE <steps −{MAX_ABS_STEPS}…{MAX_ABS_STEPS}>",
+    "SPEED": f"SPEED <steps_per_s 1–{MAX_SPEED_STEPS_S}> <accel 1–{MAX_ACCEL_STEPS_S2}>",
+    "POS?": "POS? takes no argument",
+}
 
 
 class BoardChecksumError(ValueError):
@@ -60,20 +84,35 @@ def encode(body: str) -> bytes:
     return raw + b"*%02X\n" % checksum(raw)
 
 
+_HEX = frozenset(b"0123456789ABCDEFabcdef")
+
+
+def frame_error(line: bytes) -> int:
+    """The firmware's verdict on one received line (without its ``\\n``): 0 when it is ``<BODY>*<XX>``
+    with a matching checksum, else E_MALFORMED or E_CHECKSUM. One ``\\r`` before the end is tolerated;
+    the checksum starts at the last ``*``; the body is at most MAX_BODY printable bytes (VslLink
+    ``handleLine``)."""
+    if line.endswith(b"\r"):
+        line = line[:-1]
+    if len(line) < 3 or line[-3] != 0x2A or 0x2A in line[-2:] or len(line) - 3 > MAX_BODY:
+        return E_MALFORMED
+    body = line[:-3]
+    if any(b < 0x20 or b > 0x7E for b in body) or line[-2] not in _HEX or line[-1] not in _HEX:
+        return E_MALFORMED
+    return E_CHECKSUM if checksum(body) != int(line[-2:], 16) else 0
+
+
 def decode(line: bytes) -> str:
-    """``b'<body>*<XX>\\n'`` (``\\r\\n`` accepted) → body; raises BoardChecksumError."""
-    stripped = line.rstrip(b"\r\n")
-    body, star, tail = stripped.rpartition(b"*")
-    if not star or len(tail) != 2 or len(body) > MAX_BODY:
-        raise BoardChecksumError(f"malformed line {line!r}")
-    try:
-        expected = int(tail, 16)
-        text = body.decode("ascii")
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise BoardChecksumError(f"malformed line {line!r}") from exc
-    if checksum(body) != expected:
+    """``b'<body>*<XX>\\n'`` (``\\r\\n`` accepted) → body, by the firmware's rules (``frame_error``); raises
+    BoardChecksumError."""
+    stripped = line[:-1] if line.endswith(b"\n") else line
+    error = frame_error(stripped)
+    body = (stripped[:-1] if stripped.endswith(b"\r") else stripped)[:-3]
+    if error == E_CHECKSUM:
         raise BoardChecksumError(f"checksum mismatch in {line!r}: computed {checksum(body):02X}")
-    return text
+    if error:
+        raise BoardChecksumError(f"malformed line {line!r}")
+    return body.decode("ascii")
 
 
 # ----------------------------------------------------------------------------------------- messages
@@ -174,15 +213,20 @@ def _flag(text: str, what: str) -> bool:
 
 
 def parse_tag(text: str) -> int:
-    """A command/reply tag (0–65535); raises BoardSyntaxError."""
-    if not text.isdigit():
-        raise BoardSyntaxError(f"tag {text!r} is not a decimal number")
+    """A command/reply tag: 1–5 decimal digits, 0–65535 (the firmware's rule); raises BoardSyntaxError."""
+    if not (text.isascii() and text.isdigit() and len(text) <= MAX_TAG_DIGITS):
+        raise BoardSyntaxError(f"tag {text!r} is not a decimal number of at most {MAX_TAG_DIGITS} digits")
     return _int(text, 0, TAG_MODULO - 1, "tag")
+
+
+def split_fields(body: str) -> list[str]:
+    """A body's fields: separated by one or more spaces (the firmware's ``strtok(body, " ")``)."""
+    return [field for field in body.split(" ") if field]
 
 
 def parse_command(body: str) -> Command:
     """Host → board body → Command; raises BoardSyntaxError when there is no tag or verb."""
-    fields = body.split()
+    fields = split_fields(body)
     if len(fields) < 2:
         raise BoardSyntaxError(f"command {body!r} needs a tag and a verb")
     return Command(parse_tag(fields[0]), fields[1], tuple(fields[2:]))
@@ -190,7 +234,7 @@ def parse_command(body: str) -> Command:
 
 def parse_message(body: str) -> Message:
     """Board → host body → one of the message dataclasses; raises BoardSyntaxError."""
-    fields = body.split()
+    fields = split_fields(body)
     if not fields:
         raise BoardSyntaxError("empty message")
     kind, rest = fields[0], fields[1:]

@@ -94,7 +94,10 @@ def parse_reply(data: bytes) -> str:
     want = crc16_arc(body)
     if got != want:
         raise NdiCrcError(f"reply {data[:40]!r}: CRC {got:04X} != {want:04X}")
-    return body.decode("ascii")
+    try:
+        return body.decode("ascii")
+    except UnicodeDecodeError as exc:  # a matching CRC over bytes that are not text
+        raise NdiFormatError(f"reply {data[:40]!r} is not ASCII text") from exc
 
 
 def error_reply(code: int) -> bytes:
@@ -146,7 +149,7 @@ def format_tx(handles: list[HandleFrame], system_status: int = 0) -> str:
 
 def _signed(text: str, scale: float) -> float:
     """A ``%+0Nd`` field divided by ``scale``."""
-    if text[:1] not in "+-" or not text[1:].isdigit():
+    if text[:1] not in "+-" or not (text[1:].isascii() and text[1:].isdigit()):  # not '²': int() refuses it
         raise NdiFormatError(f"bad signed field {text!r}")
     return int(text) / scale
 
@@ -160,7 +163,10 @@ def parse_tx(text: str) -> list[HandleFrame]:
     pos = 2
     out: list[HandleFrame] = []
     for _ in range(count):
-        handle = int(text[pos : pos + 2], 16)
+        try:
+            handle = int(text[pos : pos + 2], 16)
+        except ValueError as exc:
+            raise NdiFormatError(f"bad TX handle {text[pos : pos + 2]!r} at {pos}") from exc
         pos += 2
         missing = disabled = False
         quat, trans, rms = _NAN4, _NAN3, float("nan")
@@ -193,7 +199,10 @@ def parse_tx(text: str) -> list[HandleFrame]:
 
 def parse_tx_system_status(text: str) -> int:
     """The 4-hex system status at the end of a TX reply text."""
-    return int(text[-4:], 16)
+    try:
+        return int(text[-4:], 16)
+    except ValueError as exc:
+        raise NdiFormatError(f"bad TX system status {text[-4:]!r}") from exc
 
 
 # -------------------------------------------------------------------------------------------------- BX
@@ -218,8 +227,8 @@ def format_bx(handles: list[HandleFrame], system_status: int = 0) -> bytes:
 
 def bx_total_length(header: bytes) -> int:
     """Whole BX reply length from its 6-byte header (checks start bytes and header CRC)."""
-    if header[:2] != BX_START:
-        raise NdiFormatError(f"BX reply does not start with C4 A5: {header[:6].hex()}")
+    if header[:2] != BX_START or len(header) < 6:
+        raise NdiFormatError(f"BX reply does not start with C4 A5 and a 4-byte header: {header[:6].hex()}")
     (length, crc) = struct.unpack_from("<HH", header, 2)
     if crc16_arc(header[:4]) != crc:
         raise NdiCrcError(f"BX header CRC {crc:04X} != {crc16_arc(header[:4]):04X}")

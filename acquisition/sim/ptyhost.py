@@ -4,10 +4,19 @@ Each device gets a pty; its path is published as a symlink ``<run_dir>/<name>`` 
 replug, which create a new pty) and listed in ``<run_dir>/ports.json``. A unix socket
 ``<run_dir>/control.sock`` takes one JSON command per line (faults, operator inputs) and answers one JSON
 line. Runs in its own process: client libraries that hold the GIL while blocked (ndicapy) need that.
+
+Opening a port: the host keeps each pty's slave open itself (so the master never sees EIO/POLLHUP and the
+host may close and reopen), which hides the client's open and close from the master. For an emulator that
+resets when its port opens (an Arduino: DTR), the host watches the slave's ``/dev/pts`` node with inotify
+(IN_OPEN/IN_CLOSE: one event per open and per last close of an open file, none for reads or writes), counts
+the clients that hold it open, calls ``emulator.port_opened(now)`` when the first one opens it, and drops
+that emulator's output while nobody has the port open (as the USB bridge of a closed port does). Where
+inotify is missing the ports are served as before, without the reset.
 """
 
 from __future__ import annotations
 
+import ctypes
 import json
 import logging
 import os
@@ -15,6 +24,7 @@ import pty
 import selectors
 import signal
 import socket
+import struct
 import time
 import tty
 from collections.abc import Callable
@@ -25,24 +35,85 @@ from acquisition.sim.emulators.base import Emulator, Faults
 log = logging.getLogger(__name__)
 PORTS_FILE = "ports.json"
 CONTROL_SOCKET = "control.sock"
+IN_OPEN, IN_CLOSE_WRITE, IN_CLOSE_NOWRITE = 0x20, 0x08, 0x10  # <sys/inotify.h>
+_IN_CLOSE = IN_CLOSE_WRITE | IN_CLOSE_NOWRITE
+_INOTIFY_EVENT = struct.Struct("iIII")  # wd, mask, cookie, len (+ len bytes of name: none for a file watch)
+
+
+class OpenWatch:
+    """Opens and closes of pty slaves by other processes, from inotify on their ``/dev/pts`` nodes (Linux).
+
+    The host's own slave fd was opened before the watch, so it is never counted. ``read`` returns
+    (port, mask) pairs; the fd is readable only when a watched port was opened or closed."""
+
+    def __init__(self) -> None:
+        self._libc = ctypes.CDLL(None, use_errno=True)  # the process's own symbols: libc's inotify_*
+        self.fd = self._libc.inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
+        if self.fd < 0:
+            raise OSError(ctypes.get_errno(), "inotify_init1 failed")
+        self._ports: dict[int, _Port] = {}
+
+    @classmethod
+    def create(cls) -> OpenWatch | None:
+        """A watch, or None where inotify is missing (ports are then served without reset-on-open)."""
+        try:
+            return cls()
+        except (OSError, AttributeError) as exc:  # AttributeError: a libc without inotify
+            log.warning("no inotify (%s): emulators will not see their ports opened", exc)
+            return None
+
+    def add(self, path: str, port: _Port) -> int:
+        wd = self._libc.inotify_add_watch(self.fd, os.fsencode(path), IN_OPEN | _IN_CLOSE)
+        if wd < 0:
+            raise OSError(ctypes.get_errno(), f"inotify_add_watch({path}) failed")
+        self._ports[wd] = port
+        return wd
+
+    def remove(self, wd: int) -> None:
+        self._ports.pop(wd, None)
+        self._libc.inotify_rm_watch(self.fd, wd)  # its IN_IGNORED event finds no port
+
+    def read(self) -> list[tuple[_Port, int]]:
+        events = []
+        while True:
+            try:
+                data = os.read(self.fd, 4096)
+            except BlockingIOError:
+                return events
+            offset = 0
+            while offset < len(data):
+                wd, mask, _, length = _INOTIFY_EVENT.unpack_from(data, offset)
+                offset += _INOTIFY_EVENT.size + length
+                if (port := self._ports.get(wd)) is not None:
+                    events.append((port, mask))
+
+    def close(self) -> None:
+        os.close(self.fd)
 
 
 class _Port:
     """One emulator on one pty (re-created on replug)."""
 
-    def __init__(self, name: str, emulator: Emulator, run_dir: Path) -> None:
+    def __init__(self, name: str, emulator: Emulator, run_dir: Path, watch: OpenWatch | None = None) -> None:
         self.name = name
         self.emulator = emulator
         self.link = run_dir / name
         self.faults = Faults()
         self.master = -1
         self.slave = -1
+        # emulators that reset when their port opens (``port_opened``) have their slave watched
+        self.watch = watch if emulator.resets_on_open else None
+        self.wd = -1
+        self.clients = 0  # open files of the slave held by other processes (watched ports only)
         self.plug()
 
     def plug(self) -> None:
         self.master, self.slave = pty.openpty()
         tty.setraw(self.slave)  # keep the slave open for our whole life: the host may close and reopen it
         os.set_blocking(self.master, False)
+        if self.watch is not None:
+            self.wd = self.watch.add(os.ttyname(self.slave), self)
+            self.clients = 0
         tmp = self.link.with_name(self.link.name + ".tmp")
         tmp.unlink(missing_ok=True)
         tmp.symlink_to(os.ttyname(self.slave))
@@ -53,14 +124,28 @@ class _Port:
     def unplug(self) -> None:
         self.faults.unplugged = True
         self.link.unlink(missing_ok=True)
+        if self.watch is not None and self.wd >= 0:
+            self.watch.remove(self.wd)
+            self.wd, self.clients = -1, 0
         for fd in (self.master, self.slave):
             if fd >= 0:
                 os.close(fd)
         self.master = self.slave = -1
 
+    def opened_or_closed(self, mask: int, now_s: float) -> None:
+        """An inotify event on the slave: the first open resets the device (DTR rises)."""
+        if mask & IN_OPEN:
+            self.clients += 1
+            if self.clients == 1:
+                self.emulator.port_opened(now_s)
+        if mask & _IN_CLOSE:
+            self.clients = max(0, self.clients - 1)
+
     def write(self, data: bytes) -> None:
         if not data or self.master < 0:
             return
+        if self.watch is not None and self.clients == 0:
+            return  # nobody has the port open: the bytes are lost, as behind a closed USB serial port
         if self.faults.drop_replies > 0:
             self.faults.drop_replies -= 1
             return
@@ -100,7 +185,9 @@ class PtyHost:
     ) -> None:
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        self.ports = {name: _Port(name, emu, self.run_dir) for name, emu in emulators.items()}
+        wants_watch = any(emu.resets_on_open for emu in emulators.values())
+        self._watch = OpenWatch.create() if wants_watch else None
+        self.ports = {name: _Port(name, emu, self.run_dir, self._watch) for name, emu in emulators.items()}
         self.tick = tick
         self.control = control
         self.housekeeping_s = housekeeping_s
@@ -130,6 +217,8 @@ class PtyHost:
         sel = selectors.DefaultSelector()
         sel.register(server, selectors.EVENT_READ, ("accept", None))
         sel.register(wake_r, selectors.EVENT_READ, ("wake", wake_r))
+        if self._watch is not None:
+            sel.register(self._watch.fd, selectors.EVENT_READ, ("opens", None))
         registered: dict[str, int] = {}
         self._sync_registrations(sel, registered)
         next_tick = self.now() + self.housekeeping_s
@@ -155,6 +244,8 @@ class PtyHost:
                     elif kind == "control":
                         self._serve_control(sel, obj)
                         self._sync_registrations(sel, registered)  # a fault may have (un)plugged a port
+                    elif kind == "opens":
+                        self._serve_opens()
                     else:
                         _drain(obj)
         finally:
@@ -164,6 +255,8 @@ class PtyHost:
                     port.unplug()
             (self.run_dir / PORTS_FILE).unlink(missing_ok=True)
             sock_path.unlink(missing_ok=True)
+            if self._watch is not None:
+                self._watch.close()
             server.close()
             wake_r.close()
             wake_w.close()
@@ -205,7 +298,15 @@ class PtyHost:
             time.sleep(0.001)
             return
         if data:
+            if port.watch is not None:
+                self._serve_opens()  # an open queued before these bytes resets the device first
             port.write(port.emulator.feed(data, self.now()))
+
+    def _serve_opens(self) -> None:
+        """Pass the ports' opens and closes (inotify) to their emulators."""
+        if self._watch is not None:
+            for port, mask in self._watch.read():
+                port.opened_or_closed(mask, self.now())
 
     def _serve_control(self, sel: selectors.BaseSelector, conn: socket.socket) -> None:
         data = b""

@@ -23,6 +23,7 @@ import numpy as np
 
 from acquisition.processes import RT_PRIORITY, die_with_parent, elevate
 from acquisition.protocols import dynamixel as dx
+from acquisition.protocols.boards import MAX_SET_PA
 from acquisition.sim import sensors
 from acquisition.sim.clocks import _TICK_EPS as TICK_EPS
 from acquisition.sim.emulators.aurora import AuroraEmulator
@@ -49,7 +50,10 @@ class Rig:
         if "servo_bus" in robot.devices:
             self.emulators["servo_bus"] = self._servo_bus()
         if "pressure_board" in robot.devices:
-            self.emulators["pressure_board"] = PressureBoardEmulator(TwinPressure(self))
+            # the firmware's set-point limit is the regulators' range (VSL 3 bar, POPUP's regulators less)
+            self.emulators["pressure_board"] = PressureBoardEmulator(
+                TwinPressure(self), max_set_pa=min(int(robot.pneumatics.regulator_max_pa), MAX_SET_PA)
+            )
         if "stepper_board" in robot.devices and robot.stepper is not None:
             self.emulators["stepper_board"] = StepperBoardEmulator(TwinStepper(self))
         self.coil = TwinTrackerSource(self)

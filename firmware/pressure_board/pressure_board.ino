@@ -26,7 +26,7 @@ static const uint32_t BAUD = 250000UL;
 static const uint8_t PIN_VALVE[2] = {7, 8};
 static const uint16_t PWM_TOP = 1023;                       // Timer1 fast PWM, 16 MHz / 1024 = 15.6 kHz
 static const uint32_t REGULATOR_FULL_SCALE_PA = 1000000UL;  // ASSUMPTION: 10 V <-> 10 bar
-static const int32_t MAX_SET_PA = 400000L;
+static const int32_t MAX_SET_PA = 300000L;  // the regulators' 0-3 bar span (robot: regulator_max_pa)
 static const int32_t MAX_STREAM_HZ = 250;
 
 Adafruit_ADS1115 ads;

@@ -33,6 +33,11 @@ class Emulator:
             return None
         return now_s + LEGACY_POLL_S
 
+    resets_on_open = False  # an Arduino whose DTR line resets it: the pty host watches its port's opens
+
+    def port_opened(self, now_s: float) -> None:
+        """The first client opened the port (called only where ``resets_on_open``; default: nothing)."""
+
     def reset_link(self) -> None:
         """The host reopened the port after an unplug: drop half-received input (default: nothing)."""
 
