@@ -123,7 +123,7 @@ def test_ctrl_c_on_vslab_run_is_a_safe_stop(tmp_path):
     time.sleep(4.0)
     proc.send_signal(signal.SIGINT)
     out, _ = proc.communicate(timeout=60)
-    assert proc.returncode == 0, out
+    assert proc.returncode == 130, out  # the plan did not run to its end: not a success
     assert "interrupted" in out
     info = session_info(session)
     assert info.status == "complete"

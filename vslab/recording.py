@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 from rich.table import Column, Table
 
 from vslab.app import Settings, _fail, _robot, app, console, inverse_compensator, sessions_app
@@ -243,9 +244,13 @@ def run(
                 except (SafetyError, RunnerError) as exc:
                     _fail(str(exc))
     _finish(rec)
-    colour = "green" if report.status == "complete" else "yellow"
-    console.print(f"[{colour}]{report.status}[/] at {report.elapsed_s:.1f} s of {the_plan.duration_s:.1f} s"
-                  + (f": {report.reason}" if report.reason else ""))  # fmt: skip
+    at = f"{report.elapsed_s:.1f} s of {the_plan.duration_s:.1f} s"
+    if report.status != "complete":  # the session is kept (valid up to the stop); the job is not done
+        why = escape(report.reason)
+        console.print(f"[yellow]{report.status}[/] at {at}: {why} (the session is kept up to the stop; its "
+                      "events say why)", soft_wrap=True, highlight=False)  # fmt: skip
+        raise typer.Exit(code=130 if report.status == "interrupted" else 1)
+    console.print(f"[green]complete[/] at {at}")
 
 
 def _operator(rig_dir: Path | None):
