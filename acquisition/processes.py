@@ -149,13 +149,18 @@ def _into_own_session() -> None:
     parent = os.getpid()
     sys.stdout.flush()
     sys.stderr.flush()
+    passed_on = {signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT}
+    # held back over the fork: one that comes before this process forwards them waits, and is forwarded
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, passed_on)
     child = os.fork()
     if child == 0:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         os.setsid()
         die_with_parent(parent, signal.SIGTERM)
         return
-    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT):
+    for sig in passed_on:
         signal.signal(sig, lambda number, _frame: os.kill(child, number))
+    signal.pthread_sigmask(signal.SIG_SETMASK, mask)
     _, status = os.waitpid(child, 0)
     code = os.waitstatus_to_exitcode(status)
     os._exit(code if code >= 0 else 128 - code)

@@ -9,7 +9,7 @@ report their spread. The input/output standardisation lives in buffers, so it tr
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import Literal
 
 import numpy as np
@@ -63,7 +63,18 @@ class NetConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> NetConfig:
-        return cls(**{**d, "hidden": tuple(d.get("hidden", PAPER_HIDDEN))})
+        """The config of ``to_dict``'s output; ValueError naming what is wrong with any other mapping."""
+        if not isinstance(d, dict):
+            raise ValueError(f"NetConfig: expected a mapping, got {type(d).__name__}")
+        known = {f.name for f in fields(cls)}
+        if unknown := sorted(set(d) - known):
+            raise ValueError(f"NetConfig: unknown field(s) {unknown} (known: {sorted(known)})")
+        hidden = d.get("hidden", PAPER_HIDDEN)
+        if not isinstance(hidden, list | tuple) or not all(isinstance(h, int) and h >= 1 for h in hidden):
+            raise ValueError(f"NetConfig.hidden: expected a list of positive integers, got {hidden!r}")
+        if not isinstance(d.get("ensemble", 1), int) or not isinstance(d.get("residual", False), bool):
+            raise ValueError("NetConfig: ensemble must be an integer and residual true or false")
+        return cls(**{**d, "hidden": tuple(hidden)})
 
 
 def _presets() -> dict[str, NetConfig]:
@@ -207,7 +218,14 @@ class HybridNet(nn.Module):
     # ------------------------------------------------------------------ persistence
     @classmethod
     def from_state(cls, config: NetConfig, tensors: dict[str, Tensor]) -> HybridNet:
-        """Rebuild a net from its config and a tensors-only state dict (e.g. from safetensors)."""
+        """Rebuild a fitted net from its config and a tensors-only state dict (e.g. from safetensors).
+        RuntimeError (torch's) if names or shapes differ from the config's net; ValueError if a tensor has
+        non-finite values or the scaler was never fitted."""
         net = cls(config)
         net.load_state_dict(tensors, strict=True)
+        bad = [k for k, t in tensors.items() if t.is_floating_point() and not bool(torch.isfinite(t).all())]
+        if bad:
+            raise ValueError(f"non-finite values in {', '.join(sorted(bad)[:3])}")
+        if not int(net.fitted):
+            raise ValueError("the input/output scaler was never fitted (not a trained net)")
         return net

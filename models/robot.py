@@ -476,14 +476,20 @@ def load_robot(name_or_path: str | Path) -> RobotDescription:
         raise RobotDescriptionError(f"{path}: no such robot description (known robots: {known})") from None
     except OSError as exc:
         raise RobotDescriptionError(f"{path}: cannot read: {exc.strerror}") from exc
+    except UnicodeDecodeError:
+        raise RobotDescriptionError(f"{path}: not a text file (a robot description is YAML)") from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" line {mark.line + 1}" if mark is not None else ""
-        raise RobotDescriptionError(f"{path}:{where}: not valid YAML: {exc}") from exc
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise RobotDescriptionError(f"{path}:{where}: not valid YAML ({problem})") from None
+    except ValueError as exc:  # a value YAML recognises but cannot build (a date like 2024-13-01)
+        raise RobotDescriptionError(f"{path}: not valid YAML ({exc})") from None
     if not isinstance(data, dict):
-        raise RobotDescriptionError(f"{path}: expected a mapping of fields at the top level")
+        found = "nothing (an empty file)" if data is None else f"a {type(data).__name__}"
+        raise RobotDescriptionError(f"{path}: expected a mapping of fields at the top level, found {found}")
     try:
         return RobotDescription.model_validate(data)
     except ValidationError as exc:
@@ -491,11 +497,12 @@ def load_robot(name_or_path: str | Path) -> RobotDescription:
 
 
 def _format_errors(path: Path, exc: ValidationError) -> str:
+    """Every problem pydantic found, on one line: ``path: field: reason; path: field: reason``."""
     lines = []
     for err in exc.errors():
         loc = ".".join(str(part) for part in err["loc"] if not _is_union_tag(part)) or "(top level)"
         lines.append(f"{path}: {loc}: {err['msg']}")
-    return "\n".join(lines)
+    return "; ".join(lines)
 
 
 _KINEMATICS_TAGS = {"anthropomorphic", "dh"}

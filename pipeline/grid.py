@@ -11,8 +11,10 @@ from __future__ import annotations
 import concurrent.futures as cf
 import dataclasses
 import logging
+import math
 import multiprocessing
 import os
+import re
 from collections.abc import Callable
 from pathlib import Path
 
@@ -20,7 +22,7 @@ import yaml
 
 from models.hybrid import NetConfig, preset
 from pipeline.build import InlineExecutor
-from pipeline.registry import CARD, jsonable, load_card, metric, model_version, save_model
+from pipeline.registry import CARD, check_model, jsonable, load_card, metric, model_version, save_model
 from pipeline.train import TrainConfig
 
 log = logging.getLogger(__name__)
@@ -36,25 +38,134 @@ class GridError(ValueError):
 
 def load_grid(path: Path, overrides: dict | None = None) -> dict:
     """The grid of a YAML file, with ``overrides``: a grid key (``seeds=[0,1]``) or a training field
-    (``max_epochs=5``, also ``train.max_epochs=5``)."""
+    (``max_epochs=5``, also ``train.max_epochs=5``). Checked whole (:func:`check_grid`): a file that cannot
+    be read or a value of the wrong kind is one :class:`GridError` naming the file (or --set) and the key."""
     path = Path(path)
+    if path.is_dir():
+        raise GridError(f"{path}: a folder, not a grid file (a YAML file like configs/train/grid.yaml)")
     if not path.is_file():
         raise GridError(f"no grid file at {path}")
-    grid = yaml.safe_load(path.read_text()) or {}
-    if unknown := sorted(set(grid) - set(GRID_KEYS)):
+    try:
+        grid = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise GridError(f"{path}: cannot be read ({getattr(exc, 'strerror', None) or exc})") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}:" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise GridError(f"{path}:{where} not valid YAML ({problem})") from None
+    except ValueError as exc:  # a value YAML recognises but cannot build (a date like 2024-13-01)
+        raise GridError(f"{path}: not valid YAML ({exc})") from None
+    if grid is None:
+        raise GridError(f"{path}: empty (a grid names its {list(GRID_KEYS)}; see configs/train/grid.yaml)")
+    if not isinstance(grid, dict):
+        raise GridError(f"{path}: expected a mapping of {list(GRID_KEYS)}, found {_kind(grid)}")
+    if unknown := sorted(set(grid) - set(GRID_KEYS), key=str):
         raise GridError(f"{path}: unknown keys {unknown} (known: {list(GRID_KEYS)})")
-    grid.setdefault("train", {})
+    grid = dict(grid)
+    if grid.get("train") is None:
+        grid["train"] = {}
+    if not isinstance(grid["train"], dict):
+        raise GridError(f"{path}: train: expected a mapping of training fields {list(TRAIN_KEYS)}")
+    grid["train"] = dict(grid["train"])
+    where = {key: f"{path}: {key}" for key in grid} | {
+        f"train.{key}": f"{path}: train.{key}" for key in grid["train"]
+    }
     for key, value in (overrides or {}).items():
-        key = key.removeprefix("train.")
-        if key in GRID_KEYS:
-            grid[key] = value
-        elif key in TRAIN_KEYS:
-            grid["train"][key] = value
+        field = key.removeprefix("train.")
+        if field in GRID_KEYS:
+            grid[field] = value
+            where[field] = f"--set {key}"
+            if field == "train" and isinstance(value, dict):
+                where |= {f"train.{k}": f"--set {key}: {k}" for k in value}
+        elif field in TRAIN_KEYS:
+            grid["train"][field] = value
+            where[f"train.{field}"] = f"--set {key}"
         else:
             raise GridError(
-                f"--set {key}: not a grid key {list(GRID_KEYS)} nor a training field {TRAIN_KEYS}"
+                f"--set {key}: not a grid key {list(GRID_KEYS)} nor a training field {list(TRAIN_KEYS)}"
             )
+    check_grid(grid, where)
     return grid
+
+
+# each training field: (an integer?, its smallest value, that value itself allowed?)
+TRAIN_LIMITS = {"lr": (False, 0, False), "batch_size": (True, 1, True), "max_epochs": (True, 1, True),
+                "patience": (True, 0, True), "weight_decay": (False, 0, True)}  # fmt: skip
+SPLITS = ("split_random", "split_group")
+DATASET = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*(@[A-Za-z0-9_][A-Za-z0-9_.-]*)?")
+
+
+def check_grid(grid: dict, where: dict[str, str] | None = None) -> None:
+    """Every value of ``grid`` of the kind a training job takes; :class:`GridError` names the first that is
+    not (``where``: key → where it came from, a file's key or a ``--set``)."""
+    where = where or {}
+
+    def fail(key: str, problem: str) -> None:
+        raise GridError(f"{where.get(key, key)}: {problem}")
+
+    for key in ("models", "datasets", "splits", "seeds"):
+        if key in grid and (not isinstance(grid[key], list) or not grid[key]):
+            fail(key, f"expected a non-empty [list], found {_kind(grid[key])}")
+    for k, entry in enumerate(grid.get("models", [])):
+        _check_model(entry, lambda problem, k=k: fail("models", f"model {k}: {problem}"))
+    for spec in grid.get("datasets", []):
+        if not isinstance(spec, str) or not DATASET.fullmatch(spec):
+            fail("datasets", f"{spec!r} is not a dataset name or name@version")
+    for split in grid.get("splits", []):
+        if split not in SPLITS:
+            fail("splits", f"{split!r} is not a split (known: {list(SPLITS)})")
+    for seed in grid.get("seeds", []):
+        if not _integer(seed) or seed < 0:
+            fail("seeds", f"{seed!r} is not a seed (an integer ≥ 0)")
+    train = grid.get("train", {})
+    if not isinstance(train, dict):
+        fail("train", f"expected a mapping of training fields {list(TRAIN_KEYS)}, found {_kind(train)}")
+    if unknown := sorted(set(train) - set(TRAIN_KEYS), key=str):
+        fail("train", f"unknown training field(s) {unknown} (known: {list(TRAIN_KEYS)})")
+    for key, value in train.items():
+        integer, least, inclusive = TRAIN_LIMITS.get(key, (False, 0, True))
+        fits = _integer(value) if integer else _number(value)
+        if not fits or value < least or (value == least and not inclusive):
+            bound = f"{'≥' if inclusive else '>'} {least}"
+            fail(f"train.{key}", f"{value!r}: expected {'an integer' if integer else 'a number'} {bound}")
+
+
+def _check_model(entry, fail) -> None:
+    if not isinstance(entry, dict):
+        fail(f"expected a mapping {{direction, preset, …}}, found {_kind(entry)}")
+    if not isinstance(entry.get("direction"), str) or not isinstance(entry.get("preset"), str):
+        fail("needs a direction (forward or inverse) and a preset name")
+    try:
+        preset(entry["direction"], entry["preset"])
+    except KeyError as exc:
+        fail(exc.args[0])
+    if unknown := sorted(set(entry) - {"direction", "preset", *NET_KEYS}, key=str):
+        fail(f"unknown field(s) {unknown} (a preset takes {list(NET_KEYS)})")
+    hidden = entry.get("hidden", [1])
+    if not isinstance(hidden, list) or not hidden or not all(_integer(h) and h >= 1 for h in hidden):
+        fail(f"hidden: {hidden!r}: expected a [list] of layer widths (integers ≥ 1)")
+    if not isinstance(entry.get("residual", False), bool):
+        fail(f"residual: {entry['residual']!r}: expected true or false")
+    if not _integer(entry.get("ensemble", 1)) or entry.get("ensemble", 1) < 1:
+        fail(f"ensemble: {entry['ensemble']!r}: expected an integer ≥ 1")
+    if not isinstance(entry.get("name", ""), str):
+        fail(f"name: {entry['name']!r}: expected text")
+
+
+def _integer(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _number(value) -> bool:
+    return (_integer(value) or isinstance(value, float)) and math.isfinite(value)
+
+
+def _kind(value) -> str:
+    names = {dict: "a mapping", list: "a list", str: "text", bool: "true/false", int: "an integer",
+             float: "a number", type(None): "nothing"}  # fmt: skip
+    shown = "" if value is None else f" ({value!r:.40})"
+    return names.get(type(value), f"a {type(value).__name__}") + shown
 
 
 def resolve_dataset(root: Path, spec: str) -> tuple[str, str]:
@@ -162,8 +273,8 @@ def run_grid(
     todo = []
     for job in jobs:
         path = root / job["name"] / job["version"]
-        if (path / CARD).is_file():
-            results[job["version"]] = _summary(job, load_card(path), "existing")
+        if (path / CARD).is_file():  # an existing version, its files checked (a damaged one: one error)
+            results[job["version"]] = _summary(job, check_model(path), "existing")
         else:
             todo.append(job)
     cores = os.cpu_count() or 1

@@ -6,6 +6,11 @@ directory holds ``weights.safetensors`` (the state dict, tensors only), ``card.j
 metrics, curves) and ``export/model.ts`` (TorchScript for the control loop: (n, 7) float64 → (n, 3) float64).
 It is written whole in a temporary directory and renamed in; an existing version is never overwritten.
 Loading never unpickles anything: the config comes from the JSON card, the tensors from safetensors.
+
+Integrity: the card records the sha256 of each file beside it (``files``) and of itself (``card_sha256``: of
+its JSON content without that field). Every read checks them: a version whose card is unreadable, lacks a
+field or was edited, or whose files are missing or differ from their hashes, is damaged
+(:class:`ModelIntegrityError`, naming the file and what is wrong) and is never loaded.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import datetime
 import json
 import logging
 import os
+import re
 import shutil
 import tempfile
 import warnings
@@ -31,8 +37,30 @@ from pipeline.cache import code_version, digest, file_hash
 log = logging.getLogger(__name__)
 
 WEIGHTS, CARD, EXPORT = "weights.safetensors", "card.json", "export/model.ts"
+FILES = (WEIGHTS, EXPORT)  # what a card's ``files`` hashes cover (``card_sha256`` covers the card)
+CARD_FIELDS = {"name": str, "version": str, "net": dict, "files": dict, "card_sha256": str}
+SHA256 = re.compile(r"[0-9a-f]{64}")
+VERSION = re.compile(r"[0-9A-Za-z][0-9A-Za-z_-]*")  # what `find` takes: a version id or a prefix of one
 HEADLINE = ("tip_mean_mm",)  # the test metric a listing shows (the first one present)
 P95 = ("tip_p95_mm",)
+
+
+class ModelIntegrityError(ValueError):
+    """A model version that cannot be trusted: a file missing or unreadable, a card that is not valid JSON,
+    lacks a field or was edited, a file whose bytes differ from the card's hash. Names the file and why."""
+
+    def __init__(self, directory: Path, file: str, problem: str) -> None:
+        self.directory, self.file, self.problem = Path(directory), file, problem
+        model = f"{self.directory.parent.name}/{self.directory.name}"
+        super().__init__(
+            f"{self.directory / file}: {problem}: model {model} is damaged and is not loaded (restore the "
+            "file from a copy, or delete the model's folder and train it again)"
+        )
+
+    @property
+    def reason(self) -> str:
+        """``file: what is wrong`` (a listing's short form)."""
+        return f"{self.file}: {self.problem}"
 
 
 def model_version(dataset_version: str, config) -> str:
@@ -80,8 +108,10 @@ def save_model(root: Path, name: str, version: str, model: HybridNet, card: dict
             "name": name, "version": version, **jsonable(card), "net": _net_config(model, card).to_dict(),
             "code_version": code_version(), "torch": torch.__version__,
             "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "files": {f: file_hash([tmp / f]) for f in (WEIGHTS, EXPORT)},
+            "files": {f: file_hash([tmp / f]) for f in FILES},
         }  # fmt: skip
+        full = json.loads(json.dumps(full))  # hashed as it will read back (tuples → lists, …)
+        full["card_sha256"] = card_digest(full)
         (tmp / CARD).write_text(json.dumps(full, indent=1))
         os.rename(tmp, final)  # fails if another process wrote this version first: theirs stays
     except OSError as exc:
@@ -102,33 +132,129 @@ def _net_config(model: HybridNet, card: dict) -> NetConfig:
     return NetConfig.from_dict(card["train_config"]["net"])
 
 
+def card_digest(card: dict) -> str:
+    """The sha256 a card records of itself: of its JSON content (keys sorted), ``card_sha256`` left out."""
+    return digest({k: v for k, v in card.items() if k != "card_sha256"})
+
+
 def load_card(path: Path) -> dict:
-    """A model's card (``path``: its version directory)."""
-    return json.loads((Path(path) / CARD).read_text())
+    """A model's card (``path``: its version directory), checked: valid JSON, every field, its own hash, the
+    directory it is in. :class:`ModelIntegrityError` otherwise (the files beside it: :func:`check_model`)."""
+    path = Path(path)
+    try:
+        text = (path / CARD).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ModelIntegrityError(path, CARD, "missing") from None
+    except UnicodeDecodeError:
+        raise ModelIntegrityError(path, CARD, "not valid JSON (not even UTF-8 text)") from None
+    except OSError as exc:
+        raise ModelIntegrityError(path, CARD, f"cannot be read ({_why(exc)})") from None
+    if not text.strip():
+        raise ModelIntegrityError(path, CARD, "empty file")
+    try:
+        card = json.loads(text)
+    except ValueError as exc:  # JSONDecodeError, or a number too long to convert
+        raise ModelIntegrityError(path, CARD, f"not valid JSON ({exc})") from None
+    if not isinstance(card, dict):
+        raise ModelIntegrityError(path, CARD, f"expected a JSON object, found {type(card).__name__}")
+    if missing := [k for k in CARD_FIELDS if k not in card]:
+        older = " (written before vslab checked its models: train it again)" if "files" in card else ""
+        raise ModelIntegrityError(path, CARD, f"missing field(s) {missing}{older}")
+    if wrong := [k for k, kind in CARD_FIELDS.items() if not isinstance(card[k], kind)]:
+        raise ModelIntegrityError(path, CARD, f"field(s) {wrong} of the wrong type")
+    if card_digest(card) != card["card_sha256"]:
+        raise ModelIntegrityError(path, CARD, "changed since it was written (its card_sha256 does not match)")
+    if (card["name"], card["version"]) != (path.parent.name, path.name):
+        raise ModelIntegrityError(path, CARD, f"is the card of {card['name']}/{card['version']}, not of "
+                                              f"{path.parent.name}/{path.name}")  # fmt: skip
+    return card
+
+
+def check_model(path: Path) -> dict:
+    """The card of a version directory once every file is checked against it (:class:`ModelIntegrityError`
+    names the first file that is missing, unreadable or not the one the card recorded)."""
+    path = Path(path)
+    card = load_card(path)
+    files = card["files"]
+    hashes = files.values()
+    if sorted(files) != sorted(FILES) or not all(isinstance(h, str) and SHA256.fullmatch(h) for h in hashes):
+        raise ModelIntegrityError(path, CARD, f"'files' must hold a sha256 of each of {list(FILES)}")
+    for name in FILES:
+        try:
+            actual = file_hash([path / name])
+        except FileNotFoundError:
+            raise ModelIntegrityError(path, name, "missing") from None
+        except OSError as exc:
+            raise ModelIntegrityError(path, name, f"cannot be read ({_why(exc)})") from None
+        if actual != files[name]:
+            why = f"not the bytes the card recorded (sha256 {actual[:12]}…, not {files[name][:12]}…)"
+            raise ModelIntegrityError(path, name, why)
+    return card
 
 
 def load_model(path: Path) -> tuple[HybridNet, dict]:
-    """The network and its card from a version directory: config from JSON, tensors from safetensors."""
-    card = load_card(path)
-    model = HybridNet.from_state(NetConfig.from_dict(card["net"]), load_file(Path(path) / WEIGHTS))
+    """The network and its card from a version directory, every file checked first (:func:`check_model`):
+    config from JSON, tensors from safetensors. A damaged version: :class:`ModelIntegrityError`."""
+    path = Path(path)
+    card = check_model(path)
+    try:
+        config = NetConfig.from_dict(card["net"])
+    except (TypeError, ValueError) as exc:
+        raise ModelIntegrityError(path, CARD, f"'net' is not a network configuration ({exc})") from None
+    try:
+        tensors = load_file(path / WEIGHTS)
+    except Exception as exc:  # safetensors' own error type (a Rust exception), or OSError
+        raise ModelIntegrityError(path, WEIGHTS, f"not a safetensors file ({_why(exc)})") from None
+    try:
+        model = HybridNet.from_state(config, tensors)
+    except (RuntimeError, ValueError) as exc:  # other names or shapes than the card's net; NaNs; no scaler
+        raise ModelIntegrityError(path, WEIGHTS, f"does not fit the card's net {config.hidden}: "
+                                                 f"{_why(exc)}") from None  # fmt: skip
     return model.eval(), card
 
 
 def load_exported(path: Path) -> torch.jit.ScriptModule:
-    """The TorchScript export of a version directory: ``module(x: float64 (n, 7)) -> float64 (n, 3)``."""
+    """The TorchScript export of a version directory: ``module(x: float64 (n, 7)) -> float64 (n, 3)``; every
+    file is checked first (:func:`check_model`)."""
+    path = Path(path)
+    check_model(path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
-        return torch.jit.load(str(Path(path) / EXPORT), map_location="cpu").eval()
+        try:
+            return torch.jit.load(str(path / EXPORT), map_location="cpu").eval()
+        except RuntimeError as exc:
+            raise ModelIntegrityError(path, EXPORT, f"not a TorchScript file ({_why(exc)})") from None
 
 
 def find(root: Path, version: str) -> Path:
-    """The directory of ``version`` (a unique prefix of it will do) under ``root``."""
-    hits = sorted(p.parent for p in Path(root).glob(f"*/{version}*/{CARD}"))
+    """The directory of ``version`` (a unique prefix of it will do) under ``root``: a folder, whatever state
+    its files are in (loading checks them). FileNotFoundError / ValueError with the reason otherwise."""
+    if not isinstance(version, str) or not VERSION.fullmatch(version):
+        raise ValueError(f"{version!r} is not a model version (letters, digits, '-' and '_'; see "
+                         "`vslab models list`)")  # fmt: skip
+    hits = [p for p in _version_dirs(root) if p.name.startswith(version)]
     if not hits:
         raise FileNotFoundError(f"no model version {version!r} under {root} (see `vslab models list`)")
     if len(hits) > 1:
         raise ValueError(f"model version {version!r} is ambiguous: {', '.join(p.name for p in hits)}")
     return hits[0]
+
+
+def _version_dirs(root: Path) -> list[Path]:
+    """Every ``<root>/<name>/<version>/`` folder (not the hidden ones a save is writing)."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    return sorted(v for n in root.iterdir() if n.is_dir() and not n.name.startswith(".")
+                  for v in n.iterdir() if v.is_dir() and not v.name.startswith("."))  # fmt: skip
+
+
+def _why(exc: BaseException) -> str:
+    """An exception's reason on one line (torch's "Error(s) in …:" heading joined to its first detail)."""
+    lines = [ln.strip() for ln in (getattr(exc, "strerror", None) or str(exc)).splitlines() if ln.strip()]
+    if not lines:
+        return type(exc).__name__
+    return f"{lines[0]} {lines[1]}" if lines[0].endswith(":") and len(lines) > 1 else lines[0]
 
 
 def metric(metrics: dict, names: tuple[str, ...]) -> float:
@@ -137,9 +263,8 @@ def metric(metrics: dict, names: tuple[str, ...]) -> float:
 
 
 def summary(card: dict) -> dict:
-    """One row for a listing."""
-    train, metrics = card.get("train_config", {}), card.get("metrics", {})
-    dataset = card.get("dataset", {})
+    """One row for a listing (fields a card lacks are None / NaN)."""
+    train, metrics, dataset = (_mapping(card.get(k)) for k in ("train_config", "metrics", "dataset"))
     return {
         "name": card["name"], "version": card["version"], "direction": card["net"].get("direction"),
         "preset": card["net"].get("name"), "dataset": f"{dataset.get('name')}@{dataset.get('version')}",
@@ -149,17 +274,28 @@ def summary(card: dict) -> dict:
     }  # fmt: skip
 
 
+def _mapping(value) -> dict:
+    return value if isinstance(value, dict) else {}
+
+
 def list_models(root: Path) -> list[dict]:
-    """Every model version under ``root``, oldest first."""
-    cards = [json.loads(p.read_text()) for p in Path(root).glob(f"*/*/{CARD}")]
-    return [summary(c) for c in sorted(cards, key=lambda c: (c.get("created", ""), c["name"], c["version"]))]
+    """Every model version under ``root``, oldest first, each checked (:func:`check_model`); then the damaged
+    ones, each as ``{"name", "version", "damaged": why}``: a listing shows them and goes on."""
+    good, damaged = [], []
+    for path in _version_dirs(root):
+        try:
+            good.append(summary(check_model(path)))
+        except ModelIntegrityError as exc:
+            damaged.append({"name": path.parent.name, "version": path.name, "damaged": exc.reason})
+    good.sort(key=lambda r: (str(r["created"] or ""), r["name"], r["version"]))
+    return good + damaged
 
 
 def compare(root: Path, versions: list[str]) -> pd.DataFrame:
     """Versions side by side: lineage, configuration and every scalar test metric (one row each)."""
     rows = []
     for version in versions:
-        card = load_card(find(root, version))
+        card = check_model(find(root, version))
         row = {k: v for k, v in summary(card).items() if not k.startswith("test_")}  # all metrics follow
         row |= {f"net.{k}": _cell(v) for k, v in card["net"].items() if k not in ("direction", "name")}
         row |= {k: v for k, v in card.get("train_config", {}).items() if k not in ("net", "split", "seed")}

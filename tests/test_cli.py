@@ -74,9 +74,18 @@ def test_record_refuses_bad_options_with_one_line(tmp_path, args, says):
 
 
 def test_a_recording_where_no_device_answers_fails_and_says_why(tmp_path):
-    ports = tmp_path / "ports.json"
-    ports.write_text('{"servo_bus": "%s"}' % (tmp_path / "no-such-port"))
-    result = runner.invoke(app, ["--lab", str(tmp_path / "lab"), "--quiet", "record", "--ports", str(ports),
-                                 "--duration", "0.5"])  # fmt: skip
+    import json
+    import os
+
+    master, slave = os.openpty()  # a serial port nothing answers on (a missing port is refused before)
+    try:
+        port = os.ttyname(slave)
+        ports = tmp_path / "ports.json"
+        ports.write_text(json.dumps({"servo_bus": port}))
+        args = ["--lab", str(tmp_path / "lab"), "-q", "record", "--ports", str(ports), "--duration", "0.5"]
+        result = runner.invoke(app, args)
+    finally:
+        os.close(master)
+        os.close(slave)
     assert result.exit_code == 2, result.output
-    assert "servo_bus gave no sample" in result.output and "no-such-port" in result.output
+    assert "servo_bus gave no sample" in result.output and port in result.output

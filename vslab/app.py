@@ -3,17 +3,49 @@
 from __future__ import annotations
 
 import logging
+import re
+import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, NoReturn
 
 import typer
+import yaml
 from rich.console import Console
+from rich.markup import escape
+from typer.core import TyperGroup
 
 from models.robot import RobotDescriptionError, load_robot
 
-app = typer.Typer(
-    help="vslab: log, train and plot for soft variable-stiffness-link robots.", no_args_is_help=True
-)
+try:  # typer ≥ 0.2x carries its own click, whose exceptions derive from TyperException
+    from typer import TyperException as _ClickError
+except ImportError:  # pragma: no cover - older typer on click
+    from click import ClickException as _ClickError
+
+
+class _Group(TyperGroup):
+    """The top-level command group: a usage error (an unknown option, a value of the wrong type, a missing
+    argument) ends in one `error:` line like every other user error, not in a panel."""
+
+    def main(self, *args, standalone_mode: bool = True, **kwargs):
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        try:
+            code = super().main(*args, standalone_mode=False, **kwargs)
+        except _ClickError as exc:
+            if type(exc).__name__ == "NoArgsIsHelpError":  # `vslab models`: the group's help is shown
+                sys.exit(exc.exit_code)
+            ctx = getattr(exc, "ctx", None)
+            hint = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
+            _print_error(f"{exc.format_message()}{hint}")
+            sys.exit(getattr(exc, "exit_code", 2))
+        except typer.Abort:
+            console.print("aborted")
+            sys.exit(1)
+        sys.exit(code if isinstance(code, int) else 0)
+
+
+HELP = "vslab: log, train and plot for soft variable-stiffness-link robots."
+app = typer.Typer(help=HELP, no_args_is_help=True, cls=_Group)
 robots_app = typer.Typer(help="Robot descriptions in configs/robots/.", no_args_is_help=True)
 twin_app = typer.Typer(help="The digital twin.", no_args_is_help=True)
 app.add_typer(robots_app, name="robots")
@@ -39,13 +71,26 @@ def main(
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
 ) -> None:
     """Options shared by every command."""
+    if lab.exists() and not lab.is_dir():
+        _error(f"--lab {lab}: not a directory (the lab is a folder of sessions, datasets, models, figures)")
     Settings.lab = lab
     Settings.quiet = quiet
     logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="%(levelname)s %(message)s")
 
 
-def _fail(message: str) -> None:
+def _print_error(message: str) -> None:
+    console.print(f"[red]error:[/red] {escape(message)}", soft_wrap=True, highlight=False)
+
+
+def _fail(message: str) -> NoReturn:
+    """One `error:` line (``message`` is rich markup: escape what the user typed) and exit status 2."""
     console.print(f"[red]error:[/red] {message}", soft_wrap=True, highlight=False)
+    raise typer.Exit(code=2)
+
+
+def _error(message: str) -> NoReturn:
+    """One `error:` line with ``message`` shown as it is (no markup) and exit status 2."""
+    _print_error(message)
     raise typer.Exit(code=2)
 
 
@@ -53,32 +98,111 @@ def _robot(name: str):
     try:
         return load_robot(name)
     except RobotDescriptionError as exc:
-        _fail(str(exc))
+        _error(str(exc))
+
+
+# ------------------------------------------------------------------------------------------------ --set
+class SetError(ValueError):
+    """A ``--set`` pair that cannot be used: no ``=``, a key that is not a name, a key given twice, a value
+    that is not YAML or not a plain value. The message starts with ``--set`` and the pair."""
+
+
+_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*")
+_FLOAT_TAG, _TIMESTAMP_TAG = "tag:yaml.org,2002:float", "tag:yaml.org,2002:timestamp"
+
+
+class _SetLoader(yaml.SafeLoader):
+    """YAML for ``--set`` values: floats as YAML 1.2 writes them (``1e-4``, not only ``1.0e-4``), dates kept
+    as text (a protocol or grid takes no date)."""
+
+
+_SetLoader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers if tag not in (_FLOAT_TAG, _TIMESTAMP_TAG)]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+_SetLoader.add_implicit_resolver(
+    _FLOAT_TAG,
+    re.compile(
+        r"^(?:[-+]?(?:\.[0-9]+|[0-9][0-9_]*(?:\.[0-9_]*)?)(?:[eE][-+]?[0-9]+)?"
+        r"|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN))$"
+    ),
+    list("-+0123456789."),
+)
+
+
+def _plain(value) -> bool:
+    """Is ``value`` made of what JSON holds (null, booleans, numbers, text, lists, text-keyed mappings)?"""
+    if value is None or isinstance(value, bool | int | float | str):
+        return True
+    if isinstance(value, list):
+        return all(_plain(v) for v in value)
+    if isinstance(value, dict):
+        return all(isinstance(k, str) and _plain(v) for k, v in value.items())
+    return False
+
+
+def _shown(pair: str, width: int = 60) -> str:
+    """A pair as an error line shows it: on one line (control characters escaped), cut to ``width``."""
+    pair = pair if pair.isprintable() else repr(pair)[1:-1]
+    return pair if len(pair) <= width else pair[: width - 1] + "…"
+
+
+def parse_set(pairs: list[str]) -> dict:
+    """``key=value`` pairs → {key: value}; values are YAML (numbers, true/false, text, [lists], {mappings}).
+    Raises :class:`SetError` (and nothing else) for a pair that cannot be used, naming it."""
+    out: dict = {}
+    for pair in pairs:
+        key, sep, text = pair.partition("=")
+        key, shown = key.strip(), _shown(pair)
+        if not sep:
+            raise SetError(f"--set {shown!r}: expected key=value (e.g. --set points=2000)")
+        if not _KEY.fullmatch(key):
+            name = _shown(key, 30)
+            raise SetError(f"--set {shown!r}: {name!r} is not a parameter name (letters, digits, _ and .)")
+        if key in out:
+            raise SetError(f"--set {key} is given twice: give each parameter once")
+        try:
+            value = yaml.load(text, Loader=_SetLoader)  # a SafeLoader: builds no objects
+        except yaml.YAMLError as exc:
+            problem = _shown(getattr(exc, "problem", None) or str(exc).splitlines()[0], 80)
+            raise SetError(f"--set {shown}: the value is not YAML ({problem}; quote text: k='a b')") from None
+        except (ValueError, OverflowError, RecursionError) as exc:  # too many digits, nested too deep
+            raise SetError(f"--set {shown}: the value cannot be read ({type(exc).__name__})") from None
+        if not _plain(value):
+            raise SetError(f"--set {shown}: the value must be a number, text, true/false, a [list] or a "
+                           "{mapping}")  # fmt: skip
+        out[key] = value
+    return out
 
 
 def _overrides(pairs: list[str]) -> dict:
-    """``key=value`` pairs (values parsed as YAML: numbers, lists, booleans)."""
-    import yaml
+    """``key=value`` pairs (values parsed as YAML: numbers, lists, booleans); a bad one is one error line."""
+    try:
+        return parse_set(pairs)
+    except SetError as exc:
+        _error(str(exc))
 
-    out = {}
-    for pair in pairs:
-        key, sep, value = pair.partition("=")
-        if not sep:
-            _fail(f"--set takes key=value, got {pair!r}")
-        out[key.strip()] = yaml.safe_load(value)
-    return out
+
+# ------------------------------------------------------------------------------------------------ models
+def load_inverse_model(version: str, lab: Path | None = None):
+    """The registered inverse network ``version`` of ``lab`` (default: the CLI's), every file checked
+    against its card; an unknown, ambiguous, damaged or forward model is one error line."""
+    from pipeline.registry import find, load_model
+
+    root = Path(lab or Settings.lab) / "models"
+    try:
+        model, _ = load_model(find(root, version))
+    except (FileNotFoundError, ValueError) as exc:  # unknown; ambiguous; damaged (ModelIntegrityError)
+        _error(f"--inverse-model {version}: {exc}")
+    if model.config.direction != "inverse":
+        direction = model.config.direction
+        _error(f"--inverse-model {version}: a {direction} model; hybrid commands need an inverse one")
+    return model
 
 
 def inverse_compensator(version: str, robot_name: str, lab: Path | None = None):
     """A registered inverse model of ``lab`` (default: the CLI's) as the runners' compensator for
     ``robot_name`` (fails clearly)."""
     from pipeline.in_loop import InverseModelCompensator
-    from pipeline.registry import find, load_model
 
-    try:
-        model, _ = load_model(find(Path(lab or Settings.lab) / "models", version))
-    except (FileNotFoundError, ValueError) as exc:
-        _fail(str(exc))
-    if model.config.direction != "inverse":
-        _fail(f"model {version} is a {model.config.direction} model; hybrid commands need an inverse one")
-    return InverseModelCompensator(model, _robot(robot_name))
+    return InverseModelCompensator(load_inverse_model(version, lab), _robot(robot_name))

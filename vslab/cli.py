@@ -17,12 +17,13 @@ from vslab import (
 )
 from vslab.app import (
     Settings,
+    _error,
     _fail,
     _overrides,
     _robot,
     app,
     console,
-    inverse_compensator,
+    load_inverse_model,
     robots_app,
     twin_app,
 )
@@ -98,6 +99,8 @@ def demo(
 
     from vslab import lab_job
 
+    if seed < 0:
+        _error(f"--seed must be ≥ 0, got {seed}")
     start = time.perf_counter()
     report = lab_job.run(
         Settings.lab,
@@ -112,11 +115,30 @@ def demo(
 @app.command()
 def figures() -> None:
     """Regenerate every figure and table from the lab's newest datasets and models, and the report."""
+    import logging
+
+    from rich.markup import escape
+
     from analysis.lab_figures import all_figures, lab_report
 
-    results = all_figures(Settings.lab)
+    datasets = Settings.lab / "datasets"
+    if not any(datasets.glob("*/*/card.json")):
+        _error(f"no datasets in {datasets}: nothing to draw (build some first: `vslab build`, `vslab demo`)")
+
+    def one_line(record: logging.LogRecord) -> bool:  # each failure is a `not made:` line below, with why
+        record.exc_info, record.exc_text = None, None
+        return True
+
+    logger = logging.getLogger(all_figures.__module__)  # a logger's filters do not reach its children
+    logger.addFilter(one_line)
+    try:
+        results = all_figures(Settings.lab)
+    except OSError as exc:  # the figures or report folder cannot be written
+        _error(f"{exc.filename or Settings.lab}: cannot be written ({exc.strerror or exc})")
+    finally:
+        logger.removeFilter(one_line)
     for what, why in results.missing.items():
-        console.print(f"[yellow]not made: {what}:[/] {why}", soft_wrap=True)
+        console.print(f"[yellow]not made: {escape(what)}:[/] {escape(why)}", soft_wrap=True)
     console.print(f"{len(results.figures)} figures in {Settings.lab / 'figures'}; "
                   f"report: {lab_report(Settings.lab, results).resolve()}")  # fmt: skip
 
@@ -146,13 +168,18 @@ def simulate(
 
     from acquisition.plans.sim_runner import simulate_protocol
     from acquisition.safety import SafetyError
+    from pipeline.in_loop import InverseModelCompensator
 
+    if benches < 1 or seed < 0:
+        _error(f"--benches must be ≥ 1 and --seed ≥ 0, got --benches {benches} --seed {seed}")
+    overrides = _overrides(set_ or [])
+    model = None if inverse_model is None else load_inverse_model(inverse_model)  # checked before any run
     start = time.perf_counter()
     sessions_dir = Settings.lab / "sessions"
     compensators = []
 
     def hybrid(plan):
-        compensators.append(inverse_compensator(inverse_model, plan.robot))
+        compensators.append(InverseModelCompensator(model, _robot(plan.robot)))
         return compensators[-1]
 
     with Progress(console=console, disable=Settings.quiet, transient=True) as bar:
@@ -165,11 +192,12 @@ def simulate(
 
         try:
             reports = simulate_protocol(
-                protocol, sessions_dir, seed=seed, benches=benches, overrides=_overrides(set_ or []),
-                progress=progress, inverse_model=hybrid if inverse_model else None,
+                protocol, sessions_dir, seed=seed, benches=benches, overrides=overrides, progress=progress,
+                inverse_model=hybrid if model is not None else None,
             )  # fmt: skip
-        except (ValueError, FileNotFoundError, RobotDescriptionError, SafetyError) as exc:
-            _fail(str(exc))
+        except (ValueError, OSError, RobotDescriptionError, SafetyError) as exc:  # ProtocolError, full disk
+            bar.stop()
+            _error(str(exc))
     wall = time.perf_counter() - start
     written = sum(len(r.sessions) for r in reports)
     skipped = sum(len(r.skipped) for r in reports)
@@ -190,8 +218,8 @@ def simulate(
     for sid, why in sorted(stopped.items())[:10]:
         console.print(f"  {sid} stopped early: {why}", soft_wrap=True, highlight=False)
     if stopped:
-        _fail(f"{len(stopped)} session(s) stopped early (a safety limit or a refused command; their events "
-              "say why): they ran only up to the stop")  # fmt: skip
+        _error(f"{len(stopped)} session(s) stopped early (a safety limit or a refused command; their events "
+               "say why): they ran only up to the stop")  # fmt: skip
 
 
 @app.command()
@@ -271,18 +299,12 @@ def build(
 def _stage_parameters(pairs: list[str]) -> dict:
     """``--set stage.key=value`` pairs → {stage: {key: value}}, checked against the stages' parameters (one
     error line naming a bad key or value and the allowed ones)."""
-    import yaml
     from rich.markup import escape
 
     from pipeline.build import check_parameters, stage_parameters
 
-    try:
-        pairs_parsed = _overrides(pairs)
-    except yaml.YAMLError as exc:  # a value that is not YAML: say which
-        bad = next((p for p in pairs if _not_yaml(p.partition("=")[2])), " ".join(pairs))
-        _fail(escape(f"--set {bad}: the value is not YAML ({str(exc).splitlines()[0]})"))
     parameters: dict = {}
-    for key, value in pairs_parsed.items():
+    for key, value in _overrides(pairs).items():  # a value that is not YAML: one line from _overrides
         stage, dot, param = key.partition(".")
         if not (dot and stage and param):
             _fail(escape(f"--set {key}=…: a stage parameter is stage.key=value (stages: "
@@ -293,16 +315,6 @@ def _stage_parameters(pairs: list[str]) -> dict:
     except ValueError as exc:
         _fail(escape(f"--set {exc}"))
     return parameters
-
-
-def _not_yaml(text: str) -> bool:
-    import yaml
-
-    try:
-        yaml.safe_load(text)
-    except yaml.YAMLError:
-        return True
-    return False
 
 
 def _sessions_of(wanted: str, pattern: str) -> tuple[list[Path], dict[str, str]]:

@@ -11,12 +11,18 @@ from typing import Annotated
 import typer
 from rich.table import Column, Table
 
-from vslab.app import Settings, _fail, _overrides, app, console
+from vslab.app import Settings, _error, _overrides, app, console
 
 models_app = typer.Typer(help="Trained networks in <lab>/models/.", no_args_is_help=True)
 app.add_typer(models_app, name="models")
 
-VERSION = Column("version", no_wrap=True, min_width=16)  # always whole: it is what `models show` takes
+
+def _version() -> Column:
+    """The version column, always whole (it is what `models show` takes); a new one per table: a rich Column
+    keeps the cells of the table it was in."""
+    return Column("version", no_wrap=True, min_width=16)
+
+
 GRID = Path(__file__).resolve().parents[1] / "configs" / "train" / "grid.yaml"
 
 
@@ -43,13 +49,16 @@ def train(
 
     from rich.progress import Progress
 
-    from pipeline.grid import GridError, expand, load_grid, run_grid
+    from pipeline.grid import expand, load_grid, run_grid
 
+    if workers < 0:
+        _error(f"--workers must be ≥ 0 (0: one per core), got {workers}")
+    overrides = _overrides(set_ or [])
     try:
-        spec = load_grid(grid, _overrides(set_ or []))
+        spec = load_grid(grid, overrides)
         n_jobs = len(expand(Settings.lab, spec))
-    except GridError as exc:
-        _fail(str(exc))
+    except (ValueError, OSError) as exc:  # GridError; a damaged model already in the lab
+        _error(str(exc))
     executor = None
     if workers > 1:
         executor = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("forkserver"))
@@ -64,13 +73,14 @@ def train(
             results = run_grid(
                 Settings.lab, spec, executor=executor, progress=progress, workers=workers or None
             )
-        except (GridError, ValueError, FileNotFoundError) as exc:
-            _fail(str(exc))
+        except (ValueError, OSError) as exc:  # GridError; a damaged model or dataset in the lab; a full disk
+            bar.stop()
+            _error(str(exc))
         finally:
             if executor is not None:
                 executor.shutdown(cancel_futures=True)
     title = f"{len(results)} models in {Settings.lab / 'models'}"
-    table = Table(VERSION, "model", "dataset", "split", "seed", "test mean mm", "test p95 mm", "epochs",
+    table = Table(_version(), "model", "dataset", "split", "seed", "test mean mm", "test p95 mm", "epochs",
                   "time s", "status", title=title)  # fmt: skip
     for r in results:
         table.add_row(r["version"], r["name"], r["dataset"], r["split"], str(r["seed"]),
@@ -85,35 +95,58 @@ def train(
 
 @models_app.command("list")
 def models_list() -> None:
-    """List the trained versions (oldest first) with their test tip error."""
+    """List the trained versions (oldest first) with their test tip error. Every version's files are checked
+    against its card: a damaged one is listed as damaged, with a `warning:` line saying which file and why."""
+    from rich.markup import escape
+
     from pipeline.registry import list_models
 
-    rows = list_models(Settings.lab / "models")
+    root = Settings.lab / "models"
+    try:
+        rows = list_models(root)
+    except OSError as exc:
+        _error(f"{root}: cannot be listed ({exc.strerror or exc})")
     if not rows:
-        console.print(f"no models in {Settings.lab / 'models'} (train some: `vslab train`)")
+        console.print(f"no models in {root} (train some: `vslab train`)", highlight=False, markup=False)
         return
-    table = Table(VERSION, "model", "dataset", "split", "seed", "test mean mm", "test p95 mm", "created")
+    table = Table(_version(), "model", "dataset", "split", "seed", "test mean mm", "test p95 mm", "created")
     for r in rows:
+        if "damaged" in r:
+            table.add_row(escape(r["version"]), escape(r["name"]), "[red]damaged[/]", *["–"] * 5)
+            continue
         table.add_row(r["version"], r["name"], r["dataset"], str(r["split"]), str(r["seed"]),
                       _mm(r["test_mean_mm"]), _mm(r["test_p95_mm"]), str(r["created"]))  # fmt: skip
     console.print(table)
+    for r in rows:
+        if "damaged" in r:
+            console.print(f"[yellow]warning:[/] model {escape(r['name'])}/{escape(r['version'])} is damaged: "
+                          f"{escape(r['damaged'])}", soft_wrap=True, highlight=False)  # fmt: skip
+
+
+def _checked(version: str) -> tuple[Path, dict]:
+    """(directory, card) of ``version`` once every file is checked; one error line otherwise."""
+    from pipeline.registry import check_model, find
+
+    try:
+        path = find(Settings.lab / "models", version)
+        return path, check_model(path)
+    except (FileNotFoundError, ValueError) as exc:  # unknown, ambiguous, damaged (ModelIntegrityError)
+        _error(str(exc))
 
 
 @models_app.command("show")
 def models_show(
     version: Annotated[str, typer.Argument(help="Model version (a unique prefix will do).")],
 ) -> None:
-    """A model's card: lineage, configuration, test metrics and the per-cell table."""
-    from pipeline.registry import find, load_card
+    """A model's card: lineage, configuration, test metrics and the per-cell table (every file checked first:
+    a damaged version is one error line)."""
+    from rich.markup import escape
 
-    try:
-        path = find(Settings.lab / "models", version)
-    except (FileNotFoundError, ValueError) as exc:
-        _fail(str(exc))
-    card = load_card(path)
+    path, card = _checked(version)
     metrics = dict(card.get("metrics", {}))
     cells = metrics.pop("per_cell", [])
-    console.print(f"[bold]{card['name']} {card['version']}[/]  → {path}", highlight=False)
+    console.print(f"[bold]{escape(card['name'])} {escape(card['version'])}[/]  → {escape(str(path))}",
+                  highlight=False)  # fmt: skip
     lineage = {k: card.get(k) for k in ("dataset", "code_version", "torch", "created", "train_time_s",
                                          "epoch_time_s", "best_epoch", "threads")}  # fmt: skip
     training = {k: v for k, v in card.get("train_config", {}).items() if k != "net"}
@@ -142,8 +175,8 @@ def models_compare(
 
     try:
         df = compare(Settings.lab / "models", versions)
-    except (FileNotFoundError, ValueError) as exc:
-        _fail(str(exc))
+    except (FileNotFoundError, ValueError) as exc:  # unknown, ambiguous, damaged (ModelIntegrityError)
+        _error(str(exc))
     table = Table("", *(Column(v, no_wrap=True, min_width=len(v)) for v in df.index), title="models compared")
     for column in df.columns:
         if column in ("created",):

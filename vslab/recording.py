@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
+import re
 import signal
+import stat
 import subprocess
 import sys
 import time
@@ -16,7 +19,7 @@ import typer
 from rich.markup import escape
 from rich.table import Column, Table
 
-from vslab.app import Settings, _fail, _robot, app, console, inverse_compensator, sessions_app
+from vslab.app import Settings, _error, _fail, _robot, app, console, load_inverse_model, sessions_app
 
 PORTS_HELP = "ports.json (or the rig's run directory) naming each device's port."
 RIG_HELP = "Start a rig (the twin behind emulators) and use its devices."
@@ -40,21 +43,33 @@ def _rates(pairs: list[str] | None, desc) -> dict[str, float]:
         except ValueError:
             hz = float("nan")
         if not sep or not hz > 0 or hz == float("inf"):
-            _fail(f"--rate takes DEVICE=HZ with a positive rate, got {pair!r}")
+            _error(f"--rate takes DEVICE=HZ with a positive rate, got {pair!r}")
         if name not in desc.devices:
-            _fail(
+            _error(
                 f"--rate {pair}: {desc.name} has no device {name!r} (its devices: {', '.join(desc.devices)})"
             )
         out[name] = hz
     return out
 
 
+SESSION_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
+RIG_START_S = 60.0  # a rig publishes its ports within this (the twin's first compile included)
+
+
+def _session_id(given: str | None, default: str) -> str:
+    """``--session`` (or the default): a folder name under sessions/, checked before anything starts."""
+    sid = default if given is None else given
+    if not SESSION_ID.fullmatch(sid):
+        _error(f"--session {sid!r}: a session id is a folder name: letters, digits, '.', '_' and '-' (at "
+               "most 128, not starting with '.' or '-')")  # fmt: skip
+    return sid
+
+
 @contextlib.contextmanager
 def _devices(desc, ports: Path | None, rig: bool, session_id: str):
     """(port map, rig run directory or None): the devices named by ``ports``, or a rig started for the
-    session (stopped on exit). SIGTERM becomes KeyboardInterrupt, so both stop a session the same way."""
-    from acquisition.sim.ptyhost import wait_for_ports
-
+    session (stopped on exit). Every port is checked to be a serial port before anything opens it. SIGTERM
+    becomes KeyboardInterrupt, so both stop a session the same way."""
     rig_proc = None
     if rig:
         ports = Settings.lab / "rig" / session_id
@@ -68,30 +83,92 @@ def _devices(desc, ports: Path | None, rig: bool, session_id: str):
         if ports is None:
             configured = {n: d.port for n, d in desc.devices.items() if d.port != "auto"}
             if not configured:
-                _fail(f"say where the devices are: --ports <ports.json | rig run dir>, --rig, or a port for "
-                      f"each device in {desc.name}'s description (devices.<name>.port)")  # fmt: skip
-            yield configured, None
+                _error(f"say where the devices are: --ports <ports.json | rig run dir>, --rig, or a port for "
+                       f"each device in {desc.name}'s description (devices.<name>.port)")  # fmt: skip
+            yield _checked_ports(desc, configured, f"{desc.name}'s description (devices.<name>.port)"), None
         elif rig or ports.is_dir():
-            try:
-                yield wait_for_ports(ports, timeout_s=60), ports
-            except TimeoutError as exc:
-                _fail(str(exc))
+            yield _checked_ports(desc, _rig_ports(ports, rig_proc), f"{ports / 'ports.json'}"), ports
         elif ports.is_file():
-            try:
-                port_map = json.loads(ports.read_text())
-            except (ValueError, OSError) as exc:
-                _fail(f"{ports}: not a ports file ({exc})")
-            port_map = port_map.get("ports", port_map) if isinstance(port_map, dict) else None
-            if not isinstance(port_map, dict) or not all(isinstance(v, str) for v in port_map.values()):
-                _fail(f"{ports}: expected a JSON object of device name → port path")
-            yield port_map, None
+            yield _checked_ports(desc, _ports_file(ports), str(ports)), None
         else:
-            _fail(f"no ports file or rig directory at {ports}")
+            _error(f"--ports {ports}: no ports file or rig directory there")
     finally:
         signal.signal(signal.SIGTERM, previous)
         if rig_proc is not None:
             rig_proc.terminate()
-            rig_proc.wait(timeout=10)
+            try:
+                rig_proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                rig_proc.kill()
+                rig_proc.wait()
+
+
+def _rig_ports(run_dir: Path, rig_proc: subprocess.Popen | None) -> dict[str, str]:
+    """The ports a rig published in ``run_dir`` (the one we started, or one running elsewhere)."""
+    from acquisition.sim.ptyhost import PORTS_FILE, wait_for_ports
+
+    if rig_proc is None and not (run_dir / PORTS_FILE).is_file():
+        _error(f"--ports {run_dir}: no {PORTS_FILE} in this folder (a rig's run directory has one; is the "
+               "rig running? `vslab rig`)")  # fmt: skip
+    deadline = time.monotonic() + (RIG_START_S if rig_proc is not None else 10.0)
+    while True:
+        try:
+            return wait_for_ports(run_dir, timeout_s=0.5)
+        except (ValueError, KeyError, OSError) as exc:  # a ports.json being replaced, or not the rig's
+            if time.monotonic() > deadline:
+                _error(f"{run_dir / PORTS_FILE}: not a rig's ports file ({exc})")
+        except TimeoutError:
+            if rig_proc is not None and rig_proc.poll() is not None:
+                _error(f"the rig stopped (exit status {rig_proc.returncode}) before it published its ports")
+            if time.monotonic() > deadline:
+                running = "" if rig_proc is not None else " (is the rig running? `vslab rig`)"
+                _error(f"no rig published its ports in {run_dir}{running}")
+
+
+def _ports_file(path: Path) -> dict[str, str]:
+    """A ports file: a JSON object of device name → port path (or a rig's ``{"ports": {...}}``)."""
+    try:
+        port_map = json.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, OSError) as exc:  # not JSON, not UTF-8, unreadable
+        _error(f"--ports {path}: not a ports file ({getattr(exc, 'strerror', None) or exc})")
+    port_map = port_map.get("ports", port_map) if isinstance(port_map, dict) else None
+    if not isinstance(port_map, dict) or not all(isinstance(v, str) and v for v in port_map.values()):
+        _error(f"--ports {path}: expected a JSON object of device name → port path, like "
+               '{"servo_bus": "/dev/ttyUSB0"}')  # fmt: skip
+    return port_map
+
+
+def _checked_ports(desc, port_map: dict[str, str], source: str) -> dict[str, str]:
+    """``port_map`` once every entry names a device of ``desc`` and a serial port this user may open (it is
+    not opened here: opening an Arduino's port resets it); one error line naming the device otherwise."""
+    if foreign := sorted(set(port_map) - set(desc.devices)):
+        _error(f"{source}: {', '.join(foreign)}: {desc.name} has no such device (its devices: "
+               f"{', '.join(desc.devices)}; the ports of another robot?)")  # fmt: skip
+    for name, port in port_map.items():
+        if problem := _not_a_serial_port(port):
+            _error(f"{source}: {name}: {port}: {problem}")
+    return port_map
+
+
+def _not_a_serial_port(port: str) -> str | None:
+    """Why ``port`` is not a serial port this user may open (None if it may be one): missing, not a character
+    device, a device of another kind (Linux names each device's kind in /sys/dev/char), no permission."""
+    try:
+        st = os.stat(port)
+    except FileNotFoundError:
+        return "no such port (is the device plugged in? its name may have changed: ls /dev/serial/by-id/)"
+    except (OSError, ValueError) as exc:
+        return f"cannot be checked ({getattr(exc, 'strerror', None) or exc})"
+    if stat.S_ISDIR(st.st_mode):
+        return "a folder, not a serial port"
+    if not stat.S_ISCHR(st.st_mode):
+        return "a regular file, not a serial port" if stat.S_ISREG(st.st_mode) else "not a serial port"
+    kind = Path(f"/sys/dev/char/{os.major(st.st_rdev)}:{os.minor(st.st_rdev)}/subsystem")
+    if kind.exists() and kind.resolve().name != "tty":
+        return f"a {kind.resolve().name} device, not a serial port"
+    if not os.access(port, os.R_OK | os.W_OK):
+        return "no permission to open it (on Linux: add the user to the dialout group, then log in again)"
+    return None
 
 
 def _recorder(desc, port_map: dict, session_id: str, protocol: str, rates: dict, live: bool, host: str,
@@ -101,15 +178,15 @@ def _recorder(desc, port_map: dict, session_id: str, protocol: str, rates: dict,
 
     directory = Settings.lab / "sessions" / session_id
     if directory.exists() and any(directory.glob("*.mcap")):
-        _fail(f"session {session_id} exists already in {directory.parent}: choose another --session")
+        _error(f"session {session_id} exists already in {directory.parent}: choose another --session")
     try:
         rec = Recorder(desc, port_map, directory, session_id, protocol=protocol, rates=rates,
                        metadata={k: str(v) for k, v in meta.items()})  # fmt: skip
     except RecorderError as exc:
-        _fail(str(exc))
+        _error(str(exc))
     if not rec.devices:
-        _fail(f"none of {desc.name}'s devices ({', '.join(desc.devices)}) is in the port map "
-              f"({', '.join(port_map) or 'empty'})")  # fmt: skip
+        _error(f"none of {desc.name}'s devices ({', '.join(desc.devices)}) is in the port map "
+               f"({', '.join(port_map) or 'empty'})")  # fmt: skip
     view = _live_view(desc, host, port) if live else contextlib.nullcontext()
     return rec, view
 
@@ -121,8 +198,8 @@ def _recording(rec):
 
     try:
         rec.start()
-    except RecorderError as exc:
-        _fail(str(exc))
+    except (RecorderError, OSError) as exc:  # OSError: the sessions folder cannot be written
+        _error(str(exc))
     try:
         yield rec
     finally:
@@ -133,7 +210,7 @@ def _finish(rec) -> None:
     if rec.live_errors:
         console.print(f"[yellow]the live view failed {rec.live_errors} time(s); the file is complete[/]")
     if rec.write_error:
-        _fail(f"the session writer failed: {rec.write_error}")
+        _error(f"the session writer failed: {rec.write_error}")
     lost = {t: c for t, c in (rec.final or {}).items() if c["lost"] or c["dropped"]}
     for topic, c in lost.items():
         console.print(f"[yellow]{topic}: {c['lost']:,} samples lost in {c['gaps']} gap(s), "
@@ -144,7 +221,7 @@ def _finish(rec) -> None:
         console.print(f"[red]{name} gave no sample:[/] {why}", soft_wrap=True, highlight=False)
     console.print(f"session {rec.session_id}: {', '.join(p.name for p in rec.parts)} in {rec.directory}")
     if rec.silent and len(rec.silent) == len(rec.devices):
-        _fail("no device gave a sample: check the ports (`--ports`, or devices.<name>.port)")
+        _error("no device gave a sample: check the ports (`--ports`, or devices.<name>.port)")
 
 
 @app.command()
@@ -165,9 +242,9 @@ def record(
 
     desc = _robot(robot)
     rates = _rates(rate, desc)
-    if duration < 0:
-        _fail(f"--duration must be ≥ 0 s, got {duration}")
-    session_id = session or time.strftime("%Y%m%d-%H%M%S") + f"-{desc.name}"
+    if not (duration >= 0 and math.isfinite(duration)):
+        _error(f"--duration must be ≥ 0 s (0: until Ctrl-C), got {duration}")
+    session_id = _session_id(session, time.strftime("%Y%m%d-%H%M%S") + f"-{desc.name}")
     with _devices(desc, ports, rig, session_id) as (port_map, _):
         rec, view = _recorder(desc, port_map, session_id, protocol, rates, live, live_host, live_port)
         with view as live_server:
@@ -205,31 +282,40 @@ def run(
     from acquisition.plans.compensation import StaticModelCompensator
     from acquisition.plans.protocols import expand_protocol
     from acquisition.plans.rt_runner import RealTimeRunner, RunnerError
-    from acquisition.safety import SafetyError
-    from models.robot import RobotDescriptionError
+    from acquisition.safety import SafetyChecker, SafetyError
+    from pipeline.in_loop import InverseModelCompensator
     from vslab.app import _overrides
 
+    overrides = _overrides(set_ or [])
+    model = None if inverse_model is None else load_inverse_model(inverse_model)  # checked, whatever the plan
     try:
-        robots, plans, _ = expand_protocol(protocol, _overrides(set_ or []))
-    except (ValueError, FileNotFoundError, RobotDescriptionError) as exc:
-        _fail(str(exc))
+        robots, plans, _ = expand_protocol(protocol, overrides)
+    except (ValueError, OSError) as exc:  # ProtocolError, RobotDescriptionError, an unreachable path
+        _error(str(exc))
     chosen = [p for k, p in enumerate(plans) if plan in (p.name, str(k))]
     if not chosen:
-        _fail(f"{protocol} has no plan {plan!r}; its plans: " + ", ".join(p.name for p in plans[:10]) + " …")
+        more = " …" if len(plans) > 10 else ""
+        _error(f"{protocol} has no plan {plan!r}; its plans (or their numbers, from 0): "
+               + ", ".join(p.name for p in plans[:10]) + more)  # fmt: skip
     the_plan = chosen[0]
     desc = robots[the_plan.robot]
     rates = _rates(rate, desc)
+    try:  # before any device is opened, the rig started or the session folder made
+        SafetyChecker(desc).require_safe(the_plan)
+    except SafetyError as exc:
+        first, _, details = str(exc).partition("\n")
+        _error(f"{first.rstrip(':')}: refused, nothing was started:\n{details}")
     commands = the_plan.parameters.get("commands", "ik")
     compensator = None
     if commands == "static":
         compensator = StaticModelCompensator(desc, the_plan.parameters["payload_kg"])
     elif commands == "hybrid":
-        if inverse_model is None:
-            _fail(
+        if model is None:
+            _error(
                 "hybrid commands need a trained inverse model: --inverse-model VERSION (`vslab models list`)"
             )
-        compensator = inverse_compensator(inverse_model, desc.name)
-    session_id = session or time.strftime("%Y%m%d-%H%M%S-") + the_plan.name.replace("/", "-")
+        compensator = InverseModelCompensator(model, desc)
+    session_id = _session_id(session, time.strftime("%Y%m%d-%H%M%S-") + the_plan.name.replace("/", "-"))
     console.print(f"{the_plan.name}: {the_plan.duration_s:.1f} s on {desc.name}")
     with _devices(desc, ports, rig, session_id) as (port_map, rig_dir):
         on_payload, on_tap = _operator(rig_dir if rig else None)
@@ -242,7 +328,7 @@ def run(
                 try:
                     report = RealTimeRunner(rec, the_plan, compensator, on_payload, on_tap).run()
                 except (SafetyError, RunnerError) as exc:
-                    _fail(str(exc))
+                    _error(str(exc))
     _finish(rec)
     at = f"{report.elapsed_s:.1f} s of {the_plan.duration_s:.1f} s"
     if report.status != "complete":  # the session is kept (valid up to the stop); the job is not done
@@ -292,7 +378,7 @@ def _live_view(desc, host: str, port: int):
     try:
         server = LiveServer(session_topics(desc), host=host, port=port).start()
     except Exception as exc:  # a port in use, an address not ours
-        _fail(f"cannot start the live view on {host}:{port}: {exc}")
+        _error(f"cannot start the live view on {host}:{port}: {exc}")
     console.print(f"live view: open {server.url} in Foxglove (Open connection → Foxglove WebSocket)")
     return server
 

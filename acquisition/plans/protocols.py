@@ -7,6 +7,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -22,20 +23,125 @@ PROTOCOL_DIR = Path(__file__).resolve().parents[2] / "configs" / "protocols"
 BAR, GRAM, MM = 1e5, 1e-3, 1e-3
 
 
+class ProtocolError(ValueError):
+    """A protocol file or parameter that cannot be used: names the file (or ``--set``), the key and why."""
+
+
 def load_protocol(name_or_path: str | Path, **overrides: Any) -> dict:
     """A protocol's parameters: ``configs/protocols/<name>.yaml`` (or a path), with keyword overrides for
-    keys it already has (a misspelt override is an error, not silently ignored)."""
+    keys it already has (a misspelt override is an error, not silently ignored). FileNotFoundError for an
+    unknown name or a missing file; :class:`ProtocolError` for a file that is not a mapping of parameters."""
     path = Path(name_or_path)
     if not path.suffix:
         path = PROTOCOL_DIR / f"{name_or_path}.yaml"
+    if path.is_dir():
+        raise ProtocolError(f"{path}: a folder, not a protocol file (YAML, like configs/protocols/*.yaml)")
     if not path.is_file():
         known = ", ".join(sorted(p.stem for p in PROTOCOL_DIR.glob("*.yaml")))
-        raise FileNotFoundError(f"no protocol {name_or_path!r} (known: {known})")
-    params = yaml.safe_load(path.read_text()) or {}
-    unknown = set(overrides) - set(params)
-    if unknown:
-        raise ValueError(f"{path.name}: no parameter(s) {sorted(unknown)}")
+        raise FileNotFoundError(f"no protocol {str(name_or_path)!r} (known: {known}; or a YAML file's path)")
+    shown = _shown(path)
+    try:
+        params = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ProtocolError(f"{shown}: cannot be read ({getattr(exc, 'strerror', None) or exc})") from None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" line {mark.line + 1}:" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ProtocolError(f"{shown}:{where} not valid YAML ({problem})") from None
+    except ValueError as exc:  # a value YAML recognises but cannot build (a date like 2024-13-01)
+        raise ProtocolError(f"{shown}: not valid YAML ({exc})") from None
+    if not isinstance(params, dict) or not params:
+        found = "nothing" if not params else f"a {type(params).__name__}"
+        raise ProtocolError(f"{shown}: expected a mapping of parameters (like configs/protocols/*.yaml), "
+                            f"found {found}")  # fmt: skip
+    if unknown := sorted(set(overrides) - set(params), key=str):
+        raise ProtocolError(f"--set {unknown[0]}: {shown} has no parameter {unknown[0]!r} (its parameters: "
+                            f"{', '.join(map(str, params))})")  # fmt: skip
     return params | overrides
+
+
+def _shown(path: Path) -> str:
+    """A protocol file as messages name it: the shipped ones by file name, the user's by path."""
+    return path.name if path.parent == PROTOCOL_DIR else str(path)
+
+
+# How protocol parameters are checked against the shipped file of their protocol (the schema by example):
+# a value must be of its default's kind (true/false, number, text, list, mapping), numbers finite and ≥ 0.
+COUNTS = {"points", "repetitions", "points_per_segment", "taps", "load_steps"}  # integers ≥ 1
+INDICES = {"order"}  # integers ≥ 0 (pressure channels)
+MAX_COUNT = 1_000_000  # far past any protocol (the paper's campaign: 17,568 points)
+SIGNED = {"pose_deg", "workspace_mm"}  # may be negative
+POSITIVE = {"speed_m_s", "move_speed_rad_s", "return_speed_rad_s", "fill_time_constants", "tap_impulse_nms",
+            "max_collapse_fraction"}  # fmt: skip
+MAY_BE_EMPTY = {"without_masses", "rigid_links"}
+FIXED_LENGTH = {"pose_deg", "pressure_bar", "workspace_mm", "set_points_kpa"}  # as many values as the default
+
+
+def check_protocol(kind: str, params: dict, source: str, overridden=()) -> None:
+    """``params`` of protocol ``kind`` against its shipped file: the same keys, each value of the default's
+    kind and range. :class:`ProtocolError` names the first that is not (``source``: the file; a key in
+    ``overridden`` is named as ``--set key``)."""
+    default_path = PROTOCOL_DIR / f"{kind}.yaml"
+    defaults = yaml.safe_load(default_path.read_text(encoding="utf-8"))
+    if missing := [k for k in defaults if k not in params]:
+        needed = f"every parameter of {default_path.name} is needed"
+        raise ProtocolError(f"{source}: missing parameter(s) {missing} ({needed})")
+    if unknown := sorted(set(params) - set(defaults), key=str):
+        raise ProtocolError(f"{source}: unknown parameter(s) {unknown} (those of {kind}: "
+                            f"{', '.join(defaults)})")  # fmt: skip
+    for key, default in defaults.items():
+        where = f"--set {key}" if key in overridden else f"{source}: {key}"
+        _check_value(key, params[key], default, where)
+    if kind == "campaign":
+        lo, hi = params["pressure_bar"]
+        box = params["workspace_mm"]
+        if lo > hi or any(a >= b for a, b in zip(box["min"], box["max"], strict=True)):
+            where = "--set" if {"pressure_bar", "workspace_mm"} & set(overridden) else source
+            raise ProtocolError(f"{where}: pressure_bar must be [low, high] and workspace_mm's min below its "
+                                "max on every axis")  # fmt: skip
+    if kind == "popup_deploy" and any(ch >= len(params["set_points_kpa"]) for ch in params["order"]):
+        where = "--set order" if "order" in overridden else f"{source}: order"
+        raise ProtocolError(f"{where}: {params['order']}: a channel of set_points_kpa (0 to "
+                            f"{len(params['set_points_kpa']) - 1})")  # fmt: skip
+
+
+def _check_value(key: str, value, default, where: str) -> None:
+    """``value`` of parameter ``key`` against its ``default`` (recursively into lists and mappings)."""
+
+    def fail(expected: str) -> None:
+        raise ProtocolError(f"{where}: {value!r:.60}: expected {expected}")
+
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            fail("true or false")
+    elif isinstance(default, int | float):
+        number = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+        if key in COUNTS:
+            if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= MAX_COUNT:
+                fail(f"an integer from 1 to {MAX_COUNT:,}")
+        elif key in INDICES:
+            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+                fail("an integer ≥ 0")
+        elif not number or (key not in SIGNED and value < 0) or (key in POSITIVE and value <= 0):
+            fail("a number > 0" if key in POSITIVE else "a number" if key in SIGNED else "a number ≥ 0")
+    elif isinstance(default, str):
+        if not isinstance(value, str) or not value:
+            fail("a name (text)")
+    elif isinstance(default, list):
+        if not isinstance(value, list):
+            fail(f"a [list] like {default}")
+        if default and not value and key not in MAY_BE_EMPTY:
+            fail(f"a non-empty [list] like {default}")
+        if key in FIXED_LENGTH and len(value) != len(default):
+            fail(f"{len(default)} values, like {default}")
+        for item in value if default else ():
+            _check_value(key, item, default[0], where)
+    elif isinstance(default, dict):
+        if not isinstance(value, dict) or set(value) != set(default):
+            fail(f"a mapping of {', '.join(default)}")
+        for k, v in default.items():
+            _check_value(key, value[k], v, f"{where}.{k}")
 
 
 def arm_lengths(robot: RobotDescription) -> kinematics.ArmLengths:
@@ -169,6 +275,13 @@ def expand_protocol(
 
     params = load_protocol(protocol, **(overrides or {}))
     kind = Path(protocol).stem
+    known = ["experiment1", "experiment2", "campaign", *popup_protocols.PROTOCOLS]
+    if kind not in known:
+        names = ", ".join(f"{k}.yaml" for k in known)
+        raise ProtocolError(f"no plans for protocol {str(protocol)!r}: a protocol file is named after the "
+                            f"protocol it sets ({names})")  # fmt: skip
+    source = _shown(_protocol_path(protocol))
+    check_protocol(kind, params, source, overridden=set(overrides or ()))
     robots = {params["robot"]: load_robot(params["robot"])}
     if kind in ("experiment1", "experiment2"):
         if params["rigid_arm"]:
@@ -178,10 +291,17 @@ def expand_protocol(
     elif kind == "campaign":
         plans = campaign(robots[params["robot"]], params, benches=benches, seed=seed)
     elif kind in popup_protocols.PROTOCOLS:
+        links = [link.name for link in robots[params["robot"]].links]
+        if "link" in params and params["link"] not in links:
+            where = "--set link" if "link" in (overrides or {}) else f"{source}: link"
+            raise ProtocolError(f"{where}: {params['link']!r}: robot {params['robot']!r} has no such link "
+                                f"(its links: {', '.join(links)})")  # fmt: skip
         robot = popup_protocols.bench_robot(robots[params["robot"]], params)
         robots = {robot.name: robot}
         plans = popup_protocols.PROTOCOLS[kind](robot, params)
-    else:
-        known = ", ".join(["experiment1", "experiment2", "campaign", *popup_protocols.PROTOCOLS])
-        raise ValueError(f"no plans for protocol {protocol!r} ({known})")
     return robots, plans, params
+
+
+def _protocol_path(name_or_path: str | Path) -> Path:
+    path = Path(name_or_path)
+    return path if path.suffix else PROTOCOL_DIR / f"{name_or_path}.yaml"

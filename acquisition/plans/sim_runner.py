@@ -415,6 +415,11 @@ def simulate_protocol(
             "experiment2: hybrid commands need a trained inverse model (train one first, or run without "
             "them: --set 'commands=[ik,static]')"
         )
+    for name, robot in robots.items():  # every plan of every robot, before any session is written
+        checker = SafetyChecker(robot)
+        for p in plans:
+            if p.robot == name:
+                checker.require_safe(p)
     reports = []
     for name, robot in robots.items():
         group = [p for p in plans if p.robot == name]
