@@ -14,10 +14,10 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from models.kinematics import DHChain, DHRow
+from models.yaml_files import read_yaml
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "robots"
 TIP_FRAME = "tip"
@@ -469,24 +469,10 @@ def robot_path(name_or_path: str | Path) -> Path:
 def load_robot(name_or_path: str | Path) -> RobotDescription:
     """Read and validate a robot description; every problem ends in one :class:`RobotDescriptionError`."""
     path = robot_path(name_or_path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
+    if not path.exists():
         known = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
-        raise RobotDescriptionError(f"{path}: no such robot description (known robots: {known})") from None
-    except OSError as exc:
-        raise RobotDescriptionError(f"{path}: cannot read: {exc.strerror}") from exc
-    except UnicodeDecodeError:
-        raise RobotDescriptionError(f"{path}: not a text file (a robot description is YAML)") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise RobotDescriptionError(f"{path}:{where}: not valid YAML ({problem})") from None
-    except ValueError as exc:  # a value YAML recognises but cannot build (a date like 2024-13-01)
-        raise RobotDescriptionError(f"{path}: not valid YAML ({exc})") from None
+        raise RobotDescriptionError(f"{path}: no such robot description (known robots: {known})")
+    data = read_yaml(path, RobotDescriptionError)
     if not isinstance(data, dict):
         found = "nothing (an empty file)" if data is None else f"a {type(data).__name__}"
         raise RobotDescriptionError(f"{path}: expected a mapping of fields at the top level, found {found}")

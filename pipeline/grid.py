@@ -18,9 +18,8 @@ import re
 from collections.abc import Callable
 from pathlib import Path
 
-import yaml
-
 from models.hybrid import NetConfig, preset
+from models.yaml_files import read_yaml
 from pipeline.build import InlineExecutor
 from pipeline.registry import CARD, check_model, jsonable, load_card, metric, model_version, save_model
 from pipeline.train import TrainConfig
@@ -45,17 +44,7 @@ def load_grid(path: Path, overrides: dict | None = None) -> dict:
         raise GridError(f"{path}: a folder, not a grid file (a YAML file like configs/train/grid.yaml)")
     if not path.is_file():
         raise GridError(f"no grid file at {path}")
-    try:
-        grid = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise GridError(f"{path}: cannot be read ({getattr(exc, 'strerror', None) or exc})") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}:" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise GridError(f"{path}:{where} not valid YAML ({problem})") from None
-    except ValueError as exc:  # a value YAML recognises but cannot build (a date like 2024-13-01)
-        raise GridError(f"{path}: not valid YAML ({exc})") from None
+    grid = read_yaml(path, GridError)
     if grid is None:
         raise GridError(f"{path}: empty (a grid names its {list(GRID_KEYS)}; see configs/train/grid.yaml)")
     if not isinstance(grid, dict):

@@ -114,7 +114,7 @@ ROBOTS = [
     ("wrong.yaml", "wrong.yaml: description: Field required"),
     ("date.yaml", "date.yaml: not valid YAML (month must be in 1..12)"),
     ("binary.yaml", "binary.yaml: not a text file"),
-    ("folder", "folder: cannot read: Is a directory"),
+    ("folder", "folder: cannot be read (Is a directory)"),
     ("nothing.yaml", "nothing.yaml: no such robot description"),
 ]
 ROBOT_COMMANDS = {
@@ -145,7 +145,7 @@ PROTOCOLS = [
         "{in}/list.yaml",
         "list.yaml: expected a mapping of parameters (like configs/protocols/*.yaml), found a",
     ),
-    ("{in}/binary.yaml", "binary.yaml: cannot be read"),
+    ("{in}/binary.yaml", "binary.yaml: not a text file"),
     ("{in}/date.yaml", "date.yaml: not valid YAML"),
     ("{in}/nothing.yaml", "no protocol '{in}/nothing.yaml'"),
     ("{in}/folder.yaml", "no protocol '{in}/folder.yaml'"),
@@ -225,7 +225,7 @@ GRIDS = [
     ("{in}/empty.yaml", "empty.yaml: empty (a grid names its"),
     ("{in}/broken.yaml", "broken.yaml: line 3: not valid YAML"),
     ("{in}/list.yaml", "list.yaml: expected a mapping of ['models'"),
-    ("{in}/binary.yaml", "binary.yaml: cannot be read"),
+    ("{in}/binary.yaml", "binary.yaml: not a text file"),
     ("{in}/date.yaml", "date.yaml: not valid YAML"),
     ("{in}/folder", "folder: a folder, not a grid file"),
     ("{in}/nothing.yaml", "no grid file at {in}/nothing.yaml"),

@@ -18,6 +18,7 @@ from acquisition.plans.plan import Plan, PlanBuilder
 from acquisition.schemas.events import EventKind
 from models import kinematics, trajectories
 from models.robot import AnthropomorphicKinematics, RobotDescription
+from models.yaml_files import read_yaml
 
 PROTOCOL_DIR = Path(__file__).resolve().parents[2] / "configs" / "protocols"
 BAR, GRAM, MM = 1e5, 1e-3, 1e-3
@@ -40,17 +41,7 @@ def load_protocol(name_or_path: str | Path, **overrides: Any) -> dict:
         known = ", ".join(sorted(p.stem for p in PROTOCOL_DIR.glob("*.yaml")))
         raise FileNotFoundError(f"no protocol {str(name_or_path)!r} (known: {known}; or a YAML file's path)")
     shown = _shown(path)
-    try:
-        params = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ProtocolError(f"{shown}: cannot be read ({getattr(exc, 'strerror', None) or exc})") from None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" line {mark.line + 1}:" if mark is not None else ""
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
-        raise ProtocolError(f"{shown}:{where} not valid YAML ({problem})") from None
-    except ValueError as exc:  # a value YAML recognises but cannot build (a date like 2024-13-01)
-        raise ProtocolError(f"{shown}: not valid YAML ({exc})") from None
+    params = read_yaml(path, ProtocolError, shown)
     if not isinstance(params, dict) or not params:
         found = "nothing" if not params else f"a {type(params).__name__}"
         raise ProtocolError(f"{shown}: expected a mapping of parameters (like configs/protocols/*.yaml), "
