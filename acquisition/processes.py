@@ -140,6 +140,13 @@ def _lower_session_group(nice: int) -> None:
         log.debug("session group left as it is: %s", exc)
 
 
+def _end_session(_number: int, _frame) -> None:
+    """SIGTERM in a batch job's own session (its parent died, or passed it on): end every process of the
+    session's group (pool workers, a forkserver), this one last."""
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    os.killpg(0, signal.SIGTERM)
+
+
 def _into_own_session() -> None:
     if threading.active_count() > 1 or not hasattr(os, "setsid"):
         return  # forking a process with threads is unsafe; the job stays where it is
@@ -156,10 +163,18 @@ def _into_own_session() -> None:
     if child == 0:
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
         os.setsid()
+        signal.signal(signal.SIGTERM, _end_session)  # the job's worker processes go with it
         die_with_parent(parent, signal.SIGTERM)
         return
+
+    def forward(number: int, _frame) -> None:  # to the job's whole group, as a terminal signals its job
+        try:
+            os.killpg(child, number)
+        except ProcessLookupError:  # the child has not made its session yet
+            os.kill(child, number)
+
     for sig in passed_on:
-        signal.signal(sig, lambda number, _frame: os.kill(child, number))
+        signal.signal(sig, forward)
     signal.pthread_sigmask(signal.SIG_SETMASK, mask)
     _, status = os.waitpid(child, 0)
     code = os.waitstatus_to_exitcode(status)

@@ -23,12 +23,14 @@ LINUX = sys.platform.startswith("linux")
 
 BATCH_JOB = textwrap.dedent(
     """
-    import os, sys, time
+    import os, subprocess, sys, time
     from acquisition.processes import lower_priority
     started = os.getpid()
     lower_priority()
     group = open("/proc/self/autogroup").read().split()[-1] if os.path.exists("/proc/self/autogroup") else "-"
-    print(started, os.getpid(), os.getsid(0), os.getpriority(os.PRIO_PROCESS, 0), group, flush=True)
+    worker = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])  # like a pool worker
+    nice = os.getpriority(os.PRIO_PROCESS, 0)
+    print(started, os.getpid(), os.getsid(0), nice, group, worker.pid, flush=True)
     if sys.argv[1] == "exit":
         sys.exit(3)
     time.sleep(60)
@@ -43,15 +45,27 @@ def _batch_job(mode: str) -> subprocess.Popen:
     return subprocess.Popen(command, env=env, stdout=subprocess.PIPE, text=True, process_group=0)
 
 
-def _fields(proc: subprocess.Popen) -> tuple[int, int, int, int, str]:
-    started, pid, sid, nice, group = proc.stdout.readline().split()
-    return int(started), int(pid), int(sid), int(nice), group
+def _fields(proc: subprocess.Popen) -> tuple[int, int, int, int, str, int]:
+    started, pid, sid, nice, group, worker = proc.stdout.readline().split()
+    return int(started), int(pid), int(sid), int(nice), group, int(worker)
+
+
+def _gone(*pids: int, within_s: float = 5.0) -> bool:
+    deadline = time.monotonic() + within_s
+    while time.monotonic() < deadline:
+        alive = [
+            p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE
+        ]
+        if not alive:
+            return True
+        time.sleep(0.05)
+    return False
 
 
 @pytest.mark.skipif(not LINUX, reason="sessions and autogroups are Linux's")
 def test_batch_work_runs_niced_in_a_session_of_its_own_and_exits_with_its_status():
     proc = _batch_job("exit")
-    started, pid, sid, nice, group = _fields(proc)
+    started, pid, sid, nice, group, _ = _fields(proc)
     assert proc.wait(timeout=30) == 3  # the job's own exit status comes through the waiting parent
     assert pid != started and sid == pid  # the job went on in a child that leads a new session
     assert nice == 19
@@ -64,19 +78,16 @@ def test_batch_work_runs_niced_in_a_session_of_its_own_and_exits_with_its_status
 @pytest.mark.skipif(not LINUX, reason="sessions and autogroups are Linux's")
 def test_ctrl_c_reaches_the_batch_job_and_a_killed_parent_takes_it_along():
     proc = _batch_job("sleep")
-    _, child, *_ = _fields(proc)
+    _, child, _, _, _, worker = _fields(proc)
     proc.send_signal(signal.SIGINT)  # what the terminal sends to its foreground group
     assert proc.wait(timeout=30) == 128 + signal.SIGINT
-    assert not psutil.pid_exists(child) or psutil.Process(child).status() == psutil.STATUS_ZOMBIE
+    assert _gone(child, worker), "Ctrl-C did not reach the job's whole group"
 
     proc = _batch_job("sleep")
-    _, child, *_ = _fields(proc)
+    _, child, _, _, _, worker = _fields(proc)
     proc.kill()
     proc.wait(timeout=30)
-    deadline = time.monotonic() + 5
-    while psutil.pid_exists(child) and psutil.Process(child).status() != psutil.STATUS_ZOMBIE:
-        assert time.monotonic() < deadline, "the batch job outlived its killed parent"
-        time.sleep(0.05)
+    assert _gone(child, worker), "the batch job (or its worker) outlived its killed parent"
 
 
 def test_batch_nice_zero_leaves_the_process_as_it_is(monkeypatch):
