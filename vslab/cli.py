@@ -115,8 +115,6 @@ def demo(
 @app.command()
 def figures() -> None:
     """Regenerate every figure and table from the lab's newest datasets and models, and the report."""
-    import logging
-
     from rich.markup import escape
 
     from analysis.lab_figures import all_figures, lab_report
@@ -124,19 +122,10 @@ def figures() -> None:
     datasets = Settings.lab / "datasets"
     if not any(datasets.glob("*/*/card.json")):
         _error(f"no datasets in {datasets}: nothing to draw (build some first: `vslab build`, `vslab demo`)")
-
-    def one_line(record: logging.LogRecord) -> bool:  # each failure is a `not made:` line below, with why
-        record.exc_info, record.exc_text = None, None
-        return True
-
-    logger = logging.getLogger(all_figures.__module__)  # a logger's filters do not reach its children
-    logger.addFilter(one_line)
     try:
-        results = all_figures(Settings.lab)
+        results = all_figures(Settings.lab)  # each failure is a `not made:` line below, with why
     except OSError as exc:  # the figures or report folder cannot be written
         _error(f"{exc.filename or Settings.lab}: cannot be written ({exc.strerror or exc})")
-    finally:
-        logger.removeFilter(one_line)
     for what, why in results.missing.items():
         console.print(f"[yellow]not made: {escape(what)}:[/] {escape(why)}", soft_wrap=True)
     console.print(f"{len(results.figures)} figures in {Settings.lab / 'figures'}; "
@@ -216,7 +205,7 @@ def simulate(
         )
     stopped = {sid: why for r in reports for sid, why in r.stopped.items()}
     for sid, why in sorted(stopped.items())[:10]:
-        console.print(f"  {sid} stopped early: {why}", soft_wrap=True, highlight=False)
+        console.print(f"  {sid} stopped early: {why}", soft_wrap=True, highlight=False, markup=False)
     if stopped:
         _error(f"{len(stopped)} session(s) stopped early (a safety limit or a refused command; their events "
                "say why): they ran only up to the stop")  # fmt: skip

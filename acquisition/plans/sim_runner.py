@@ -118,15 +118,17 @@ def simulate(
     progress: Callable[[float], None] | None = None,
     compensators: list[Compensator | None] | None = None,
     check_safety: bool = True,
+    plans_checked: bool = False,
 ) -> SimReport:
     """Run ``plans`` (all for ``robot``) as one batch; write one session per plan under ``sessions_dir``.
 
     ``compensators[i]`` (if given) turns plan i's goals into commands at each new set-point, from the bench's
     pressures and currents at that instant. With ``check_safety`` every plan is checked before anything runs
-    (:class:`SafetyError`), and the benches' state while they run: a bench that breaks a limit gets a
-    SAFETY_STOP event and its session ends there. A compensator's output passes the command guard before
-    it is used: a goal that is not a number or outside the joints' ranges is never commanded; the bench holds
-    where it is, a COMMAND_REFUSED and a SAFETY_STOP event say why, and its session ends there."""
+    (:class:`SafetyError`; ``plans_checked``: the caller has done it), and the benches' state while they
+    run: a bench that breaks a limit gets a SAFETY_STOP event and its session ends there. A compensator's
+    output passes the command guard before it is used: a goal that is not a number or outside the joints'
+    ranges is never commanded; the bench holds where it is, a COMMAND_REFUSED and a SAFETY_STOP event say
+    why, and its session ends there."""
     if any(p.robot != robot.name for p in plans):
         raise ValueError(f"every plan of a batch must be for {robot.name}")
     compensators = list(compensators) if compensators is not None else [None] * len(plans)
@@ -142,7 +144,7 @@ def simulate(
     if not plans:
         return SimReport([], skipped, 0.0, 0.0, 0)
     safety = SafetyChecker(robot) if check_safety else None
-    if safety:
+    if safety and not plans_checked:
         for p in plans:
             safety.require_safe(p)
     first = [p.at(np.array([0.0])) for p in plans]
@@ -428,9 +430,8 @@ def simulate_protocol(
             label = f"{kind} {name} {k + 1}–{k + len(batch)}/{len(group)}"
             tick = (lambda f, label=label: progress(label, f)) if progress else None
             compensators = [_compensator(p, robot, inverse_model) for p in batch]
-            reports.append(
-                simulate(batch, robot, sessions_dir, seed=seed + k, progress=tick, compensators=compensators)
-            )
+            run = dict(seed=seed + k, progress=tick, compensators=compensators, plans_checked=True)
+            reports.append(simulate(batch, robot, sessions_dir, **run))
     return reports
 
 
