@@ -17,10 +17,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from acquisition.errors import AcquisitionError
 from models.robot import RobotDescription
 
 
-class CommandRefused(ValueError):
+class CommandRefused(AcquisitionError, ValueError):
     """A command outside the robot's limits, or not a number; nothing of it reached the device."""
 
 

@@ -6,8 +6,18 @@ device and the port, so a user knows what to check.
 
 from __future__ import annotations
 
+from models.errors import VslabError
 
-class DeviceError(Exception):
+
+class AcquisitionError(VslabError):
+    """Base of the acquisition layer's errors: devices, codecs, schemas, sessions, plans, safety."""
+
+
+class CodecError(AcquisitionError, ValueError):
+    """Bytes that a wire codec cannot decode (a bad checksum, a malformed frame or line)."""
+
+
+class DeviceError(AcquisitionError):
     """Base of every device error."""
 
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from acquisition.errors import AcquisitionError
 from acquisition.plans.plan import Plan
 from models.prbm import collapse_moment, wrinkling_moment
 from models.robot import RobotDescription
@@ -27,7 +28,7 @@ from models.statics import gravity_moments, static_deflection
 MOVE_SUBSAMPLES = 8  # points checked between two consecutive joint goals (a move sweeps through them)
 
 
-class SafetyError(RuntimeError):
+class SafetyError(AcquisitionError, RuntimeError):
     """A plan breaks a safety limit; nothing has been commanded."""
 
     def __init__(self, plan: str, violations: list[Violation]) -> None:

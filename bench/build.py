@@ -16,7 +16,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from acquisition.plans.sim_runner import simulate_protocol
+from acquisition.plans.sim_runner import simulate_experiment
 from pipeline.build import build
 
 
@@ -25,7 +25,7 @@ def end_to_end(points: int, benches: int, workers: int) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         lab = Path(tmp)
         start = time.perf_counter()
-        simulate_protocol("campaign", lab / "sessions", benches=benches, overrides={"points": points})
+        simulate_experiment("campaign", lab / "sessions", benches=benches, overrides={"points": points})
         sessions = sorted((lab / "sessions").iterdir())
         size = sum(p.stat().st_size for p in lab.rglob("*.mcap")) / 2**20
         print(f"end to end: campaign of {points:,} points in {len(sessions)} sessions, {size:.0f} MiB "

@@ -23,7 +23,7 @@ from pathlib import Path
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from acquisition.plans.sim_runner import simulate_protocol
+from acquisition.plans.sim_runner import simulate_experiment
 from pipeline.clean import clean
 from pipeline.ingest import ingest_session, session_parts
 
@@ -72,7 +72,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp) / "sessions"
         start = time.perf_counter()
-        reports = simulate_protocol("campaign", root, benches=args.benches, overrides={"points": args.points})
+        reports = simulate_experiment(
+            "campaign", root, benches=args.benches, overrides={"points": args.points}
+        )
         written = sum(r.messages for r in reports)
         sessions = sorted(d for d in root.iterdir() if d.is_dir())
         size = sum(p.stat().st_size for p in root.rglob("*.mcap")) / 2**20

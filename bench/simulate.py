@@ -15,7 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from acquisition.plans.sim_runner import simulate_protocol
+from acquisition.plans.sim_runner import simulate_experiment
 
 TARGET_S = 300.0
 
@@ -23,7 +23,7 @@ TARGET_S = 300.0
 def run(protocol: str, benches: int, overrides: dict) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
-        reports = simulate_protocol(protocol, Path(tmp) / "sessions", benches=benches, overrides=overrides)
+        reports = simulate_experiment(protocol, Path(tmp) / "sessions", benches=benches, overrides=overrides)
         wall = time.perf_counter() - start
         sessions = sum(len(r.sessions) for r in reports)
         simulated = sum(r.simulated_s for r in reports)

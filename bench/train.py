@@ -55,12 +55,12 @@ def synthetic(points: int, seed: int = 0) -> pd.DataFrame:
 
 def simulated(points: int, lab: Path, benches: int) -> pd.DataFrame:
     """The campaign simulated on the twin and built into D."""
-    from acquisition.plans.sim_runner import simulate_protocol
+    from acquisition.plans.sim_runner import simulate_experiment
     from pipeline.build import build
     from pipeline.datasets import load_dataset
 
     start = time.perf_counter()
-    simulate_protocol("campaign", lab / "sessions", benches=benches, overrides={"points": points})
+    simulate_experiment("campaign", lab / "sessions", benches=benches, overrides={"points": points})
     report = build(sorted((lab / "sessions").iterdir()), lab, "campaign")
     print(f"simulated and built {report.rows:,} rows in {time.perf_counter() - start:.0f} s (not timed)")
     return load_dataset(lab / "datasets", "campaign", report.version)[0]

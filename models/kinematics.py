@@ -11,14 +11,16 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from models.errors import ModelError
+
 Array = NDArray[np.float64]
 
 
-class UnreachableError(ValueError):
+class UnreachableError(ModelError, ValueError):
     """A Cartesian target lies outside the arm's reachable workspace."""
 
 
-class SingularityError(ValueError):
+class SingularityError(ModelError, ValueError):
     """The Jacobian cannot be inverted at this configuration."""
 
 

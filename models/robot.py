@@ -16,6 +16,7 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from models.errors import ModelError
 from models.kinematics import DHChain, DHRow
 from models.yaml_files import read_yaml
 
@@ -26,7 +27,7 @@ PositiveFloat = Annotated[float, Field(gt=0)]
 NonNegFloat = Annotated[float, Field(ge=0)]
 
 
-class RobotDescriptionError(ValueError):
+class RobotDescriptionError(ModelError, ValueError):
     """A robot description file is missing, unreadable or invalid."""
 
 

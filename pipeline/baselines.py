@@ -16,6 +16,7 @@ import pandas as pd
 from scipy.optimize import least_squares
 
 from models import kinematics
+from models.errors import NotFittedError
 from models.hybrid import FORWARD_TARGETS, INVERSE_TARGETS, columns_for
 from models.prbm import interp_table
 from models.robot import AnthropomorphicKinematics, RobotDescription, load_robot
@@ -25,10 +26,6 @@ from pipeline import metrics
 MEASURED_Q = ("q_0", "q_1", "q_2")  # the encoders' joint angles (fk_* is their rigid FK)
 DIRECTIONS = ("forward", "inverse")
 K_MIN_NM_PER_RAD = 0.5  # a fitted k(p) is never let go below this (it would fold the link)
-
-
-class NotFittedError(RuntimeError):
-    """predict() or to_dict() of a fitted quantity before fit()."""
 
 
 def _cols(df: pd.DataFrame, names: tuple[str, ...]) -> np.ndarray:

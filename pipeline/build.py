@@ -33,6 +33,7 @@ import pandas as pd
 from models.robot import RobotDescription
 from pipeline import datasets
 from pipeline.cache import StageCache, code_version, stage_key
+from pipeline.errors import PipelineError
 from pipeline.tables import columns
 
 log = logging.getLogger(__name__)
@@ -45,7 +46,7 @@ DEFAULTS: dict = {
 }
 
 
-class BuildError(ValueError):
+class BuildError(PipelineError, ValueError):
     """No session of the build could be read: ``failed`` maps each session to its reason."""
 
     def __init__(self, failed: dict[str, str]) -> None:

@@ -21,6 +21,7 @@ from pathlib import Path
 from models.hybrid import NetConfig, preset
 from models.yaml_files import read_yaml
 from pipeline.build import InlineExecutor
+from pipeline.errors import PipelineError
 from pipeline.registry import CARD, check_model, jsonable, load_card, metric, model_version, save_model
 from pipeline.train import TrainConfig
 
@@ -31,7 +32,7 @@ TRAIN_KEYS = tuple(f.name for f in dataclasses.fields(TrainConfig) if f.name not
 NET_KEYS = tuple(f.name for f in dataclasses.fields(NetConfig) if f.name not in ("direction", "name"))
 
 
-class GridError(ValueError):
+class GridError(PipelineError, ValueError):
     """A grid file or override that cannot be used (names what and where)."""
 
 

@@ -32,6 +32,7 @@ from acquisition.schemas.ros2msg import parse_fixed_message
 from acquisition.schemas.topics import EVENTS, session_topics
 from models.robot import RobotDescription
 from pipeline.cache import file_hash
+from pipeline.errors import PipelineError
 from pipeline.tables import EVENT_COLUMNS, SessionTables, StageReport
 
 log = logging.getLogger(__name__)
@@ -43,7 +44,7 @@ _MESSAGE_HEADER = 1 + 8 + 2 + 4 + 8 + 8  # opcode, record length, channel, seque
 _READ_ERRORS = (McapError, struct.error, zstandard.ZstdError, EOFError, ValueError, KeyError, OSError)
 
 
-class IngestError(Exception):
+class IngestError(PipelineError):
     """A session that cannot be ingested: ``path`` says which file or directory, ``reason`` why."""
 
     def __init__(self, path: str | Path, reason: str) -> None:

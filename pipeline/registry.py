@@ -33,6 +33,7 @@ from safetensors.torch import load_file, save_file
 
 from models.hybrid import HybridNet, NetConfig
 from pipeline.cache import code_version, digest, file_hash
+from pipeline.errors import PipelineError
 
 log = logging.getLogger(__name__)
 
@@ -45,7 +46,7 @@ HEADLINE = ("tip_mean_mm",)  # the test metric a listing shows (the first one pr
 P95 = ("tip_p95_mm",)
 
 
-class ModelIntegrityError(ValueError):
+class ModelIntegrityError(PipelineError, ValueError):
     """A model version that cannot be trusted: a file missing or unreadable, a card that is not valid JSON,
     lacks a field or was edited, a file whose bytes differ from the card's hash. Names the file and why."""
 

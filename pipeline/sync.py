@@ -17,6 +17,7 @@ import pandas as pd
 
 from acquisition.schemas import topics as T
 from pipeline.clock import ClockFit, fit_clock, unwrap_stamps
+from pipeline.errors import PipelineError
 from pipeline.tables import SessionTables, columns
 
 log = logging.getLogger(__name__)
@@ -38,7 +39,7 @@ TIMELINE_FIELDS: dict[str, tuple[str, tuple[str, ...]]] = {
 }
 
 
-class SyncError(ValueError):
+class SyncError(PipelineError, ValueError):
     """A session that cannot be put on a timeline (no tracker frames)."""
 
 

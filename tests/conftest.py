@@ -78,12 +78,12 @@ def ros2_agrees():
 def campaign_dataset(tmp_path_factory):
     """A small twin campaign built into a dataset: (lab directory, dataset version, D as a DataFrame).
     600 settled points on 8 benches (≈ 10 s once per test run)."""
-    from acquisition.plans.sim_runner import simulate_protocol
+    from acquisition.plans.sim_runner import simulate_experiment
     from pipeline.build import build
     from pipeline.datasets import load_dataset
 
     lab = tmp_path_factory.mktemp("campaign-lab")
-    simulate_protocol("campaign", lab / "sessions", seed=11, benches=8, overrides={"points": 600})
+    simulate_experiment("campaign", lab / "sessions", seed=11, benches=8, overrides={"points": 600})
     report = build(sorted((lab / "sessions").iterdir()), lab, "campaign")
     data, _ = load_dataset(lab / "datasets", "campaign", report.version)
     return lab, report.version, data

@@ -40,14 +40,14 @@ def inputs(tmp_path) -> Path:
         "date.yaml": "name: 2024-13-01\n",
         # protocols, named after their protocol (the name says which one a file sets)
         "p/campaign.yaml": "robot: vsl\npoints: 3\n",  # parameters missing
-        "p/experiment1.yaml": (CONFIGS / "protocols" / "experiment1.yaml").read_text() + "speed: 3\n",
-        "p/experiment2.yaml": (CONFIGS / "protocols" / "experiment2.yaml")
+        "p/experiment1.yaml": (CONFIGS / "experiments" / "experiment1.yaml").read_text() + "speed: 3\n",
+        "p/experiment2.yaml": (CONFIGS / "experiments" / "experiment2.yaml")
         .read_text()
         .replace("repetitions: 5", "repetitions: five"),
-        "p/popup_static.yaml": (CONFIGS / "protocols" / "popup_static.yaml")
+        "p/popup_static.yaml": (CONFIGS / "experiments" / "popup_static.yaml")
         .read_text()
         .replace("load_steps: 6", "load_steps: -6"),
-        "mine.yaml": (CONFIGS / "protocols" / "campaign.yaml").read_text(),
+        "mine.yaml": (CONFIGS / "experiments" / "campaign.yaml").read_text(),
         # grids
         "g-models.yaml": "models: 3\ndatasets: [campaign]\n",
         "g-preset.yaml": "models:\n  - {direction: forward, preset: huge}\ndatasets: [campaign]\n",
@@ -138,19 +138,22 @@ def test_dev_null_as_a_robot_description(tmp_path, inputs):
 
 # ------------------------------------------------------------------------------------ protocols
 PROTOCOLS = [
-    ("nope", "no protocol 'nope' (known: campaign, experiment1"),
+    ("nope", "no experiment 'nope' (known: campaign, experiment1"),
     ("{in}/empty.yaml", "empty.yaml: expected a mapping of parameters"),
     ("{in}/broken.yaml", "broken.yaml: line 3: not valid YAML"),
     (
         "{in}/list.yaml",
-        "list.yaml: expected a mapping of parameters (like configs/protocols/*.yaml), found a",
+        "list.yaml: expected a mapping of parameters (like configs/experiments/*.yaml), found a",
     ),
     ("{in}/binary.yaml", "binary.yaml: not a text file"),
     ("{in}/date.yaml", "date.yaml: not valid YAML"),
-    ("{in}/nothing.yaml", "no protocol '{in}/nothing.yaml'"),
-    ("{in}/folder.yaml", "no protocol '{in}/folder.yaml'"),
-    ("{in}/p/campaign.yaml.d", "campaign.yaml.d: a folder, not a protocol file"),
-    ("{in}/mine.yaml", "no plans for protocol '{in}/mine.yaml': a protocol file is named after the protocol"),
+    ("{in}/nothing.yaml", "no experiment '{in}/nothing.yaml'"),
+    ("{in}/folder.yaml", "no experiment '{in}/folder.yaml'"),
+    ("{in}/p/campaign.yaml.d", "campaign.yaml.d: a folder, not an experiment file"),
+    (
+        "{in}/mine.yaml",
+        "no plans for experiment '{in}/mine.yaml': an experiment file is named after the experiment",
+    ),
     ("{in}/p/campaign.yaml", "p/campaign.yaml: missing parameter(s) ['pressure_bar'"),
     ("{in}/p/experiment1.yaml", "p/experiment1.yaml: unknown parameter(s) ['speed']"),
     ("{in}/p/experiment2.yaml", "p/experiment2.yaml: repetitions: 'five': expected an integer from 1"),
@@ -338,7 +341,7 @@ def test_an_unsafe_plan_is_refused_before_anything_starts(tmp_path, inputs, wher
         (["simulate", "campaign", "--seed", "-1"], "--seed ≥ 0"),
         (["simulate", "campaign", "--benches", "many"], "Invalid value for '--benches'"),
         (["simulate", "campaign", "--nope"], "No such option: --nope"),
-        (["simulate"], "Missing argument 'protocol'"),
+        (["simulate"], "Missing argument 'experiment'"),
         (["train", "--workers", "-1"], "--workers must be ≥ 0"),
         (["demo", "--seed", "-1"], "--seed must be ≥ 0"),
         (["demo", "--seed", "x"], "Invalid value for '--seed'"),

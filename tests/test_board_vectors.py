@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquisition.protocols import boards as bp
-from acquisition.sim.emulators.boards import (
+from acquisition.codecs import board_lines as bp
+from acquisition.sim.emulators.board_firmware import (
     PressureBoardEmulator,
     SimplePressureHardware,
     SimpleStepperHardware,

@@ -12,10 +12,10 @@ from pathlib import Path
 import pytest
 import serial
 
+from acquisition.codecs import board_lines as bp
 from acquisition.devices.boards import BoardReplyError, PressureBoard, StepperBoard
 from acquisition.errors import DeviceError, DeviceNotFoundError, DeviceProtocolError, DeviceReplyError
-from acquisition.protocols import boards as bp
-from acquisition.sim.emulators.boards import (
+from acquisition.sim.emulators.board_firmware import (
     PressureBoardEmulator,
     SimplePressureHardware,
     SimpleStepperHardware,
@@ -23,8 +23,8 @@ from acquisition.sim.emulators.boards import (
 )
 
 PROTOCOL_MD = Path(__file__).resolve().parents[1] / "firmware" / "PROTOCOL.md"
-PRESSURE = "pressure_board=acquisition.sim.emulators.boards:demo_pressure_board"
-STEPPER = "stepper_board=acquisition.sim.emulators.boards:demo_stepper_board"
+PRESSURE = "pressure_board=acquisition.sim.emulators.board_firmware:demo_pressure_board"
+STEPPER = "stepper_board=acquisition.sim.emulators.board_firmware:demo_stepper_board"
 
 
 # ------------------------------------------------------------------------------------------- codec

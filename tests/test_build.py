@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from acquisition.plans.plan import PlanBuilder
-from acquisition.plans.sim_runner import simulate, simulate_protocol
+from acquisition.plans.sim_runner import simulate, simulate_experiment
 from models.robot import load_robot
 from pipeline.build import build
 from pipeline.datasets import load_dataset
@@ -21,7 +21,7 @@ POINTS = 96
 def lab(tmp_path_factory):
     """A small campaign (4 benches → 4 sessions of 24 settled points)."""
     lab = tmp_path_factory.mktemp("lab")
-    simulate_protocol("campaign", lab / "sessions", seed=2, benches=4, overrides={"points": POINTS})
+    simulate_experiment("campaign", lab / "sessions", seed=2, benches=4, overrides={"points": POINTS})
     return lab
 
 
@@ -86,7 +86,7 @@ def test_bad_sessions_are_reported_and_the_others_build(lab, tmp_path):
 def test_trajectory_sessions_borrow_the_campaigns_registration(lab):
     """Experiment 2 sessions have no settled points: their dataset takes the tracker registration of the
     campaign of the same setup; its rows are the trajectory samples, in the base frame, by repetition."""
-    from acquisition.plans import protocols
+    from acquisition.plans import experiments
     from models import trajectories
 
     campaign = build(sorted((lab / "sessions").iterdir()), lab, "campaign")
@@ -96,7 +96,7 @@ def test_trajectory_sessions_borrow_the_campaigns_registration(lab):
         "rigid_arm": False,
     }
     overrides = case | {"repetitions": 1, "points_per_segment": 25, "settle_s": 1.0, "rest_s": 0.5}
-    simulate_protocol("experiment2", lab / "e2", seed=3, overrides=overrides)
+    simulate_experiment("experiment2", lab / "e2", seed=3, overrides=overrides)
     sessions = sorted((lab / "e2").iterdir())
     with pytest.raises(ValueError, match=r"register\.from_dataset"):
         build(sessions, lab, "experiment2")
@@ -109,7 +109,7 @@ def test_trajectory_sessions_borrow_the_campaigns_registration(lab):
     d, card = load_dataset(lab / "datasets", "experiment2", report.version)
     assert card["parameters"]["register"]["from_dataset"] == f"campaign@{campaign.version}"
     assert set(d["repetition"]) == {0} and set(d["session"]) == {s.name for s in sessions}
-    path = trajectories.experiment1("curve", protocols.arm_lengths(load_robot("vsl")), 0.02, 400).x
+    path = trajectories.experiment1("curve", experiments.arm_lengths(load_robot("vsl")), 0.02, 400).x
     error = {s: trajectories.distance_to_path(g[["x_0", "x_1", "x_2"]].to_numpy(), path).mean()
              for s, g in d.groupby("session")}  # fmt: skip
     ik, static = (error[s.name] for s in sessions)

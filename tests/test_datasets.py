@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from acquisition.plans import protocols
+from acquisition.plans import experiments
 from models import kinematics
 from pipeline import datasets
 from pipeline.cache import StageCache, stage_key
@@ -15,7 +15,7 @@ from pipeline.cache import StageCache, stage_key
 def _rows(vsl, n=200, seed=0):
     """Timeline-like rows: joint columns as the sync stage names them, x already in the base frame."""
     rng = np.random.default_rng(seed)
-    lengths = protocols.arm_lengths(vsl)
+    lengths = experiments.arm_lengths(vsl)
     x = rng.uniform([0.22, -0.08, 0.02], [0.38, 0.08, 0.18], size=(n, 3))
     q = kinematics.vsl_ik(x, lengths, 1)
     return pd.DataFrame(
@@ -33,7 +33,7 @@ def _rows(vsl, n=200, seed=0):
 def test_assemble_has_the_papers_columns_and_the_model_based_ones(vsl):
     rows = _rows(vsl)
     d = datasets.assemble(rows, vsl)
-    lengths = protocols.arm_lengths(vsl)
+    lengths = experiments.arm_lengths(vsl)
     q = d[["q_0", "q_1", "q_2"]].to_numpy()
     np.testing.assert_allclose(q[:, 1:], rows[["servo_position_0", "servo_position_1"]].to_numpy())
     np.testing.assert_allclose(d[["fk_0", "fk_1", "fk_2"]].to_numpy(), kinematics.vsl_fk(q, lengths))

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite, PacketHandler, PortHandler
 
+from acquisition.codecs import dynamixel as dx
 from acquisition.devices.servo_bus import ServoBus
 from acquisition.errors import DeviceDisconnectedError, DeviceNotFoundError, DeviceProtocolError
-from acquisition.protocols import dynamixel as dx
 from acquisition.sim.emulators.dynamixel import demo_bus
 from acquisition.sim.ptyhost import send_control
 

@@ -30,6 +30,7 @@ from dynamixel_sdk import (
     PortHandler,
 )
 
+from acquisition.codecs import dynamixel as dx
 from acquisition.devices.servo_bus import ServoBus
 from acquisition.devices.servo_errors import (
     ServoAccessError,
@@ -44,7 +45,6 @@ from acquisition.devices.servo_errors import (
     status_error,
 )
 from acquisition.errors import DeviceError, DeviceReplyError
-from acquisition.protocols import dynamixel as dx
 from acquisition.sim.emulators.dynamixel import demo_bus
 
 DEMO = "servo_bus=acquisition.sim.emulators.dynamixel:demo_bus"

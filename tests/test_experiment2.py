@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquisition.plans import protocols
+from acquisition.plans import experiments
 from acquisition.plans.compensation import StaticModelCompensator
 from acquisition.plans.plan import PlanBuilder
-from acquisition.plans.sim_runner import SIM_EPOCH_NS, session_id, simulate, simulate_protocol
+from acquisition.plans.sim_runner import SIM_EPOCH_NS, session_id, simulate, simulate_experiment
 from acquisition.safety import SafetyChecker, SafetyError
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
@@ -22,7 +22,7 @@ BAR, GRAM = 1e5, 1e-3
 def test_static_compensation_lands_the_settled_tip_on_target(vsl):
     """Servo droop and link bending under a payload, inverted from the description: the twin's settled tip
     lands within 1 mm of the target (model-based IK alone: several mm at 0.5 bar and 75 g)."""
-    lengths = protocols.arm_lengths(vsl)
+    lengths = experiments.arm_lengths(vsl)
     targets = np.random.default_rng(3).uniform([0.22, -0.08, 0.02], [0.38, 0.08, 0.18], size=(8, 3))
     q_ik = kinematics.vsl_ik(targets, lengths, 1)
     comp = StaticModelCompensator(vsl, payload_kg=0.075)
@@ -67,14 +67,14 @@ def _path_error(tip: np.ndarray, path: np.ndarray) -> np.ndarray:
 def test_experiment2_static_compensation_beats_model_based_ik(vsl, tmp_path):
     """Experiment 2's 0.5 bar / 75 g case, one repetition, on the twin: the sent goals are the compensator's,
     and the compensated path error is a fraction of the model-based one."""
-    params = protocols.load_protocol(
+    params = experiments.load_experiment(
         "experiment2", cases=[{"payload_g": 75, "pressure_bar": 0.5}], commands=["ik", "static"],
         rigid_arm=False, repetitions=1, points_per_segment=25, settle_s=1.0, rest_s=0.5,
     )  # fmt: skip
-    (report,) = simulate_protocol("experiment2", tmp_path, seed=1, overrides=params)
+    (report,) = simulate_experiment("experiment2", tmp_path, seed=1, overrides=params)
     assert len(report.sessions) == 2
-    plans = {p.parameters["commands"]: p for p in protocols.experiment2(vsl, None, params)}
-    lengths = protocols.arm_lengths(vsl)
+    plans = {p.parameters["commands"]: p for p in experiments.experiment2(vsl, None, params)}
+    lengths = experiments.arm_lengths(vsl)
     desired = trajectories.experiment1("curve", lengths, speed=0.02, n_per_segment=400).x
     errors = {}
     for mode, plan in plans.items():
@@ -97,7 +97,7 @@ def test_experiment2_static_compensation_beats_model_based_ik(vsl, tmp_path):
 
 def test_hybrid_commands_need_an_inverse_model(tmp_path):
     with pytest.raises(ValueError, match="inverse model"):
-        simulate_protocol("experiment2", tmp_path, overrides={"repetitions": 1})
+        simulate_experiment("experiment2", tmp_path, overrides={"repetitions": 1})
 
 
 def test_unsafe_plans_do_not_run_and_the_watchdog_stops_a_bench(vsl, tmp_path, monkeypatch):

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquisition.plans import protocols
-from acquisition.plans.sim_runner import simulate_protocol
+from acquisition.plans import experiments
+from acquisition.plans.sim_runner import simulate_experiment
 from models import trajectories
 from models.hybrid import preset
 from models.robot import load_robot
@@ -22,7 +22,7 @@ CASE = {"payload_g": 75, "pressure_bar": 0.5}  # seed 000's harder case: light p
 @pytest.mark.slow
 def test_hybrid_inverse_model_beats_model_based_ik_in_experiment2(tmp_path):
     vsl = load_robot("vsl")
-    simulate_protocol("campaign", tmp_path / "sessions", seed=21, benches=16, overrides={"points": 3000})
+    simulate_experiment("campaign", tmp_path / "sessions", seed=21, benches=16, overrides={"points": 3000})
     campaign = build(sorted((tmp_path / "sessions").iterdir()), tmp_path, "campaign")
     data, _ = load_dataset(tmp_path / "datasets", "campaign", campaign.version)
     net = preset("inverse", "small-residual")
@@ -30,14 +30,14 @@ def test_hybrid_inverse_model_beats_model_based_ik_in_experiment2(tmp_path):
     hybrid = InverseModelCompensator(result.model, vsl)
     overrides = {"cases": [CASE], "commands": ["ik", "hybrid"], "rigid_arm": True, "repetitions": 2,
                  "points_per_segment": 30, "settle_s": 1.5, "rest_s": 0.5}  # fmt: skip
-    simulate_protocol(
+    simulate_experiment(
         "experiment2", tmp_path / "e2", seed=3, overrides=overrides, inverse_model=lambda p: hybrid
     )
     sessions = sorted((tmp_path / "e2").iterdir())
     borrowed = {"register": {"from_dataset": f"campaign@{campaign.version}"}}
     e2 = build(sessions, tmp_path, "experiment2", borrowed)
     d, _ = load_dataset(tmp_path / "datasets", "experiment2", e2.version)
-    path = trajectories.experiment1("curve", protocols.arm_lengths(vsl), 0.02, 400).x
+    path = trajectories.experiment1("curve", experiments.arm_lengths(vsl), 0.02, 400).x
     error_mm = {
         ("rigid/" if "vsl_rigid" in session else "vsl/") + session.split("-")[-1]: 1e3
         * trajectories.distance_to_path(g[["x_0", "x_1", "x_2"]].to_numpy(), path).mean()

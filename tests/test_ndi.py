@@ -9,9 +9,9 @@ import time
 import numpy as np
 import pytest
 
+from acquisition.codecs import ndi
 from acquisition.devices.tracker import Tracker, TrackerFrame
 from acquisition.errors import DeviceNotFoundError
-from acquisition.protocols import ndi
 from acquisition.sim.emulators import aurora
 
 COMMAND_EXAMPLES = [

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquisition.plans import protocols
+from acquisition.plans import experiments
 from acquisition.plans.plan import Plan, PlanBuilder
 from acquisition.schemas.events import Event, EventKind
 from models import kinematics, trajectories
@@ -176,44 +176,44 @@ def test_builder_checks_shapes():
         b.pressure([1e5, 2e5, 3e5])
 
 
-# ------------------------------------------------------------------------------ load_protocol
+# ------------------------------------------------------------------------------ load_experiment
 def test_load_protocol_reads_the_yaml():
-    p = protocols.load_protocol("experiment1")
+    p = experiments.load_experiment("experiment1")
     assert p["trajectories"] == ["linear", "curve", "square"]
     assert p["repetitions"] == 5 and p["rigid_arm"] is True
-    c = protocols.load_protocol("campaign")
+    c = experiments.load_experiment("campaign")
     assert c["points"] == 17568 and c["robot"] == "vsl"
 
 
 def test_load_protocol_applies_overrides():
-    p = protocols.load_protocol("experiment1", repetitions=2, payloads_g=[0, 50], rigid_arm=False)
+    p = experiments.load_experiment("experiment1", repetitions=2, payloads_g=[0, 50], rigid_arm=False)
     assert p["repetitions"] == 2 and p["payloads_g"] == [0, 50] and p["rigid_arm"] is False
     assert p["pressures_bar"] == [0.5, 1.0, 1.5, 2.0]  # untouched keys stay
     # the overrides do not leak into the next load
-    assert protocols.load_protocol("experiment1")["repetitions"] == 5
+    assert experiments.load_experiment("experiment1")["repetitions"] == 5
 
 
 def test_load_protocol_by_path(tmp_path):
     path = tmp_path / "mine.yaml"
     path.write_text("points: 3\nrobot: vsl\n")
-    assert protocols.load_protocol(path, points=4) == {"points": 4, "robot": "vsl"}
+    assert experiments.load_experiment(path, points=4) == {"points": 4, "robot": "vsl"}
 
 
 def test_misspelt_override_raises():
     with pytest.raises(ValueError, match="repetition"):
-        protocols.load_protocol("experiment1", repetition=3)
+        experiments.load_experiment("experiment1", repetition=3)
 
 
 def test_unknown_protocol_lists_the_known_ones():
-    with pytest.raises(FileNotFoundError, match="no protocol 'experiment9'") as err:
-        protocols.load_protocol("experiment9")
+    with pytest.raises(FileNotFoundError, match="no experiment 'experiment9'") as err:
+        experiments.load_experiment("experiment9")
     assert "campaign" in str(err.value) and "experiment1" in str(err.value)
 
 
 # ------------------------------------------------------------------------------ experiment1
 @pytest.fixture(scope="module")
 def e1_params():
-    return protocols.load_protocol(
+    return experiments.load_experiment(
         "experiment1",
         trajectories=["linear", "curve"],
         payloads_g=[0, 50, 100],
@@ -225,7 +225,7 @@ def e1_params():
 
 @pytest.fixture(scope="module")
 def e1_plans(vsl, rigid, e1_params):
-    return protocols.experiment1(vsl, rigid, e1_params)
+    return experiments.experiment1(vsl, rigid, e1_params)
 
 
 def test_experiment1_plan_count(vsl, rigid, e1_params, e1_plans):
@@ -233,15 +233,15 @@ def test_experiment1_plan_count(vsl, rigid, e1_params, e1_plans):
     assert len(e1_plans) == n_traj * n_pay * (n_p + 1)
     assert len({p.name for p in e1_plans}) == len(e1_plans)
     assert sum(p.robot == "vsl_rigid" for p in e1_plans) == n_traj * n_pay
-    without_rigid = protocols.experiment1(vsl, rigid, e1_params | {"rigid_arm": False})
+    without_rigid = experiments.experiment1(vsl, rigid, e1_params | {"rigid_arm": False})
     assert len(without_rigid) == n_traj * n_pay * n_p
     assert all(p.robot == "vsl" for p in without_rigid)
-    assert len(protocols.experiment1(vsl, None, e1_params)) == n_traj * n_pay * n_p
+    assert len(experiments.experiment1(vsl, None, e1_params)) == n_traj * n_pay * n_p
 
 
 def test_experiment1_full_protocol_count(vsl, rigid):
-    params = protocols.load_protocol("experiment1", points_per_segment=5, repetitions=1)
-    plans = protocols.experiment1(vsl, rigid, params)
+    params = experiments.load_experiment("experiment1", points_per_segment=5, repetitions=1)
+    plans = experiments.experiment1(vsl, rigid, params)
     assert len(plans) == 3 * 5 * (4 + 1)
 
 
@@ -289,7 +289,7 @@ def test_experiment1_follows_the_trajectory(vsl, rigid, e1_plans, e1_params):
         robot = rigid if plan.robot == "vsl_rigid" else vsl
         path = trajectories.experiment1(
             plan.parameters["trajectory"],
-            protocols.arm_lengths(robot),
+            experiments.arm_lengths(robot),
             speed=e1_params["speed_m_s"],
             n_per_segment=e1_params["points_per_segment"],
         )
@@ -312,11 +312,11 @@ def test_experiment1_follows_the_trajectory(vsl, rigid, e1_plans, e1_params):
 # ------------------------------------------------------------------------------ campaign
 @pytest.fixture(scope="module")
 def campaign_params():
-    return protocols.load_protocol("campaign", points=200)
+    return experiments.load_experiment("campaign", points=200)
 
 
 def test_campaign_deals_every_point_once(vsl, campaign_params):
-    plans = protocols.campaign(vsl, campaign_params, benches=7, seed=3)
+    plans = experiments.campaign(vsl, campaign_params, benches=7, seed=3)
     assert len(plans) == 7
     assert sum(p.parameters["points"] for p in plans) == 200
     sizes = [p.parameters["points"] for p in plans]
@@ -332,7 +332,7 @@ def test_campaign_deals_every_point_once(vsl, campaign_params):
 
 
 def test_campaign_point_timing_and_values(vsl, campaign_params):
-    (plan,) = protocols.campaign(vsl, campaign_params, benches=1, seed=0)
+    (plan,) = experiments.campaign(vsl, campaign_params, benches=1, seed=0)
     # each point: travel (the largest joint move at the move speed), settle, hold
     travel = np.abs(np.diff(plan.goal_q, axis=0, prepend=plan.goal_q[:1])).max(axis=1)
     p = campaign_params
@@ -354,16 +354,16 @@ def test_campaign_point_timing_and_values(vsl, campaign_params):
     assert np.all(np.isfinite(plan.goal_q))
     np.testing.assert_allclose(plan.goal_speed, campaign_params["move_speed_rad_s"])
     # the joint targets reach tip targets inside the workspace box (rigid FK)
-    tips = kinematics.vsl_fk(plan.goal_q, protocols.arm_lengths(vsl))
+    tips = kinematics.vsl_fk(plan.goal_q, experiments.arm_lengths(vsl))
     lo_box = np.array(campaign_params["workspace_mm"]["min"]) * 1e-3
     hi_box = np.array(campaign_params["workspace_mm"]["max"]) * 1e-3
     assert np.all((tips >= lo_box - 1e-6) & (tips <= hi_box + 1e-6))
 
 
 def test_campaign_is_reproducible(vsl, campaign_params):
-    a = protocols.campaign(vsl, campaign_params, benches=2, seed=11)
-    b = protocols.campaign(vsl, campaign_params, benches=2, seed=11)
-    c = protocols.campaign(vsl, campaign_params, benches=2, seed=12)
+    a = experiments.campaign(vsl, campaign_params, benches=2, seed=11)
+    b = experiments.campaign(vsl, campaign_params, benches=2, seed=11)
+    c = experiments.campaign(vsl, campaign_params, benches=2, seed=12)
     for x, y in zip(a, b, strict=True):
         np.testing.assert_array_equal(x.goal_q, y.goal_q)
         np.testing.assert_array_equal(x.pressure_pa, y.pressure_pa)
@@ -374,6 +374,6 @@ def test_campaign_is_reproducible(vsl, campaign_params):
 
 
 def test_campaign_with_more_benches_than_points(vsl):
-    params = protocols.load_protocol("campaign", points=3)
-    plans = protocols.campaign(vsl, params, benches=5, seed=0)
+    params = experiments.load_experiment("campaign", points=3)
+    plans = experiments.campaign(vsl, params, benches=5, seed=0)
     assert sum(p.parameters["points"] for p in plans) == 3

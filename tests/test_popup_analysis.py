@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from acquisition.plans.sim_runner import simulate_protocol
+from acquisition.plans.sim_runner import simulate_experiment
 from analysis import popup_tests as pt
 from models import prbm
 from models.robot import load_robot
@@ -40,13 +40,13 @@ def root(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def impact_dir(root):
-    simulate_protocol("popup_impact", root / "impact", seed=SEED, overrides=IMPACT)
+    simulate_experiment("popup_impact", root / "impact", seed=SEED, overrides=IMPACT)
     return root / "impact"
 
 
 @pytest.fixture(scope="module")
 def static_dir(root):
-    simulate_protocol("popup_static", root / "static", seed=SEED, overrides=STATIC)
+    simulate_experiment("popup_static", root / "static", seed=SEED, overrides=STATIC)
     return root / "static"
 
 
@@ -103,7 +103,7 @@ def hysteresis_curves(root):
     """Figure 7's sessions: the configured twin, 3 runs."""
     # the heaviest masses ring at ≈ 3.5 Hz with ζ ≈ 0.015 (c/2I ≈ 0.3 /s): settle as the protocol does
     fig7 = STATIC | {"pressures_kpa": [20, 40], "repetitions": 3, "settle_s": 5.0, "hold_s": 1.0}
-    simulate_protocol("popup_static", root / "hysteresis", seed=SEED, overrides=fig7)
+    simulate_experiment("popup_static", root / "hysteresis", seed=SEED, overrides=fig7)
     return pt.link_static_curves(_sessions(root / "hysteresis"))
 
 

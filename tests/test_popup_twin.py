@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquisition.plans.popup_protocols import bench_robot
+from acquisition.plans.popup_experiments import bench_robot
 from acquisition.sim.world import World
 from models.robot import load_robot
 

@@ -1,5 +1,5 @@
 """Properties of three wire codecs, checked by hypothesis: the boards' line protocol
-(``acquisition.protocols.boards``), the NDI serial API (``acquisition.protocols.ndi``) and the fixed-layout
+(``acquisition.codecs.board_lines``), the NDI serial API (``acquisition.codecs.ndi``) and the fixed-layout
 CDR messages (``acquisition.schemas.cdr``).
 
 Encode/decode round trips; corruption caught; and random bytes never making a decoder fail with anything but
@@ -17,10 +17,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from mcap_ros2._dynamic import generate_dynamic, serialize_dynamic
 
-from acquisition.protocols import boards as bp
-from acquisition.protocols import ndi
+from acquisition.codecs import board_lines as bp
+from acquisition.codecs import ndi
 from acquisition.schemas.cdr import PRIMITIVES, Field, FixedMessage, SchemaError
-from acquisition.sim.emulators.boards import (
+from acquisition.sim.emulators.board_firmware import (
     PressureBoardEmulator,
     SimplePressureHardware,
     SimpleStepperHardware,

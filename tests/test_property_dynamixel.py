@@ -11,8 +11,8 @@ import struct
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from acquisition.protocols import dynamixel as dx
-from acquisition.protocols import xm430
+from acquisition.codecs import dynamixel as dx
+from acquisition.codecs import xm430
 from acquisition.sim.emulators.dynamixel import demo_bus
 
 FAST = settings(

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from conftest import emulator_host
 
-from acquisition.protocols import boards as bp
-from acquisition.protocols import dynamixel as dx
+from acquisition.codecs import board_lines as bp
+from acquisition.codecs import dynamixel as dx
 from acquisition.sim import sensors, streams
 from acquisition.sim.emulators.base import LEGACY_POLL_S, Emulator
-from acquisition.sim.emulators.boards import (
+from acquisition.sim.emulators.board_firmware import (
     PressureBoardEmulator,
     SimplePressureHardware,
     SimpleStepperHardware,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquisition.plans import protocols
+from acquisition.plans import experiments
 from acquisition.plans.plan import PlanBuilder
 from acquisition.safety import SafetyChecker, SafetyError
 from acquisition.sim.world import World
@@ -36,8 +36,10 @@ def test_static_moments_match_the_twin_kernel(name, q0, pressure):
 
 def test_the_seed_protocols_are_safe(vsl):
     rigid = load_robot("vsl_rigid")
-    plans = protocols.experiment1(vsl, rigid, protocols.load_protocol("experiment1", payloads_g=[0, 100]))
-    plans += protocols.campaign(vsl, protocols.load_protocol("campaign", points=400), benches=4)
+    plans = experiments.experiment1(
+        vsl, rigid, experiments.load_experiment("experiment1", payloads_g=[0, 100])
+    )
+    plans += experiments.campaign(vsl, experiments.load_experiment("campaign", points=400), benches=4)
     for plan in plans:
         SafetyChecker(vsl if plan.robot == "vsl" else rigid).require_safe(plan)
 

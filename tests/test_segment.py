@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 from twin_timeline import sessions, timeline
 
-from acquisition.plans.protocols import expand_protocol
+from acquisition.plans.experiments import expand_experiment
 from acquisition.plans.sim_runner import SIM_EPOCH_NS, session_id, simulate
 from acquisition.schemas.events import EventKind
 from pipeline.segment import Stillness, repetition_table, repetitions, static_points
@@ -32,7 +32,7 @@ def twin_pair(tmp_path_factory):
     tracker. The sensor model draws the tracker noise even at σ = 0, so every other reading (clocks, host
     times, servo and pressure noise) is the same in both; the noise-free run's tracker is the true tip."""
     root = tmp_path_factory.mktemp("segment")
-    robots, plans, params = expand_protocol("campaign", {"points": N_POINTS}, benches=BENCHES, seed=SEED)
+    robots, plans, params = expand_experiment("campaign", {"points": N_POINTS}, benches=BENCHES, seed=SEED)
     robot = robots[params["robot"]]
     simulate(plans, robot, root / "noisy", seed=SEED)
     simulate(plans, _noise_free(robot), root / "true", seed=SEED)
@@ -75,7 +75,7 @@ def test_static_points_average_to_the_true_tip(twin_pair):
 def test_unsettled_windows_are_rejected_and_counted(tmp_path):
     """Too short a settle time: windows that start while the arm moves are left out, counted by reason."""
     fast = {"points": 40, "settle_s": 0.1, "move_speed_rad_s": 20.0}  # plans a move faster than the servos go
-    robots, plans, params = expand_protocol("campaign", fast, benches=4, seed=3)
+    robots, plans, params = expand_experiment("campaign", fast, benches=4, seed=3)
     simulate(plans, robots[params["robot"]], tmp_path, seed=3)
     kept, rejected, report = 0, 0, StageReport()
     for s in sessions(tmp_path):

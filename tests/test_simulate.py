@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquisition.plans import protocols
+from acquisition.plans import experiments
 from acquisition.plans.plan import PlanBuilder
-from acquisition.plans.sim_runner import SIM_EPOCH_NS, session_id, simulate, simulate_protocol
+from acquisition.plans.sim_runner import SIM_EPOCH_NS, session_id, simulate, simulate_experiment
 from acquisition.recorder.sessions import list_sessions, session_info
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
@@ -46,7 +46,7 @@ def _same_event(a: Event, b: Event) -> bool:
 @pytest.fixture(scope="module")
 def e1(vsl, tmp_path_factory):
     """Experiment 1, curve only, 0 g and 100 g at 1 bar, one repetition: two ~21 s sessions."""
-    params = protocols.load_protocol(
+    params = experiments.load_experiment(
         "experiment1",
         trajectories=["curve"],
         payloads_g=[0, 100],
@@ -54,14 +54,14 @@ def e1(vsl, tmp_path_factory):
         repetitions=1,
         rigid_arm=False,
     )
-    plans = protocols.experiment1(vsl, None, params)
+    plans = experiments.experiment1(vsl, None, params)
     directory = tmp_path_factory.mktemp("sessions")
     report = simulate(plans, vsl, directory, seed=SEED)
     data = [read_fixed_topics(_part(directory / session_id(p))) for p in plans]
     events = [_events(directory / session_id(p)) for p in plans]
     path = trajectories.experiment1(
         "curve",
-        protocols.arm_lengths(vsl),
+        experiments.arm_lengths(vsl),
         speed=params["speed_m_s"],
         n_per_segment=params["points_per_segment"],
     )
@@ -315,7 +315,7 @@ def test_batch_of_other_robots_plans_raises(vsl, tmp_path):
         simulate(_short_plans(rigid), vsl, tmp_path)
 
 
-# ------------------------------------------------------------------------------ simulate_protocol
+# ------------------------------------------------------------------------------ simulate_experiment
 def test_simulate_protocol_runs_both_arms(tmp_path):
     overrides = {
         "trajectories": ["linear"],
@@ -327,29 +327,29 @@ def test_simulate_protocol_runs_both_arms(tmp_path):
         "settle_s": 0.5,
         "rest_s": 0.2,
     }
-    reports = simulate_protocol("experiment1", tmp_path, seed=3, overrides=overrides)
+    reports = simulate_experiment("experiment1", tmp_path, seed=3, overrides=overrides)
     assert len(reports) == 2  # one batch per robot
     infos = {i.id: i for i in list_sessions(tmp_path)}
     assert set(infos) == {"sim-experiment1-linear-vsl-2bar-25g", "sim-experiment1-linear-vsl_rigid-25g"}
     assert infos["sim-experiment1-linear-vsl-2bar-25g"].robot == "vsl"
     assert infos["sim-experiment1-linear-vsl_rigid-25g"].robot == "vsl_rigid"
     assert all(i.status == "complete" for i in infos.values())
-    again = simulate_protocol("experiment1", tmp_path, seed=3, overrides=overrides)
+    again = simulate_experiment("experiment1", tmp_path, seed=3, overrides=overrides)
     assert all(r.sessions == [] for r in again) and sum(len(r.skipped) for r in again) == 2
 
 
 def test_simulate_protocol_unknown_kind(tmp_path):
     path = tmp_path / "other.yaml"
     path.write_text("robot: vsl\n")
-    with pytest.raises(ValueError, match="no plans for protocol"):
-        simulate_protocol(str(path), tmp_path / "sessions")
+    with pytest.raises(ValueError, match="no plans for experiment"):
+        simulate_experiment(str(path), tmp_path / "sessions")
     with pytest.raises(FileNotFoundError, match="known: campaign, experiment1"):
-        simulate_protocol("nonesuch", tmp_path / "sessions")
+        simulate_experiment("nonesuch", tmp_path / "sessions")
 
 
 def test_simulate_protocol_campaign(tmp_path):
     overrides = {"points": 6, "settle_s": 0.3, "hold_s": 0.2}
-    (report,) = simulate_protocol("campaign", tmp_path, seed=4, benches=2, overrides=overrides)
+    (report,) = simulate_experiment("campaign", tmp_path, seed=4, benches=2, overrides=overrides)
     assert report.sessions == ["sim-campaign-bench000", "sim-campaign-bench001"]
     settled = []
     for sid in report.sessions:
@@ -361,8 +361,10 @@ def test_campaign_runs_to_the_end_within_the_safety_limits(tmp_path):
     """Every random point of the campaign (commanded targets down to 20 mm, links sagging below them) stays
     inside the robot's limits: no bench is stopped, all the bench-seconds are simulated."""
     overrides = {"points": 240}
-    (report,) = simulate_protocol("campaign", tmp_path, seed=5, benches=8, overrides=overrides)
-    plans = protocols.campaign(load_robot("vsl"), protocols.load_protocol("campaign", **overrides), 8, seed=5)
+    (report,) = simulate_experiment("campaign", tmp_path, seed=5, benches=8, overrides=overrides)
+    plans = experiments.campaign(
+        load_robot("vsl"), experiments.load_experiment("campaign", **overrides), 8, seed=5
+    )
     assert report.simulated_s == pytest.approx(sum(p.duration_s for p in plans))
     for sid in report.sessions:
         assert not [e for _, e in _events(tmp_path / sid) if e.kind == EventKind.SAFETY_STOP]

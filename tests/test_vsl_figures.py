@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from acquisition.plans import protocols
-from acquisition.plans.sim_runner import simulate_protocol
+from acquisition.plans import experiments
+from acquisition.plans.sim_runner import simulate_experiment
 from analysis import vsl_figures, vsl_paths
 from models import kinematics, trajectories
 from models.hybrid import FORWARD_INPUTS, preset
@@ -28,13 +28,13 @@ def lab(tmp_path_factory):
     """A campaign (for the tracker registration), a subset of Experiment 1 (the curve at 25/75 g, 0.5/1.5 bar
     and the rigid arm) and Experiment 2 (75 g / 0.5 bar: ik, static, rigid), two repetitions each."""
     lab = tmp_path_factory.mktemp("lab")
-    simulate_protocol("campaign", lab / "campaign", seed=2, benches=2, overrides={"points": 48})
+    simulate_experiment("campaign", lab / "campaign", seed=2, benches=2, overrides={"points": 48})
     campaign = build(sorted((lab / "campaign").iterdir()), lab, "campaign")
     borrowed = {"register": {"from_dataset": f"campaign@{campaign.version}"}}
     e1 = {"trajectories": ["curve"], "payloads_g": [25, 75], "pressures_bar": [0.5, 1.5]} | SMALL
-    simulate_protocol("experiment1", lab / "e1", seed=4, overrides=e1)
+    simulate_experiment("experiment1", lab / "e1", seed=4, overrides=e1)
     e2 = {"cases": [{"payload_g": 75, "pressure_bar": 0.5}], "commands": ["ik", "static"], "rigid_arm": True}
-    simulate_protocol("experiment2", lab / "e2", seed=3, overrides=e2 | SMALL)
+    simulate_experiment("experiment2", lab / "e2", seed=3, overrides=e2 | SMALL)
     out = {}
     for name, folder in (("experiment1", "e1"), ("experiment2", "e2")):
         report = build(sorted((lab / folder).iterdir()), lab, name, borrowed)
@@ -124,12 +124,12 @@ def test_fig7_paths_boxes_and_path_errors(lab, tmp_path):
     result = vsl_figures.fig7(df, tmp_path, versions, n=N)
     _files_ok(result, ["fig7a", "fig7b"], versions)
     vsl = load_robot("vsl")
-    desired = trajectories.experiment1("curve", protocols.arm_lengths(vsl), 0.02, 400).x
+    desired = trajectories.experiment1("curve", experiments.arm_lengths(vsl), 0.02, 400).x
     np.testing.assert_allclose(result.data["desired"], desired)
     lines = result.data["paths"]["75g/0.5bar"]
     assert set(lines) == {"ik", "static", "static/commanded"}
     static = df[df["plan"] == "experiment2/curve/vsl-0.5bar/75g/static"]
-    commanded = kinematics.vsl_fk(static[["qc_0", "qc_1", "qc_2"]].to_numpy(), protocols.arm_lengths(vsl))
+    commanded = kinematics.vsl_fk(static[["qc_0", "qc_1", "qc_2"]].to_numpy(), experiments.arm_lengths(vsl))
     static_c = static.assign(c_0=commanded[:, 0], c_1=commanded[:, 1], c_2=commanded[:, 2])
     np.testing.assert_allclose(
         lines["static/commanded"]["mean"], _mean_std(static_c, ["c_0", "c_1", "c_2"])[0]

@@ -14,6 +14,7 @@ from rich.console import Console
 from rich.markup import escape
 from typer.core import TyperGroup
 
+from models.errors import VslabError
 from models.robot import RobotDescriptionError, load_robot
 
 try:  # typer ≥ 0.2x carries its own click, whose exceptions derive from TyperException
@@ -41,6 +42,11 @@ class _Group(TyperGroup):
         except typer.Abort:
             console.print("aborted")
             sys.exit(1)
+        except (
+            VslabError
+        ) as exc:  # an error no command caught: still one line, never a traceback
+            _print_error(str(exc))
+            sys.exit(2)
         sys.exit(code if isinstance(code, int) else 0)
 
 
@@ -102,7 +108,11 @@ def _robot(name: str):
 
 
 # ------------------------------------------------------------------------------------------------ --set
-class SetError(ValueError):
+class CommandLineError(VslabError, ValueError):
+    """Base of the command line's own errors (what a user typed)."""
+
+
+class SetError(CommandLineError):
     """A ``--set`` pair that cannot be used: no ``=``, a key that is not a name, a key given twice, a value
     that is not YAML or not a plain value. The message starts with ``--set`` and the pair."""
 

@@ -134,9 +134,10 @@ def figures() -> None:
 
 @app.command()
 def simulate(
-    protocol: Annotated[str, typer.Argument(help="Protocol: experiment1, campaign, or a YAML path.")],
+    experiment: Annotated[str, typer.Argument(help="Experiment: experiment1, campaign, or a YAML path.")],
     set_: Annotated[
-        list[str] | None, typer.Option("--set", help="Override a protocol parameter: key=value (repeatable).")
+        list[str] | None,
+        typer.Option("--set", help="Override an experiment parameter: key=value (repeatable)."),
     ] = None,
     benches: Annotated[int, typer.Option(help="Twin benches stepped together (batch size).")] = 128,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
@@ -145,7 +146,7 @@ def simulate(
         typer.Option(help="Registered inverse model (version) for Experiment 2's hybrid commands."),
     ] = None,
 ) -> None:
-    """Run a protocol on the twin in simulated time: the same sessions as on the rig, much faster."""
+    """Run an experiment on the twin in simulated time: the same sessions as on the rig, much faster."""
     import time
 
     from acquisition.processes import lower_priority
@@ -155,7 +156,7 @@ def simulate(
     import numpy as np
     from rich.progress import Progress
 
-    from acquisition.plans.sim_runner import simulate_protocol
+    from acquisition.plans.sim_runner import simulate_experiment
     from acquisition.safety import SafetyError
     from pipeline.in_loop import InverseModelCompensator
 
@@ -180,11 +181,11 @@ def simulate(
             bar.update(tasks[label], completed=fraction)
 
         try:
-            reports = simulate_protocol(
-                protocol, sessions_dir, seed=seed, benches=benches, overrides=overrides, progress=progress,
+            reports = simulate_experiment(
+                experiment, sessions_dir, seed=seed, benches=benches, overrides=overrides, progress=progress,
                 inverse_model=hybrid if model is not None else None,
             )  # fmt: skip
-        except (ValueError, OSError, RobotDescriptionError, SafetyError) as exc:  # ProtocolError, full disk
+        except (ValueError, OSError, RobotDescriptionError, SafetyError) as exc:  # ExperimentError, full disk
             bar.stop()
             _error(str(exc))
     wall = time.perf_counter() - start
@@ -193,9 +194,9 @@ def simulate(
     simulated = sum(r.simulated_s for r in reports)
     messages = sum(r.messages for r in reports)
     console.print(
-        f"{protocol}: {written} sessions written, {skipped} already complete; {simulated:,.0f} bench-seconds "
-        f"simulated in {wall:.1f} s ({simulated / wall:,.0f}× real time), {messages:,} messages "
-        f"→ {sessions_dir}"
+        f"{experiment}: {written} sessions written, {skipped} already complete; "
+        f"{simulated:,.0f} bench-seconds simulated in {wall:.1f} s ({simulated / wall:,.0f}× real time), "
+        f"{messages:,} messages → {sessions_dir}"
     )
     latencies = [t * 1e6 for c in compensators for t in c.latencies_s]
     if latencies:

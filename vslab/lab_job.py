@@ -32,7 +32,7 @@ def run(lab: Path, seed: int = 0, quick: bool = False, say: Callable[[str], None
     """Run every step into ``lab``; returns the report's path. ``batch_priority``: this process runs the
     steps after the real-time session at a batch priority (the CLI's choice; a caller that goes on with other
     work, a test run, keeps its own)."""
-    from acquisition.plans.sim_runner import simulate_protocol
+    from acquisition.plans.sim_runner import simulate_experiment
     from pipeline.build import build
 
     lab = Path(lab)
@@ -58,9 +58,9 @@ def run(lab: Path, seed: int = 0, quick: bool = False, say: Callable[[str], None
         lower_priority()
 
     step("simulated campaign, Experiment 1, POPUP tests")
-    for protocol in ("campaign", "experiment1", "popup_static", "popup_impact", "popup_deploy"):
-        overrides = QUICK.get(protocol, {}) if quick else {}
-        simulate_protocol(protocol, sessions, seed=seed, overrides=overrides)
+    for experiment in ("campaign", "experiment1", "popup_static", "popup_impact", "popup_deploy"):
+        overrides = QUICK.get(experiment, {}) if quick else {}
+        simulate_experiment(experiment, sessions, seed=seed, overrides=overrides)
     done("simulated campaign, Experiment 1, POPUP tests")
 
     step("datasets")
@@ -89,8 +89,8 @@ def run(lab: Path, seed: int = 0, quick: bool = False, say: Callable[[str], None
     return report
 
 
-def sessions_of(sessions: Path, protocol: str, runner: str | None = None) -> list[Path]:
-    """The session directories of one protocol, of one runner ("simulated", "real-time") if given (their
+def sessions_of(sessions: Path, experiment: str, runner: str | None = None) -> list[Path]:
+    """The session directories of one experiment, of one runner ("simulated", "real-time") if given (their
     session.json says which)."""
     from acquisition.recorder.sessions import SessionError, read_card
 
@@ -103,7 +103,7 @@ def sessions_of(sessions: Path, protocol: str, runner: str | None = None) -> lis
         except SessionError as exc:  # never joins a dataset; named, and the rest go on
             log.warning("skipped %s", exc)
             continue
-        if card.get("protocol") == protocol and (runner is None or card.get("runner") == runner):
+        if card.get("protocol") == experiment and (runner is None or card.get("runner") == runner):
             out.append(d)
     return out
 
@@ -133,7 +133,7 @@ def _train(lab: Path, dataset_version: str) -> dict[str, str]:
 
 
 def _experiment2(lab: Path, sessions: Path, inverse_version: str, seed: int, borrowed: dict):
-    from acquisition.plans.sim_runner import simulate_protocol
+    from acquisition.plans.sim_runner import simulate_experiment
     from pipeline.build import build
     from vslab.app import inverse_compensator
 
@@ -143,5 +143,5 @@ def _experiment2(lab: Path, sessions: Path, inverse_version: str, seed: int, bor
         hybrid.setdefault(plan.robot, inverse_compensator(inverse_version, plan.robot, lab))
         return hybrid[plan.robot]
 
-    simulate_protocol("experiment2", sessions, seed=seed, inverse_model=compensator)
+    simulate_experiment("experiment2", sessions, seed=seed, inverse_model=compensator)
     return build(sessions_of(sessions, "experiment2"), lab, "experiment2", borrowed)

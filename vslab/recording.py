@@ -263,7 +263,7 @@ def record(
 
 @app.command()
 def run(
-    protocol: Annotated[str, typer.Argument(help="Protocol (configs/protocols/) or a YAML path.")],
+    experiment: Annotated[str, typer.Argument(help="Experiment (configs/experiments/) or a YAML path.")],
     plan: Annotated[str, typer.Option(help="Which of its plans: a name, or its number (0 = first).")] = "0",
     set_: Annotated[list[str] | None, typer.Option("--set", help="Override a parameter: key=value.")] = None,
     ports: Annotated[Path | None, typer.Option(help=PORTS_HELP)] = None,
@@ -277,10 +277,10 @@ def run(
     live_host: LiveHost = "127.0.0.1",
     live_port: LivePort = 8765,
 ) -> None:
-    """Run one plan of a protocol in real time on the devices (or the rig) while recording it. Payload
+    """Run one plan of an experiment in real time on the devices (or the rig) while recording it. Payload
     changes and taps prompt the operator (on the rig: applied). Ctrl-C: a safe stop; the file stays valid."""
     from acquisition.plans.compensation import StaticModelCompensator
-    from acquisition.plans.protocols import expand_protocol
+    from acquisition.plans.experiments import expand_experiment
     from acquisition.plans.rt_runner import RealTimeRunner, RunnerError
     from acquisition.safety import SafetyChecker, SafetyError
     from pipeline.in_loop import InverseModelCompensator
@@ -289,13 +289,13 @@ def run(
     overrides = _overrides(set_ or [])
     model = None if inverse_model is None else load_inverse_model(inverse_model)  # checked, whatever the plan
     try:
-        robots, plans, _ = expand_protocol(protocol, overrides)
-    except (ValueError, OSError) as exc:  # ProtocolError, RobotDescriptionError, an unreachable path
+        robots, plans, _ = expand_experiment(experiment, overrides)
+    except (ValueError, OSError) as exc:  # ExperimentError, RobotDescriptionError, an unreachable path
         _error(str(exc))
     chosen = [p for k, p in enumerate(plans) if plan in (p.name, str(k))]
     if not chosen:
         more = " …" if len(plans) > 10 else ""
-        _error(f"{protocol} has no plan {plan!r}; its plans (or their numbers, from 0): "
+        _error(f"{experiment} has no plan {plan!r}; its plans (or their numbers, from 0): "
                + ", ".join(p.name for p in plans[:10]) + more)  # fmt: skip
     the_plan = chosen[0]
     desc = robots[the_plan.robot]
@@ -319,7 +319,7 @@ def run(
     console.print(f"{the_plan.name}: {the_plan.duration_s:.1f} s on {desc.name}")
     with _devices(desc, ports, rig, session_id) as (port_map, rig_dir):
         on_payload, on_tap = _operator(rig_dir if rig else None)
-        name = the_plan.parameters.get("protocol", protocol)
+        name = the_plan.parameters.get("protocol", experiment)
         rec, view = _recorder(desc, port_map, session_id, name, rates, live, live_host, live_port,
                               plan=the_plan.name, runner="real-time")  # fmt: skip
         with view as live_server:

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import serial
 
+from acquisition.codecs import board_lines as bp
 from acquisition.devices.base import Device, host_now_ns
 from acquisition.errors import (
     DeviceDisconnectedError,
@@ -29,7 +30,6 @@ from acquisition.errors import (
     DeviceReplyError,
     DeviceTimeoutError,
 )
-from acquisition.protocols import boards as bp
 
 log = logging.getLogger(__name__)
 _READ_SLICE_S = 0.005  # serial read timeout: how long one blocking read waits for a first byte

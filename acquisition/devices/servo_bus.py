@@ -31,6 +31,7 @@ from dynamixel_sdk import (
     PortHandler,
 )
 
+from acquisition.codecs import dynamixel as dx
 from acquisition.devices.base import Device, host_now_ns
 from acquisition.devices.servo_errors import ServoHardwareAlert, ServoStatusError, status_error
 from acquisition.errors import (
@@ -39,7 +40,6 @@ from acquisition.errors import (
     DeviceProtocolError,
     DeviceTimeoutError,
 )
-from acquisition.protocols import dynamixel as dx
 
 __all__ = ["ServoBus", "ServoHardwareAlert", "ServoState", "ServoStatusError"]
 

@@ -4,14 +4,14 @@ Protocol 2.0 status packets carry an error byte: bits 0–6 an error number (1 R
 3 CRC, 4 Data Range, 5 Data Length, 6 Data Limit, 7 Access; ROBOTIS e-manual, protocol2), bit 7 the hardware
 Alert (Hardware Error Status 70 is set and the servo has switched its torque off). Each number has its own
 :class:`ServoStatusError` subclass; the message names the bus, the servo, the control-table item (from
-:mod:`acquisition.protocols.xm430`), what the servo said and what to do.
+:mod:`acquisition.codecs.xm430`), what the servo said and what to do.
 """
 
 from __future__ import annotations
 
+from acquisition.codecs import dynamixel as dx
+from acquisition.codecs import xm430
 from acquisition.errors import DeviceReplyError
-from acquisition.protocols import dynamixel as dx
-from acquisition.protocols import xm430
 
 
 class ServoStatusError(DeviceReplyError):

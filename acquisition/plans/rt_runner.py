@@ -25,6 +25,7 @@ import numpy as np
 
 from acquisition.command_guard import CommandGuard, CommandRefused
 from acquisition.devices.base import host_now_ns
+from acquisition.errors import AcquisitionError
 from acquisition.plans.compensation import Compensator
 from acquisition.plans.plan import Plan
 from acquisition.recorder.recorder import Recorder
@@ -35,7 +36,7 @@ from acquisition.schemas.events import Event, EventKind
 log = logging.getLogger(__name__)
 
 
-class RunnerError(RuntimeError):
+class RunnerError(AcquisitionError, RuntimeError):
     """The plan cannot start (a device the plan needs is missing or silent)."""
 
 

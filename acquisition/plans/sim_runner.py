@@ -394,8 +394,8 @@ def _write_commands(w: SessionWriter, topics, cmds: dict, tb: np.ndarray, last_g
     return n
 
 
-def simulate_protocol(
-    protocol: str,
+def simulate_experiment(
+    experiment: str,
     sessions_dir: Path,
     seed: int = 0,
     benches: int = 128,
@@ -403,15 +403,15 @@ def simulate_protocol(
     progress: Callable[[str, float], None] | None = None,
     inverse_model: Callable[[Plan], Compensator] | None = None,
 ) -> list[SimReport]:
-    """Expand a protocol (``configs/protocols/<name>.yaml`` + overrides) into plans and run them all on the
-    twin, at most ``benches`` benches per batch. Sessions already complete on disk are skipped.
+    """Expand an experiment (``configs/experiments/<name>.yaml`` + overrides) into plans and run them all on
+    the twin, at most ``benches`` benches per batch. Sessions already complete on disk are skipped.
 
     Experiment 2's ``hybrid`` plans need ``inverse_model``: it gives the compensator (a trained inverse
     network) for a plan; the layers above ``acquisition`` (the pipeline's registry) provide it."""
-    from acquisition.plans.protocols import expand_protocol
+    from acquisition.plans.experiments import expand_experiment
 
-    robots, plans, params = expand_protocol(protocol, overrides, benches=benches, seed=seed)
-    kind = Path(protocol).stem
+    robots, plans, params = expand_experiment(experiment, overrides, benches=benches, seed=seed)
+    kind = Path(experiment).stem
     if kind == "experiment2" and "hybrid" in params["commands"] and inverse_model is None:
         raise ValueError(
             "experiment2: hybrid commands need a trained inverse model (train one first, or run without "

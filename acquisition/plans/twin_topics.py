@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from acquisition.protocols import dynamixel as dx
+from acquisition.codecs import dynamixel as dx
 from acquisition.schemas import topics as T
 from acquisition.sim.streams import Stream
 from models.robot import RobotDescription

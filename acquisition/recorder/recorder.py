@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from acquisition.errors import AcquisitionError
 from acquisition.recorder.daemon import EVENT_BYTES, push_event
 from acquisition.recorder.layout import SUPERVISOR, DeviceEntry, Layout
 from acquisition.recorder.ring import Ring
@@ -58,7 +59,7 @@ CONNECT_S = 30.0  # a first connection (the tracker's handshake takes seconds) m
 WRITER_RESTARTS = 5  # a writer that keeps dying (disk full, …) is not restarted forever
 
 
-class RecorderError(RuntimeError):
+class RecorderError(AcquisitionError, RuntimeError):
     """The recording cannot start (no device to record, a device vslab has no driver for)."""
 
 

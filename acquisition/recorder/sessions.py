@@ -17,6 +17,7 @@ import numpy as np
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 
+from acquisition.errors import AcquisitionError
 from acquisition.recorder.recover import RECOVERED_SUFFIX, RecoveryReport, recover, recovered_path
 from acquisition.recorder.writer import SESSION_CARD
 
@@ -25,7 +26,7 @@ CARD_FIELDS = ("robot", "protocol")  # what every session.json names (the writer
 _SUMMARY_ERRORS = (McapError, struct.error, OSError, EOFError, ValueError, KeyError)
 
 
-class SessionError(ValueError):
+class SessionError(AcquisitionError, ValueError):
     """A folder under ``sessions/`` that is not a readable session: ``path`` (the file or folder), ``reason``
     (what is wrong) and ``hint`` (what to do), said in one line."""
 

@@ -15,6 +15,8 @@ from functools import cached_property
 
 import numpy as np
 
+from acquisition.errors import AcquisitionError
+
 CDR_LE_HEADER = b"\x00\x01\x00\x00"  # encapsulation: CDR, little-endian, options 0
 HEADER_SIZE = len(CDR_LE_HEADER)
 
@@ -33,7 +35,7 @@ PRIMITIVES: dict[str, str] = {
 }
 
 
-class SchemaError(ValueError):
+class SchemaError(AcquisitionError, ValueError):
     """A message definition that is not a fixed-layout ros2msg, or values that do not fit it."""
 
 

@@ -21,14 +21,14 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from acquisition.codecs import dynamixel as dx
+from acquisition.codecs.board_lines import MAX_SET_PA
 from acquisition.processes import RT_PRIORITY, die_with_parent, elevate
-from acquisition.protocols import dynamixel as dx
-from acquisition.protocols.boards import MAX_SET_PA
 from acquisition.sim import sensors
 from acquisition.sim.clocks import _TICK_EPS as TICK_EPS
 from acquisition.sim.emulators.aurora import AuroraEmulator
 from acquisition.sim.emulators.base import Emulator
-from acquisition.sim.emulators.boards import PressureBoardEmulator, StepperBoardEmulator
+from acquisition.sim.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
 from acquisition.sim.emulators.dynamixel import DynamixelBusEmulator
 from acquisition.sim.ptyhost import PtyHost
 from acquisition.sim.twin_devices import TwinPressure, TwinServos, TwinStepper, TwinTrackerSource

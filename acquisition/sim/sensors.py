@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from acquisition.protocols import dynamixel as dx
+from acquisition.codecs import dynamixel as dx
 from models.robot import PressureSensorSpec
 
 # the XM430's register units live with the protocol; named here as the sensor model uses them

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from acquisition.protocols import dynamixel as dx
+from acquisition.codecs import dynamixel as dx
 from acquisition.sim import sensors, streams
 from acquisition.sim.clocks import _TICK_EPS as TICK_EPS
 from acquisition.sim.emulators.aurora import TrackerSample

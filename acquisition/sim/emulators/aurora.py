@@ -1,7 +1,7 @@
 """NDI Aurora emulator: the serial API that ndicapi / scikit-surgerynditracker speak, as a state machine.
 
 One wired tool sits on port handle 0x0A. The frame source gives its pose at the rig's time; TX and BX replies
-are built from it with :mod:`acquisition.protocols.ndi`. Error codes are NDI's (as ndicapi names them):
+are built from it with :mod:`acquisition.codecs.ndi`. Error codes are NDI's (as ndicapi names them):
 0x01 invalid command, 0x04 invalid CRC, 0x07 wrong number of parameters, 0x08 invalid port handle,
 0x0C invalid in the current mode (e.g. TX before TSTART), 0x0E port handle not initialized.
 
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from acquisition.protocols import ndi
+from acquisition.codecs import ndi
 from acquisition.sim.emulators.base import Emulator
 
 log = logging.getLogger(__name__)

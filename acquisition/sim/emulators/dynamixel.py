@@ -25,7 +25,7 @@ from typing import Protocol
 
 import numpy as np
 
-from acquisition.protocols import dynamixel as dx
+from acquisition.codecs import dynamixel as dx
 from acquisition.sim.emulators.base import Emulator
 from acquisition.sim.emulators.xm430_table import ControlTable
 

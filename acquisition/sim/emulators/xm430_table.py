@@ -1,6 +1,6 @@
 """One XM430's control table as the servo keeps it: what a write may change and the error it gets otherwise.
 
-The items (address, size, access, range) are those of :mod:`acquisition.protocols.xm430`. A write is checked
+The items (address, size, access, range) are those of :mod:`acquisition.codecs.xm430`. A write is checked
 whole and stored only if every byte of it is accepted, in this order (the first refusal is the reply):
 
 - Data Length Error (5): the write does not start at the first byte of an item or stops inside one;
@@ -20,9 +20,9 @@ plain storage (the initial state).
 
 from __future__ import annotations
 
-from acquisition.protocols import dynamixel as dx
-from acquisition.protocols import xm430
-from acquisition.protocols.xm430 import OWNER, Item
+from acquisition.codecs import dynamixel as dx
+from acquisition.codecs import xm430
+from acquisition.codecs.xm430 import OWNER, Item
 
 _INDIRECT = tuple(
     range(start, start + xm430.INDIRECT_BLOCK) for start in (xm430.INDIRECT_DATA_1, xm430.INDIRECT_DATA_29)

@@ -11,6 +11,8 @@ import math
 import struct
 from dataclasses import dataclass
 
+from acquisition.errors import CodecError
+
 HEADER = b"\xff\xff\xfd\x00"
 BROADCAST_ID = 0xFE
 STATUS = 0x55
@@ -78,7 +80,7 @@ PRESENT_INPUT_VOLTAGE = (144, 2)
 PRESENT_TEMPERATURE = (146, 1)
 PROTOCOL_VERSION = (13, 1)
 EEPROM_END = 64  # addresses below are writable only with torque off
-CONTROL_TABLE_SIZE = 662  # addresses 0 … 661 (Indirect Data 56); the items: acquisition.protocols.xm430
+CONTROL_TABLE_SIZE = 662  # addresses 0 … 661 (Indirect Data 56); the items: acquisition.codecs.xm430
 XM430_W350_MODEL = 1020
 OPERATING_MODE_POSITION = 3
 
@@ -163,7 +165,7 @@ class Packet:
     error: int = 0
 
 
-class PacketError(ValueError):
+class PacketError(CodecError):
     """Bytes that do not decode as a packet (too short, a length that does not match, a failed CRC)."""
 
 

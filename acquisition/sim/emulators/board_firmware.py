@@ -22,7 +22,7 @@ from typing import NamedTuple, Protocol
 
 import numpy as np
 
-from acquisition.protocols import boards as bp
+from acquisition.codecs import board_lines as bp
 from acquisition.sim.emulators.base import Emulator
 
 log = logging.getLogger(__name__)

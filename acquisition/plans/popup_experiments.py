@@ -1,4 +1,4 @@
-"""The POPUP arm's test protocols of seed 001, expanded into plans (one plan per session):
+"""The POPUP arm's test experiments of seed 001, expanded into plans (one plan per session):
 
 - ``popup_static``: link 2 held horizontal as a cantilever, tip masses loaded then unloaded at each pressure,
   a settled hold at every load, repeated (Fig. 7: load–displacement with hysteresis);
@@ -8,7 +8,7 @@
   link 1's transducer has reached it (PLAN_STEP 'pressure-check' events, verified by
   :func:`verify_pressure_checks`).
 
-Parameters come from ``configs/protocols/popup_*.yaml`` (``protocols.load_protocol``).
+Parameters come from ``configs/experiments/popup_*.yaml`` (``experiments.load_experiment``).
 """
 
 from __future__ import annotations
@@ -193,7 +193,7 @@ def verify_pressure_checks(
     return out
 
 
-PROTOCOLS: dict[str, Callable[[RobotDescription, dict], list[Plan]]] = {
+EXPERIMENTS: dict[str, Callable[[RobotDescription, dict], list[Plan]]] = {
     "popup_static": static_test,
     "popup_impact": impact_test,
     "popup_deploy": deployment,

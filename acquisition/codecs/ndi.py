@@ -12,16 +12,18 @@ import re
 import struct
 from dataclasses import dataclass
 
+from acquisition.errors import CodecError
+
 BX_START = b"\xc4\xa5"
 BX_VALID, BX_MISSING, BX_DISABLED = 1, 2, 4
 _TX_TRANSFORM_LEN = 51
 
 
-class NdiCrcError(ValueError):
+class NdiCrcError(CodecError):
     """A command or reply failed its CRC-16 check."""
 
 
-class NdiFormatError(ValueError):
+class NdiFormatError(CodecError):
     """A command or reply does not follow the NDI framing."""
 
 

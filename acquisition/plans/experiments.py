@@ -1,4 +1,4 @@
-"""Protocols from the seeds, expanded into plans (one plan per session) from ``configs/protocols/*.yaml``.
+"""Experiments from the seeds, expanded into plans (one plan per session) from ``configs/experiments/*.yaml``.
 
 - ``experiment1``: linear, curve and square × payloads × VSL pressures and the rigid arm, repeated;
 - ``experiment2``: the curve at two (payload, pressure) cases, model-based vs compensated commands;
@@ -14,54 +14,60 @@ from typing import Any
 import numpy as np
 import yaml
 
+from acquisition.errors import AcquisitionError
 from acquisition.plans.plan import Plan, PlanBuilder
 from acquisition.schemas.events import EventKind
 from models import kinematics, trajectories
 from models.robot import AnthropomorphicKinematics, RobotDescription
 from models.yaml_files import read_yaml
 
-PROTOCOL_DIR = Path(__file__).resolve().parents[2] / "configs" / "protocols"
+EXPERIMENT_DIR = Path(__file__).resolve().parents[2] / "configs" / "experiments"
 BAR, GRAM, MM = 1e5, 1e-3, 1e-3
 
 
-class ProtocolError(ValueError):
-    """A protocol file or parameter that cannot be used: names the file (or ``--set``), the key and why."""
+class ExperimentError(AcquisitionError, ValueError):
+    """An experiment file or parameter that cannot be used: names the file (or ``--set``), the key and why."""
 
 
-def load_protocol(name_or_path: str | Path, **overrides: Any) -> dict:
-    """A protocol's parameters: ``configs/protocols/<name>.yaml`` (or a path), with keyword overrides for
-    keys it already has (a misspelt override is an error, not silently ignored). FileNotFoundError for an
-    unknown name or a missing file; :class:`ProtocolError` for a file that is not a mapping of parameters."""
+def load_experiment(name_or_path: str | Path, **overrides: Any) -> dict:
+    """An experiment's parameters: ``configs/experiments/<name>.yaml`` (or a path), with keyword
+    overrides for keys it already has (a misspelt override is an error, not silently ignored).
+    FileNotFoundError for an unknown name or a missing file; :class:`ExperimentError` for a file that is not a
+    mapping of parameters."""
     path = Path(name_or_path)
     if not path.suffix:
-        path = PROTOCOL_DIR / f"{name_or_path}.yaml"
+        path = EXPERIMENT_DIR / f"{name_or_path}.yaml"
     if path.is_dir():
-        raise ProtocolError(f"{path}: a folder, not a protocol file (YAML, like configs/protocols/*.yaml)")
+        raise ExperimentError(
+            f"{path}: a folder, not an experiment file (YAML, like configs/experiments/*.yaml)"
+        )
     if not path.is_file():
-        known = ", ".join(sorted(p.stem for p in PROTOCOL_DIR.glob("*.yaml")))
-        raise FileNotFoundError(f"no protocol {str(name_or_path)!r} (known: {known}; or a YAML file's path)")
+        known = ", ".join(sorted(p.stem for p in EXPERIMENT_DIR.glob("*.yaml")))
+        raise FileNotFoundError(
+            f"no experiment {str(name_or_path)!r} (known: {known}; or a YAML file's path)"
+        )
     shown = _shown(path)
-    params = read_yaml(path, ProtocolError, shown)
+    params = read_yaml(path, ExperimentError, shown)
     if not isinstance(params, dict) or not params:
         found = "nothing" if not params else f"a {type(params).__name__}"
-        raise ProtocolError(f"{shown}: expected a mapping of parameters (like configs/protocols/*.yaml), "
+        raise ExperimentError(f"{shown}: expected a mapping of parameters (like configs/experiments/*.yaml), "
                             f"found {found}")  # fmt: skip
     if unknown := sorted(set(overrides) - set(params), key=str):
-        raise ProtocolError(f"--set {unknown[0]}: {shown} has no parameter {unknown[0]!r} (its parameters: "
+        raise ExperimentError(f"--set {unknown[0]}: {shown} has no parameter {unknown[0]!r} (its parameters: "
                             f"{', '.join(map(str, params))})")  # fmt: skip
     return params | overrides
 
 
 def _shown(path: Path) -> str:
-    """A protocol file as messages name it: the shipped ones by file name, the user's by path."""
-    return path.name if path.parent == PROTOCOL_DIR else str(path)
+    """An experiment file as messages name it: the shipped ones by file name, the user's by path."""
+    return path.name if path.parent == EXPERIMENT_DIR else str(path)
 
 
-# How protocol parameters are checked against the shipped file of their protocol (the schema by example):
+# How experiment parameters are checked against the shipped file of their experiment (the schema by example):
 # a value must be of its default's kind (true/false, number, text, list, mapping), numbers finite and ≥ 0.
 COUNTS = {"points", "repetitions", "points_per_segment", "taps", "load_steps"}  # integers ≥ 1
 INDICES = {"order"}  # integers ≥ 0 (pressure channels)
-MAX_COUNT = 1_000_000  # far past any protocol (the paper's campaign: 17,568 points)
+MAX_COUNT = 1_000_000  # far past any experiment (the paper's campaign: 17,568 points)
 SIGNED = {"pose_deg", "workspace_mm"}  # may be negative
 POSITIVE = {"speed_m_s", "move_speed_rad_s", "return_speed_rad_s", "fill_time_constants", "tap_impulse_nms",
             "max_collapse_fraction"}  # fmt: skip
@@ -69,17 +75,17 @@ MAY_BE_EMPTY = {"without_masses", "rigid_links"}
 FIXED_LENGTH = {"pose_deg", "pressure_bar", "workspace_mm", "set_points_kpa"}  # as many values as the default
 
 
-def check_protocol(kind: str, params: dict, source: str, overridden=()) -> None:
-    """``params`` of protocol ``kind`` against its shipped file: the same keys, each value of the default's
-    kind and range. :class:`ProtocolError` names the first that is not (``source``: the file; a key in
+def check_experiment(kind: str, params: dict, source: str, overridden=()) -> None:
+    """``params`` of experiment ``kind`` against its shipped file: the same keys, each value of the default's
+    kind and range. :class:`ExperimentError` names the first that is not (``source``: the file; a key in
     ``overridden`` is named as ``--set key``)."""
-    default_path = PROTOCOL_DIR / f"{kind}.yaml"
+    default_path = EXPERIMENT_DIR / f"{kind}.yaml"
     defaults = yaml.safe_load(default_path.read_text(encoding="utf-8"))
     if missing := [k for k in defaults if k not in params]:
         needed = f"every parameter of {default_path.name} is needed"
-        raise ProtocolError(f"{source}: missing parameter(s) {missing} ({needed})")
+        raise ExperimentError(f"{source}: missing parameter(s) {missing} ({needed})")
     if unknown := sorted(set(params) - set(defaults), key=str):
-        raise ProtocolError(f"{source}: unknown parameter(s) {unknown} (those of {kind}: "
+        raise ExperimentError(f"{source}: unknown parameter(s) {unknown} (those of {kind}: "
                             f"{', '.join(defaults)})")  # fmt: skip
     for key, default in defaults.items():
         where = f"--set {key}" if key in overridden else f"{source}: {key}"
@@ -89,11 +95,13 @@ def check_protocol(kind: str, params: dict, source: str, overridden=()) -> None:
         box = params["workspace_mm"]
         if lo > hi or any(a >= b for a, b in zip(box["min"], box["max"], strict=True)):
             where = "--set" if {"pressure_bar", "workspace_mm"} & set(overridden) else source
-            raise ProtocolError(f"{where}: pressure_bar must be [low, high] and workspace_mm's min below its "
-                                "max on every axis")  # fmt: skip
+            raise ExperimentError(
+                f"{where}: pressure_bar must be [low, high] and workspace_mm's min below its max on every "
+                "axis"
+            )
     if kind == "popup_deploy" and any(ch >= len(params["set_points_kpa"]) for ch in params["order"]):
         where = "--set order" if "order" in overridden else f"{source}: order"
-        raise ProtocolError(f"{where}: {params['order']}: a channel of set_points_kpa (0 to "
+        raise ExperimentError(f"{where}: {params['order']}: a channel of set_points_kpa (0 to "
                             f"{len(params['set_points_kpa']) - 1})")  # fmt: skip
 
 
@@ -101,7 +109,7 @@ def _check_value(key: str, value, default, where: str) -> None:
     """``value`` of parameter ``key`` against its ``default`` (recursively into lists and mappings)."""
 
     def fail(expected: str) -> None:
-        raise ProtocolError(f"{where}: {value!r:.60}: expected {expected}")
+        raise ExperimentError(f"{where}: {value!r:.60}: expected {expected}")
 
     if isinstance(default, bool):
         if not isinstance(value, bool):
@@ -256,23 +264,25 @@ def campaign(robot: RobotDescription, params: dict, benches: int = 1, seed: int 
     return plans
 
 
-def expand_protocol(
-    protocol: str | Path, overrides: dict | None = None, benches: int = 1, seed: int = 0
+def expand_experiment(
+    experiment: str | Path, overrides: dict | None = None, benches: int = 1, seed: int = 0
 ) -> tuple[dict[str, RobotDescription], list[Plan], dict]:
-    """A protocol's robots (by name, as set up for it), its plans and its parameters (with overrides).
+    """An experiment's robots (by name, as set up for it), its plans and its parameters (with overrides).
     ``benches``: how many parallel benches the campaign's points are dealt to."""
-    from acquisition.plans import popup_protocols
+    from acquisition.plans import popup_experiments
     from models.robot import load_robot
 
-    params = load_protocol(protocol, **(overrides or {}))
-    kind = Path(protocol).stem
-    known = ["experiment1", "experiment2", "campaign", *popup_protocols.PROTOCOLS]
+    params = load_experiment(experiment, **(overrides or {}))
+    kind = Path(experiment).stem
+    known = ["experiment1", "experiment2", "campaign", *popup_experiments.EXPERIMENTS]
     if kind not in known:
         names = ", ".join(f"{k}.yaml" for k in known)
-        raise ProtocolError(f"no plans for protocol {str(protocol)!r}: a protocol file is named after the "
-                            f"protocol it sets ({names})")  # fmt: skip
-    source = _shown(_protocol_path(protocol))
-    check_protocol(kind, params, source, overridden=set(overrides or ()))
+        raise ExperimentError(
+            f"no plans for experiment {str(experiment)!r}: an experiment file is named after the "
+            f"experiment it sets ({names})"
+        )
+    source = _shown(_experiment_path(experiment))
+    check_experiment(kind, params, source, overridden=set(overrides or ()))
     robots = {params["robot"]: load_robot(params["robot"])}
     if kind in ("experiment1", "experiment2"):
         if params["rigid_arm"]:
@@ -281,18 +291,18 @@ def expand_protocol(
         plans = expand(robots[params["robot"]], robots.get(params["rigid_robot"]), params)
     elif kind == "campaign":
         plans = campaign(robots[params["robot"]], params, benches=benches, seed=seed)
-    elif kind in popup_protocols.PROTOCOLS:
+    elif kind in popup_experiments.EXPERIMENTS:
         links = [link.name for link in robots[params["robot"]].links]
         if "link" in params and params["link"] not in links:
             where = "--set link" if "link" in (overrides or {}) else f"{source}: link"
-            raise ProtocolError(f"{where}: {params['link']!r}: robot {params['robot']!r} has no such link "
+            raise ExperimentError(f"{where}: {params['link']!r}: robot {params['robot']!r} has no such link "
                                 f"(its links: {', '.join(links)})")  # fmt: skip
-        robot = popup_protocols.bench_robot(robots[params["robot"]], params)
+        robot = popup_experiments.bench_robot(robots[params["robot"]], params)
         robots = {robot.name: robot}
-        plans = popup_protocols.PROTOCOLS[kind](robot, params)
+        plans = popup_experiments.EXPERIMENTS[kind](robot, params)
     return robots, plans, params
 
 
-def _protocol_path(name_or_path: str | Path) -> Path:
+def _experiment_path(name_or_path: str | Path) -> Path:
     path = Path(name_or_path)
-    return path if path.suffix else PROTOCOL_DIR / f"{name_or_path}.yaml"
+    return path if path.suffix else EXPERIMENT_DIR / f"{name_or_path}.yaml"

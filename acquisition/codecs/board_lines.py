@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from acquisition.errors import CodecError
+
 BAUD = 250_000  # exact on a 16 MHz AVR (U2X, UBRR = 7)
 MAX_BODY = 63  # the firmware's line buffer is 64 bytes (body + NUL)
 TAG_MODULO = 65_536
@@ -60,11 +62,11 @@ VERB_USAGE = {
 }
 
 
-class BoardChecksumError(ValueError):
+class BoardChecksumError(CodecError):
     """A line is not ``<BODY>*<XX>\\n`` or its checksum does not match."""
 
 
-class BoardSyntaxError(ValueError):
+class BoardSyntaxError(CodecError):
     """A line's body (checksum fine) is not a message of the protocol."""
 
 

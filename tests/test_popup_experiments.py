@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from acquisition.plans import popup_protocols as pp
-from acquisition.plans import protocols
+from acquisition.plans import experiments
+from acquisition.plans import popup_experiments as pp
 from acquisition.plans.plan import Plan, PlanBuilder
-from acquisition.plans.sim_runner import SIM_EPOCH_NS, session_id, simulate_protocol
+from acquisition.plans.sim_runner import SIM_EPOCH_NS, session_id, simulate_experiment
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.fast_read import read_fixed_topics
@@ -25,8 +25,8 @@ REDUCED = {
 
 
 def _plans(name: str, popup, **overrides) -> tuple[dict, list[Plan]]:
-    params = protocols.load_protocol(name, **overrides)
-    return params, pp.PROTOCOLS[name](pp.bench_robot(popup, params), params)
+    params = experiments.load_experiment(name, **overrides)
+    return params, pp.EXPERIMENTS[name](pp.bench_robot(popup, params), params)
 
 
 def _kinds(plan: Plan, kind: EventKind, label: str | None = None) -> list[tuple[float, Event]]:
@@ -85,7 +85,7 @@ def sessions(tmp_path_factory, popup):
     out = {}
     for name, overrides in REDUCED.items():
         _, plans = _plans(name, popup, **overrides)
-        simulate_protocol(name, directory, seed=SEED, overrides=overrides)
+        simulate_experiment(name, directory, seed=SEED, overrides=overrides)
         out[name] = []
         for plan in plans:
             (part,) = sorted((directory / session_id(plan)).glob("*.mcap"))
