@@ -19,7 +19,7 @@ from matplotlib.lines import Line2D
 from analysis import vsl_paths as vp
 from models.hybrid import FORWARD_INPUTS
 from models.trajectories import EXPERIMENT1_NAMES
-from pipeline.cache import code_version
+from pipeline.cache import stage_version
 
 MM = 1e3
 XZ = [0, 2]
@@ -51,7 +51,7 @@ def _save(fig, out_dir: Path, stem: str, versions: dict) -> tuple[list[Path], di
     paths = [out_dir / f"{stem}.{ext}" for ext in ("pdf", "png")]
     for p in paths:
         fig.savefig(p, dpi=150 if p.suffix == ".png" else None)
-    record = {"figure": stem, "versions": dict(versions), "code_version": code_version()}
+    record = {"figure": stem, "versions": dict(versions), "code_version": stage_version("figure")}
     (out_dir / f"{stem}.json").write_text(json.dumps(record, indent=1, default=str))
     return [*paths, out_dir / f"{stem}.json"], record
 

@@ -32,7 +32,7 @@ import pandas as pd
 
 from models.robot import RobotDescription
 from pipeline import datasets
-from pipeline.cache import StageCache, code_version, stage_key
+from pipeline.cache import StageCache, stage_key, stage_version
 from pipeline.errors import PipelineError
 from pipeline.tables import columns
 
@@ -239,7 +239,7 @@ def build(
     data = datasets.add_splits(pd.concat(rows, ignore_index=True), **params["splits"])
     out = {"data": data} | ({"trajectories": trajectories} if trajectories is not None else {})
     card = {
-        "sources": sources, "failed": failed, "parameters": params, "code_version": code_version(),
+        "sources": sources, "failed": failed, "parameters": params, "code_version": stage_version("dataset"),
         "sessions": card_sessions,
         "registration": {k: _registration_card(v) for k, v in registrations.items()},
     }  # fmt: skip

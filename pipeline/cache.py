@@ -1,12 +1,14 @@
 """Content addresses: what a stage's output depends on, hashed, so unchanged work is never done twice.
 
-A stage output's key is the hash of its inputs' hashes, its parameters and the code version; it is stored
+A stage output's key is the hash of its inputs' hashes, its parameters and its code version (the code it runs,
+docstrings and comments left out, so only a change of behaviour re-versions it); it is stored
 under ``<lab>/cache/<stage>/<key>/``. Writes go to a temporary directory renamed into place, so a killed
 build never leaves a half-written entry that a later build would trust.
 """
 
 from __future__ import annotations
 
+import ast
 import hashlib
 import json
 import os
@@ -19,7 +21,14 @@ from pathlib import Path
 import pandas as pd
 
 ROOT = Path(__file__).resolve().parents[1]
-CODE_DIRS = ("pipeline", "models", "acquisition/schemas")  # what a stage's output can depend on
+PACKAGES = ("acquisition", "pipeline", "models", "analysis")  # whose code a result can depend on
+# What each stage's output is made by: its modules and, through their imports, everything they use.
+STAGE_MODULES = {
+    "session": ("pipeline.build",),  # ingest → clean → sync → segment of one session
+    "dataset": ("pipeline.build", "pipeline.datasets"),  # register, D, splits
+    "model": ("pipeline.train", "pipeline.registry"),  # fit, evaluate, save
+    "figure": ("analysis.lab_figures",),
+}
 
 
 def digest(value: object) -> str:
@@ -37,21 +46,95 @@ def file_hash(paths: Iterable[Path], block: int = 1 << 22) -> str:
     return h.hexdigest()
 
 
+def _without_docstrings(tree: ast.AST) -> ast.AST:
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (
+            isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+            and body
+            and isinstance(body[0], ast.Expr)
+            and isinstance(body[0].value, ast.Constant)
+            and isinstance(body[0].value.value, str)
+        ):
+            node.body = body[1:]
+    return tree
+
+
+def _module_file(name: str, root: Path) -> Path | None:
+    base = root.joinpath(*name.split("."))
+    for path in (base.with_suffix(".py"), base / "__init__.py"):
+        if path.is_file():
+            return path
+    return None
+
+
+def _imports(tree: ast.AST, name: str, is_package: bool) -> set[str]:
+    """The project modules a module's code imports, wherever the import stands (a function's lazy import
+    too): ``from a import b`` counts ``a`` and, where it is a module, ``a.b``."""
+    found = set()
+    package = name if is_package else name.rpartition(".")[0]
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                parts = package.split(".")
+                base = ".".join(parts[: len(parts) - node.level + 1])
+                module = f"{base}.{node.module}" if node.module else base
+            else:
+                module = node.module or ""
+            found.add(module)
+            found.update(f"{module}.{alias.name}" for alias in node.names)
+    return {m for m in found if m.split(".")[0] in PACKAGES}
+
+
 @cache
-def code_version() -> str:
-    """Hash of the source the pipeline's results depend on (its own code, the models, the schemas): changes
-    when that code changes, not when a comment elsewhere does; no git needed."""
-    files = sorted(p for d in CODE_DIRS for p in (ROOT / d).rglob("*.py"))
+def _normalised(name: str, root: Path) -> tuple[str, frozenset[str]] | None:
+    """A module's code as its syntax tree without docstrings (comments never reach the tree) and the project
+    modules it imports; None where ``name`` is not a module of ours (an imported function's name)."""
+    path = _module_file(name, root)
+    if path is None:
+        return None
+    tree = _without_docstrings(ast.parse(path.read_text(), filename=str(path)))
+    imports = _imports(tree, name, path.name == "__init__.py")
+    return ast.dump(tree, annotate_fields=False, include_attributes=False), frozenset(imports)
+
+
+@cache
+def code_version(*modules: str, root: Path = ROOT) -> str:
+    """Hash of the code that ``modules`` run: theirs and every project module they import, transitively,
+    each as its syntax tree without docstrings and comments. A docstring or comment edit leaves it as it was;
+    a change of what the code does changes it. No modules: the code of every stage."""
+    pending = list(modules or sorted({m for ms in STAGE_MODULES.values() for m in ms}))
+    seen: dict[str, str] = {}
+    while pending:
+        name = pending.pop()
+        if name in seen:
+            continue
+        module = _normalised(name, Path(root))
+        if module is None:
+            seen[name] = ""
+            continue
+        seen[name], imports = module
+        pending.extend(imports - seen.keys())
     h = hashlib.sha256()
-    for p in files:
-        h.update(str(p.relative_to(ROOT)).encode())
-        h.update(p.read_bytes())
+    for name in sorted(seen):
+        if seen[name]:
+            h.update(f"{name}\n{seen[name]}\n".encode())
     return h.hexdigest()[:16]
+
+
+def stage_version(stage: str, root: Path | None = None) -> str:
+    """The code version of one stage (a key of ``STAGE_MODULES``), of the code under ``root`` (this
+    checkout's by default)."""
+    return code_version(*STAGE_MODULES[stage], root=ROOT if root is None else Path(root))
 
 
 def stage_key(stage: str, inputs: list[str], parameters: dict) -> str:
     """The cache key of one stage run."""
-    return digest({"stage": stage, "inputs": inputs, "parameters": parameters, "code": code_version()})[:24]
+    return digest({"stage": stage, "inputs": inputs, "parameters": parameters, "code": stage_version(stage)})[
+        :24
+    ]
 
 
 class StageCache:

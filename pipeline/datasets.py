@@ -27,7 +27,7 @@ import pandas as pd
 
 from models import kinematics
 from models.robot import AnthropomorphicKinematics, RobotDescription
-from pipeline.cache import code_version, digest
+from pipeline.cache import digest, stage_version
 from pipeline.tables import columns
 
 SPLITS = ("train", "val", "test")
@@ -117,7 +117,7 @@ def add_splits(d: pd.DataFrame, seed: int = 0, group: str = "session") -> pd.Dat
 def dataset_version(sources: dict[str, str], parameters: dict) -> str:
     """The version id: a hash of the source sessions' content hashes, the parameters and the code version."""
     return digest(
-        {"sources": dict(sorted(sources.items())), "parameters": parameters, "code": code_version()}
+        {"sources": dict(sorted(sources.items())), "parameters": parameters, "code": stage_version("dataset")}
     )[:16]
 
 

@@ -32,7 +32,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from models.hybrid import HybridNet, NetConfig
-from pipeline.cache import code_version, digest, file_hash
+from pipeline.cache import digest, file_hash, stage_version
 from pipeline.errors import PipelineError
 
 log = logging.getLogger(__name__)
@@ -67,7 +67,7 @@ class ModelIntegrityError(PipelineError, ValueError):
 def model_version(dataset_version: str, config) -> str:
     """The version id of a model of ``dataset_version`` trained with ``config`` (TrainConfig or its dict)."""
     cfg = config if isinstance(config, dict) else config.to_dict()
-    return digest({"dataset": dataset_version, "config": cfg, "code": code_version()})[:16]
+    return digest({"dataset": dataset_version, "config": cfg, "code": stage_version("model")})[:16]
 
 
 class _Exported(torch.nn.Module):
@@ -107,7 +107,7 @@ def save_model(root: Path, name: str, version: str, model: HybridNet, card: dict
         export(model).save(str(tmp / EXPORT))
         full = {
             "name": name, "version": version, **jsonable(card), "net": _net_config(model, card).to_dict(),
-            "code_version": code_version(), "torch": torch.__version__,
+            "code_version": stage_version("model"), "torch": torch.__version__,
             "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
             "files": {f: file_hash([tmp / f]) for f in FILES},
         }  # fmt: skip
