@@ -10,24 +10,32 @@ session directory is never written. User-causable problems raise ``IngestError``
 from __future__ import annotations
 
 import logging
-import struct
 from collections.abc import Collection, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import zstandard
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
-from mcap.records import Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
 from pydantic import ValidationError
 
 from acquisition.schemas.cdr import FixedMessage, SchemaError
 from acquisition.schemas.dynamic import DynamicMessage
 from acquisition.schemas.events import Event
-from acquisition.schemas.fast_read import chunk_records, read_fixed_topics
+from acquisition.schemas.fast_read import read_fixed_topics
+from acquisition.schemas.mcap_reader import (
+    MAGIC,
+    READ_ERRORS,
+    Channel,
+    Message,
+    Metadata,
+    RecordWalk,
+    Schema,
+    first_line,
+    indexed_messages,
+    metadata_records,
+    read_magic,
+    read_summary,
+)
 from acquisition.schemas.ros2msg import parse_fixed_message
 from acquisition.schemas.topics import EVENTS, session_topics
 from models.robot import RobotDescription
@@ -37,11 +45,8 @@ from pipeline.tables import EVENT_COLUMNS, SessionTables, StageReport
 
 log = logging.getLogger(__name__)
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 SESSION_METADATA = "vslab.session"  # acquisition.recorder.writer.SESSION_METADATA
 RECOVERED_SUFFIX = ".recovered.mcap"  # acquisition.recorder.recover.RECOVERED_SUFFIX
-_MESSAGE_HEADER = 1 + 8 + 2 + 4 + 8 + 8  # opcode, record length, channel, sequence, log time, publish time
-_READ_ERRORS = (McapError, struct.error, zstandard.ZstdError, EOFError, ValueError, KeyError, OSError)
 
 
 class IngestError(PipelineError):
@@ -130,21 +135,17 @@ def _read_part_checked(path: Path, generic_topics: set[str], report: StageReport
     """``_read_part``, with any damage it meets (a garbled schema, record or payload) as an IngestError."""
     try:
         return _read_part(path, generic_topics, report)
-    except (SchemaError, *_READ_ERRORS) as exc:
-        raise IngestError(path, f"unreadable ({_first_line(exc)}); truncated or corrupt?") from exc
+    except (SchemaError, *READ_ERRORS) as exc:
+        raise IngestError(path, f"unreadable ({first_line(exc)}); truncated or corrupt?") from exc
 
 
 def _read_part(path: Path, generic_topics: set[str], report: StageReport) -> _Part:
     with open(path, "rb") as f:
-        head = f.read(len(MCAP_MAGIC))
-        if head != MCAP_MAGIC:
+        head = read_magic(f)
+        if head != MAGIC:
             what = "not an MCAP file (no MCAP magic)" if head else "empty file (0 bytes)"
             raise IngestError(path, f"{what}: move it out of the session folder")
-        f.seek(0)
-        try:
-            summary = make_reader(f).get_summary()
-        except _READ_ERRORS:
-            summary = None
+        summary = read_summary(f)
         if summary is None:
             return _read_torn(path, generic_topics, report)
         part = _Part()
@@ -160,16 +161,15 @@ def _read_part(path: Path, generic_topics: set[str], report: StageReport) -> _Pa
             else:
                 generic.add(channel.topic)
         try:
-            f.seek(0)
-            for m in make_reader(f).iter_metadata():
-                if m.name == SESSION_METADATA:
-                    part.metadata = dict(m.metadata)
+            for name, metadata in metadata_records(f):
+                if name == SESSION_METADATA:
+                    part.metadata = metadata
             data = read_fixed_topics(path, sorted(fixed)) if fixed else {}
             for topic, d in data.items():
                 part.fixed[topic] = [(d.message, d.log_time, d.publish_time, d.rows)]
             decoders = _Decoders()
             wanted = {cid: c for cid, c in summary.channels.items() if c.topic in generic | {EVENTS}}
-            for cid, log_time, publish_time, payload in _indexed_messages(f, summary, set(wanted)):
+            for cid, log_time, publish_time, payload in indexed_messages(f, summary, set(wanted)):
                 channel = wanted[cid]
                 if channel.topic == EVENTS:
                     part.events.append((log_time, Event.decode(payload)))
@@ -177,48 +177,28 @@ def _read_part(path: Path, generic_topics: set[str], report: StageReport) -> _Pa
                     schema = summary.schemas.get(channel.schema_id)
                     row = _decode_generic(decoders, schema, channel, log_time, publish_time, payload)
                     part.generic.setdefault(channel.topic, []).append(row)
-        except (SchemaError, *_READ_ERRORS) as exc:
-            raise IngestError(path, f"unreadable ({_first_line(exc)}); truncated or corrupt?") from exc
+        except (SchemaError, *READ_ERRORS) as exc:
+            raise IngestError(path, f"unreadable ({first_line(exc)}); truncated or corrupt?") from exc
     return part
-
-
-def _indexed_messages(f, summary, channel_ids: set[int]) -> Iterable[tuple[int, int, int, bytes]]:
-    """(channel id, log time, publish time, payload) of the channels' messages, found through the chunks'
-    message indexes: only chunks that hold one are decompressed, and no other record is parsed."""
-    for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
-        present = sorted(cid for cid in ci.message_index_offsets if cid in channel_ids)
-        if not present:
-            continue
-        records = chunk_records(f, ci.chunk_start_offset, ci.chunk_length)
-        for cid in present:
-            f.seek(ci.message_index_offsets[cid] + 1 + 8 + 2)
-            (pairs_len,) = struct.unpack("<I", f.read(4))
-            pairs = np.frombuffer(f.read(pairs_len), dtype="<u8").reshape(-1, 2)
-            for log_time, offset in pairs.tolist():
-                record_len, _channel, _seq, _log, publish = struct.unpack_from("<QHIQQ", records, offset + 1)
-                start = offset + _MESSAGE_HEADER
-                yield cid, log_time, publish, records[start : offset + 9 + record_len]
 
 
 def _read_torn(path: Path, generic_topics: set[str], report: StageReport) -> _Part:
     """A part without a summary, read record by record up to the first cut-off or corrupt record."""
     part, schemas, channels = _Part(), {}, {}
     raw: dict[int, list[Message]] = {}
-    reason = "ended before its footer"
     with open(path, "rb") as f:
-        try:
-            for record in StreamReader(f, validate_crcs=True).records:
-                if isinstance(record, Schema):
-                    schemas[record.id] = record
-                elif isinstance(record, Channel):
-                    channels[record.id] = record
-                    part.topics.add(record.topic)
-                elif isinstance(record, Message) and record.channel_id in channels:
-                    raw.setdefault(record.channel_id, []).append(record)
-                elif isinstance(record, Metadata) and record.name == SESSION_METADATA:
-                    part.metadata = dict(record.metadata)
-        except _READ_ERRORS as exc:
-            reason = _first_line(exc)
+        walk = RecordWalk(f)
+        for record in walk:
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+                part.topics.add(record.topic)
+            elif isinstance(record, Message) and record.channel_id in channels:
+                raw.setdefault(record.channel_id, []).append(record)
+            elif isinstance(record, Metadata) and record.name == SESSION_METADATA:
+                part.metadata = dict(record.metadata)
+    reason = walk.reason or "ended before its footer"
     if not part.metadata and not raw:
         raise IngestError(path, f"truncated: nothing readable before the tear ({reason})")
     decoders = _Decoders()
@@ -250,11 +230,6 @@ def _fixed_message(schema: Schema | None, encoding: str) -> FixedMessage | None:
     if schema is None or encoding != "cdr" or schema.encoding != "ros2msg":
         return None
     return parse_fixed_message(schema.name, schema.data.decode())
-
-
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip().splitlines()
-    return f"{type(exc).__name__}: {text[0][:200]}" if text else type(exc).__name__
 
 
 # ---------------------------------------------------------------------------------------- the tables

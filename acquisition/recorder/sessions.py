@@ -9,21 +9,15 @@ raises ``SessionError``, one line naming the file, what is wrong and what to do;
 from __future__ import annotations
 
 import json
-import struct
 from dataclasses import dataclass, field
 from pathlib import Path
-
-import numpy as np
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
 
 from acquisition.errors import AcquisitionError
 from acquisition.recorder.recover import RECOVERED_SUFFIX, RecoveryReport, recover, recovered_path
 from acquisition.recorder.writer import SESSION_CARD
+from acquisition.schemas.mcap_reader import MAGIC, topic_spans
 
-MCAP_MAGIC = b"\x89MCAP0\r\n"
 CARD_FIELDS = ("robot", "protocol")  # what every session.json names (the writer always writes them)
-_SUMMARY_ERRORS = (McapError, struct.error, OSError, EOFError, ValueError, KeyError)
 
 
 class SessionError(AcquisitionError, ValueError):
@@ -151,12 +145,12 @@ def _check_part(part: Path) -> None:
     """``SessionError`` for a part that holds no MCAP at all (empty, or another kind of file)."""
     try:
         with open(part, "rb") as f:
-            head = f.read(len(MCAP_MAGIC))
+            head = f.read(len(MAGIC))
     except OSError as exc:
         raise SessionError(part, f"cannot be read ({exc.strerror or exc})", "check its permissions") from exc
     if not head:
         raise SessionError(part, "empty file (0 bytes): no data", "move it out of the session folder")
-    if head != MCAP_MAGIC:
+    if head != MAGIC:
         raise SessionError(part, "not an MCAP file (no MCAP magic)", "move it out of the session folder")
 
 
@@ -165,26 +159,8 @@ def _part_streams(part: Path) -> dict[str, tuple[int, int | None, int | None]] |
     indexes; None when either cannot be read (a torn or damaged part)."""
     try:
         with open(part, "rb") as f:
-            summary = make_reader(f).get_summary()
-            if summary is None or summary.statistics is None:
-                return None
-            out = {}
-            for cid, channel in summary.channels.items():
-                out[channel.topic] = (summary.statistics.channel_message_counts.get(cid, 0), None, None)
-            for ci in summary.chunk_indexes:
-                for cid, offset in ci.message_index_offsets.items():
-                    f.seek(offset + 9)
-                    _channel, length = struct.unpack("<HI", f.read(6))
-                    pairs = np.frombuffer(f.read(length), dtype="<u8").reshape(-1, 2)
-                    if len(pairs) == 0:
-                        continue
-                    n, lo, hi = out[summary.channels[cid].topic]
-                    first, last = int(pairs[:, 0].min()), int(pairs[:, 0].max())
-                    out[summary.channels[cid].topic] = (
-                        n, first if lo is None else min(lo, first), last if hi is None else max(hi, last)
-                    )  # fmt: skip
-            return out
-    except _SUMMARY_ERRORS:
+            return topic_spans(f)
+    except OSError:
         return None
 
 

@@ -17,11 +17,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import mcap
 import numpy as np
 
-from acquisition.recorder.mcap_chunks import BatchMcapWriter
 from acquisition.schemas import Event, FixedMessage
+from acquisition.schemas.mcap_writer import MCAP_LIBRARY_VERSION, BatchMcapWriter
 from acquisition.schemas.topics import EVENTS, MESSAGE_ENCODING, SCHEMA_ENCODING, Topic, session_topics
 from models.robot import RobotDescription
 
@@ -109,7 +108,7 @@ class SessionWriter:
             "protocol": protocol,
             "robot_description": robot.model_dump_json(),
             "vslab_version": vslab_version(),
-            "mcap_version": getattr(mcap, "__version__", "unknown"),
+            "mcap_version": MCAP_LIBRARY_VERSION,
             "python_version": platform.python_version(),
             **(metadata or {}),
         }

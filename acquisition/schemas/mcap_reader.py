@@ -1,0 +1,213 @@
+"""Reading the MCAP container: the one module (with ``mcap_writer``) that knows its records.
+
+What vslab reads of a file: its magic, its summary (schemas, channels, statistics, chunk and metadata
+indexes), the chunks' records and message indexes (so that fixed-size messages are gathered with numpy, never
+parsed one by one), metadata records, and, for a torn file without a summary, a linear walk of its records up
+to the first one that is cut off or corrupt. Built on the mcap package's reader and record classes; the
+byte layouts it reads itself are the spec's (https://mcap.dev/spec): a record is opcode (1) + length (8) +
+body, a Message body is channel id (2), sequence (4), log time (8), publish time (8), data.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterable, Iterator
+from typing import BinaryIO
+
+import numpy as np
+import zstandard
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.summary import Summary
+
+from acquisition.schemas.cdr import SchemaError
+
+__all__ = ["Channel", "Footer", "Header", "Message", "Metadata", "Schema", "Summary"]
+
+MAGIC = b"\x89MCAP0\r\n"
+RECORD_PREFIX = 1 + 8  # opcode, record length
+MESSAGE_HEADER = RECORD_PREFIX + 2 + 4 + 8 + 8  # … channel id, sequence, log time, publish time
+_PUBLISH_TIME_AT = RECORD_PREFIX + 2 + 4 + 8
+# what a damaged file raises from the mcap package, struct, zstd or the OS
+READ_ERRORS = (McapError, struct.error, zstandard.ZstdError, EOFError, ValueError, KeyError, OSError)
+
+
+def first_line(exc: BaseException) -> str:
+    """``Type: first line`` of an exception, for a one-line reason."""
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0][:200]}" if text else type(exc).__name__
+
+
+def read_magic(f: BinaryIO) -> bytes:
+    """The file's first bytes, as many as the magic has (compare with ``MAGIC``); leaves ``f`` at 0."""
+    head = f.read(len(MAGIC))
+    f.seek(0)
+    return head
+
+
+def read_summary(f: BinaryIO) -> Summary | None:
+    """The summary section, or None where the file has none (torn) or it cannot be read."""
+    f.seek(0)
+    try:
+        return make_reader(f).get_summary()
+    except READ_ERRORS:
+        return None
+
+
+def metadata_records(f: BinaryIO) -> Iterator[tuple[str, dict[str, str]]]:
+    """(name, map) of every metadata record, through the summary's metadata index."""
+    f.seek(0)
+    for m in make_reader(f).iter_metadata():
+        yield m.name, dict(m.metadata)
+
+
+def topic_messages(f: BinaryIO, topics: list[str]) -> Iterator[tuple[int, bytes]]:
+    """(log time, payload) of the topics' messages in log-time order (the generic reader: few messages)."""
+    f.seek(0)
+    for _, _, m in make_reader(f).iter_messages(topics=topics, log_time_order=True):
+        yield m.log_time, m.data
+
+
+def _decompress(compression: str, data: bytes, size: int) -> bytes:
+    if compression == "":
+        return data
+    if compression == "zstd":
+        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+    if compression == "lz4":
+        import lz4.frame
+
+        return lz4.frame.decompress(data)
+    raise SchemaError(f"unsupported chunk compression {compression!r}")
+
+
+def chunk_records(f: BinaryIO, offset: int, length: int) -> bytes:
+    """The decompressed records of the Chunk record at ``offset``."""
+    f.seek(offset)
+    raw = f.read(length)
+    pos = RECORD_PREFIX
+    _start, _end, size, _crc, clen = struct.unpack_from("<QQQIi", raw, pos)
+    pos += 8 + 8 + 8 + 4 + 4
+    compression = raw[pos : pos + clen].decode()
+    pos += clen
+    (records_len,) = struct.unpack_from("<Q", raw, pos)
+    pos += 8
+    return _decompress(compression, raw[pos : pos + records_len], size)
+
+
+def message_index(f: BinaryIO, offset: int) -> np.ndarray:
+    """The (log time, offset in the chunk) pairs of the MessageIndex record at ``offset``."""
+    f.seek(offset + RECORD_PREFIX)
+    _channel, length = struct.unpack("<HI", f.read(6))
+    return np.frombuffer(f.read(length), dtype="<u8").reshape(-1, 2)
+
+
+def _message_indexes(f: BinaryIO, offset: int, length: int) -> dict[int, np.ndarray]:
+    """Each channel's (log time, offset) pairs from the MessageIndex records that follow a chunk."""
+    f.seek(offset)
+    raw = f.read(length)
+    out, pos = {}, 0
+    while pos < len(raw):
+        record_len = struct.unpack_from("<Q", raw, pos + 1)[0]
+        channel_id, pairs_len = struct.unpack_from("<HI", raw, pos + RECORD_PREFIX)
+        at = pos + RECORD_PREFIX + 6
+        out[channel_id] = np.frombuffer(raw, dtype="<u8", count=pairs_len // 8, offset=at).reshape(-1, 2)
+        pos += RECORD_PREFIX + record_len
+    return out
+
+
+def _chunks_holding(summary: Summary, channel_ids: Iterable[int]):
+    wanted = set(channel_ids)
+    for ci in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+        present = sorted(cid for cid in ci.message_index_offsets if cid in wanted)
+        if present:
+            yield ci, present
+
+
+def fixed_size_messages(
+    f: BinaryIO, summary: Summary, sizes: dict[int, int]
+) -> dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
+    """Per channel whose messages all have ``sizes[channel]`` payload bytes, per chunk: (log times, publish
+    times, payloads as an (n, size) uint8 array), gathered with one numpy index per chunk and channel. A
+    message of another size is a ``SchemaError``."""
+    out: dict[int, list] = {cid: [] for cid in sizes}
+    for ci, present in _chunks_holding(summary, sizes):
+        records = np.frombuffer(chunk_records(f, ci.chunk_start_offset, ci.chunk_length), dtype=np.uint8)
+        indexes = _message_indexes(f, min(ci.message_index_offsets.values()), ci.message_index_length)
+        for cid in present:
+            pairs, size = indexes[cid], sizes[cid]
+            at = pairs[:, 1].astype(np.int64)
+            lengths = records[(at + 1)[:, None] + np.arange(8)].view("<u8").reshape(-1)
+            if np.any(lengths != MESSAGE_HEADER - RECORD_PREFIX + size):
+                raise SchemaError(f"channel {cid} has messages that are not {size} bytes")
+            payload = records[(at + MESSAGE_HEADER)[:, None] + np.arange(size)]
+            stamp = records[(at + _PUBLISH_TIME_AT)[:, None] + np.arange(8)].view("<u8").reshape(-1)
+            out[cid].append((pairs[:, 0].astype(np.int64), stamp.astype(np.int64), payload))
+    return out
+
+
+def indexed_messages(
+    f: BinaryIO, summary: Summary, channel_ids: set[int]
+) -> Iterator[tuple[int, int, int, bytes]]:
+    """(channel id, log time, publish time, payload) of the channels' messages of any size, found through the
+    chunks' message indexes: only chunks that hold one are decompressed, no other record is parsed."""
+    for ci, present in _chunks_holding(summary, channel_ids):
+        records = chunk_records(f, ci.chunk_start_offset, ci.chunk_length)
+        for cid in present:
+            for log_time, offset in message_index(f, ci.message_index_offsets[cid]).tolist():
+                record_len, _channel, _seq, _log, publish = struct.unpack_from("<QHIQQ", records, offset + 1)
+                yield (
+                    cid,
+                    log_time,
+                    publish,
+                    records[offset + MESSAGE_HEADER : offset + RECORD_PREFIX + record_len],
+                )
+
+
+def topic_spans(f: BinaryIO) -> dict[str, tuple[int, int | None, int | None]] | None:
+    """Per topic: (messages, first log time, last log time) from the summary's statistics and the message
+    indexes; None where either cannot be read (a torn or damaged file)."""
+    try:
+        summary = read_summary(f)
+        if summary is None or summary.statistics is None:
+            return None
+        counts = summary.statistics.channel_message_counts
+        out = {c.topic: (counts.get(cid, 0), None, None) for cid, c in summary.channels.items()}
+        for ci in summary.chunk_indexes:
+            for cid, offset in ci.message_index_offsets.items():
+                pairs = message_index(f, offset)
+                if len(pairs) == 0:
+                    continue
+                topic = summary.channels[cid].topic
+                n, lo, hi = out[topic]
+                first, last = int(pairs[:, 0].min()), int(pairs[:, 0].max())
+                out[topic] = (
+                    n,
+                    first if lo is None else min(lo, first),
+                    last if hi is None else max(hi, last),
+                )
+        return out
+    except READ_ERRORS:
+        return None
+
+
+class RecordWalk:
+    """The records of a file from its start, read linearly (no summary needed) up to the first that is cut
+    off or corrupt (CRCs checked): ``for record in walk``; afterwards ``complete`` says whether the footer was
+    reached and ``reason`` what stopped the walk ("" for a whole file). The one walk of a torn file."""
+
+    def __init__(self, f: BinaryIO) -> None:
+        self.f = f
+        self.complete = False
+        self.reason = ""
+
+    def __iter__(self) -> Iterator[Header | Schema | Channel | Message | Metadata | Footer]:
+        self.f.seek(0)
+        try:
+            for record in StreamReader(self.f, validate_crcs=True).records:
+                if isinstance(record, Footer):
+                    self.complete = True
+                yield record
+        except READ_ERRORS as exc:
+            self.reason = first_line(exc)
