@@ -13,7 +13,6 @@ Conventions (SI inside, degrees and kPa only for display):
 
 from __future__ import annotations
 
-import ast
 import json
 from pathlib import Path
 
@@ -47,10 +46,6 @@ PAPER_TABLE1 = pd.DataFrame(
 )
 
 
-def _parameters(metadata: dict) -> dict:
-    return ast.literal_eval(metadata["parameters"])
-
-
 def _seconds(log_time) -> np.ndarray:
     return np.asarray(log_time, np.int64) * 1e-9
 
@@ -78,7 +73,7 @@ def static_holds(directory: Path, link: str = "link2", arm_m: float | None = Non
     ev = st.events
     arm, own, radius = link_geometry(st.robot, link)
     arm = arm if arm_m is None else arm_m
-    pressure = float(_parameters(st.metadata)["pressure_pa"])
+    pressure = float(st.parameters["pressure_pa"])
     t_ev = _seconds(ev["log_time"])
     steps = ev[(ev["kind"] == EventKind.PLAN_STEP) & ev["label"].isin(BRANCHES)]
     pay = ev[ev["kind"] == EventKind.PAYLOAD]
@@ -194,7 +189,7 @@ def impact_taps(directory: Path) -> pd.DataFrame:
         f_s, zeta = free_oscillation(t[sel], a[sel], fs)
         rows.append({"session_id": st.session_id, "tap": i, "f_s_hz": f_s, "zeta": zeta})
     out = pd.DataFrame(rows)
-    out.insert(1, "pressure_pa", float(_parameters(st.metadata)["pressure_pa"]))
+    out.insert(1, "pressure_pa", float(st.parameters["pressure_pa"]))
     return out
 
 

@@ -37,6 +37,7 @@ from acquisition.schemas.mcap_reader import (
     read_summary,
 )
 from acquisition.schemas.ros2msg import parse_fixed_message
+from acquisition.schemas.session_card import SESSION_METADATA
 from acquisition.schemas.topics import EVENTS, session_topics
 from models.robot import RobotDescription
 from pipeline.cache import file_hash
@@ -45,7 +46,6 @@ from pipeline.tables import EVENT_COLUMNS, SessionTables, StageReport
 
 log = logging.getLogger(__name__)
 
-SESSION_METADATA = "vslab.session"  # acquisition.recorder.writer.SESSION_METADATA
 RECOVERED_SUFFIX = ".recovered.mcap"  # acquisition.recorder.recover.RECOVERED_SUFFIX
 
 

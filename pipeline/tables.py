@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from acquisition.schemas.session_card import session_parameters
 from models.robot import RobotDescription
 
 EVENT_COLUMNS = ("log_time", "kind", "index", "value", "label", "text")
@@ -71,6 +72,11 @@ class SessionTables:
         if len(self.events):
             starts.append(int(self.events["log_time"].iloc[0]))
         return min(starts) if starts else 0
+
+    @property
+    def parameters(self) -> dict:
+        """What the session's plan was asked for (its experiment's parameters), of any schema version."""
+        return session_parameters(self.metadata)
 
     def replace(self, **changes) -> SessionTables:
         """A copy with some fields changed; the report is copied so stages never share one."""

@@ -58,6 +58,9 @@ DAMAGE = {
     "card-random": lambda s: _card(s).write_bytes(_random(len(_card(s).read_bytes()))),
     "card-missing": lambda s: _card(s).unlink(),
     "card-no-protocol": lambda s: _card(s).write_text('{"robot": "vsl", "status": "complete"}\n'),
+    "card-future": lambda s: _card(s).write_text(
+        _card(s).read_text().replace('"schema_version": 2', '"schema_version": 9')
+    ),
     "part-corrupt": lambda s: _garble_middle(_part(s)),
     "part-truncated": lambda s: _halve(_part(s)),
     "part-empty": lambda s: _part(s).write_bytes(b""),
@@ -101,6 +104,7 @@ OUTCOMES = {
     "card-random": BAD_FOLDER,
     "card-missing": BAD_FOLDER,
     "card-no-protocol": BAD_FOLDER,
+    "card-future": BAD_FOLDER,  # a newer vslab's session: "update vslab"
     "part-corrupt": ("ok", "ok", "ok", "warn"),  # the summary is whole: list/info read no further
     "part-truncated": ("ok", "ok", "ok", "ok"),  # torn: listed as such, recovered, read to the tear
     "part-empty": BAD_FOLDER,

@@ -22,10 +22,11 @@ from acquisition.command_guard import CommandGuard, CommandRefused
 from acquisition.plans.compensation import Compensator, StaticModelCompensator
 from acquisition.plans.plan import Plan
 from acquisition.plans.twin_topics import stream_rows
-from acquisition.recorder.writer import SESSION_CARD, SessionWriter
+from acquisition.recorder.writer import SessionWriter
 from acquisition.safety import SafetyChecker
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
+from acquisition.schemas.session_card import SESSION_CARD
 from acquisition.sim.kernel import Trace
 from acquisition.sim.streams import servo_current_a
 from acquisition.sim.world import World
@@ -170,7 +171,7 @@ def simulate(
                 old.unlink()
         w = SessionWriter(directory, robot, session_id(p), protocol=p.parameters.get("protocol", p.name),
                           metadata={"plan": p.name, "runner": "simulated", "seed": str(seed),
-                                    "parameters": repr(p.parameters), TWIN_TRUTH: twin_truth(world, r)},
+                                    "parameters": p.parameters, TWIN_TRUTH: twin_truth(world, r)},
                           flush_s=30.0)  # fmt: skip
         w.open()
         w.event(Event(EventKind.SESSION_START, label=p.name), SIM_EPOCH_NS)

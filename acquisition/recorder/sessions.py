@@ -14,8 +14,8 @@ from pathlib import Path
 
 from acquisition.errors import AcquisitionError
 from acquisition.recorder.recover import RECOVERED_SUFFIX, RecoveryReport, recover, recovered_path
-from acquisition.recorder.writer import SESSION_CARD
 from acquisition.schemas.mcap_reader import MAGIC, topic_spans
+from acquisition.schemas.session_card import SESSION_CARD, SessionCardError, schema_version
 
 CARD_FIELDS = ("robot", "protocol")  # what every session.json names (the writer always writes them)
 
@@ -53,6 +53,10 @@ def read_card(directory: Path) -> dict:
         ) from exc  # fmt: skip
     if not isinstance(card, dict):
         raise SessionError(path, f"expected a JSON object, found {type(card).__name__}", aside)
+    try:
+        schema_version(card)
+    except SessionCardError as exc:
+        raise SessionError(path, str(exc)) from exc
     missing = [k for k in CARD_FIELDS if not isinstance(card.get(k), str) or not card[k]]
     if missing:
         raise SessionError(path, f"no {' or '.join(repr(k) for k in missing)} field", aside)

@@ -21,13 +21,17 @@ import numpy as np
 
 from acquisition.schemas import Event, FixedMessage
 from acquisition.schemas.mcap_writer import MCAP_LIBRARY_VERSION, BatchMcapWriter
+from acquisition.schemas.session_card import (
+    COUNTERS_METADATA,
+    SCHEMA_VERSION,
+    SESSION_CARD,
+    SESSION_METADATA,
+    as_metadata,
+)
 from acquisition.schemas.topics import EVENTS, MESSAGE_ENCODING, SCHEMA_ENCODING, Topic, session_topics
 from models.robot import RobotDescription
 
 PROFILE = "ros2"  # Foxglove and ROS 2 tools take the files as ros2 bags
-SESSION_METADATA = "vslab.session"
-COUNTERS_METADATA = "vslab.counters"
-SESSION_CARD = "session.json"
 
 
 def vslab_version() -> str:
@@ -103,6 +107,7 @@ class SessionWriter:
         self.clock = clock
         self.counters = {name: StreamCounters() for name in self.topics}
         self.metadata = {
+            "schema_version": str(SCHEMA_VERSION),
             "session_id": session_id,
             "robot": robot.name,
             "protocol": protocol,
@@ -110,7 +115,7 @@ class SessionWriter:
             "vslab_version": vslab_version(),
             "mcap_version": MCAP_LIBRARY_VERSION,
             "python_version": platform.python_version(),
-            **(metadata or {}),
+            **as_metadata(metadata or {}),
         }
         # resume: a writer restarted after its predecessor was killed goes on in a new part after the old ones
         self.parts: list[Path] = (
@@ -151,6 +156,7 @@ class SessionWriter:
         """``session.json`` beside the parts: what the session is, and how far it got."""
         card = {k: v for k, v in self.metadata.items() if k != "robot_description"}
         card |= {
+            "schema_version": SCHEMA_VERSION,
             "status": status,
             "parts": [p.name for p in self.parts],
             "counters": {k: c.as_dict() for k, c in self.counters.items()},

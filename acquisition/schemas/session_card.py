@@ -1,0 +1,62 @@
+"""What a session says about itself: ``session.json`` beside its parts and the same fields in each part's
+``vslab.session`` metadata record. Schema-versioned JSON, one reader for every version.
+
+Version 2 (this one) stores every value that is not a string as JSON (``parameters``: the plan's
+parameters as a JSON object) and says its ``schema_version``. Version 1 (no ``schema_version``) wrote the
+parameters with Python's ``repr``; they are still read (``ast.literal_eval``: literals only, nothing runs).
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+from collections.abc import Mapping
+from typing import Any
+
+from acquisition.errors import AcquisitionError
+
+SCHEMA_VERSION = 2
+SESSION_CARD = "session.json"  # beside the parts
+SESSION_METADATA = "vslab.session"  # the metadata record in every part
+COUNTERS_METADATA = "vslab.counters"  # the final stream counters, in the last part
+
+
+class SessionCardError(AcquisitionError, ValueError):
+    """Session metadata this version of vslab cannot read (a newer schema, unreadable parameters)."""
+
+
+def as_metadata(fields: Mapping[str, Any]) -> dict[str, str]:
+    """Fields as an MCAP metadata map (strings only): strings as they are, anything else as JSON."""
+    return {k: v if isinstance(v, str) else json.dumps(v, sort_keys=True) for k, v in fields.items()}
+
+
+def schema_version(fields: Mapping[str, Any]) -> int:
+    """The schema version of a card or metadata map (1 where none is written); newer than this vslab
+    knows: ``SessionCardError``."""
+    raw = fields.get("schema_version", 1)
+    try:
+        version = int(raw)
+    except (TypeError, ValueError):
+        raise SessionCardError(f"schema_version {raw!r} is not a whole number") from None
+    if version > SCHEMA_VERSION:
+        raise SessionCardError(
+            f"written by a newer vslab (session schema {version}; this one reads up to {SCHEMA_VERSION}): "
+            "update vslab"
+        )
+    return version
+
+
+def session_parameters(fields: Mapping[str, Any]) -> dict:
+    """The plan parameters of a session's metadata (``{}`` where it has none), of any schema version."""
+    raw = fields.get("parameters")
+    if raw is None:
+        return {}
+    if not isinstance(raw, str):
+        return dict(raw)
+    try:
+        value = json.loads(raw) if schema_version(fields) >= 2 else ast.literal_eval(raw)
+    except (ValueError, SyntaxError) as exc:
+        raise SessionCardError(f"unreadable parameters ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(value, dict):
+        raise SessionCardError(f"parameters are a {type(value).__name__}, not a mapping")
+    return value
