@@ -42,9 +42,7 @@ class _Group(TyperGroup):
         except typer.Abort:
             console.print("aborted")
             sys.exit(1)
-        except (
-            VslabError
-        ) as exc:  # an error no command caught: still one line, never a traceback
+        except VslabError as exc:  # an error no command caught: still one line, never a traceback
             _print_error(str(exc))
             sys.exit(2)
         sys.exit(code if isinstance(code, int) else 0)
