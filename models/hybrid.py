@@ -16,6 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from models.errors import NotFittedError
+
 FORWARD_INPUTS = ("fk_0", "fk_1", "fk_2", "p_0", "p_1", "i_0", "i_1")
 FORWARD_TARGETS = ("x_0", "x_1", "x_2")
 INVERSE_INPUTS = ("ik_0", "ik_1", "ik_2", "p_0", "p_1", "i_0", "i_1")
@@ -160,7 +162,7 @@ class HybridNet(nn.Module):
 
     def _check_fitted(self) -> None:
         if not int(self.fitted):
-            raise RuntimeError(
+            raise NotFittedError(
                 f"HybridNet {self.config.name!r}: call fit_scaler (or train) before predicting"
             )
 

@@ -16,7 +16,7 @@ import pandas as pd
 from scipy.optimize import least_squares
 
 from models import kinematics
-from models.errors import NotFittedError
+from models.estimator import Estimator
 from models.hybrid import FORWARD_TARGETS, INVERSE_TARGETS, columns_for
 from models.prbm import interp_table
 from models.robot import AnthropomorphicKinematics, RobotDescription, load_robot
@@ -32,14 +32,13 @@ def _cols(df: pd.DataFrame, names: tuple[str, ...]) -> np.ndarray:
     return df.loc[:, list(names)].to_numpy(float)
 
 
-class Baseline:
-    """Common base: direction check, fitted check; subclasses fill ``_fit`` and ``_predict``."""
+class Baseline(Estimator):
+    """Common base (the estimator contract, ``models.estimator``): the direction check in ``fit``, the
+    fitted check in ``predict``; subclasses fill ``_fit`` and ``_predict``."""
 
     name = "baseline"
 
     def __init__(self, direction: str = "forward") -> None:
-        if direction not in DIRECTIONS:
-            raise ValueError(f"direction must be one of {DIRECTIONS}, got {direction!r}")
         self.direction = direction
 
     @property
@@ -56,14 +55,19 @@ class Baseline:
         return self.inputs[:3]
 
     def fit(self, train_df: pd.DataFrame) -> Baseline:
+        if self.direction not in DIRECTIONS:
+            raise ValueError(f"direction must be one of {DIRECTIONS}, got {self.direction!r}")
+        self._check_parameters()
         self._fit(train_df)
         self.fitted_ = True
         return self
 
     def predict(self, df: pd.DataFrame) -> np.ndarray:
-        if not getattr(self, "fitted_", False):
-            raise NotFittedError(f"{self.name}: call fit() before predict()")
+        self.check_fitted()
         return self._predict(df)
+
+    def _check_parameters(self) -> None:
+        """``ValueError`` for a parameter out of its range (checked by ``fit``, as scikit-learn does)."""
 
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "direction": self.direction}
@@ -101,14 +105,14 @@ class PrbmGreyBox(Baseline):
     Inverse: the q that lands the predicted tip on the target (fixed point on the rigid IK of the tip).
     """
 
-    name = "prbm"
-
     def __init__(self, robot: RobotDescription | str | None = None, fit_stiffness: bool = True,
                  direction: str = "forward", iterations: int = 3) -> None:  # fmt: skip
         super().__init__(direction)
         self.robot, self.fit_stiffness, self.iterations = robot, fit_stiffness, iterations
-        if not fit_stiffness:
-            self.name = "prbm_description"
+
+    @property
+    def name(self) -> str:
+        return "prbm" if self.fit_stiffness else "prbm_description"
 
     # ---------------------------------------------------------------------------------------- physics
     def _setup(self, df: pd.DataFrame) -> None:
@@ -211,8 +215,7 @@ class PrbmGreyBox(Baseline):
         return out
 
     def to_dict(self) -> dict[str, Any]:
-        if not getattr(self, "fitted_", False):
-            raise NotFittedError(f"{self.name}: its parameters are learned by fit()")
+        self.check_fitted()
         out = super().to_dict() | {"robot": self.robot_.name, "fit_stiffness": self.fit_stiffness}
         out["payload_calibration"] = [float(v) for v in self.payload_calibration_]
         if self.fit_stiffness:
@@ -234,11 +237,16 @@ class SklearnBaseline(Baseline):
     def __init__(self, kind: str = "gbr", direction: str = "forward", random_state: int = 0,
                  n_neighbors: int = 8, max_iter: int = 300) -> None:  # fmt: skip
         super().__init__(direction)
-        if kind not in self.KINDS:
-            raise ValueError(f"kind must be one of {self.KINDS}, got {kind!r}")
         self.kind, self.random_state = kind, random_state
         self.n_neighbors, self.max_iter = n_neighbors, max_iter
-        self.name = kind
+
+    @property
+    def name(self) -> str:
+        return self.kind
+
+    def _check_parameters(self) -> None:
+        if self.kind not in self.KINDS:
+            raise ValueError(f"kind must be one of {self.KINDS}, got {self.kind!r}")
 
     def _estimator(self):
         from sklearn.ensemble import HistGradientBoostingRegressor

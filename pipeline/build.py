@@ -70,7 +70,7 @@ def stage_parameters() -> dict[str, dict[str, object]]:
     return {
         "clean": keyword(clean.clean, 1),
         "segment": {f.name: still[f.name] for f in dataclasses.fields(segment.Stillness)},
-        "register": keyword(register.register, 2) | {"from_dataset": str},
+        "register": keyword(register.TrackerRegistration.__init__, 2) | {"from_dataset": str},
         "splits": keyword(datasets.add_splits, 1),
     }
 
@@ -262,7 +262,7 @@ def _register(static: pd.DataFrame, robot: RobotDescription, parameters: dict, d
     """Fit tracker → base on these sessions' static points, or take it from another dataset of the same
     setup (``from_dataset: name@version``: trajectory-only sessions such as Experiment 2 have no static
     points)."""
-    from pipeline.register import FixedRegistration, register
+    from pipeline.register import FixedRegistration, TrackerRegistration
 
     if "from_dataset" not in parameters and not len(static):
         raise ValueError(
@@ -285,7 +285,7 @@ def _register(static: pd.DataFrame, robot: RobotDescription, parameters: dict, d
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"dataset {name}@{version}: its registration for {robot.name!r} is damaged "
                              f"({type(exc).__name__}: {exc}); build that dataset again") from exc  # fmt: skip
-    return register(static, robot, **parameters)
+    return TrackerRegistration(robot, **parameters).fit(static)
 
 
 def _resolve(root: Path, reference: str) -> str:
@@ -330,7 +330,7 @@ def _session_card(record: dict) -> dict:
 
 
 def _registration_card(registration) -> dict:
-    return registration.summary() if hasattr(registration, "summary") else repr(registration)
+    return registration.summary()
 
 
 class InlineExecutor(cf.Executor):

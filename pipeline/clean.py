@@ -2,8 +2,10 @@
 
 Per stream: duplicated samples (same sequence number and payload) go, samples are put in device order (by
 the unwrapped sequence / frame number; late arrivals are counted, kept), and the wrapping device stamp gets an
-unwrapped int64 twin, ``device_ticks``. Tracker frames that are MISSING (flag or NaN position) or carry an NDI
-port-status fault go, then Hampel outliers on position; pressure rows with a Hampel outlier on any channel go.
+unwrapped int64 twin, ``device_ticks``, unwrapped with the host's clock as a guide (``clock.unwrap_stamps``:
+a gap longer than half a wrap still unwraps right). Tracker frames that are MISSING (flag or NaN position)
+or carry an NDI port-status fault go, then Hampel outliers on position; pressure rows with a Hampel outlier
+on any channel go.
 
 Units: the recorder already writes SI (m, rad, rad/s, A, Pa); only the raw ADC ``counts`` are not, and they
 are kept as they are on purpose (their calibration belongs to the pipeline). Nothing is converted here.
@@ -17,12 +19,15 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from acquisition.schemas.stamps import unwrap_ticks
 from acquisition.schemas.topics import PRESSURE, TRACKER
+from pipeline.clock import unwrap_stamps
 from pipeline.tables import SessionTables, StageReport, columns
 
 MISSING, PORT_STATUS, OUTLIER, DUPLICATE = "missing", "port_status", "outlier", "duplicate"
 
-# the device stamp of each message layout and where it wraps
-DEVICE_STAMP_WRAPS = {"tick_ms": 1 << 15, "micros": 1 << 32, "frame": 1 << 32}
+# the device stamp of each message layout: where it wraps and its tick (s). The tracker's frame counter ticks
+# once a frame (the Aurora's 40 Hz); at 2³² frames it never wraps in a session, so its tick only scales the
+# host-aided unwrap, which cannot change it.
+DEVICE_STAMPS = {"tick_ms": (1 << 15, 1e-3), "micros": (1 << 32, 1e-6), "frame": (1 << 32, 1 / 40)}
 SEQUENCE_WRAP = 1 << 32  # seq and frame are uint32
 SEQUENCE_COLUMNS = ("seq", "frame")
 HOST_COLUMNS = ("log_time", "publish_time", "t")
@@ -68,9 +73,11 @@ def clean_stream(topic: str, df: pd.DataFrame, report: StageReport) -> pd.DataFr
         if late:
             df = df.iloc[np.argsort(order_key, kind="stable")]
     df = df.reset_index(drop=True)
-    stamp = next((c for c in DEVICE_STAMP_WRAPS if c in df.columns), None)
+    stamp = next((c for c in DEVICE_STAMPS if c in df.columns), None)
     if stamp is not None:
-        df = df.assign(device_ticks=unwrap_ticks(df[stamp].to_numpy(), DEVICE_STAMP_WRAPS[stamp]))
+        wrap, tick_s = DEVICE_STAMPS[stamp]
+        ticks = unwrap_stamps(df[stamp].to_numpy(), df["log_time"].to_numpy(), tick_s, wrap)
+        df = df.assign(device_ticks=ticks)
     report.values[f"clean/{topic}"] = {"out_of_order": late, "rows": len(df)}
     return df
 

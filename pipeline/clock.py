@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from models.estimator import Estimator
+
 
 @dataclass(frozen=True)
 class ClockSegment:
@@ -137,38 +139,65 @@ def envelope_line(x: np.ndarray, z: np.ndarray, width: float, slope: float | Non
     return float(np.min(zw[keep])), c
 
 
-def fit_clock(device_ticks_unwrapped: np.ndarray, host_ns: np.ndarray, tick_s: float, latency_s: float = 0.0,
-              ref_ns: int | None = None, stamp_phase: float = 0.5, window_s: float = 1.0,
-              reset_tol_s: float = 0.25, min_span_s: float = 5.0) -> ClockFit:  # fmt: skip
-    """Fit device ticks (unwrapped, int64, in host order) to host receive times (int64 ns) minus
-    ``latency_s``. ``ref_ns`` (default: the first host time) is where ``offset_s`` is read. ``stamp_phase``:
-    where in its tick a sample falls on average (0.5 for a floored counter read at any instant, 0 when the
-    count is the sampling event itself, as a tracker frame). Segments shorter than ``min_span_s`` of device
-    time keep the rate of the longer ones and fit only their offset."""
-    ticks = np.asarray(device_ticks_unwrapped, dtype=np.int64)
-    host = np.asarray(host_ns, dtype=np.int64)
-    if ticks.shape != host.shape or ticks.ndim != 1 or ticks.size < 2:
-        raise ValueError(f"fit_clock needs ≥ 2 paired 1-D samples, got {ticks.shape} and {host.shape}")
-    ref = int(host[0]) if ref_ns is None else int(ref_ns)
-    bounds = np.concatenate([[0], find_resets(ticks, host, tick_s, reset_tol_s), [ticks.size]])
-    y = (host - ref) * 1e-9 - latency_s  # host time of sampling + jitter (s since ref)
-    parts = []
-    for start, stop in itertools.pairwise(bounds):
-        x = (ticks[start:stop] - ticks[start]) * tick_s
-        parts.append((start, stop, x, y[start:stop] - x))
-    long = [p for p in parts if np.ptp(p[2]) >= min_span_s] or [max(parts, key=lambda p: np.ptp(p[2]))]
-    fits = {p[0]: envelope_line(p[2], p[3], _width(p[2], window_s)) for p in long}
-    shared = float(np.average([fits[p[0]][1] for p in long], weights=[p[1] - p[0] for p in long]))
-    segments, residual = [], []
-    for start, stop, x, z in parts:
-        a, c = fits[start] if start in fits else envelope_line(x, z, _width(x, window_s), shared)
-        segments.append(ClockSegment(int(start), int(stop), int(ticks[start]), a, 1.0 + c))
-        residual.append(z - a - c * x)
-    residual = np.concatenate(residual)
-    p50, p95 = np.percentile(residual, [50, 95])
-    return ClockFit(
-        tick_s, ref, latency_s, tuple(segments), float(p50), float(p95), int(ticks.size), stamp_phase
-    )
+class ClockModel(Estimator):
+    """A device clock fitted to host time: ``ClockModel(tick_s).fit(device_ticks, host_ns)``, then
+    ``predict(ticks)`` gives the host time of sampling (int64 ns) and ``clock_`` the fit (:class:`ClockFit`).
+
+    ``fit`` takes device ticks (unwrapped, int64, in host order) and host receive times (int64 ns); the
+    host times less ``latency_s`` are fitted. ``ref_ns`` (default: the first host time) is where
+    ``offset_s`` is read. ``stamp_phase``: where in its tick a sample falls on average (0.5 for a floored
+    counter read at any instant, 0 when the count is the sampling event itself, as a tracker frame). Segments
+    shorter than ``min_span_s`` of device time keep the rate of the longer ones and fit only their offset.
+    """
+
+    def __init__(self, tick_s: float = 1e-3, latency_s: float = 0.0, ref_ns: int | None = None,
+                 stamp_phase: float = 0.5, window_s: float = 1.0, reset_tol_s: float = 0.25,
+                 min_span_s: float = 5.0) -> None:  # fmt: skip
+        self.tick_s = tick_s
+        self.latency_s = latency_s
+        self.ref_ns = ref_ns
+        self.stamp_phase = stamp_phase
+        self.window_s = window_s
+        self.reset_tol_s = reset_tol_s
+        self.min_span_s = min_span_s
+
+    def fit(self, device_ticks: np.ndarray, host_ns: np.ndarray) -> ClockModel:
+        ticks = np.asarray(device_ticks, dtype=np.int64)
+        host = np.asarray(host_ns, dtype=np.int64)
+        if ticks.shape != host.shape or ticks.ndim != 1 or ticks.size < 2:
+            raise ValueError(
+                f"ClockModel.fit needs ≥ 2 paired 1-D samples, got {ticks.shape} and {host.shape}"
+            )
+        tick_s, window_s = self.tick_s, self.window_s
+        ref = int(host[0]) if self.ref_ns is None else int(self.ref_ns)
+        bounds = np.concatenate([[0], find_resets(ticks, host, tick_s, self.reset_tol_s), [ticks.size]])
+        y = (host - ref) * 1e-9 - self.latency_s  # host time of sampling + jitter (s since ref)
+        parts = []
+        for start, stop in itertools.pairwise(bounds):
+            x = (ticks[start:stop] - ticks[start]) * tick_s
+            parts.append((start, stop, x, y[start:stop] - x))
+        long = [p for p in parts if np.ptp(p[2]) >= self.min_span_s] or [
+            max(parts, key=lambda p: np.ptp(p[2]))
+        ]
+        fits = {p[0]: envelope_line(p[2], p[3], _width(p[2], window_s)) for p in long}
+        shared = float(np.average([fits[p[0]][1] for p in long], weights=[p[1] - p[0] for p in long]))
+        segments, residual = [], []
+        for start, stop, x, z in parts:
+            a, c = fits[start] if start in fits else envelope_line(x, z, _width(x, window_s), shared)
+            segments.append(ClockSegment(int(start), int(stop), int(ticks[start]), a, 1.0 + c))
+            residual.append(z - a - c * x)
+        residual = np.concatenate(residual)
+        p50, p95 = np.percentile(residual, [50, 95])
+        self.clock_ = ClockFit(
+            tick_s, ref, self.latency_s, tuple(segments), float(p50), float(p95), int(ticks.size),
+            self.stamp_phase,
+        )  # fmt: skip
+        return self
+
+    def predict(self, ticks: np.ndarray, segment: int | np.ndarray = 0) -> np.ndarray:
+        """Host time of sampling (int64 ns) of unwrapped device ``ticks`` counted in ``segment``."""
+        self.check_fitted()
+        return self.clock_.to_host_ns(ticks, segment)
 
 
 def _width(x: np.ndarray, window_s: float) -> float:

@@ -19,12 +19,13 @@ points (the default) 0.02–0.04° / ≤ 0.15 mm.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike
 
+from models.estimator import Estimator
 from models.robot import RobotDescription
 from models.statics import static_deflection
 from pipeline.datasets import joint_angles
@@ -138,36 +139,6 @@ def model_tip(robot: RobotDescription, q: ArrayLike, pressure_pa: ArrayLike | No
 
 
 @dataclass(frozen=True)
-class Registration:
-    """The fitted tracker → base transform, the pairs it used and its residuals."""
-
-    transform: RigidTransform  # tracker frame → robot base frame
-    residuals: ResidualStats  # of the inlier pairs used in the final fit
-    residuals_all: ResidualStats  # of every selected pair (inliers and trimmed ones)
-    n_points: int  # static points given
-    n_selected: int  # pairs the selection rule kept
-    n_trimmed: int  # of those, dropped as outliers
-    deflection: bool  # model tip corrected by the static deflection
-    used: np.ndarray = field(repr=False)  # row positions (into the points given) of the inlier pairs
-
-    def to_base(self, x_tracker: ArrayLike) -> np.ndarray:
-        return self.transform.apply(x_tracker)
-
-    def to_tracker(self, x_base: ArrayLike) -> np.ndarray:
-        return self.transform.inverse().apply(x_base)
-
-    def summary(self) -> dict:
-        """JSON-ready: the base → tracker placement (4×4) and the fit's counts and residuals."""
-        return {
-            "base_to_tracker": self.transform.inverse().matrix().tolist(),
-            "residuals": self.residuals.as_dict(),
-            "residuals_selected": self.residuals_all.as_dict(),
-            "points": self.n_points, "selected": self.n_selected, "trimmed": self.n_trimmed,
-            "deflection": self.deflection,
-        }  # fmt: skip
-
-
-@dataclass(frozen=True)
 class FixedRegistration:
     """A registration fitted elsewhere (another dataset of the same setup), applied as it is."""
 
@@ -187,38 +158,87 @@ class FixedRegistration:
         return {"base_to_tracker": self.transform.inverse().matrix().tolist(), "from_dataset": self.source}
 
 
-def register(points: pd.DataFrame, robot: RobotDescription, deflection: bool = True,
-             max_payload_kg: float | None = None, fraction: float = 0.5, min_pairs: int = 12,
-             k_mad: float = 3.0, iterations: int = 10) -> Registration:  # fmt: skip
-    """Fit tracker → base from static points (timeline columns ``tracker_position_0..2``,
-    ``servo_position_*``, ``stepper_position_*``, ``pressure_*`` and ``payload_kg``) by the rule in the
-    module docstring; at least ``min_pairs`` pairs are kept (all points are ranked if too few pass
-    ``max_payload_kg``)."""
-    x = columns(points, "tracker_position")
-    q = joint_angles(points, robot)
-    pressure = columns(points, "pressure")
-    payload = points["payload_kg"].to_numpy(float) if "payload_kg" in points else np.zeros(len(points))
-    valid = (
-        np.isfinite(x).all(1) & np.isfinite(q).all(1) & np.isfinite(pressure).all(1) & np.isfinite(payload)
-    )
-    sag = np.full(len(points), np.inf)
-    sag[valid] = np.linalg.norm(
-        model_tip(robot, q[valid], pressure[valid], payload[valid]) - model_tip(robot, q[valid]), axis=1
-    )
-    candidates = valid & (payload <= (np.inf if max_payload_kg is None else max_payload_kg))
-    if candidates.sum() < min_pairs:
-        log.warning("only %d points with payload ≤ %s kg: ranking all by predicted sag", candidates.sum(),
-                    max_payload_kg)  # fmt: skip
-        candidates = valid
-    n_keep = max(min(min_pairs, int(candidates.sum())), round(fraction * int(candidates.sum())))
-    order = np.flatnonzero(candidates)[np.argsort(sag[candidates], kind="stable")]
-    selected = np.sort(order[:n_keep])
-    if len(selected) < 3:
-        raise ValueError(f"registration needs at least 3 valid static points, got {len(selected)}")
-    src = x[selected]
-    dst = model_tip(robot, q[selected], pressure[selected] if deflection else None, payload[selected])
-    fit, inlier = robust_fit(src, dst, k_mad, iterations)
-    reg = Registration(fit, fit.residuals(src[inlier], dst[inlier]), fit.residuals(src, dst), len(points),
-                       len(selected), int((~inlier).sum()), deflection, selected[inlier])  # fmt: skip
-    log.debug("registered: %d of %d pairs, rms %.3f mm", len(reg.used), len(points), reg.residuals.rms * 1e3)
-    return reg
+class TrackerRegistration(Estimator):
+    """The tracker → robot base transform fitted on static points by the rule in the module docstring:
+    ``TrackerRegistration(robot).fit(points)``, then ``to_base(x_tracker)``.
+
+    ``fit`` takes static points (timeline columns ``tracker_position_0..2``, ``servo_position_*``,
+    ``stepper_position_*``, ``pressure_*`` and ``payload_kg``); at least ``min_pairs`` pairs are kept (all
+    points are ranked if too few pass ``max_payload_kg``). It learns ``transform_`` (tracker → base),
+    ``residuals_`` (of the inlier pairs of the final fit), ``residuals_selected_`` (of every selected pair),
+    ``n_points_``, ``n_selected_``, ``n_trimmed_`` and ``used_`` (row positions of the inlier pairs).
+    """
+
+    def __init__(self, robot: RobotDescription | None = None, deflection: bool = True,
+                 max_payload_kg: float | None = None, fraction: float = 0.5, min_pairs: int = 12,
+                 k_mad: float = 3.0, iterations: int = 10) -> None:  # fmt: skip
+        self.robot = robot
+        self.deflection = deflection
+        self.max_payload_kg = max_payload_kg
+        self.fraction = fraction
+        self.min_pairs = min_pairs
+        self.k_mad = k_mad
+        self.iterations = iterations
+
+    def fit(self, points: pd.DataFrame) -> TrackerRegistration:
+        robot = self.robot
+        if robot is None:
+            raise ValueError("TrackerRegistration needs the robot whose base the tracker is registered to")
+        x = columns(points, "tracker_position")
+        q = joint_angles(points, robot)
+        pressure = columns(points, "pressure")
+        payload = points["payload_kg"].to_numpy(float) if "payload_kg" in points else np.zeros(len(points))
+        valid = (
+            np.isfinite(x).all(1)
+            & np.isfinite(q).all(1)
+            & np.isfinite(pressure).all(1)
+            & np.isfinite(payload)
+        )
+        sag = np.full(len(points), np.inf)
+        sag[valid] = np.linalg.norm(
+            model_tip(robot, q[valid], pressure[valid], payload[valid]) - model_tip(robot, q[valid]), axis=1
+        )
+        limit = np.inf if self.max_payload_kg is None else self.max_payload_kg
+        candidates = valid & (payload <= limit)
+        if candidates.sum() < self.min_pairs:
+            log.warning("only %d points with payload ≤ %s kg: ranking all by predicted sag", candidates.sum(),
+                        self.max_payload_kg)  # fmt: skip
+            candidates = valid
+        n_keep = max(min(self.min_pairs, int(candidates.sum())), round(self.fraction * int(candidates.sum())))
+        order = np.flatnonzero(candidates)[np.argsort(sag[candidates], kind="stable")]
+        selected = np.sort(order[:n_keep])
+        if len(selected) < 3:
+            raise ValueError(f"registration needs at least 3 valid static points, got {len(selected)}")
+        src = x[selected]
+        dst = model_tip(
+            robot, q[selected], pressure[selected] if self.deflection else None, payload[selected]
+        )
+        fit, inlier = robust_fit(src, dst, self.k_mad, self.iterations)
+        self.transform_ = fit
+        self.residuals_ = fit.residuals(src[inlier], dst[inlier])
+        self.residuals_selected_ = fit.residuals(src, dst)
+        self.n_points_, self.n_selected_ = len(points), len(selected)
+        self.n_trimmed_ = int((~inlier).sum())
+        self.used_ = selected[inlier]
+        log.debug("registered: %d of %d pairs, rms %.3f mm", len(self.used_), len(points),
+                  self.residuals_.rms * 1e3)  # fmt: skip
+        return self
+
+    def to_base(self, x_tracker: ArrayLike) -> np.ndarray:
+        self.check_fitted()
+        return self.transform_.apply(x_tracker)
+
+    def to_tracker(self, x_base: ArrayLike) -> np.ndarray:
+        self.check_fitted()
+        return self.transform_.inverse().apply(x_base)
+
+    def summary(self) -> dict:
+        """JSON-ready: the base → tracker placement (4×4) and the fit's counts and residuals."""
+        self.check_fitted()
+        return {
+            "base_to_tracker": self.transform_.inverse().matrix().tolist(),
+            "residuals": self.residuals_.as_dict(),
+            "residuals_selected": self.residuals_selected_.as_dict(),
+            "points": self.n_points_, "selected": self.n_selected_, "trimmed": self.n_trimmed_,
+            "deflection": self.deflection,
+        }  # fmt: skip

@@ -1,6 +1,6 @@
 """The sync stage: every device's stamps → host time of sampling, then every stream on one timeline.
 
-Each stamped stream's device clock is fitted (:func:`pipeline.clock.fit_clock`, lower envelope, resets split)
+Each stamped stream's device clock is fitted (``pipeline.clock.ClockModel``, lower envelope, resets split)
 and the stream gets ``t``: its samples' fitted sampling times in s since the session's ``t0_ns``. Streams the
 host stamps itself (commands) get ``t`` from their log time. The timeline is the tracker's frames at their
 fitted times, with the other streams linearly interpolated there, NaN outside a stream's span and across its
@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from acquisition.schemas import topics as T
-from pipeline.clock import ClockFit, fit_clock, unwrap_stamps
+from pipeline.clock import ClockFit, ClockModel, unwrap_stamps
 from pipeline.errors import PipelineError
 from pipeline.tables import SessionTables, columns
 
@@ -106,9 +106,9 @@ def fit_stream(session: SessionTables, topic: str, **fit_options) -> tuple[str, 
     else:
         ticks = unwrap_stamps(df[field].to_numpy(dtype=np.int64), host, spec.clock.tick_s, spec.clock.wrap)
     phase = 0.0 if field == "frame" else 0.5  # a frame number is the sampling event; a counter is floored
-    fit = fit_clock(ticks, host, spec.clock.tick_s, spec.host_link.latency_s, ref_ns=session.t0_ns,
-                    stamp_phase=phase, **fit_options)  # fmt: skip
-    return device, fit, ticks
+    model = ClockModel(spec.clock.tick_s, spec.host_link.latency_s, ref_ns=session.t0_ns, stamp_phase=phase,
+                       **fit_options)  # fmt: skip
+    return device, model.fit(ticks, host).clock_, ticks
 
 
 def hold_last(t_src: np.ndarray, values: np.ndarray, t_query: np.ndarray) -> np.ndarray:

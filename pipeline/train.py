@@ -18,6 +18,7 @@ import pandas as pd
 import torch
 
 from models import kinematics
+from models.estimator import Estimator
 from models.hybrid import HybridNet, NetConfig
 from models.robot import AnthropomorphicKinematics, load_robot
 from pipeline import metrics as pipeline_metrics
@@ -185,6 +186,32 @@ def train(
         result.val_error_mm[result.best_epoch], result.train_time_s,
     )  # fmt: skip
     return result
+
+
+class HybridRegressor(Estimator):
+    """A hybrid network as an estimator (the one contract, ``models.estimator``):
+    ``HybridRegressor(TrainConfig(net=preset("forward", "small-residual"))).fit(data)`` trains it on the
+    ``train`` rows of ``config.split``, early-stopped on ``val`` (:func:`train`), learning ``net_`` (the
+    :class:`HybridNet`) and ``history_`` (its :class:`TrainResult`); ``predict(rows)`` gives the outputs
+    (n, 3) of a DataFrame holding the net's input columns (or an (n, 7) array). Seeded by ``config.seed``."""
+
+    def __init__(self, config: TrainConfig | None = None, threads: int | None = None,
+                 device: str | None = None) -> None:  # fmt: skip
+        self.config = config
+        self.threads = threads
+        self.device = device
+
+    def fit(self, data: pd.DataFrame) -> HybridRegressor:
+        if self.config is None:
+            raise ValueError("HybridRegressor needs a TrainConfig (its net, optimiser and split)")
+        self.history_ = train(data, self.config, threads=self.threads, device=self.device)
+        self.net_ = self.history_.model
+        return self
+
+    def predict(self, rows: pd.DataFrame | np.ndarray) -> np.ndarray:
+        self.check_fitted()
+        x = rows[list(self.config.net.inputs)].to_numpy(float) if isinstance(rows, pd.DataFrame) else rows
+        return self.net_.predict(x)
 
 
 def _summary(err: np.ndarray, prefix: str, unit: str) -> dict[str, float]:

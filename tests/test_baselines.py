@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from models import kinematics
+from models.errors import NotFittedError
 from models.robot import PressureTable, load_robot
 from pipeline import baselines as B
 
@@ -113,12 +114,12 @@ def test_same_seed_same_predictions(parts):
 
 def test_contract_errors(parts):
     _, _, test = parts
-    with pytest.raises(B.NotFittedError):
+    with pytest.raises(NotFittedError):
         B.RigidModel().predict(test)
-    with pytest.raises(B.NotFittedError):
+    with pytest.raises(NotFittedError):
         B.PrbmGreyBox().to_dict()
-    with pytest.raises(ValueError, match="kind"):
-        B.SklearnBaseline("svm")
+    with pytest.raises(ValueError, match="kind"):  # parameters are checked by fit, as scikit-learn does
+        B.SklearnBaseline("svm").fit(test)
     with pytest.raises(ValueError, match="direction"):
-        B.RigidModel(direction="sideways")
+        B.RigidModel(direction="sideways").fit(test)
     assert B.RigidModel().fit(test) is not None

@@ -9,6 +9,7 @@ import pytest
 import torch
 from safetensors.torch import load_file, save_file
 
+from models.errors import NotFittedError
 from models.hybrid import FORWARD_INPUTS, INVERSE_INPUTS, PRESETS, HybridNet, NetConfig, preset
 
 
@@ -49,7 +50,7 @@ def test_paper_architecture_and_shapes():
 
 def test_unfitted_net_refuses_and_scaler_is_fitted_on_given_rows():
     net = HybridNet(preset("forward", "small-residual"))
-    with pytest.raises(RuntimeError, match="fit_scaler"):
+    with pytest.raises(NotFittedError, match="fit_scaler"):
         net.predict(np.zeros((2, 7)))
     x, y = _data()
     net.fit_scaler(x, y)

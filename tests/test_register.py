@@ -12,8 +12,8 @@ from acquisition.sim.sensors import rotation_from_rpy
 from pipeline.register import (
     ResidualStats,
     RigidTransform,
+    TrackerRegistration,
     kabsch_umeyama,
-    register,
     robust_fit,
     rotation_angle,
 )
@@ -79,7 +79,7 @@ def campaign(tmp_path_factory):
 
 def _errors(registration, truth) -> tuple[float, float]:
     """Rotation angle (deg) of R_est R_trueᵀ and translation error (mm) of the base → tracker transform."""
-    est = registration.transform.inverse()
+    est = registration.transform_.inverse()
     r_true, t_true = truth
     return np.degrees(rotation_angle(est.rotation @ r_true.T)), np.linalg.norm(est.translation - t_true) * 1e3
 
@@ -87,14 +87,14 @@ def _errors(registration, truth) -> tuple[float, float]:
 def test_registration_recovers_the_tracker_placement(campaign):
     points, robot, truth = campaign
     assert len(points) == 300
-    reg = register(points, robot)
+    reg = TrackerRegistration(robot).fit(points)
     angle, shift = _errors(reg, truth)
     assert angle < 0.1 and shift < 0.5
-    assert reg.n_selected == 150 and reg.residuals.rms < 5e-4  # what is left: hysteresis, encoder steps
-    rigid_angle, _ = _errors(register(points, robot, deflection=False), truth)
+    assert reg.n_selected_ == 150 and reg.residuals_.rms < 5e-4  # what is left: hysteresis, encoder steps
+    rigid_angle, _ = _errors(TrackerRegistration(robot, deflection=False).fit(points), truth)
     assert rigid_angle > 2 * angle  # the rigid FK's sag biases the fit
     summary = reg.summary()
-    assert np.allclose(summary["base_to_tracker"], reg.transform.inverse().matrix())
+    assert np.allclose(summary["base_to_tracker"], reg.transform_.inverse().matrix())
     x = points[[f"tracker_position_{k}" for k in range(3)]].to_numpy()
     assert np.allclose(reg.to_tracker(reg.to_base(x)), x)
 
@@ -106,7 +106,7 @@ def test_registration_survives_bad_points(campaign):
     bad = rng.choice(len(points), 15, replace=False)
     for k in range(3):
         corrupt.loc[bad, f"tracker_position_{k}"] += rng.normal(0, 0.01, len(bad))
-    reg = register(corrupt, robot)
+    reg = TrackerRegistration(robot).fit(corrupt)
     angle, shift = _errors(reg, truth)
     assert angle < 0.1 and shift < 0.5
-    assert not np.isin(bad, reg.used).any() and reg.n_trimmed >= 5
+    assert not np.isin(bad, reg.used_).any() and reg.n_trimmed_ >= 5
