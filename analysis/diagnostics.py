@@ -12,15 +12,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-
-def save(fig, out_dir: Path, name: str) -> Path:
-    """``<out_dir>/<name>.pdf`` and ``.png`` (150 dpi); returns the PNG."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_dir / f"{name}.pdf", bbox_inches="tight")
-    fig.savefig(out_dir / f"{name}.png", dpi=150, bbox_inches="tight")
-    plt.close(fig)
-    return out_dir / f"{name}.png"
+from analysis.figure_files import save_figure
 
 
 def cell_grid(per_cell: list[dict]) -> pd.DataFrame:
@@ -33,7 +25,9 @@ def cell_grid(per_cell: list[dict]) -> pd.DataFrame:
     return grid
 
 
-def error_heatmaps(grids: dict[str, pd.DataFrame], out_dir: Path, name: str = "error_heatmaps") -> dict:
+def error_heatmaps(
+    grids: dict[str, pd.DataFrame], out_dir: Path, name: str = "error_heatmaps", made_from: dict | None = None
+) -> dict:
     """One heatmap per model (rigid, hybrid, baselines): mean tip error (mm) per pressure bin × payload, on a
     shared colour scale, each cell annotated."""
     vmax = max(float(np.nanmax(g.to_numpy())) for g in grids.values())
@@ -50,10 +44,12 @@ def error_heatmaps(grids: dict[str, pd.DataFrame], out_dir: Path, name: str = "e
             )
     axes[0][0].set_ylabel("link pressure")
     fig.colorbar(image, ax=axes[0].tolist(), label="mean tip error (mm)", shrink=0.9)
-    return {"png": save(fig, out_dir, name), "grids": grids}
+    return {"png": save_figure(fig, out_dir, name, made_from, tight=True), "grids": grids}
 
 
-def learning_curves(cards: dict[str, dict], out_dir: Path, name: str = "learning_curves") -> dict:
+def learning_curves(
+    cards: dict[str, dict], out_dir: Path, name: str = "learning_curves", made_from: dict | None = None
+) -> dict:
     """Training and validation loss per epoch of each model card (log scale), one panel per model (their
     targets differ: a residual net learns the correction, the paper's net the whole pose), the best epoch
     marked (epochs counted from 1 on the axis)."""
@@ -79,10 +75,12 @@ def learning_curves(cards: dict[str, dict], out_dir: Path, name: str = "learning
         ax.set_xlabel("epoch")
         ax.legend(fontsize=7)
     axes[0][0].set_ylabel("loss (MSE of standardised targets)")
-    return {"png": save(fig, out_dir, name), "curves": plotted}
+    return {"png": save_figure(fig, out_dir, name, made_from, tight=True), "curves": plotted}
 
 
-def clock_fits(sessions: dict[str, dict], out_dir: Path, name: str = "clock_fits") -> dict:
+def clock_fits(
+    sessions: dict[str, dict], out_dir: Path, name: str = "clock_fits", made_from: dict | None = None
+) -> dict:
     """From a dataset card's sessions: each device's fitted drift (ppm) and jitter p95 (ms), per session."""
     rows = [
         {"session": sid, "device": key.split("/", 1)[1], "drift_ppm": v["drift_ppm"],
@@ -101,11 +99,11 @@ def clock_fits(sessions: dict[str, dict], out_dir: Path, name: str = "clock_fits
         ax.set_xticks(range(len(devices)), devices, rotation=20)
         ax.set_ylabel(label)
     a1.set_title("device clocks against host time")
-    return {"png": save(fig, out_dir, name), "table": df}
+    return {"png": save_figure(fig, out_dir, name, made_from, tight=True), "table": df}
 
 
 def registration_residuals(data: pd.DataFrame, robot, registration: dict, out_dir: Path,
-                           name: str = "registration") -> dict:  # fmt: skip
+                           name: str = "registration", made_from: dict | None = None) -> dict:  # fmt: skip
     """How well the tracker's registered tip agrees with the robot model at the dataset's static points.
 
     Residual = measured tip in the base frame (the registered tracker, ``x_*``) − the model's tip at the
@@ -146,4 +144,9 @@ def registration_residuals(data: pd.DataFrame, robot, registration: dict, out_di
     a2.set_ylabel("points")
     a2.legend(fontsize=8)
     a2.grid(alpha=0.3)
-    return {"png": save(fig, out_dir, name), "sag_mm": sag, "residual_mm": residual, "selected": selected}
+    return {
+        "png": save_figure(fig, out_dir, name, made_from, tight=True),
+        "sag_mm": sag,
+        "residual_mm": residual,
+        "selected": selected,
+    }

@@ -7,7 +7,6 @@ report page that gathers them. Each figure records which versions it used (``<fi
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,10 +34,6 @@ def newest_model(lab: Path, name: str) -> tuple[str, Path] | None:
     """(version, directory) of the newest model called ``name`` (e.g. "forward-small-residual")."""
     cards = sorted((Path(lab) / "models" / name).glob("*/card.json"), key=lambda p: p.stat().st_mtime)
     return (cards[-1].parent.name, cards[-1].parent) if cards else None
-
-
-def _record(png: Path, versions: dict) -> None:
-    png.with_suffix(".json").write_text(json.dumps({"figure": png.stem, "made_from": versions}, indent=1))
 
 
 def all_figures(lab: Path, out: Path | None = None) -> Results:
@@ -101,11 +96,10 @@ def _models(lab: Path, datasets: dict, res: Results, out: Path) -> None:
         "model"
     )
     versions = {k: v for k, v in res.versions.items() if k.startswith(("dataset campaign", "model"))}
-    for fig in (diagnostics.error_heatmaps(grids, out), diagnostics.learning_curves(cards, out)):
-        _record(fig["png"], versions)
+    for fig in (diagnostics.error_heatmaps(grids, out, made_from=versions),
+                diagnostics.learning_curves(cards, out, made_from=versions)):  # fmt: skip
         res.figures[fig["png"].stem] = fig["png"]
-    clocks = diagnostics.clock_fits(datasets["campaign"][2]["sessions"], out)
-    _record(clocks["png"], versions)
+    clocks = diagnostics.clock_fits(datasets["campaign"][2]["sessions"], out, made_from=versions)
     res.figures["clock_fits"] = clocks["png"]
     registration = datasets["campaign"][2]["registration"]
     res.tables["registration (tracker → base), campaign"] = registration_table(registration)
@@ -115,8 +109,7 @@ def _models(lab: Path, datasets: dict, res: Results, out: Path) -> None:
         if "selected" not in fitted:  # borrowed from another dataset: its residuals are that one's
             continue
         name = f"registration_{robot_name}"
-        reg = diagnostics.registration_residuals(data, load_robot(robot_name), fitted, out, name)
-        _record(reg["png"], versions)
+        reg = diagnostics.registration_residuals(data, load_robot(robot_name), fitted, out, name, versions)
         res.figures[name] = reg["png"]
 
 
@@ -189,13 +182,12 @@ def _popup(lab: Path, res: Results, out: Path) -> None:
     from models.robot import load_robot
 
     result = popup_reach.reach(load_robot("popup"))
-    for png in popup_reach.figures_12_13(result, out)["png"]:
-        _record(png, {"robot": "popup", "task": popup_reach.TASK})
+    made_from = {"robot": "popup", "task": popup_reach.TASK}
+    for png in popup_reach.figures_12_13(result, out, made_from)["png"]:
         res.figures[png.stem] = png
     servoed = popup_reach.reach(load_robot("popup"), visual_servoing=True)
-    vs = popup_reach.figures_15_16(result, servoed, out)
+    vs = popup_reach.figures_15_16(result, servoed, out, made_from)
     for png in vs["png"]:
-        _record(png, {"robot": "popup", "task": popup_reach.TASK})
         res.figures[png.stem] = png
     res.tables["POPUP visual servoing (Figs. 15–16): final tip error (mm)"] = pd.DataFrame(
         {"RBM-based control": [1e3 * float(np.linalg.norm(result.prbm[-1] - result.target))],

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from analysis.diagnostics import save
+from analysis.figure_files import save_figure
 from models.robot import RobotDescription
 from models.statics import static_deflection
 from models.trajectories import velocity_law
@@ -72,7 +72,7 @@ def reach(robot: RobotDescription, task: dict | None = None, dt: float = 0.02, t
     return Reach(np.asarray(ts), q_path, chain.position(q_path), chain.position(q_path, delta), target)
 
 
-def figures_15_16(rigid: Reach, servoed: Reach, out_dir: Path) -> dict:
+def figures_15_16(rigid: Reach, servoed: Reach, out_dir: Path, made_from: dict | None = None) -> dict:
     """Fig. 15: the PRBM and RBM tip paths when the camera closes the loop on the soft arm's tip; Fig. 16: the
     motor joint positions of the two controls (RBM-based and visual servoing) over time."""
     import matplotlib.pyplot as plt
@@ -88,7 +88,7 @@ def figures_15_16(rigid: Reach, servoed: Reach, out_dir: Path) -> dict:
     ax.set(xlabel="horizontal reach (mm)", ylabel="z (mm)", title="visual servoing: side view")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    fig15 = save(fig, out_dir, "fig15_popup_visual_servoing_paths")
+    fig15 = save_figure(fig, out_dir, "fig15_popup_visual_servoing_paths", made_from, tight=True)
     fig, axes = plt.subplots(1, 3, figsize=(10.5, 3.2), sharex=True, layout="constrained")
     for k, ax in enumerate(axes):
         ax.plot(rigid.t, np.degrees(rigid.q[:, k]), "--", label="RBM-based control")
@@ -96,12 +96,12 @@ def figures_15_16(rigid: Reach, servoed: Reach, out_dir: Path) -> dict:
         ax.set(xlabel="time (s)", ylabel=f"q{k + 1} (deg)")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    fig16 = save(fig, out_dir, "fig16_popup_visual_servoing_joints")
+    fig16 = save_figure(fig, out_dir, "fig16_popup_visual_servoing_joints", made_from, tight=True)
     final = 1e3 * np.linalg.norm(servoed.prbm[-1] - servoed.target)
     return {"png": [fig15, fig16], "final_error_mm": final, "q_rigid": rigid.q, "q_servoed": servoed.q}
 
 
-def figures_12_13(result: Reach, out_dir: Path) -> dict:
+def figures_12_13(result: Reach, out_dir: Path, made_from: dict | None = None) -> dict:
     """Fig. 12: the RBM and PRBM tip paths (top and side views); Fig. 13: their difference over time, with
     the paper's values marked. Returns the PNGs and the plotted arrays."""
     import matplotlib.pyplot as plt
@@ -121,7 +121,7 @@ def figures_12_13(result: Reach, out_dir: Path) -> dict:
     top.set(xlabel="x (mm)", ylabel="y (mm)", title="top view", aspect="equal")
     side.set(xlabel="horizontal reach (mm)", ylabel="z (mm)", title="side view")
     side.legend(fontsize=8)
-    fig12 = save(fig, out_dir, "fig12_popup_reach_paths")
+    fig12 = save_figure(fig, out_dir, "fig12_popup_reach_paths", made_from, tight=True)
     fig, ax = plt.subplots(figsize=(6.4, 3.6))
     ax.plot(result.t, result.difference_mm, label="this twin (PRBM − RBM)")
     ax.axhline(PAPER["difference_start_mm"], color="grey", ls=":", label="paper: 6.6 mm at the start")
@@ -129,5 +129,5 @@ def figures_12_13(result: Reach, out_dir: Path) -> dict:
     ax.set(xlabel="time (s)", ylabel="end-effector difference (mm)")
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
-    fig13 = save(fig, out_dir, "fig13_popup_reach_difference")
+    fig13 = save_figure(fig, out_dir, "fig13_popup_reach_difference", made_from, tight=True)
     return {"png": [fig12, fig13], "t": result.t, "difference_mm": result.difference_mm}

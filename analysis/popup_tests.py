@@ -13,7 +13,6 @@ Conventions (SI inside, degrees and kPa only for display):
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +20,7 @@ import pandas as pd
 from scipy import signal
 
 from acquisition.schemas.events import EventKind
+from analysis.figure_files import save_figure
 from models import prbm
 from models.robot import RobotDescription
 from pipeline.ingest import ingest_session
@@ -288,10 +288,6 @@ def figure7(curves: pd.DataFrame, out_dir: Path) -> dict:
     ax.set_title("Link 2 static characteristic (mean of runs, ±1 std)", fontsize=10)
     ax.grid(alpha=0.3, axis="x")
     ax.legend(fontsize=8, loc="upper left")
-    for ext in ("pdf", "png"):
-        fig.savefig(out_dir / f"fig7_popup_hysteresis.{ext}", dpi=150)
-    plt.close(fig)
-    record = {"figure": "fig7_popup_hysteresis", "sources": curves.attrs.get("sources", []),
-              "arm_m": float(curves["arm_m"].iloc[0]), "x": "delta (deg)", "y": "torque (N m)"}  # fmt: skip
-    (out_dir / "fig7_popup_hysteresis.json").write_text(json.dumps(record, indent=1))
+    save_figure(fig, out_dir, "fig7_popup_hysteresis", {"sessions": curves.attrs.get("sources", [])},
+                arm_m=float(curves["arm_m"].iloc[0]), x="delta (deg)", y="torque (N m)")  # fmt: skip
     return data

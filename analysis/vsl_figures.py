@@ -17,9 +17,9 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
 from analysis import vsl_paths as vp
+from analysis.figure_files import save_figure
 from models.hybrid import FORWARD_INPUTS
 from models.trajectories import EXPERIMENT1_NAMES
-from pipeline.cache import stage_version
 
 MM = 1e3
 XZ = [0, 2]
@@ -46,14 +46,9 @@ def _subplots(nrows: int = 1, ncols: int = 1, figsize=(6.0, 4.0), **kw):
 
 
 def _save(fig, out_dir: Path, stem: str, versions: dict) -> tuple[list[Path], dict]:
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    paths = [out_dir / f"{stem}.{ext}" for ext in ("pdf", "png")]
-    for p in paths:
-        fig.savefig(p, dpi=150 if p.suffix == ".png" else None)
-    record = {"figure": stem, "versions": dict(versions), "code_version": stage_version("figure")}
-    (out_dir / f"{stem}.json").write_text(json.dumps(record, indent=1, default=str))
-    return [*paths, out_dir / f"{stem}.json"], record
+    png = save_figure(fig, out_dir, stem, versions)
+    record = json.loads(png.with_suffix(".json").read_text())
+    return [png.with_suffix(".pdf"), png, png.with_suffix(".json")], record
 
 
 def _line(ax, stats: dict, color, label: str, style: str = "-", zorder: float = 2, every: int = 12) -> None:

@@ -65,7 +65,7 @@ def _files_ok(result, stems, versions):
         image = imread(result.paths[[p.name for p in result.paths].index(f"{stem}.png")])
         assert image.shape[0] > 300 and image.shape[1] > 500 and image[..., :3].std() > 0.05  # not blank
         record = json.loads(next(p for p in result.paths if p.name == f"{stem}.json").read_text())
-        assert record["versions"] == versions and record["code_version"]
+        assert record["made_from"] == versions and record["code_version"]
 
 
 def test_fig5_means_and_stds_match_the_repetitions(lab, tmp_path):
