@@ -18,6 +18,7 @@ from acquisition.recorder.sessions import SessionError, read_card, session_info
 from analysis import diagnostics
 from analysis.report import Report
 from pipeline.datasets import load_dataset
+from pipeline.registry import FORWARD, LAB_TAGS
 
 log = logging.getLogger(__name__)
 
@@ -30,10 +31,16 @@ class Results:
     missing: dict[str, str] = field(default_factory=dict)  # figure → why it could not be made
 
 
-def newest_model(lab: Path, name: str) -> tuple[str, Path] | None:
-    """(version, directory) of the newest model called ``name`` (e.g. "forward-small-residual")."""
-    cards = sorted((Path(lab) / "models" / name).glob("*/card.json"), key=lambda p: p.stat().st_mtime)
-    return (cards[-1].parent.name, cards[-1].parent) if cards else None
+def tagged_model(lab: Path, tag: str) -> tuple[str, Path] | None:
+    """(version, directory) of the model the registry's ``tag`` names (``pipeline.registry.LAB_TAGS``: the
+    main job's), or None where no such tag is set."""
+    from pipeline.registry import find, tags
+
+    root = Path(lab) / "models"
+    if tag not in tags(root):
+        return None
+    path = find(root, tag)
+    return path.name, path
 
 
 def all_figures(lab: Path, out: Path | None = None) -> Results:
@@ -53,7 +60,7 @@ def all_figures(lab: Path, out: Path | None = None) -> Results:
             res.versions[f"dataset {name}"] = card["version"]
         except FileNotFoundError as exc:
             res.missing[f"dataset {name}"] = str(exc)
-    forward = newest_model(lab, "forward-small-residual")
+    forward = tagged_model(lab, FORWARD)
     for label, step in (
         ("models", lambda: _models(lab, datasets, res, out)),
         ("experiment1", lambda: _experiment1(datasets, forward, res, out)),
@@ -82,15 +89,16 @@ def _models(lab: Path, datasets: dict, res: Results, out: Path) -> None:
     grids["PRBM grey box"] = diagnostics.cell_grid(grey_eval["per_cell"])
     rows.append({"model": "rigid model", **_headline(evaluate_rigid(data, "forward"))})
     rows.append({"model": "PRBM grey box (k(p) fitted)", **_summary_mm(grey_eval["summary"])})
-    for name in ("forward-small-residual", "forward-ensemble-small-residual", "forward-paper"):
-        found = newest_model(lab, name)
+    for tag in (t for t in LAB_TAGS if t.startswith(FORWARD)):  # the forward networks the main job trained
+        found = tagged_model(lab, tag)
         if found is None:
             continue
         card = load_card(found[1])
+        name = card["name"]
         cards[name] = card
         res.versions[f"model {name}"] = found[0]
         rows.append({"model": name, **_headline(card["metrics"])})
-        if name == "forward-small-residual":
+        if tag == FORWARD:
             grids["hybrid (small residual)"] = diagnostics.cell_grid(card["metrics"]["per_cell"])
     res.tables["forward model: test error (mm), campaign, random split"] = pd.DataFrame(rows).set_index(
         "model"

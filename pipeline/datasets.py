@@ -20,6 +20,7 @@ import json
 import os
 import shutil
 import tempfile
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -135,7 +136,8 @@ def write_dataset(root: Path, name: str, version: str, tables: dict[str, pd.Data
         data = tables["data"]
         counts = {"rows": len(data), **{f"rows_{s}": int((data["split_random"] == s).sum()) for s in SPLITS}}
         counts |= {f"rows_{t}": len(df) for t, df in tables.items() if t != "data"}
-        whole = {"name": name, "version": version, **card, "counts": counts}
+        created = datetime.now(UTC).isoformat(timespec="microseconds")
+        whole = {"name": name, "version": version, "created": created, **card, "counts": counts}
         (tmp / "card.json").write_text(json.dumps(whole, indent=1, default=str))
         os.replace(tmp, final)
     except BaseException:  # a failed or interrupted write leaves nothing behind
@@ -144,15 +146,31 @@ def write_dataset(root: Path, name: str, version: str, tables: dict[str, pd.Data
     return final
 
 
+def newest_version(root: Path, name: str) -> str | None:
+    """The version of dataset ``name`` written last, by the ``created`` time its card records (not by the
+    files' modification times, which a copy or a backup changes; only a card older than that field falls
+    back to its file's); None where there is none."""
+    created = []
+    for card in Path(root, name).glob("*/card.json"):
+        try:
+            when = json.loads(card.read_text()).get("created")
+            when = when or datetime.fromtimestamp(card.stat().st_mtime, UTC).isoformat(
+                timespec="microseconds"
+            )
+        except (OSError, ValueError, AttributeError):  # a damaged card is not a candidate
+            continue
+        created.append((str(when), card.parent.name))
+    return max(created)[1] if created else None
+
+
 def load_dataset(root: Path, name: str, version: str | None = None, table: str | None = "data"):
     """A dataset's table (``data``: D; ``trajectories``; None: only the card) and its card, the newest
     version when none is named: (DataFrame or None, card)."""
     base = Path(root) / name
     if version is None:
-        cards = sorted(base.glob("*/card.json"), key=lambda p: p.stat().st_mtime)
-        if not cards:
+        version = newest_version(root, name)
+        if version is None:
             raise FileNotFoundError(f"no dataset {name!r} under {root}")
-        version = cards[-1].parent.name
     path = base / version
     if not (path / "card.json").is_file():
         raise FileNotFoundError(f"no dataset {name}@{version} under {root}")

@@ -21,6 +21,7 @@ from pathlib import Path
 from models.hybrid import NetConfig, preset
 from models.yaml_files import read_yaml
 from pipeline.build import InlineExecutor
+from pipeline.datasets import newest_version
 from pipeline.errors import PipelineError
 from pipeline.registry import CARD, check_model, jsonable, load_card, metric, model_version, save_model
 from pipeline.train import TrainConfig
@@ -165,10 +166,10 @@ def resolve_dataset(root: Path, spec: str) -> tuple[str, str]:
         if not (Path(root) / name / version / "card.json").is_file():
             raise GridError(f"no dataset {name}@{version} under {root}")
         return name, version
-    cards = sorted((Path(root) / name).glob("*/card.json"), key=lambda p: p.stat().st_mtime)
-    if not cards:
+    version = newest_version(root, name)
+    if version is None:
         raise GridError(f"no dataset {name!r} under {root} (build one: `vslab build --name {name}`)")
-    return name, cards[-1].parent.name
+    return name, version
 
 
 def _net(entry: dict) -> NetConfig:

@@ -42,8 +42,22 @@ FILES = (WEIGHTS, EXPORT)  # what a card's ``files`` hashes cover (``card_sha256
 CARD_FIELDS = {"name": str, "version": str, "net": dict, "files": dict, "card_sha256": str}
 SHA256 = re.compile(r"[0-9a-f]{64}")
 VERSION = re.compile(r"[0-9A-Za-z][0-9A-Za-z_-]*")  # what `find` takes: a version id or a prefix of one
+TAGS_FILE = "tags.json"  # <lab>/models/tags.json: alias → version (`vslab models tag NAME VERSION`)
+TAG = re.compile(r"[a-z][a-z0-9_-]*")
+# The tags the main job gives the networks of configs/train/lab.yaml: Experiment 2 and the figures use them.
+FORWARD, INVERSE = "forward", "inverse"
+LAB_TAGS = {
+    FORWARD: "forward-small-residual",  # Fig. 6's hybrid forward prediction
+    INVERSE: "inverse-small-residual",  # Experiment 2's hybrid commands
+    "forward-ensemble": "forward-ensemble-small-residual",
+    "forward-paper": "forward-paper",  # the paper's network, for the comparison
+}
 HEADLINE = ("tip_mean_mm",)  # the test metric a listing shows (the first one present)
 P95 = ("tip_p95_mm",)
+
+
+class RegistryError(PipelineError, ValueError):
+    """The registry's own files (the tags) cannot be used."""
 
 
 class ModelIntegrityError(PipelineError, ValueError):
@@ -228,8 +242,10 @@ def load_exported(path: Path) -> torch.jit.ScriptModule:
 
 
 def find(root: Path, version: str) -> Path:
-    """The directory of ``version`` (a unique prefix of it will do) under ``root``: a folder, whatever state
-    its files are in (loading checks them). FileNotFoundError / ValueError with the reason otherwise."""
+    """The directory of ``version`` (a tag, or a version id: a unique prefix of it will do) under ``root``: a
+    folder, whatever state its files are in (loading checks them). FileNotFoundError / ValueError with the
+    reason otherwise."""
+    version = tags(root).get(version, version) if isinstance(version, str) else version
     if not isinstance(version, str) or not VERSION.fullmatch(version):
         raise ValueError(f"{version!r} is not a model version (letters, digits, '-' and '_'; see "
                          "`vslab models list`)")  # fmt: skip
@@ -239,6 +255,35 @@ def find(root: Path, version: str) -> Path:
     if len(hits) > 1:
         raise ValueError(f"model version {version!r} is ambiguous: {', '.join(p.name for p in hits)}")
     return hits[0]
+
+
+def tags(root: Path) -> dict[str, str]:
+    """Every tag of the registry under ``root``: alias → full version id (``{}`` where none was set)."""
+    path = Path(root) / TAGS_FILE
+    if not path.is_file():
+        return {}
+    try:
+        found = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise RegistryError(f"{path}: unreadable ({type(exc).__name__}); tag the models again") from None
+    if not isinstance(found, dict) or not all(isinstance(v, str) for v in found.values()):
+        raise RegistryError(f"{path}: not a mapping of tag → version; tag the models again")
+    return found
+
+
+def tag(root: Path, name: str, version: str) -> str:
+    """Point tag ``name`` at model ``version`` (checked first; a tag that exists is moved); returns the full
+    version id. The tags file is replaced whole, never half written."""
+    if not isinstance(name, str) or not TAG.fullmatch(name):
+        raise ValueError(f"{name!r} is not a tag name (a lower-case letter, then lower-case letters, digits, "
+                         "'-' or '_')")  # fmt: skip
+    path = find(root, version)
+    check_model(path)
+    current = tags(root) | {name: path.name}
+    tmp = Path(root) / f".{TAGS_FILE}.tmp"
+    tmp.write_text(json.dumps(dict(sorted(current.items())), indent=1) + "\n")
+    tmp.replace(Path(root) / TAGS_FILE)
+    return path.name
 
 
 def _version_dirs(root: Path) -> list[Path]:

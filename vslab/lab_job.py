@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import json
 import logging
-import subprocess
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+
+from pipeline.registry import INVERSE
+from vslab.app import CommandLineError
 
 log = logging.getLogger(__name__)
 
@@ -50,9 +51,7 @@ def run(lab: Path, seed: int = 0, quick: bool = False, say: Callable[[str], None
     step("real-time session on the rig")
     _rig_session(lab)
     done("real-time session on the rig")
-    if (
-        batch_priority
-    ):  # the rest is batch work (lowered after the real-time session: it cannot be raised back)
+    if batch_priority:  # the rest is batch work, lowered after the rig session (it cannot be raised back)
         from acquisition.processes import lower_priority
 
         lower_priority()
@@ -74,7 +73,7 @@ def run(lab: Path, seed: int = 0, quick: bool = False, say: Callable[[str], None
     done("training")
 
     step("Experiment 2 with the trained inverse model")
-    _experiment2(lab, sessions, models["inverse"], seed, borrowed)
+    _experiment2(lab, sessions, models[INVERSE], seed, borrowed)
     done("Experiment 2 with the trained inverse model")
 
     step("figures and report")
@@ -108,18 +107,30 @@ def sessions_of(sessions: Path, experiment: str, runner: str | None = None) -> l
     return out
 
 
+class MainJobError(CommandLineError):
+    """A step of the main job did not do its work (the rig session stopped early)."""
+
+
 def _rig_session(lab: Path) -> None:
-    """One Experiment 1 curve run in real time on the rig, recorded (skipped when already recorded)."""
+    """One Experiment 1 curve run in real time on the rig, recorded (skipped when already recorded): the
+    library call behind `vslab run experiment1 --plan … --rig`, the whole plan or a MainJobError."""
     if any((lab / "sessions").glob("rig-*/session.json")):
         return
-    cmd = [sys.executable, "-m", "vslab.cli", "--lab", str(lab), "--quiet", "run", "experiment1",
-           "--plan", "experiment1/curve/vsl-1bar/25g", "--rig", "--session", "rig-experiment1-curve",
-           "--set", "repetitions=1", "--set", "rest_s=0.5", "--set", "settle_s=1.0"]  # fmt: skip
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    from vslab.app import Settings
+    from vslab.recording import run_plan
+
+    Settings.lab = lab  # the session goes into this lab
+    overrides = {"repetitions": 1, "rest_s": 0.5, "settle_s": 1.0}
+    plan, report = run_plan("experiment1", "experiment1/curve/vsl-1bar/25g", overrides, rig=True,
+                            session="rig-experiment1-curve", say=lambda _: None)  # fmt: skip
+    if report.status != "complete":
+        raise MainJobError(f"the rig session {plan.name} stopped ({report.status}) after "
+                           f"{report.elapsed_s:.1f} s: {report.reason}")  # fmt: skip
 
 
 def _train(lab: Path, dataset_version: str) -> dict[str, str]:
     """The grid's forward and inverse networks on the campaign; returns the versions the figures use."""
+    from pipeline import registry
     from pipeline.grid import load_grid, run_grid
 
     grid = load_grid(
@@ -128,8 +139,9 @@ def _train(lab: Path, dataset_version: str) -> dict[str, str]:
     )
     results = run_grid(lab, grid)
     by_name = {r["name"]: r["version"] for r in results}
-    return {"forward": by_name["forward-small-residual"], "inverse": by_name["inverse-small-residual"],
-            "paper": by_name.get("forward-paper"), "all": by_name}  # fmt: skip
+    for name, model in registry.LAB_TAGS.items():  # the figures and Experiment 2 find them by these tags
+        registry.tag(lab / "models", name, by_name[model])
+    return {name: by_name[model] for name, model in registry.LAB_TAGS.items()}
 
 
 def _experiment2(lab: Path, sessions: Path, inverse_version: str, seed: int, borrowed: dict):

@@ -99,13 +99,16 @@ def models_list() -> None:
     against its card: a damaged one is listed as damaged, with a `warning:` line saying which file and why."""
     from rich.markup import escape
 
-    from pipeline.registry import list_models
+    from pipeline.registry import RegistryError, list_models, tags
 
     root = Settings.lab / "models"
     try:
         rows = list_models(root)
+        tagged = tags(root)
     except OSError as exc:
         _error(f"{root}: cannot be listed ({exc.strerror or exc})")
+    except RegistryError as exc:
+        _error(str(exc))
     if not rows:
         console.print(f"no models in {root} (train some: `vslab train`)", highlight=False, markup=False)
         return
@@ -117,10 +120,29 @@ def models_list() -> None:
         table.add_row(r["version"], r["name"], r["dataset"], str(r["split"]), str(r["seed"]),
                       _mm(r["test_mean_mm"]), _mm(r["test_p95_mm"]), str(r["created"]))  # fmt: skip
     console.print(table)
+    if tagged:
+        console.print("tags: " + ", ".join(f"{n} → {v}" for n, v in sorted(tagged.items())), highlight=False,
+                      markup=False, soft_wrap=True)  # fmt: skip
     for r in rows:
         if "damaged" in r:
             console.print(f"[yellow]warning:[/] model {escape(r['name'])}/{escape(r['version'])} is damaged: "
                           f"{escape(r['damaged'])}", soft_wrap=True, highlight=False)  # fmt: skip
+
+
+@models_app.command("tag")
+def models_tag(
+    name: Annotated[str, typer.Argument(help="The tag: a lower-case name, e.g. 'inverse'.")],
+    version: Annotated[str, typer.Argument(help="Model version (or a unique prefix, or another tag).")],
+) -> None:
+    """Give a model version a name that any command taking a version accepts (`--inverse-model NAME`,
+    `models show NAME`); a tag that exists is moved. Tags live in <lab>/models/tags.json."""
+    from pipeline.registry import RegistryError, tag
+
+    try:
+        full = tag(Settings.lab / "models", name, version)
+    except (FileNotFoundError, ValueError, RegistryError) as exc:  # unknown, ambiguous, damaged, bad name
+        _error(str(exc))
+    console.print(f"{name} → {full}", highlight=False, markup=False)
 
 
 def _checked(version: str) -> tuple[Path, dict]:
@@ -136,7 +158,7 @@ def _checked(version: str) -> tuple[Path, dict]:
 
 @models_app.command("show")
 def models_show(
-    version: Annotated[str, typer.Argument(help="Model version (a unique prefix will do).")],
+    version: Annotated[str, typer.Argument(help="Model version (a unique prefix or a tag will do).")],
 ) -> None:
     """A model's card: lineage, configuration, test metrics and the per-cell table (every file checked first:
     a damaged version is one error line)."""

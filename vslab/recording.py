@@ -19,7 +19,18 @@ import typer
 from rich.markup import escape
 from rich.table import Column, Table
 
-from vslab.app import Settings, _error, _fail, _robot, app, console, load_inverse_model, sessions_app
+from vslab.app import (
+    CommandLineError,
+    Settings,
+    _error,
+    _fail,
+    _overrides,
+    _robot,
+    app,
+    console,
+    load_inverse_model,
+    sessions_app,
+)
 
 PORTS_HELP = "ports.json (or the rig's run directory) naming each device's port."
 RIG_HELP = "Start a rig (the twin behind emulators) and use its devices."
@@ -279,57 +290,12 @@ def run(
 ) -> None:
     """Run one plan of an experiment in real time on the devices (or the rig) while recording it. Payload
     changes and taps prompt the operator (on the rig: applied). Ctrl-C: a safe stop; the file stays valid."""
-    from acquisition.plans.compensation import StaticModelCompensator
-    from acquisition.plans.experiments import expand_experiment
-    from acquisition.plans.rt_runner import RealTimeRunner, RunnerError
-    from acquisition.safety import SafetyChecker, SafetyError
-    from pipeline.in_loop import InverseModelCompensator
-    from vslab.app import _overrides
-
-    overrides = _overrides(set_ or [])
-    model = None if inverse_model is None else load_inverse_model(inverse_model)  # checked, whatever the plan
     try:
-        robots, plans, _ = expand_experiment(experiment, overrides)
-    except (ValueError, OSError) as exc:  # ExperimentError, RobotDescriptionError, an unreachable path
+        the_plan, report = run_plan(experiment, plan, _overrides(set_ or []), ports=ports, rig=rig,
+                                    session=session, inverse_model=inverse_model, rates=rate, live=live,
+                                    live_host=live_host, live_port=live_port)  # fmt: skip
+    except PlanRunError as exc:
         _error(str(exc))
-    chosen = [p for k, p in enumerate(plans) if plan in (p.name, str(k))]
-    if not chosen:
-        more = " …" if len(plans) > 10 else ""
-        _error(f"{experiment} has no plan {plan!r}; its plans (or their numbers, from 0): "
-               + ", ".join(p.name for p in plans[:10]) + more)  # fmt: skip
-    the_plan = chosen[0]
-    desc = robots[the_plan.robot]
-    rates = _rates(rate, desc)
-    try:  # before any device is opened, the rig started or the session folder made
-        SafetyChecker(desc).require_safe(the_plan)
-    except SafetyError as exc:
-        first, _, details = str(exc).partition("\n")
-        _error(f"{first.rstrip(':')}: refused, nothing was started:\n{details}")
-    commands = the_plan.parameters.get("commands", "ik")
-    compensator = None
-    if commands == "static":
-        compensator = StaticModelCompensator(desc, the_plan.parameters["payload_kg"])
-    elif commands == "hybrid":
-        if model is None:
-            _error(
-                "hybrid commands need a trained inverse model: --inverse-model VERSION (`vslab models list`)"
-            )
-        compensator = InverseModelCompensator(model, desc)
-    session_id = _session_id(session, time.strftime("%Y%m%d-%H%M%S-") + the_plan.name.replace("/", "-"))
-    console.print(f"{the_plan.name}: {the_plan.duration_s:.1f} s on {desc.name}")
-    with _devices(desc, ports, rig, session_id) as (port_map, rig_dir):
-        on_payload, on_tap = _operator(rig_dir if rig else None)
-        name = the_plan.parameters.get("protocol", experiment)
-        rec, view = _recorder(desc, port_map, session_id, name, rates, live, live_host, live_port,
-                              plan=the_plan.name, runner="real-time")  # fmt: skip
-        with view as live_server:
-            rec.live = live_server
-            with _recording(rec):
-                try:
-                    report = RealTimeRunner(rec, the_plan, compensator, on_payload, on_tap).run()
-                except (SafetyError, RunnerError) as exc:
-                    _error(str(exc))
-    _finish(rec)
     at = f"{report.elapsed_s:.1f} s of {the_plan.duration_s:.1f} s"
     if report.status != "complete":  # the session is kept (valid up to the stop); the job is not done
         why = escape(report.reason)
@@ -337,6 +303,70 @@ def run(
                       "events say why)", soft_wrap=True, highlight=False)  # fmt: skip
         raise typer.Exit(code=130 if report.status == "interrupted" else 1)
     console.print(f"[green]complete[/] at {at}")
+
+
+class PlanRunError(CommandLineError):
+    """A plan that cannot be run as asked (unknown plan, unsafe, no model for hybrid commands, a runner's
+    stop on an error): nothing was started, or the session was stopped safely and kept."""
+
+
+def run_plan(experiment: str, plan: str = "0", overrides: dict | None = None, *, ports: Path | None = None,
+             rig: bool = False, session: str | None = None, inverse_model: str | None = None,
+             rates: list[str] | None = None, live: bool = False, live_host: str = "127.0.0.1",
+             live_port: int = 8765, say=console.print):  # fmt: skip
+    """One plan of ``experiment`` (by name or number) run in real time on the devices named by ``ports`` (or
+    on a rig started for it) while recording it: ``(plan, RunReport)``. The library form of `vslab run`
+    (the main job calls it); what cannot be run is a :class:`PlanRunError`, checked before anything starts."""
+    from acquisition.plans.compensation import StaticModelCompensator
+    from acquisition.plans.experiments import expand_experiment
+    from acquisition.plans.rt_runner import RealTimeRunner, RunnerError
+    from acquisition.safety import SafetyChecker, SafetyError
+    from pipeline.in_loop import InverseModelCompensator
+
+    model = None if inverse_model is None else load_inverse_model(inverse_model)  # checked, whatever the plan
+    try:
+        robots, plans, _ = expand_experiment(experiment, overrides)
+    except (ValueError, OSError) as exc:  # ExperimentError, RobotDescriptionError, an unreachable path
+        raise PlanRunError(str(exc)) from None
+    chosen = [p for k, p in enumerate(plans) if plan in (p.name, str(k))]
+    if not chosen:
+        more = " …" if len(plans) > 10 else ""
+        raise PlanRunError(f"{experiment} has no plan {plan!r}; its plans (or their numbers, from 0): "
+                           + ", ".join(p.name for p in plans[:10]) + more)  # fmt: skip
+    the_plan = chosen[0]
+    desc = robots[the_plan.robot]
+    device_rates = _rates(rates, desc)
+    try:  # before any device is opened, the rig started or the session folder made
+        SafetyChecker(desc).require_safe(the_plan)
+    except SafetyError as exc:
+        first, _, details = str(exc).partition("\n")
+        raise PlanRunError(f"{first.rstrip(':')}: refused, nothing was started:\n{details}") from None
+    commands = the_plan.parameters.get("commands", "ik")
+    compensator = None
+    if commands == "static":
+        compensator = StaticModelCompensator(desc, the_plan.parameters["payload_kg"])
+    elif commands == "hybrid":
+        if model is None:
+            raise PlanRunError(
+                "hybrid commands need a trained inverse model: --inverse-model VERSION (`vslab models list`)"
+            )
+        compensator = InverseModelCompensator(model, desc)
+    session_id = _session_id(session, time.strftime("%Y%m%d-%H%M%S-") + the_plan.name.replace("/", "-"))
+    say(f"{the_plan.name}: {the_plan.duration_s:.1f} s on {desc.name}")
+    with _devices(desc, ports, rig, session_id) as (port_map, rig_dir):
+        on_payload, on_tap = _operator(rig_dir if rig else None)
+        name = the_plan.parameters.get("protocol", experiment)
+        rec, view = _recorder(desc, port_map, session_id, name, device_rates, live, live_host, live_port,
+                              plan=the_plan.name, runner="real-time")  # fmt: skip
+        with view as live_server:
+            rec.live = live_server
+            with _recording(rec):
+                try:
+                    report = RealTimeRunner(rec, the_plan, compensator, on_payload, on_tap).run()
+                except (SafetyError, RunnerError) as exc:
+                    raise PlanRunError(str(exc)) from None
+    _finish(rec)
+    return the_plan, report
 
 
 def _operator(rig_dir: Path | None):
