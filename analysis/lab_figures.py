@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from acquisition.recorder.sessions import SessionError, read_card, session_info
 from analysis import diagnostics
 from analysis.report import Report
 from pipeline.datasets import load_dataset
 from pipeline.registry import FORWARD, LAB_TAGS
+from pipeline.session_index import SessionError, experiment_sessions, read_session
 
 log = logging.getLogger(__name__)
 
@@ -177,9 +177,8 @@ def _experiment2(datasets: dict, res: Results, out: Path) -> None:
 def _popup(lab: Path, res: Results, out: Path) -> None:
     from analysis import popup_tests
 
-    sessions = lab / "sessions"
-    static = sorted(sessions.glob("sim-popup_static-*"))
-    impact = sorted(sessions.glob("sim-popup_impact-*"))
+    static, _ = experiment_sessions(lab / "sessions", "popup_static", runner="simulated")
+    impact, _ = experiment_sessions(lab / "sessions", "popup_impact", runner="simulated")
     curves = popup_tests.link_static_curves(static)
     fig = popup_tests.figure7(curves, out)
     assert fig, "no static curves to plot"
@@ -213,13 +212,13 @@ def realtime_sessions(lab: Path) -> pd.DataFrame:
     """The sessions recorded in real time (through the devices' drivers: the rig or hardware), one row per
     stream: messages, rate and drops, read from the MCAP summaries; empty when there are none."""
     rows = []
-    for card in sorted((Path(lab) / "sessions").glob("*/session.json")):
+    selected, bad = experiment_sessions(Path(lab) / "sessions", "all", runner="real-time")
+    for why in bad.values():  # a damaged session is left out of the table, and named
+        log.warning("left out of the real-time sessions: %s", why)
+    for directory in selected:
         try:
-            meta = read_card(card.parent)
-            if meta.get("runner") != "real-time":
-                continue
-            info = session_info(card.parent)
-        except SessionError as exc:  # a damaged session is left out of the table, and named
+            meta, info = read_session(directory)
+        except SessionError as exc:
             log.warning("left out of the real-time sessions: %s", exc)
             continue
         for topic, s in sorted(info.streams.items()):

@@ -35,8 +35,22 @@ def columns_for(direction: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
     raise ValueError(f"direction must be 'forward' or 'inverse', got {direction!r}")
 
 
+class DirectedColumns:
+    """The columns of D that a model of ``self.direction`` reads and predicts (networks and baselines)."""
+
+    direction: str
+
+    @property
+    def inputs(self) -> tuple[str, ...]:
+        return columns_for(self.direction)[0]
+
+    @property
+    def targets(self) -> tuple[str, ...]:
+        return columns_for(self.direction)[1]
+
+
 @dataclass(frozen=True)
-class NetConfig:
+class NetConfig(DirectedColumns):
     """What a hybrid network is: its direction, hidden widths, residual or not, ensemble size, a name."""
 
     direction: Literal["forward", "inverse"]
@@ -51,14 +65,6 @@ class NetConfig:
         if self.ensemble < 1 or any(int(h) < 1 for h in self.hidden):
             raise ValueError(f"NetConfig {self.name!r}: ensemble and hidden widths must be ≥ 1")
         object.__setattr__(self, "hidden", tuple(int(h) for h in self.hidden))
-
-    @property
-    def inputs(self) -> tuple[str, ...]:
-        return columns_for(self.direction)[0]
-
-    @property
-    def targets(self) -> tuple[str, ...]:
-        return columns_for(self.direction)[1]
 
     def to_dict(self) -> dict:
         return asdict(self) | {"hidden": list(self.hidden)}

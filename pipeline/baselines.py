@@ -17,7 +17,7 @@ from scipy.optimize import least_squares
 
 from models import kinematics
 from models.estimator import Estimator
-from models.hybrid import FORWARD_TARGETS, INVERSE_TARGETS, columns_for
+from models.hybrid import FORWARD_TARGETS, INVERSE_TARGETS, DirectedColumns
 from models.prbm import interp_table
 from models.robot import AnthropomorphicKinematics, RobotDescription, load_robot
 from models.statics import gravity_moments, servo_droop
@@ -32,7 +32,7 @@ def _cols(df: pd.DataFrame, names: tuple[str, ...]) -> np.ndarray:
     return df.loc[:, list(names)].to_numpy(float)
 
 
-class Baseline(Estimator):
+class Baseline(Estimator, DirectedColumns):
     """Common base (the estimator contract, ``models.estimator``): the direction check in ``fit``, the
     fitted check in ``predict``; subclasses fill ``_fit`` and ``_predict``."""
 
@@ -40,14 +40,6 @@ class Baseline(Estimator):
 
     def __init__(self, direction: str = "forward") -> None:
         self.direction = direction
-
-    @property
-    def inputs(self) -> tuple[str, ...]:
-        return columns_for(self.direction)[0]
-
-    @property
-    def targets(self) -> tuple[str, ...]:
-        return columns_for(self.direction)[1]
 
     @property
     def prior(self) -> tuple[str, ...]:

@@ -13,7 +13,8 @@ from rich.table import Table
 from models.robot import CONFIG_DIR, RobotDescriptionError
 from vslab import (
     models_cmds,  # noqa: F401  (registers train and models on the app)
-    recording,  # noqa: F401  (registers record, run and sessions on the app)
+    recording,  # noqa: F401  (registers record and run on the app)
+    sessions_cmds,  # noqa: F401  (registers sessions on the app)
 )
 from vslab.app import (
     Settings,
@@ -312,25 +313,15 @@ def _sessions_of(wanted: str, pattern: str) -> tuple[list[Path], dict[str, str]]
     that are not readable sessions with the reason (a folder without session.json never joins a build)."""
     from rich.markup import escape
 
-    from acquisition.recorder.sessions import SessionError, read_card
+    from pipeline.session_index import experiment_sessions
 
     root = Settings.lab / "sessions"
     if not root.is_dir():
         _fail(escape(f"no sessions folder at {root}: record or simulate sessions first (`vslab simulate`)"))
-    selected, bad = [], {}
     try:
-        folders = [d for d in sorted(root.glob(pattern)) if d.is_dir() and not d.name.startswith(".")]
+        return experiment_sessions(root, wanted, pattern=pattern)
     except (OSError, ValueError) as exc:
         _fail(escape(f"--sessions {pattern!r}: cannot list {root} ({exc})"))
-    for d in folders:
-        try:
-            card = read_card(d)
-        except SessionError as exc:
-            bad[d.name] = str(exc)
-            continue
-        if wanted == "all" or card["protocol"] == wanted:
-            selected.append(d)
-    return selected, bad
 
 
 def _print_grid(grid, title: str) -> None:

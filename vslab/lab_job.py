@@ -89,22 +89,14 @@ def run(lab: Path, seed: int = 0, quick: bool = False, say: Callable[[str], None
 
 
 def sessions_of(sessions: Path, experiment: str, runner: str | None = None) -> list[Path]:
-    """The session directories of one experiment, of one runner ("simulated", "real-time") if given (their
-    session.json says which)."""
-    from acquisition.recorder.sessions import SessionError, read_card
+    """The session directories of one experiment, of one runner ("simulated", "real-time") if given; a
+    damaged folder is named in the log and never joins a dataset."""
+    from pipeline.session_index import experiment_sessions
 
-    out = []
-    for d in sorted(sessions.iterdir()):
-        if not d.is_dir() or d.name.startswith("."):
-            continue
-        try:
-            card = read_card(d)
-        except SessionError as exc:  # never joins a dataset; named, and the rest go on
-            log.warning("skipped %s", exc)
-            continue
-        if card.get("protocol") == experiment and (runner is None or card.get("runner") == runner):
-            out.append(d)
-    return out
+    selected, bad = experiment_sessions(sessions, experiment, runner)
+    for why in bad.values():
+        log.warning("skipped %s", why)
+    return selected
 
 
 class MainJobError(CommandLineError):

@@ -1,0 +1,99 @@
+"""`vslab sessions`: the lab's recorded sessions listed, inspected and recovered (never changed in place)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.markup import escape
+from rich.table import Column, Table
+
+from vslab.app import Settings, _fail, console, sessions_app
+
+
+@sessions_app.command("list")
+def sessions_list() -> None:
+    """Sessions in the lab: robot, protocol, status, duration, streams, drops. A folder that is not a readable
+    session is listed as bad, with a warning line saying why; the rest are listed as usual (exit 0)."""
+
+    from acquisition.recorder.sessions import list_sessions
+
+    table = Table(Column("session", no_wrap=True), "robot", "protocol", "status", "duration s", "messages",
+                  "lost", "dropped", "torn parts")  # fmt: skip
+    try:
+        infos = list_sessions(Settings.lab / "sessions")
+    except OSError as exc:
+        _fail(escape(f"{Settings.lab / 'sessions'}: cannot be listed ({exc.strerror or exc})"))
+    for info in infos:
+        if info.problem:
+            table.add_row(escape(info.id), "?", "?", "[red]bad[/]", *["–"] * 5)
+            continue
+        table.add_row(
+            *(escape(v) for v in (info.id, info.robot, info.protocol, info.status)), f"{info.duration_s:.1f}",
+            f"{sum(s.messages for s in info.streams.values()):,}", f"{info.lost:,}", f"{info.dropped:,}",
+            str(len(info.torn)),
+        )  # fmt: skip
+    console.print(table)
+    for info in infos:
+        if info.problem:
+            console.print(f"[yellow]warning:[/] {escape(info.problem)}", soft_wrap=True, highlight=False)
+
+
+def _session_dir(session: str) -> Path:
+    directory = Path(session) if Path(session).is_dir() else Settings.lab / "sessions" / session
+    if not directory.is_dir():
+        _fail(f"no session {session!r} in {Settings.lab / 'sessions'} (see `vslab sessions list`)")
+    return directory
+
+
+def _session_info(session: str):
+    """The session's SessionInfo, or one error line (a folder that is not a readable session)."""
+
+    from acquisition.recorder.sessions import SessionError, session_info
+
+    try:
+        return session_info(_session_dir(session))
+    except SessionError as exc:
+        _fail(escape(str(exc)))
+    except OSError as exc:
+        _fail(escape(f"{exc.filename or session}: cannot be read ({exc.strerror or exc})"))
+
+
+@sessions_app.command("info")
+def sessions_info(session: Annotated[str, typer.Argument(help="Session id or directory.")]) -> None:
+    """One session's streams: messages, time span, rate, and the recorder's account (expected, lost in
+    gaps, dropped)."""
+    info = _session_info(session)
+    table = Table(
+        "topic", "messages", "duration s", "rate Hz", "expected", "lost", "gaps", "dropped",
+        title=f"{info.id}: {info.robot}, {info.protocol}, {info.status}, {len(info.parts)} part(s)",
+    )  # fmt: skip
+    for s in info.streams.values():
+        expected = "—" if s.expected is None else f"{s.expected:,}"
+        table.add_row(s.topic, f"{s.messages:,}", f"{s.duration_s:.2f}", f"{s.rate_hz:.1f}", expected,
+                      f"{s.lost:,}", str(s.gaps), f"{s.dropped:,}")  # fmt: skip
+    console.print(table)
+    for part in info.torn:
+        console.print(f"[yellow]torn part[/yellow] {part.name}: run `vslab sessions recover {info.id}`")
+
+
+@sessions_app.command("recover")
+def sessions_recover(session: Annotated[str, typer.Argument(help="Session id or directory.")]) -> None:
+    """Write a valid, indexed copy of every torn part (the originals are never changed). A folder that is not
+    a readable session is refused with one line; nothing is written."""
+
+    from acquisition.recorder.recover import recover
+
+    torn = _session_info(session).torn
+    if not torn:
+        console.print("nothing to recover: every part is whole")
+    for part in torn:
+        try:
+            r = recover(part)
+        except OSError as exc:
+            _fail(escape(f"{part}: cannot write its recovered copy ({exc.strerror or exc}); it is unchanged"))
+        console.print(
+            f"{r.source.name} → {r.output.name}: {r.messages:,} messages ({r.reason or 'complete'})",
+            soft_wrap=True, highlight=False, markup=False,
+        )  # fmt: skip
