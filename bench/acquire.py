@@ -34,9 +34,9 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.recorder.recorder import Recorder
-from acquisition.recorder.sessions import readable_parts
 from acquisition.schemas import topics as T
 from acquisition.schemas.fast_read import read_fixed_topics
+from acquisition.schemas.session_card import readable_parts
 from acquisition.sim.ptyhost import wait_for_ports
 from models.robot import load_robot
 

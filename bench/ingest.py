@@ -24,8 +24,9 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from acquisition.plans.sim_runner import simulate_experiment
+from acquisition.schemas.session_card import readable_parts
 from pipeline.clean import clean
-from pipeline.ingest import ingest_session, session_parts
+from pipeline.ingest import ingest_session
 
 TARGET_MSG_S = 1e6
 TARGET_RATIO = 10.0
@@ -52,7 +53,7 @@ def generic_path(sessions: list[Path], budget_s: float) -> tuple[int, float, int
         if elapsed >= budget_s:
             break
         start = time.perf_counter()
-        for part in session_parts(directory):
+        for part in readable_parts(directory):
             with open(part, "rb") as f:
                 reader = make_reader(f, decoder_factories=[DecoderFactory()])
                 for _ in reader.iter_decoded_messages(log_time_order=False):

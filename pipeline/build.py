@@ -131,15 +131,16 @@ class BuildReport:
 def process_session(directory: str, parameters: dict, cache_root: str) -> dict:
     """Per-session stages of one session (a top-level function: any executor can run it). Returns a small
     record: the cache key of its outputs, or the reason it failed."""
+    from acquisition.schemas.session_card import readable_parts
     from pipeline.clean import clean
-    from pipeline.ingest import IngestError, ingest_session, session_parts, source_hash
+    from pipeline.ingest import IngestError, ingest_session, source_hash
     from pipeline.segment import Stillness, repetitions, static_points
     from pipeline.sync import sync
 
     directory = Path(directory)
     cache = StageCache(Path(cache_root))
     try:
-        parts = session_parts(directory)
+        parts = readable_parts(directory)
         if not parts:
             raise IngestError(directory, "no MCAP parts (*.mcap)")
         source = source_hash(parts)

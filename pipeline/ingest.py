@@ -37,7 +37,7 @@ from acquisition.schemas.mcap_reader import (
     read_summary,
 )
 from acquisition.schemas.ros2msg import parse_fixed_message
-from acquisition.schemas.session_card import SESSION_METADATA
+from acquisition.schemas.session_card import SESSION_METADATA, readable_parts
 from acquisition.schemas.topics import EVENTS, session_topics
 from models.robot import RobotDescription
 from pipeline.cache import file_hash
@@ -45,8 +45,6 @@ from pipeline.errors import PipelineError
 from pipeline.tables import EVENT_COLUMNS, SessionTables, StageReport
 
 log = logging.getLogger(__name__)
-
-RECOVERED_SUFFIX = ".recovered.mcap"  # acquisition.recorder.recover.RECOVERED_SUFFIX
 
 
 class IngestError(PipelineError):
@@ -71,13 +69,6 @@ class _Part:
     topics: set[str] = field(default_factory=set)
 
 
-def session_parts(directory: Path) -> list[Path]:
-    """The parts of a session in order: each ``<id>_NNN.mcap``, or its recovered copy where one exists."""
-    parts = sorted(p for p in directory.glob("*.mcap") if not p.name.endswith(RECOVERED_SUFFIX))
-    recovered = [p.with_name(p.name.removesuffix(".mcap") + RECOVERED_SUFFIX) for p in parts]
-    return [r if r.is_file() else p for p, r in zip(parts, recovered, strict=True)]
-
-
 def source_hash(parts: Iterable[Path]) -> str:
     """sha256 over the parts' bytes, in order (streamed)."""
     return file_hash(parts)
@@ -89,7 +80,7 @@ def ingest_session(directory: Path, generic_topics: Collection[str] = ()) -> Ses
     directory = Path(directory)
     if not directory.is_dir():
         raise IngestError(directory, "not a session directory")
-    parts = session_parts(directory)
+    parts = readable_parts(directory)
     if not parts:
         what = "empty directory" if not any(directory.iterdir()) else "no MCAP parts (*.mcap)"
         raise IngestError(directory, f"session has no parts: {what}")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -35,6 +36,14 @@ def emulator_host(run_dir: Path, *devices: str, module: str = "acquisition.sim.s
         finally:
             if proc.poll() is None:
                 proc.kill()
+
+
+# A test run started in the background by a non-interactive shell (`make test &`, nohup) inherits SIGINT
+# ignored, and so would every process it starts: the Ctrl-C tests would then time out on a child that never
+# sees the signal. An ignored signal stays ignored across exec, a handled one does not, so handling it here
+# gives the children the default disposition, as a terminal's foreground job has.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture

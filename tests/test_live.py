@@ -190,8 +190,8 @@ def test_decimation_caps_each_topic_at_max_rate(robot):
 def test_a_recording_shown_live_keeps_the_file_whole(host_factory, tmp_path, robot):
     """The rig recorded with a viewer subscribed: the view gets the file's bytes at ≤ 100 Hz, the file all."""
     from acquisition.recorder.recorder import Recorder
-    from acquisition.recorder.sessions import readable_parts
     from acquisition.schemas.fast_read import read_fixed_topics
+    from acquisition.schemas.session_card import readable_parts
 
     with (
         host_factory(module="acquisition.sim.rig", extra=("--robot", "vsl")) as ports,

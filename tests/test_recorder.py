@@ -19,10 +19,11 @@ import pytest
 from mcap.reader import make_reader
 
 from acquisition.recorder.recorder import Recorder
-from acquisition.recorder.sessions import readable_parts, recover_session, session_info
+from acquisition.recorder.sessions import recover_session, session_info
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
+from acquisition.schemas.session_card import readable_parts
 from acquisition.sim.ptyhost import send_control
 
 RIG = {"module": "acquisition.sim.rig", "extra": ("--robot", "vsl")}

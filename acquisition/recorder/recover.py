@@ -13,10 +13,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from acquisition.schemas.mcap_writer import copy_readable
+from acquisition.schemas.session_card import RECOVERED_SUFFIX, recovered_path
+
+__all__ = ["RECOVERED_SUFFIX", "RecoveryReport", "recover", "recovered_path"]
 
 log = logging.getLogger(__name__)
-
-RECOVERED_SUFFIX = ".recovered.mcap"
 
 
 @dataclass(frozen=True)
@@ -27,10 +28,6 @@ class RecoveryReport:
     channels: int
     torn: bool  # the source ended before its footer
     reason: str  # what stopped the walk ("" for a complete file)
-
-
-def recovered_path(path: Path) -> Path:
-    return path.with_name(path.name.removesuffix(".mcap") + RECOVERED_SUFFIX)
 
 
 def recover(source: str | Path, output: str | Path | None = None) -> RecoveryReport:

@@ -13,9 +13,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from acquisition.errors import AcquisitionError
-from acquisition.recorder.recover import RECOVERED_SUFFIX, RecoveryReport, recover, recovered_path
+from acquisition.recorder.recover import RecoveryReport, recover
 from acquisition.schemas.mcap_reader import MAGIC, topic_spans
-from acquisition.schemas.session_card import SESSION_CARD, SessionCardError, schema_version
+from acquisition.schemas.session_card import SESSION_CARD, SessionCardError, readable_parts, schema_version
 
 CARD_FIELDS = ("robot", "protocol")  # what every session.json names (the writer always writes them)
 
@@ -108,12 +108,6 @@ class SessionInfo:
     @property
     def lost(self) -> int:
         return sum(s.lost for s in self.streams.values())
-
-
-def readable_parts(directory: Path) -> list[Path]:
-    """The parts to read: each original part, or its recovered copy where one exists."""
-    parts = sorted(p for p in directory.glob("*.mcap") if not p.name.endswith(RECOVERED_SUFFIX))
-    return [recovered_path(p) if recovered_path(p).exists() else p for p in parts]
 
 
 def session_info(directory: Path) -> SessionInfo:

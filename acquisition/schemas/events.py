@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 from acquisition.schemas.cdr import CDR_LE_HEADER, HEADER_SIZE, SchemaError
 
+EVENTS = "/events"  # the topic
 EVENT_SCHEMA_NAME = "vslab_msgs/msg/Event"
 
 

@@ -15,10 +15,8 @@ import numpy as np
 
 from acquisition.schemas import mcap_reader
 from acquisition.schemas.cdr import FixedMessage, SchemaError
-from acquisition.schemas.events import Event
+from acquisition.schemas.events import EVENTS, Event
 from acquisition.schemas.ros2msg import parse_fixed_message
-
-EVENTS_TOPIC = "/events"  # acquisition.schemas.topics.EVENTS (topics imports the robot model; this need not)
 
 
 @dataclass
@@ -75,4 +73,4 @@ def read_fixed_topics(path: str | Path, topics: list[str] | None = None) -> dict
 def read_events(path: str | Path) -> list[tuple[int, Event]]:
     """The events topic of an MCAP file (generic reader: few, variable-size messages): (log_time, event)."""
     with open(path, "rb") as f:
-        return [(t, Event.decode(data)) for t, data in mcap_reader.topic_messages(f, [EVENTS_TOPIC])]
+        return [(t, Event.decode(data)) for t, data in mcap_reader.topic_messages(f, [EVENTS])]

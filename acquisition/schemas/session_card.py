@@ -11,6 +11,7 @@ from __future__ import annotations
 import ast
 import json
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 from acquisition.errors import AcquisitionError
@@ -19,6 +20,7 @@ SCHEMA_VERSION = 2
 SESSION_CARD = "session.json"  # beside the parts
 SESSION_METADATA = "vslab.session"  # the metadata record in every part
 COUNTERS_METADATA = "vslab.counters"  # the final stream counters, in the last part
+RECOVERED_SUFFIX = ".recovered.mcap"  # a torn part's mended copy, beside it (`vslab sessions recover`)
 
 
 class SessionCardError(AcquisitionError, ValueError):
@@ -60,3 +62,14 @@ def session_parameters(fields: Mapping[str, Any]) -> dict:
     if not isinstance(value, dict):
         raise SessionCardError(f"parameters are a {type(value).__name__}, not a mapping")
     return value
+
+
+def recovered_path(part: Path) -> Path:
+    """Where the mended copy of a torn ``part`` goes (and is looked for)."""
+    return part.with_name(part.name.removesuffix(".mcap") + RECOVERED_SUFFIX)
+
+
+def readable_parts(directory: Path) -> list[Path]:
+    """A session's parts in order: each ``<id>_NNN.mcap``, or its recovered copy where one exists."""
+    parts = sorted(p for p in Path(directory).glob("*.mcap") if not p.name.endswith(RECOVERED_SUFFIX))
+    return [recovered_path(p) if recovered_path(p).is_file() else p for p in parts]

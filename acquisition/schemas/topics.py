@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from acquisition.schemas.cdr import Field, FixedMessage
-from acquisition.schemas.events import EVENT_SCHEMA, EVENT_SCHEMA_NAME
+from acquisition.schemas.events import EVENT_SCHEMA, EVENT_SCHEMA_NAME, EVENTS
 from models.robot import RobotDescription
 
 SERVO_STATE = "/servo/state"
@@ -24,7 +24,6 @@ PRESSURE_COMMAND = "/pressure/command"
 STEPPER = "/stepper/state"
 TRACKER = "/tracker/pose"
 ACCEL = "/imu/accel"
-EVENTS = "/events"
 
 MESSAGE_ENCODING = "cdr"
 SCHEMA_ENCODING = "ros2msg"
