@@ -15,6 +15,8 @@
 #include <stdio.h>
 #include <string.h>
 
+// Deliberate mirror of ../stepper_board/stepper_board.ino: each sketch is a whole firmware image and opens alike
+// (identity, baud, the verbs it answers); what they share at run time is the VslLink library.
 using vsl::E_ARGS;
 using vsl::E_UNKNOWN;
 
