@@ -327,7 +327,7 @@ def _in_base_frame(rows: pd.DataFrame, registration) -> pd.DataFrame:
 def _session_card(record: dict) -> dict:
     report = record["report"]
     return {"source": record["source"], "removed": report["removed"], "warnings": report["warnings"],
-            "values": report["values"], "protocol": record["metadata"].get("protocol", "")}  # fmt: skip
+            "values": report["values"], "experiment": record["metadata"].get("experiment", "")}  # fmt: skip
 
 
 def _registration_card(registration) -> dict:

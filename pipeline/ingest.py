@@ -37,7 +37,7 @@ from acquisition.schemas.mcap_reader import (
     read_summary,
 )
 from acquisition.schemas.ros2msg import parse_fixed_message
-from acquisition.schemas.session_card import SESSION_METADATA, readable_parts
+from acquisition.schemas.session_card import SESSION_METADATA, as_current, readable_parts
 from acquisition.schemas.topics import EVENTS, session_topics
 from models.robot import RobotDescription
 from pipeline.cache import file_hash
@@ -104,7 +104,7 @@ def ingest_session(directory: Path, generic_topics: Collection[str] = ()) -> Ses
     return SessionTables(
         session_id=metadata.get("session_id", directory.name),
         robot=robot,
-        metadata={k: v for k, v in metadata.items() if k != "robot_description"},
+        metadata=as_current({k: v for k, v in metadata.items() if k != "robot_description"}),
         streams=streams,
         events=events,
         report=report,

@@ -25,7 +25,7 @@ def experiment_sessions(
         except SessionError as exc:
             bad[d.name] = str(exc)
             continue
-        if (experiment == "all" or card["protocol"] == experiment) and runner in (None, card.get("runner")):
+        if (experiment == "all" or card["experiment"] == experiment) and runner in (None, card.get("runner")):
             selected.append(d)
     return selected, bad
 

@@ -162,9 +162,9 @@ PROTOCOLS = [
 
 
 @pytest.mark.parametrize("command", ["simulate", "run"])
-@pytest.mark.parametrize(("protocol", "says"), PROTOCOLS, ids=[p.split("/")[-1] for p, _ in PROTOCOLS])
-def test_a_bad_protocol(tmp_path, inputs, command, protocol, says):
-    args = [command, protocol] + (["--rig"] if command == "run" else [])
+@pytest.mark.parametrize(("experiment", "says"), PROTOCOLS, ids=[p.split("/")[-1] for p, _ in PROTOCOLS])
+def test_a_bad_experiment(tmp_path, inputs, command, experiment, says):
+    args = [command, experiment] + (["--rig"] if command == "run" else [])
     _refused(tmp_path, inputs, args, says)
 
 

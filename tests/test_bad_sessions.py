@@ -52,7 +52,7 @@ def _halve(path: Path) -> None:
 
 
 DAMAGE = {
-    "card-corrupt": lambda s: _card(s).write_text(_card(s).read_text().replace('"protocol":', '"protocol"')),
+    "card-corrupt": lambda s: _card(s).write_text(_card(s).read_text().replace('"robot":', '"robot"')),
     "card-truncated": lambda s: _halve(_card(s)),
     "card-empty": lambda s: _card(s).write_bytes(b""),
     "card-random": lambda s: _card(s).write_bytes(_random(len(_card(s).read_bytes()))),

@@ -95,7 +95,7 @@ def test_any_setpoint_either_passes_inside_the_range_or_is_refused(vsl, p):
 
 # ------------------------------------------------------------------------------------ on the rig
 def _plan(name="test/guard"):
-    b = PlanBuilder(name, "vsl", joints=3, channels=2, parameters={"protocol": "test"})
+    b = PlanBuilder(name, "vsl", joints=3, channels=2, parameters={"experiment": "test"})
     b.goto([0.2, 0.9, -1.6], 0.6).pressure(1.0 * BAR).payload(0.0).wait(0.4)
     b.goto([0.25, 0.95, -1.65], 0.5).wait(0.5)
     return b.build()

@@ -26,7 +26,7 @@ from pipeline.tables import EVENT_COLUMNS
 @pytest.fixture(scope="module")
 def session(vsl, tmp_path_factory) -> Path:
     """One short simulated session (a few seconds of plan time)."""
-    b = PlanBuilder("short/ingest", vsl.name, 3, vsl.pneumatics.channels, {"protocol": "short"})
+    b = PlanBuilder("short/ingest", vsl.name, 3, vsl.pneumatics.channels, {"experiment": "short"})
     b.goto([0.0, 0.3, -0.6]).pressure(1.2e5).payload(0.05).wait(0.5)
     b.goto([0.1, 0.5, -0.5], speed=1.0).mark(EventKind.NOTE, text="moved").wait(1.5)
     plan = b.build()
@@ -68,7 +68,7 @@ def test_simulated_session_gives_one_table_per_topic(session, vsl):
     assert counters[T.EVENTS]["written"] == len(events)
     assert "moved" in set(tables.events["text"]) and EventKind.NOTE in set(tables.events["kind"])
     assert tables.source_hash == source_hash([_part(session)]) and len(tables.source_hash) == 64
-    assert "robot_description" not in tables.metadata and tables.metadata["protocol"] == "short"
+    assert "robot_description" not in tables.metadata and tables.metadata["experiment"] == "short"
 
 
 def test_generic_path_equals_fast_path(session):

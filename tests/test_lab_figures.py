@@ -48,7 +48,9 @@ def test_figures_and_report_of_a_lab_with_only_a_campaign(campaign_dataset, tmp_
 
 def _session(sessions, name, runner, n_events):
     meta = {"runner": runner, "plan": "experiment1/curve/vsl-1bar/25g"}
-    with SessionWriter(sessions / name, load_robot("vsl"), name, protocol="experiment1", metadata=meta) as w:
+    with SessionWriter(
+        sessions / name, load_robot("vsl"), name, experiment="experiment1", metadata=meta
+    ) as w:
         for i in range(n_events):
             w.event(Event(EventKind.PLAN_STEP, index=i, label="step"), int(i * 1e8))
 

@@ -14,7 +14,7 @@ BAR, GRAM = 1e5, 1e-3
 
 
 def _builder(name: str = "test/plan") -> PlanBuilder:
-    return PlanBuilder(name, "vsl", joints=3, channels=2, parameters={"protocol": "test"})
+    return PlanBuilder(name, "vsl", joints=3, channels=2, parameters={"experiment": "test"})
 
 
 def _simple_plan() -> Plan:
@@ -31,7 +31,7 @@ def _simple_plan() -> Plan:
 def test_builder_places_actions_at_the_cursor():
     plan = _simple_plan()
     assert plan.name == "test/plan" and plan.robot == "vsl"
-    assert plan.parameters == {"protocol": "test"}
+    assert plan.parameters == {"experiment": "test"}
     assert plan.duration_s == pytest.approx(3.75)
     np.testing.assert_allclose(plan.goal_t, [0.0, 1.0])
     np.testing.assert_allclose(plan.goal_q, [[0.0, 0.1, 0.2], [0.3, 0.4, 0.5]])
@@ -266,7 +266,7 @@ def test_experiment1_repetitions_are_bracketed_in_order(e1_plans, e1_params):
 def test_experiment1_cells_set_payload_and_pressure(e1_plans):
     for plan in e1_plans:
         cell = plan.parameters
-        assert cell["protocol"] == "experiment1"
+        assert cell["experiment"] == "experiment1"
         grams = round(cell["payload_kg"] / GRAM)
         assert plan.name == f"experiment1/{cell['trajectory']}/{cell['arm']}/{grams:g}g"
         np.testing.assert_allclose(plan.payload_kg, [cell["payload_kg"]])
@@ -327,7 +327,7 @@ def test_campaign_deals_every_point_once(vsl, campaign_params):
         assert len(settled) == plan.parameters["points"]
         assert all(e.value == pytest.approx(campaign_params["hold_s"]) for _, e in settled)
         indexes += [e.index for _, e in settled]
-        assert plan.parameters["protocol"] == "campaign" and plan.parameters["seed"] == 3
+        assert plan.parameters["experiment"] == "campaign" and plan.parameters["seed"] == 3
     assert indexes == list(range(200))
 
 

@@ -28,7 +28,7 @@ BAR = 1e5
 
 def _plan(name="test/rt"):
     """Home → a start pose, a few timed set-points, a pressure change, a payload, a hold: ≈ 5.5 s."""
-    b = PlanBuilder(name, "vsl", joints=3, channels=2, parameters={"protocol": "test"})
+    b = PlanBuilder(name, "vsl", joints=3, channels=2, parameters={"experiment": "test"})
     b.goto([0.2, 0.9, -1.6], 1.0).pressure(1.0 * BAR).payload(0.0).wait(1.5)
     b.mark(EventKind.REPETITION_START, 0, "steps")
     t = np.array([0.0, 0.5, 1.0, 1.5])

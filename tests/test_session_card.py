@@ -19,7 +19,12 @@ from acquisition.schemas.session_card import (
 from models.robot import load_robot
 from pipeline.ingest import ingest_session
 
-PARAMETERS = {"protocol": "popup_static", "pressure_pa": 20_000.0, "order": [2, 0, 1], "box": {"min": [0, 1]}}
+PARAMETERS = {
+    "experiment": "popup_static",
+    "pressure_pa": 20_000.0,
+    "order": [2, 0, 1],
+    "box": {"min": [0, 1]},
+}
 
 
 def test_what_a_session_records_reads_back_from_its_card_and_its_parts(tmp_path):
@@ -56,3 +61,15 @@ def test_a_newer_schema_is_refused_in_one_line(tmp_path):
     card.write_text(card.read_text().replace('"schema_version": 2', '"schema_version": 3'))
     with pytest.raises(SessionError, match=r"session\.json: written by a newer vslab \(session schema 3"):
         read_card(tmp_path)
+
+
+def test_a_version_one_card_reads_with_the_current_keys(tmp_path):
+    with SessionWriter(tmp_path, load_robot("vsl"), "s1", experiment="campaign"):
+        pass
+    card = tmp_path / "session.json"
+    old = json.loads(card.read_text())
+    del old["schema_version"]
+    old["protocol"] = old.pop("experiment")  # as vslab wrote it before schema 2
+    card.write_text(json.dumps(old))
+    assert read_card(tmp_path)["experiment"] == "campaign"
+    assert "protocol" not in read_card(tmp_path)

@@ -142,7 +142,7 @@ def session(robot, tmp_path_factory):
     streams = make_streams(robot, 2.0, rng)
     events = make_events(2.0)
     with SessionWriter(
-        directory, robot, "s1", protocol="test", metadata={"operator": "pytest"}, chunk_size=16384,
+        directory, robot, "s1", experiment="test", metadata={"operator": "pytest"}, chunk_size=16384,
         clock=still_clock,
     ) as w:  # fmt: skip
         w.note_received(SERVO_STATE, len(streams[SERVO_STATE].rows) + 5)
@@ -235,7 +235,7 @@ def test_session_card(session):
     card = json.loads((directory / SESSION_CARD).read_text())
     assert card["status"] == "complete"
     assert card["parts"] == ["s1_000.mcap"]
-    assert card["session_id"] == "s1" and card["protocol"] == "test" and card["robot"] == "vsl"
+    assert card["session_id"] == "s1" and card["experiment"] == "test" and card["robot"] == "vsl"
     assert "robot_description" not in card
     servo = card["counters"][SERVO_STATE]
     n = len(streams[SERVO_STATE].rows)

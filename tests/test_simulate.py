@@ -94,7 +94,7 @@ def test_sessions_are_written_complete(e1, vsl):
     assert [i.id for i in infos] == ids
     for info in infos:
         assert info.status == "complete"
-        assert info.robot == vsl.name and info.protocol == "experiment1"
+        assert info.robot == vsl.name and info.experiment == "experiment1"
         assert info.torn == [] and len(info.parts) == 1
         assert info.streams[T.SERVO_STATE].messages > 0
     total = sum(s.messages for i in infos for s in i.streams.values())
@@ -262,7 +262,7 @@ def test_no_data_after_the_session_end(e1):
 def _short_plans(robot, seconds: float = 1.5):
     plans = []
     for k, (q2, grams) in enumerate([(0.2, 0.0), (-0.2, 50.0)]):
-        b = PlanBuilder(f"short/p{k}", robot.name, 3, robot.pneumatics.channels, {"protocol": "short"})
+        b = PlanBuilder(f"short/p{k}", robot.name, 3, robot.pneumatics.channels, {"experiment": "short"})
         b.goto([0.0, 0.3, -0.6]).pressure(1.2e5).payload(grams * 1e-3).wait(0.5)
         b.goto([0.1, 0.3 + q2, -0.5], speed=1.0).mark(EventKind.NOTE, text="moved").wait(seconds - 0.5)
         plans.append(b.build())

@@ -30,7 +30,7 @@ def _plans(robot, seconds: float = SECONDS):
     """Two benches: pressure steps and slow joint moves, so the streams change while the clocks run."""
     plans = []
     for k, sign in enumerate((1.0, -1.0)):
-        b = PlanBuilder(f"sync/p{k}", robot.name, 3, robot.pneumatics.channels, {"protocol": "sync"})
+        b = PlanBuilder(f"sync/p{k}", robot.name, 3, robot.pneumatics.channels, {"experiment": "sync"})
         b.goto([0.0, 0.3, -0.6]).pressure(1.0e5).payload(0.0).wait(2.0)
         b.goto([0.3 * sign, 0.5, -0.3], speed=0.5).pressure(1.5e5).wait(seconds / 2)
         b.goto([-0.2 * sign, 0.1, -0.8], speed=0.5).pressure(0.8e5).wait(seconds / 2 - 2.0)

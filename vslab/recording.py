@@ -180,7 +180,7 @@ def _not_a_serial_port(port: str) -> str | None:
     return None
 
 
-def _recorder(desc, port_map: dict, session_id: str, protocol: str, rates: dict, live: bool, host: str,
+def _recorder(desc, port_map: dict, session_id: str, experiment: str, rates: dict, live: bool, host: str,
               port: int, **meta):  # fmt: skip
     """The session's Recorder (not started) and its live view (or a null context)."""
     from acquisition.recorder.recorder import Recorder, RecorderError
@@ -189,7 +189,7 @@ def _recorder(desc, port_map: dict, session_id: str, protocol: str, rates: dict,
     if directory.exists() and any(directory.glob("*.mcap")):
         _error(f"session {session_id} exists already in {directory.parent}: choose another --session")
     try:
-        rec = Recorder(desc, port_map, directory, session_id, protocol=protocol, rates=rates,
+        rec = Recorder(desc, port_map, directory, session_id, experiment=experiment, rates=rates,
                        metadata={k: str(v) for k, v in meta.items()})  # fmt: skip
     except RecorderError as exc:
         _error(str(exc))
@@ -240,7 +240,9 @@ def record(
     rig: Annotated[bool, typer.Option("--rig", help=RIG_HELP)] = False,
     duration: Annotated[float, typer.Option(help="Seconds to record (0: until Ctrl-C).")] = 0.0,
     session: Annotated[str | None, typer.Option(help="Session id (default: time, robot).")] = None,
-    protocol: Annotated[str, typer.Option(help="What this session is (stored in its metadata).")] = "manual",
+    experiment: Annotated[
+        str, typer.Option(help="What this session is (stored in its metadata).")
+    ] = "manual",
     rate: RateOption = None,
     live: LiveOption = False,
     live_host: LiveHost = "127.0.0.1",
@@ -255,7 +257,7 @@ def record(
         _error(f"--duration must be ≥ 0 s (0: until Ctrl-C), got {duration}")
     session_id = _session_id(session, time.strftime("%Y%m%d-%H%M%S") + f"-{desc.name}")
     with _devices(desc, ports, rig, session_id) as (port_map, _):
-        rec, view = _recorder(desc, port_map, session_id, protocol, rates, live, live_host, live_port)
+        rec, view = _recorder(desc, port_map, session_id, experiment, rates, live, live_host, live_port)
         with view as live_server:
             rec.live = live_server
             start = time.monotonic()
@@ -353,7 +355,7 @@ def run_plan(experiment: str, plan: str = "0", overrides: dict | None = None, *,
     say(f"{the_plan.name}: {the_plan.duration_s:.1f} s on {desc.name}")
     with _devices(desc, ports, rig, session_id) as (port_map, rig_dir):
         on_payload, on_tap = _operator(rig_dir if rig else None)
-        name = the_plan.parameters.get("protocol", experiment)
+        name = the_plan.parameters.get("experiment", experiment)
         rec, view = _recorder(desc, port_map, session_id, name, device_rates, live, live_host, live_port,
                               plan=the_plan.name, runner="real-time")  # fmt: skip
         with view as live_server:

@@ -14,12 +14,13 @@ from vslab.app import Settings, _fail, console, sessions_app
 
 @sessions_app.command("list")
 def sessions_list() -> None:
-    """Sessions in the lab: robot, protocol, status, duration, streams, drops. A folder that is not a readable
-    session is listed as bad, with a warning line saying why; the rest are listed as usual (exit 0)."""
+    """Sessions in the lab: robot, experiment, status, duration, streams, drops. A folder that is not a
+    readable session is listed as bad, with a warning line saying why; the rest are listed as usual
+    (exit 0)."""
 
     from acquisition.recorder.sessions import list_sessions
 
-    table = Table(Column("session", no_wrap=True), "robot", "protocol", "status", "duration s", "messages",
+    table = Table(Column("session", no_wrap=True), "robot", "experiment", "status", "duration s", "messages",
                   "lost", "dropped", "torn parts")  # fmt: skip
     try:
         infos = list_sessions(Settings.lab / "sessions")
@@ -30,7 +31,8 @@ def sessions_list() -> None:
             table.add_row(escape(info.id), "?", "?", "[red]bad[/]", *["–"] * 5)
             continue
         table.add_row(
-            *(escape(v) for v in (info.id, info.robot, info.protocol, info.status)), f"{info.duration_s:.1f}",
+            *(escape(v) for v in (info.id, info.robot, info.experiment, info.status)),
+            f"{info.duration_s:.1f}",
             f"{sum(s.messages for s in info.streams.values()):,}", f"{info.lost:,}", f"{info.dropped:,}",
             str(len(info.torn)),
         )  # fmt: skip
@@ -67,7 +69,7 @@ def sessions_info(session: Annotated[str, typer.Argument(help="Session id or dir
     info = _session_info(session)
     table = Table(
         "topic", "messages", "duration s", "rate Hz", "expected", "lost", "gaps", "dropped",
-        title=f"{info.id}: {info.robot}, {info.protocol}, {info.status}, {len(info.parts)} part(s)",
+        title=f"{info.id}: {info.robot}, {info.experiment}, {info.status}, {len(info.parts)} part(s)",
     )  # fmt: skip
     for s in info.streams.values():
         expected = "—" if s.expected is None else f"{s.expected:,}"

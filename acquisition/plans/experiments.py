@@ -179,7 +179,7 @@ def experiment1(vsl: RobotDescription, rigid: RobotDescription | None, params: d
                         f"experiment1/{name}/{arm}/{grams:g}g",
                         robot,
                         params,
-                        {"protocol": "experiment1", **cell},
+                        {"experiment": "experiment1", **cell},
                     )
                 )
     return plans
@@ -212,7 +212,7 @@ def experiment2(vsl: RobotDescription, rigid: RobotDescription | None, params: d
             continue
         seen.add(plan_name)
         cell = {"trajectory": name, "arm": arm, "pressure_pa": pressure_pa, "payload_kg": grams * GRAM}
-        parameters = {"protocol": "experiment2", "commands": mode, **cell}
+        parameters = {"experiment": "experiment2", "commands": mode, **cell}
         plans.append(_trajectory_plan(plan_name, robot, params | {"trajectories": [name]}, parameters))
     return plans
 
@@ -251,7 +251,7 @@ def campaign(robot: RobotDescription, params: dict, benches: int = 1, seed: int 
     plans = []
     for k, idx in enumerate(np.array_split(np.arange(n), min(benches, n))):
         b = _builder(
-            f"campaign/bench{k:03d}", robot, {"protocol": "campaign", "seed": seed, "points": len(idx)}
+            f"campaign/bench{k:03d}", robot, {"experiment": "campaign", "seed": seed, "points": len(idx)}
         )
         previous = q[idx[0]]
         for point in idx:

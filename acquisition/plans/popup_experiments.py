@@ -101,7 +101,7 @@ def static_test(robot: RobotDescription, params: dict) -> list[Plan]:
         loads = static_loads_kg(robot, params, kpa * KPA)
         branches = (("loading", loads), ("unloading", loads[::-1][1:]))
         cell = {
-            "protocol": "popup_static",
+            "experiment": "popup_static",
             "pressure_pa": kpa * KPA,
             "link": params["link"],
             "loads_kg": loads.tolist(),
@@ -128,7 +128,7 @@ def impact_test(robot: RobotDescription, params: dict) -> list[Plan]:
     plans = []
     for kpa in params["pressures_kpa"]:
         impulse = params["tap_impulse_nms"]
-        cell = {"protocol": "popup_impact", "pressure_pa": kpa * KPA, "tap_impulse_nms": impulse}
+        cell = {"experiment": "popup_impact", "pressure_pa": kpa * KPA, "tap_impulse_nms": impulse}
         b = _builder(f"popup_impact/{kpa:g}kPa", robot, cell)
         b.goto(_pose(params)).pressure(kpa * KPA).payload(0.0).settle(params["settle_s"])
         for rep in range(params["taps"]):
@@ -154,7 +154,7 @@ def deployment(robot: RobotDescription, params: dict) -> list[Plan]:
         raise ValueError(f"popup_deploy: set_points_kpa needs {channels} values, got {len(set_points)}")
     fill_s = fill_time_s(robot, params["fill_time_constants"])
     cell = {
-        "protocol": "popup_deploy",
+        "experiment": "popup_deploy",
         "set_points_pa": set_points.tolist(),
         "fill_s": fill_s,
     }

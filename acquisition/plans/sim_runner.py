@@ -169,7 +169,7 @@ def simulate(
         if directory.exists():  # an incomplete earlier try: start it again
             for old in directory.glob("*"):
                 old.unlink()
-        w = SessionWriter(directory, robot, session_id(p), protocol=p.parameters.get("protocol", p.name),
+        w = SessionWriter(directory, robot, session_id(p), experiment=p.parameters.get("experiment", p.name),
                           metadata={"plan": p.name, "runner": "simulated", "seed": str(seed),
                                     "parameters": p.parameters, TWIN_TRUTH: twin_truth(world, r)},
                           flush_s=30.0)  # fmt: skip

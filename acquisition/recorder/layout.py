@@ -33,7 +33,7 @@ class Layout:
     run_dir: Path
     session_dir: Path
     session_id: str
-    protocol: str
+    experiment: str
     robot_json: str
     parent_pid: int
     t0_ns: int  # monotonic ns: slot 0 of every polled device

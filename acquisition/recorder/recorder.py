@@ -101,7 +101,7 @@ class Recorder:
         ports: dict[str, str],
         directory: Path,
         session_id: str,
-        protocol: str = "manual",
+        experiment: str = "manual",
         metadata: dict[str, str] | None = None,
         rates: dict[str, float] | None = None,  # device → Hz, over the robot description's
         rotation: RotationPolicy | None = None,
@@ -131,7 +131,7 @@ class Recorder:
         rotation = rotation or RotationPolicy()
         now = time.monotonic_ns()
         self.layout = Layout(
-            run_dir=Path(), session_dir=self.directory, session_id=session_id, protocol=protocol,
+            run_dir=Path(), session_dir=self.directory, session_id=session_id, experiment=experiment,
             robot_json=robot.model_dump_json(), parent_pid=os.getpid(), t0_ns=now,
             unix_offset_ns=time.time_ns() - time.monotonic_ns(), devices=devices,
             metadata={**{k: str(v) for k, v in (metadata or {}).items()},

@@ -15,9 +15,15 @@ from pathlib import Path
 from acquisition.errors import AcquisitionError
 from acquisition.recorder.recover import RecoveryReport, recover
 from acquisition.schemas.mcap_reader import MAGIC, topic_spans
-from acquisition.schemas.session_card import SESSION_CARD, SessionCardError, readable_parts, schema_version
+from acquisition.schemas.session_card import (
+    SESSION_CARD,
+    SessionCardError,
+    as_current,
+    readable_parts,
+    schema_version,
+)
 
-CARD_FIELDS = ("robot", "protocol")  # what every session.json names (the writer always writes them)
+CARD_FIELDS = ("robot", "experiment")  # what every session.json names (the writer always writes them)
 
 
 class SessionError(AcquisitionError, ValueError):
@@ -31,7 +37,8 @@ class SessionError(AcquisitionError, ValueError):
 
 def read_card(directory: Path) -> dict:
     """A session's ``session.json`` as a dict; ``SessionError`` when it is missing, empty, not JSON
-    (truncated, garbled) or lacks the fields every session has (robot, protocol)."""
+    (truncated, garbled) or lacks the fields every session has (robot, experiment). A version-1 card is
+    read with the current keys (``session_card.as_current``)."""
     path = Path(directory) / SESSION_CARD
     aside = f"move the folder out of {Path(directory).parent} (or restore session.json from a backup)"
     if not path.is_file():
@@ -57,6 +64,7 @@ def read_card(directory: Path) -> dict:
         schema_version(card)
     except SessionCardError as exc:
         raise SessionError(path, str(exc)) from exc
+    card = as_current(card)
     missing = [k for k in CARD_FIELDS if not isinstance(card.get(k), str) or not card[k]]
     if missing:
         raise SessionError(path, f"no {' or '.join(repr(k) for k in missing)} field", aside)
@@ -88,7 +96,7 @@ class SessionInfo:
     id: str
     directory: Path
     robot: str = "?"
-    protocol: str = "?"
+    experiment: str = "?"
     status: str = "?"  # recording (or killed), complete; "bad" when ``problem`` says why
     parts: list[Path] = field(default_factory=list)
     torn: list[Path] = field(default_factory=list)  # parts without a summary and no recovered copy
@@ -119,7 +127,7 @@ def session_info(directory: Path) -> SessionInfo:
         raise SessionError(directory, "no such session folder")
     card = read_card(directory)
     status = str(card.get("status", "?"))
-    info = SessionInfo(directory.name, directory, card["robot"], card["protocol"], status)
+    info = SessionInfo(directory.name, directory, card["robot"], card["experiment"], status)
     info.parts = readable_parts(directory)
     if not info.parts:
         raise SessionError(directory, "no MCAP parts (*.mcap)", "nothing was recorded: remove the folder")

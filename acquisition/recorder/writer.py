@@ -4,7 +4,7 @@ The writer is single-threaded by design (``SessionWriter``): the real-time recor
 that drains the device workers' queue, the simulated-time runner calls it directly. Each part file is
 complete on its own: schemas, channels and the session metadata are written into every part.
 
-    with SessionWriter(directory, robot, session_id="s1", protocol="experiment1") as w:
+    with SessionWriter(directory, robot, session_id="s1", experiment="experiment1") as w:
         w.write(topics.SERVO_STATE, log_time_ns, rows)      # rows: structured array of the topic's message
         w.event(Event(EventKind.NOTE, text="hello"), log_time_ns)
 """
@@ -88,7 +88,7 @@ class SessionWriter:
         directory: Path,
         robot: RobotDescription,
         session_id: str,
-        protocol: str = "manual",
+        experiment: str = "manual",
         metadata: dict[str, str] | None = None,
         topics: dict[str, Topic] | None = None,
         chunk_size: int = 1 << 20,
@@ -110,7 +110,7 @@ class SessionWriter:
             "schema_version": str(SCHEMA_VERSION),
             "session_id": session_id,
             "robot": robot.name,
-            "protocol": protocol,
+            "experiment": experiment,
             "robot_description": robot.model_dump_json(),
             "vslab_version": vslab_version(),
             "mcap_version": MCAP_LIBRARY_VERSION,

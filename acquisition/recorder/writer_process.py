@@ -53,7 +53,7 @@ class WriterProcess:
         self.supervisor_gone = False
         robot = RobotDescription.model_validate_json(layout.robot_json)
         self.writer = SessionWriter(
-            layout.session_dir, robot, layout.session_id, layout.protocol,
+            layout.session_dir, robot, layout.session_id, layout.experiment,
             {**layout.metadata, "host_clock": f"log_time = monotonic_ns + {layout.unix_offset_ns}"},
             flush_s=float("inf"),  # this process decides when to flush (and then counts written)
             rotation=RotationPolicy(layout.rotate_bytes, layout.rotate_seconds),

@@ -2,8 +2,10 @@
 ``vslab.session`` metadata record. Schema-versioned JSON, one reader for every version.
 
 Version 2 (this one) stores every value that is not a string as JSON (``parameters``: the plan's
-parameters as a JSON object) and says its ``schema_version``. Version 1 (no ``schema_version``) wrote the
-parameters with Python's ``repr``; they are still read (``ast.literal_eval``: literals only, nothing runs).
+parameters as a JSON object), names the session's experiment under ``experiment`` and says its
+``schema_version``. Version 1 (no ``schema_version``) wrote the parameters with Python's ``repr`` (still
+read: ``ast.literal_eval``, literals only, nothing runs) and the experiment under ``protocol``, a word vslab
+keeps for wire protocols: :func:`as_current` reads a version-1 card as a version-2 one.
 """
 
 from __future__ import annotations
@@ -46,6 +48,14 @@ def schema_version(fields: Mapping[str, Any]) -> int:
             "update vslab"
         )
     return version
+
+
+def as_current(fields: Mapping[str, Any]) -> dict:
+    """A card or metadata map of any schema version with the current keys (``experiment``)."""
+    out = dict(fields)
+    if "experiment" not in out and "protocol" in out:  # version 1
+        out["experiment"] = out.pop("protocol")
+    return out
 
 
 def session_parameters(fields: Mapping[str, Any]) -> dict:
