@@ -15,12 +15,8 @@ import serial
 from acquisition.codecs import board_lines as bp
 from acquisition.devices.boards import BoardReplyError, PressureBoard, StepperBoard
 from acquisition.errors import DeviceError, DeviceNotFoundError, DeviceProtocolError, DeviceReplyError
-from acquisition.sim.emulators.board_firmware import (
-    PressureBoardEmulator,
-    SimplePressureHardware,
-    SimpleStepperHardware,
-    StepperBoardEmulator,
-)
+from acquisition.sim.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
+from acquisition.sim.emulators.board_hardware import SimplePressureHardware, SimpleStepperHardware
 
 PROTOCOL_MD = Path(__file__).resolve().parents[1] / "firmware" / "PROTOCOL.md"
 PRESSURE = "pressure_board=acquisition.sim.emulators.board_firmware:demo_pressure_board"

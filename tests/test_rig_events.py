@@ -13,12 +13,8 @@ from acquisition.codecs import board_lines as bp
 from acquisition.codecs import dynamixel as dx
 from acquisition.sim import sensors, streams
 from acquisition.sim.emulators.base import LEGACY_POLL_S, Emulator
-from acquisition.sim.emulators.board_firmware import (
-    PressureBoardEmulator,
-    SimplePressureHardware,
-    SimpleStepperHardware,
-    StepperBoardEmulator,
-)
+from acquisition.sim.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
+from acquisition.sim.emulators.board_hardware import SimplePressureHardware, SimpleStepperHardware
 from acquisition.sim.emulators.dynamixel import demo_bus
 from acquisition.sim.ptyhost import PORTS_FILE, send_control
 from acquisition.sim.rig import Rig
