@@ -8,7 +8,9 @@ baselines, the hybrid networks) is an :class:`Estimator`.
 - Randomness comes from a ``random_state`` (or ``seed``) parameter, never from global state.
 
 Built on ``sklearn.base.BaseEstimator`` (parameters from the constructor's signature, ``clone``, the
-``repr``) rather than a copy of it; ``tests/test_estimator_contract.py`` runs one suite over every estimator.
+``repr``) rather than a copy of it: scikit-learn is a dependency already (the baselines' regressors), and its
+``clone`` is what the contract means. ``tests/test_estimator_contract.py`` runs one suite over every
+estimator.
 """
 
 from __future__ import annotations

@@ -34,7 +34,8 @@ def _cols(df: pd.DataFrame, names: tuple[str, ...]) -> np.ndarray:
 
 class Baseline(Estimator, DirectedColumns):
     """Common base (the estimator contract, ``models.estimator``): the direction check in ``fit``, the
-    fitted check in ``predict``; subclasses fill ``_fit`` and ``_predict``."""
+    fitted check in ``predict``; subclasses fill ``_fit`` (learning attributes ending in ``_``) and
+    ``_predict``. Every fitted baseline knows ``n_train_``, the rows it was fitted on."""
 
     name = "baseline"
 
@@ -51,7 +52,7 @@ class Baseline(Estimator, DirectedColumns):
             raise ValueError(f"direction must be one of {DIRECTIONS}, got {self.direction!r}")
         self._check_parameters()
         self._fit(train_df)
-        self.fitted_ = True
+        self.n_train_ = len(train_df)  # learned by every baseline, the rigid model included
         return self
 
     def predict(self, df: pd.DataFrame) -> np.ndarray:

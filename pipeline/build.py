@@ -36,6 +36,9 @@ from pipeline.cache import StageCache, stage_key, stage_version
 from pipeline.errors import PipelineError
 from pipeline.tables import columns
 
+if typing.TYPE_CHECKING:
+    from pipeline.register import Registration
+
 log = logging.getLogger(__name__)
 
 DEFAULTS: dict = {
@@ -259,7 +262,9 @@ def _tagged(items: list[tuple[dict, pd.DataFrame]]) -> pd.DataFrame:
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
-def _register(static: pd.DataFrame, robot: RobotDescription, parameters: dict, datasets_root: Path):
+def _register(
+    static: pd.DataFrame, robot: RobotDescription, parameters: dict, datasets_root: Path
+) -> Registration:
     """Fit tracker → base on these sessions' static points, or take it from another dataset of the same
     setup (``from_dataset: name@version``: trajectory-only sessions such as Experiment 2 have no static
     points)."""
@@ -282,7 +287,7 @@ def _register(static: pd.DataFrame, robot: RobotDescription, parameters: dict, d
                 f"{', '.join(fitted) or 'none'}): borrow one from a dataset of {robot.name}'s sessions"
             )
         try:
-            return FixedRegistration.from_summary(mine, source=parameters["from_dataset"])
+            return FixedRegistration(mine["base_to_tracker"], parameters["from_dataset"]).fit(static)
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"dataset {name}@{version}: its registration for {robot.name!r} is damaged "
                              f"({type(exc).__name__}: {exc}); build that dataset again") from exc  # fmt: skip
@@ -318,7 +323,7 @@ def _dataset_card(root: Path, name: str, version: str | None) -> dict:
     return card
 
 
-def _in_base_frame(rows: pd.DataFrame, registration) -> pd.DataFrame:
+def _in_base_frame(rows: pd.DataFrame, registration: Registration) -> pd.DataFrame:
     """``x_0..2``: the tracker positions mapped into the robot base frame by the fitted registration."""
     x = registration.to_base(columns(rows, "tracker_position"))
     return rows.assign(**{f"x_{k}": x[:, k] for k in range(3)})
@@ -330,7 +335,7 @@ def _session_card(record: dict) -> dict:
             "values": report["values"], "experiment": record["metadata"].get("experiment", "")}  # fmt: skip
 
 
-def _registration_card(registration) -> dict:
+def _registration_card(registration: Registration) -> dict:
     return registration.summary()
 
 

@@ -14,6 +14,10 @@ lever arms in one number; ``max_payload_kg`` can also exclude loaded points firs
 of the recovered rotation / translation: rigid FK, unloaded points 0.18–0.21° / 0.6–0.7 mm;
 deflection-corrected, unloaded points 0.02–0.08° / ≤ 0.32 mm; deflection-corrected, least-sag half of all
 points (the default) 0.02–0.04° / ≤ 0.15 mm.
+
+Both registrations are estimators (``models.estimator``) with the same use, ``to_base`` / ``to_tracker``:
+:class:`TrackerRegistration` fits the transform on static points; :class:`FixedRegistration` takes one fitted
+on another dataset of the same setup (sessions of trajectories only have no static points to fit on).
 """
 
 from __future__ import annotations
@@ -138,27 +142,48 @@ def model_tip(robot: RobotDescription, q: ArrayLike, pressure_pa: ArrayLike | No
     return robot.chain().position(q, delta)
 
 
-@dataclass(frozen=True)
-class FixedRegistration:
-    """A registration fitted elsewhere (another dataset of the same setup), applied as it is."""
-
-    transform: RigidTransform  # tracker frame → robot base frame
-    source: str
-
-    @classmethod
-    def from_summary(cls, summary: dict, source: str) -> FixedRegistration:
-        base_to_tracker = np.asarray(summary["base_to_tracker"], float)
-        fitted = RigidTransform(base_to_tracker[:3, :3], base_to_tracker[:3, 3])
-        return cls(fitted.inverse(), source)
+class Registration(Estimator):
+    """A fitted tracker → robot base transform (``transform_``): what every registration gives."""
 
     def to_base(self, x_tracker: ArrayLike) -> np.ndarray:
-        return self.transform.apply(x_tracker)
+        """Tracker-frame points (..., 3) in the robot base frame."""
+        self.check_fitted()
+        return self.transform_.apply(x_tracker)
+
+    def to_tracker(self, x_base: ArrayLike) -> np.ndarray:
+        """Robot base-frame points (..., 3) in the tracker frame."""
+        self.check_fitted()
+        return self.transform_.inverse().apply(x_base)
+
+    def placement(self) -> list[list[float]]:
+        """The base → tracker placement as a 4×4 matrix (nested lists: JSON-ready, a dataset card's)."""
+        self.check_fitted()
+        return self.transform_.inverse().matrix().tolist()
+
+
+class FixedRegistration(Registration):
+    """A registration fitted elsewhere (another dataset of the same setup), applied as it is:
+    ``FixedRegistration(base_to_tracker, source).fit()`` takes the placement a dataset card recorded (4×4,
+    base → tracker) and learns ``transform_`` (tracker → base). ``fit`` takes the points of the estimator
+    contract and ignores them: nothing is learned from this dataset's points."""
+
+    def __init__(self, base_to_tracker: ArrayLike | None = None, source: str = "") -> None:
+        self.base_to_tracker = base_to_tracker
+        self.source = source
+
+    def fit(self, points: pd.DataFrame | None = None) -> FixedRegistration:
+        placement = np.asarray(self.base_to_tracker, float)
+        if placement.shape != (4, 4) or not np.isfinite(placement).all():
+            raise ValueError(f"base_to_tracker must be a finite 4×4 matrix, got shape {placement.shape}")
+        self.transform_ = RigidTransform(placement[:3, :3], placement[:3, 3]).inverse()
+        return self
 
     def summary(self) -> dict:
-        return {"base_to_tracker": self.transform.inverse().matrix().tolist(), "from_dataset": self.source}
+        """JSON-ready: the placement and the dataset it came from."""
+        return {"base_to_tracker": self.placement(), "from_dataset": self.source}
 
 
-class TrackerRegistration(Estimator):
+class TrackerRegistration(Registration):
     """The tracker → robot base transform fitted on static points by the rule in the module docstring:
     ``TrackerRegistration(robot).fit(points)``, then ``to_base(x_tracker)``.
 
@@ -224,19 +249,10 @@ class TrackerRegistration(Estimator):
                   self.residuals_.rms * 1e3)  # fmt: skip
         return self
 
-    def to_base(self, x_tracker: ArrayLike) -> np.ndarray:
-        self.check_fitted()
-        return self.transform_.apply(x_tracker)
-
-    def to_tracker(self, x_base: ArrayLike) -> np.ndarray:
-        self.check_fitted()
-        return self.transform_.inverse().apply(x_base)
-
     def summary(self) -> dict:
         """JSON-ready: the base → tracker placement (4×4) and the fit's counts and residuals."""
-        self.check_fitted()
         return {
-            "base_to_tracker": self.transform_.inverse().matrix().tolist(),
+            "base_to_tracker": self.placement(),
             "residuals": self.residuals_.as_dict(),
             "residuals_selected": self.residuals_selected_.as_dict(),
             "points": self.n_points_, "selected": self.n_selected_, "trimmed": self.n_trimmed_,

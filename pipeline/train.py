@@ -121,79 +121,59 @@ def _torch_settings(threads: int):
         torch.use_deterministic_algorithms(old_det)
 
 
-def train(
-    data: pd.DataFrame, config: TrainConfig, threads: int | None = None, device: str | None = None
-) -> TrainResult:
-    """Fit a :class:`HybridNet` on the ``train`` rows of ``config.split``, early-stopped on ``val``."""
-    net_cfg = config.net
-    tr, va = (_rows(data, net_cfg, config.split, p) for p in ("train", "val"))
-    if len(tr) < 2 or len(va) < 1:
-        raise ValueError(f"{config.split}: needs ≥ 2 train and ≥ 1 val rows, has {len(tr)} and {len(va)}")
-    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
-    if device.startswith("cuda"):
-        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # deterministic cuBLAS
-    x_tr, y_tr = (tr[list(c)].to_numpy(float) for c in (net_cfg.inputs, net_cfg.targets))
-    x_va = va[list(net_cfg.inputs)].to_numpy(float)
-    result = TrainResult(model=None, config=config, n_train=len(tr), n_val=len(va), device=device)  # type: ignore[arg-type]
-    start = time.perf_counter()
-    with _torch_settings(threads or os.cpu_count() or 1), torch.random.fork_rng(devices=[]):
-        torch.manual_seed(config.seed)
-        model = HybridNet(net_cfg).fit_scaler(x_tr, y_tr).to(device)
-        gen = torch.Generator().manual_seed(config.seed)
-        xt, yt = (torch.tensor(a, device=device) for a in (x_tr, y_tr))
-        xs_tr, ys_tr = model.scale_inputs(xt), model.scale_targets(xt, yt)
-        xv = torch.tensor(x_va, device=device)
-        xs_va = model.scale_inputs(xv)
-        ys_va = model.scale_targets(
-            xv, torch.tensor(va[list(net_cfg.targets)].to_numpy(float), device=device)
-        )
-        opt = torch.optim.Adam(model.parameters(), lr=config.lr, weight_decay=config.weight_decay)
-        best, best_state, epoch_times = float("inf"), None, []
-        for epoch in range(config.max_epochs):
-            t0 = time.perf_counter()
-            model.train()
-            order = torch.randperm(len(xs_tr), generator=gen).to(device)
-            total = 0.0
-            for idx in order.split(config.batch_size):
-                loss = (model.members_z(xs_tr[idx]) - ys_tr[idx]).square().mean()
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                total += float(loss.detach()) * len(idx)
-            model.eval()
-            with torch.no_grad():
-                val_loss = float((model.members_z(xs_va).mean(0) - ys_va).square().mean())
-                pred = model(xv).cpu().numpy()
-            epoch_times.append(time.perf_counter() - t0)
-            result.train_loss.append(total / len(xs_tr))
-            result.val_loss.append(val_loss)
-            result.val_error_mm.append(
-                float(_errors(net_cfg.direction, pred, va, net_cfg.targets)["tip_mm"].mean())
-            )
-            if val_loss < best:
-                best, result.best_epoch = val_loss, epoch
-                best_state = {k: v.detach().clone() for k, v in model.state_dict().items()}
-            elif epoch - result.best_epoch >= config.patience:
-                break
-        model.load_state_dict(best_state)
-    model.eval()
-    result.model = model
-    result.train_time_s = time.perf_counter() - start
-    result.epoch_time_s = float(np.mean(epoch_times))
-    log.info(
-        "trained %s-%s: %d epochs, best %d, val %.3f mm, %.1f s",
-        net_cfg.direction, net_cfg.name, len(epoch_times), result.best_epoch,
-        result.val_error_mm[result.best_epoch], result.train_time_s,
-    )  # fmt: skip
-    return result
+def _descend(net: HybridNet, config: TrainConfig, tr: pd.DataFrame, va: pd.DataFrame,
+             result: TrainResult) -> list[float]:  # fmt: skip
+    """Adam epochs over ``tr`` in a seeded order until ``val`` stops improving for ``config.patience``
+    epochs; the net ends with its best weights, ``result`` with the curves. Returns each epoch's time (s)."""
+    device = net.in_mean.device
+    cols = config.net
+
+    def tensor(rows: pd.DataFrame, names: tuple[str, ...]) -> torch.Tensor:
+        return torch.tensor(rows[list(names)].to_numpy(float), device=device)
+
+    gen = torch.Generator().manual_seed(config.seed)  # the batch order
+    xt, xv = tensor(tr, cols.inputs), tensor(va, cols.inputs)
+    xs_tr, ys_tr = net.scale_inputs(xt), net.scale_targets(xt, tensor(tr, cols.targets))
+    xs_va, ys_va = net.scale_inputs(xv), net.scale_targets(xv, tensor(va, cols.targets))
+    opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    best, best_state, epoch_times = float("inf"), None, []
+    for epoch in range(config.max_epochs):
+        t0 = time.perf_counter()
+        net.train()
+        order = torch.randperm(len(xs_tr), generator=gen).to(device)
+        total = 0.0
+        for idx in order.split(config.batch_size):
+            loss = (net.members_z(xs_tr[idx]) - ys_tr[idx]).square().mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            total += float(loss.detach()) * len(idx)
+        net.eval()
+        with torch.no_grad():
+            val_loss = float((net.members_z(xs_va).mean(0) - ys_va).square().mean())
+            pred = net(xv).cpu().numpy()
+        epoch_times.append(time.perf_counter() - t0)
+        result.train_loss.append(total / len(xs_tr))
+        result.val_loss.append(val_loss)
+        result.val_error_mm.append(float(_errors(cols.direction, pred, va, cols.targets)["tip_mm"].mean()))
+        if val_loss < best:
+            best, result.best_epoch = val_loss, epoch
+            best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+        elif epoch - result.best_epoch >= config.patience:
+            break
+    net.load_state_dict(best_state)
+    return epoch_times
 
 
 class HybridRegressor(Estimator):
     """A hybrid network as an estimator (the one contract, ``models.estimator``):
-    ``HybridRegressor(TrainConfig(net=preset("forward", "small-residual"))).fit(data)`` trains it on the
-    ``train`` rows of ``config.split``, early-stopped on ``val`` (:func:`train`), learning ``net_`` (the
-    :class:`HybridNet`) and ``history_`` (its :class:`TrainResult`); ``predict(rows)`` gives the outputs
-    (n, 3) of a DataFrame holding the net's input columns (or an (n, 7) array). Seeded by ``config.seed``."""
+    ``HybridRegressor(TrainConfig(net=preset("forward", "small-residual"))).fit(data)`` trains a
+    :class:`HybridNet` on the ``train`` rows of ``config.split``, early-stopped on ``val`` (the best weights
+    are kept), learning ``net_`` (the net: what the registry saves) and ``history_`` (its
+    :class:`TrainResult`: curves, best epoch, timings). ``predict(rows)`` gives the outputs (n, 3) of a
+    DataFrame holding the net's input columns (or of an (n, 7) array). Randomness comes from
+    ``config.seed``; ``threads`` (default: every core) and ``device`` (default: CUDA if there is one) are
+    part of what makes a run bit-identical."""
 
     def __init__(self, config: TrainConfig | None = None, threads: int | None = None,
                  device: str | None = None) -> None:  # fmt: skip
@@ -202,16 +182,46 @@ class HybridRegressor(Estimator):
         self.device = device
 
     def fit(self, data: pd.DataFrame) -> HybridRegressor:
-        if self.config is None:
+        config = self.config
+        if config is None:
             raise ValueError("HybridRegressor needs a TrainConfig (its net, optimiser and split)")
-        self.history_ = train(data, self.config, threads=self.threads, device=self.device)
-        self.net_ = self.history_.model
+        tr, va = (_rows(data, config.net, config.split, p) for p in ("train", "val"))
+        if len(tr) < 2 or len(va) < 1:
+            raise ValueError(f"{config.split}: needs ≥ 2 train and ≥ 1 val rows, has {len(tr)} and {len(va)}")
+        device = self.device or ("cuda" if torch.cuda.is_available() else "cpu")
+        if device.startswith("cuda"):
+            os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")  # deterministic cuBLAS
+        result = TrainResult(model=None, config=config, n_train=len(tr), n_val=len(va), device=device)  # type: ignore[arg-type]
+        start = time.perf_counter()
+        with _torch_settings(self.threads or os.cpu_count() or 1), torch.random.fork_rng(devices=[]):
+            torch.manual_seed(config.seed)  # the initial weights
+            x_tr, y_tr = (tr[list(c)].to_numpy(float) for c in (config.net.inputs, config.net.targets))
+            net = HybridNet(config.net).fit_scaler(x_tr, y_tr).to(device)
+            epoch_times = _descend(net, config, tr, va, result)
+        net.eval()
+        result.model = net
+        result.train_time_s = time.perf_counter() - start
+        result.epoch_time_s = float(np.mean(epoch_times))
+        log.info(
+            "trained %s-%s: %d epochs, best %d, val %.3f mm, %.1f s",
+            config.net.direction, config.net.name, len(epoch_times), result.best_epoch,
+            result.val_error_mm[result.best_epoch], result.train_time_s,
+        )  # fmt: skip
+        self.net_, self.history_ = net, result
         return self
 
     def predict(self, rows: pd.DataFrame | np.ndarray) -> np.ndarray:
         self.check_fitted()
         x = rows[list(self.config.net.inputs)].to_numpy(float) if isinstance(rows, pd.DataFrame) else rows
         return self.net_.predict(x)
+
+
+def train(
+    data: pd.DataFrame, config: TrainConfig, threads: int | None = None, device: str | None = None
+) -> TrainResult:
+    """The net and learning curves of ``HybridRegressor(config, threads, device).fit(data)`` (its
+    ``history_``): a convenience for the grid and the benches, which save the net with its curves."""
+    return HybridRegressor(config, threads, device).fit(data).history_
 
 
 def _summary(err: np.ndarray, prefix: str, unit: str) -> dict[str, float]:

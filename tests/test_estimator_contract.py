@@ -1,15 +1,17 @@
 """One contract for every fitted thing (models/estimator.py, scikit-learn's): the clock model, the tracker
-registration, every baseline and the hybrid networks, run through the same checks.
+registrations (fitted and borrowed), every baseline and the hybrid networks, run through the same checks.
 
 - the constructor only stores its parameters: ``get_params`` gives back what was passed, nothing learned;
 - ``fit`` returns ``self`` and learns attributes ending in ``_``, none of which exist before;
 - use before ``fit`` raises the one ``NotFittedError``;
 - the same parameters and seed give the same result; ``clone`` / ``set_params`` make a fresh, equal one;
-- what the registry saves (a network, a baseline's card) comes back the same.
+- what is saved comes back the same: a network through the registry, a registration through a dataset
+  card, a baseline's parameters through JSON (the registry saves no baseline).
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -17,6 +19,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 from sklearn.base import clone
 
 from models.errors import NotFittedError
@@ -25,8 +28,8 @@ from models.hybrid import preset
 from models.robot import load_robot
 from pipeline import baselines as B
 from pipeline.clock import ClockModel
-from pipeline.register import RigidTransform, TrackerRegistration, model_tip
-from pipeline.train import HybridRegressor, TrainConfig
+from pipeline.register import FixedRegistration, RigidTransform, TrackerRegistration, model_tip
+from pipeline.train import HybridRegressor, TrainConfig, train
 
 
 @dataclass
@@ -45,6 +48,10 @@ def _clock_data(_d) -> tuple:
     return ticks, host + rng.exponential(2e5, host.size).astype(np.int64)
 
 
+C, S = np.cos(0.2), np.sin(0.2)
+BASE_TO_TRACKER = RigidTransform(np.array([[C, -S, 0], [S, C, 0], [0, 0, 1]]), np.array([0.3, 0.0, -0.1]))
+
+
 def _static_points(_d) -> tuple:
     """Static points of the VSL arm seen by a tracker 0.3 m off its base, turned 0.2 rad about z."""
     robot = load_robot("vsl")
@@ -52,9 +59,7 @@ def _static_points(_d) -> tuple:
     n = 40
     q = np.column_stack([rng.uniform(-0.8, 0.8, n), rng.uniform(0.2, 1.2, n), rng.uniform(-1.6, -0.4, n)])
     p = rng.uniform(0.5e5, 2.5e5, (n, 2))
-    c, s = np.cos(0.2), np.sin(0.2)
-    base_to_tracker = RigidTransform(np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]), np.array([0.3, 0.0, -0.1]))
-    x = base_to_tracker.apply(model_tip(robot, q, p, np.zeros(n)))
+    x = BASE_TO_TRACKER.apply(model_tip(robot, q, p, np.zeros(n)))
     cols = {"stepper_position_0": q[:, 0], "servo_position_0": q[:, 1], "servo_position_1": q[:, 2]}
     cols |= {f"pressure_{k}": p[:, k] for k in range(2)} | {
         f"tracker_position_{k}": x[:, k] for k in range(3)
@@ -75,12 +80,15 @@ def _net(direction: str) -> HybridRegressor:
     return HybridRegressor(TrainConfig(preset(direction, "small-residual"), max_epochs=3, seed=2), threads=1)
 
 
+def _to_base(est: Estimator, d) -> np.ndarray:
+    return est.to_base(_static_points(d)[0].filter(like="tracker_position").to_numpy())
+
+
 CASES = {
     "clock": Case(lambda: ClockModel(tick_s=1e-3), _clock_data, lambda e, d: e.predict(_clock_data(d)[0])),
-    "registration": Case(
-        lambda: TrackerRegistration(load_robot("vsl")),
-        _static_points,
-        lambda e, d: e.to_base(_static_points(d)[0].filter(like="tracker_position").to_numpy()),
+    "registration": Case(lambda: TrackerRegistration(load_robot("vsl")), _static_points, _to_base),
+    "registration-borrowed": Case(
+        lambda: FixedRegistration(BASE_TO_TRACKER.matrix().tolist(), "campaign@v1"), _static_points, _to_base
     ),
     **{
         f"{name}-{direction}": Case(
@@ -128,7 +136,9 @@ def test_the_constructor_only_stores_its_parameters(case):
     assert params, "an estimator has parameters"
     assert est.fitted_attributes() == []  # nothing learned in the constructor
     assert not [k for k in vars(est) if k.endswith("_")]
-    assert type(est)(**params).get_params(deep=False).keys() == params.keys()
+    again = type(est)(**params).get_params(deep=False)
+    assert again.keys() == params.keys()
+    assert all(again[k] is v for k, v in params.items())  # stored as given: no copy, no conversion
 
 
 def test_use_before_fit_raises_not_fitted(case, data):
@@ -148,9 +158,11 @@ def test_clone_is_a_fresh_estimator_with_the_same_parameters(fitted):
     est = fitted[0]
     copy = clone(est)
     assert copy is not est and copy.fitted_attributes() == []
-    assert copy.get_params(deep=False).keys() == est.get_params(deep=False).keys()
-    name = next(iter(copy.get_params(deep=False)))
-    assert copy.set_params(**{name: copy.get_params(deep=False)[name]}) is copy
+    params = est.get_params(deep=False)
+    assert copy.get_params(deep=False) == params
+    name, other = next(iter(params)), object()
+    assert copy.set_params(**{name: other}) is copy  # set_params only stores, as the constructor does
+    assert copy.get_params(deep=False)[name] is other and est.get_params(deep=False)[name] is params[name]
 
 
 def test_a_trained_network_round_trips_through_the_registry(tmp_path, data):
@@ -166,8 +178,38 @@ def test_a_trained_network_round_trips_through_the_registry(tmp_path, data):
     np.testing.assert_array_equal(loaded.predict(x), est.predict(test))
 
 
-def test_a_fitted_registration_s_summary_is_json():
-    import json
+def test_train_is_the_estimator_s_history(data):
+    """``train`` is a convenience over ``HybridRegressor``: the same net and curves."""
+    est, result = _net("inverse").fit(data), train(data, _net("inverse").config, threads=1)
+    assert result.val_loss == est.history_.val_loss and result.best_epoch == est.history_.best_epoch
+    for name, tensor in est.net_.state_dict().items():
+        assert torch.equal(tensor, result.model.state_dict()[name]), name
 
+
+def test_a_registration_round_trips_through_a_dataset_card():
+    """A fitted registration's card (JSON) borrowed by another build maps points as the fitted one did."""
     rows = _static_points(None)[0]
-    assert json.loads(json.dumps(TrackerRegistration(load_robot("vsl")).fit(rows).summary()))["points"] == 40
+    fitted = TrackerRegistration(load_robot("vsl")).fit(rows)
+    card = json.loads(json.dumps(fitted.summary()))
+    assert card["points"] == 40
+    borrowed = FixedRegistration(card["base_to_tracker"], "campaign@v1").fit(rows.iloc[:0])
+    x = rows.filter(like="tracker_position").to_numpy()
+    np.testing.assert_allclose(borrowed.to_base(x), fitted.to_base(x), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(borrowed.placement(), card["base_to_tracker"], rtol=0, atol=1e-15)
+    assert json.loads(json.dumps(borrowed.summary()))["from_dataset"] == "campaign@v1"
+
+
+def test_a_borrowed_registration_refuses_a_damaged_placement():
+    with pytest.raises(ValueError, match="4×4"):
+        FixedRegistration([[1.0, 0.0], [0.0, 1.0]], "campaign@v1").fit()
+
+
+@pytest.mark.parametrize("name", ["rigid", "prbm", "knn"])
+def test_a_baseline_s_parameters_round_trip_through_json(name, data):
+    """What a baseline report records of it (``to_dict``) is JSON, and its parameters rebuild the same fit."""
+    rows, test = B.part_of(data, "split_random", "train"), B.part_of(data, "split_random", "test")
+    est = B.BASELINES[name](direction="forward").fit(rows)
+    assert json.loads(json.dumps(est.to_dict()))["name"] == name
+    params = {k: v for k, v in est.get_params(deep=False).items() if k != "robot"}
+    again = type(est)(**json.loads(json.dumps(params))).fit(rows)
+    np.testing.assert_array_equal(again.predict(test), est.predict(test))
