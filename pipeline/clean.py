@@ -3,7 +3,8 @@
 Per stream: duplicated samples (same sequence number and payload) go, samples are put in device order (by
 the unwrapped sequence / frame number; late arrivals are counted, kept), and the wrapping device stamp gets an
 unwrapped int64 twin, ``device_ticks``, unwrapped with the host's clock as a guide (``clock.unwrap_stamps``:
-a gap longer than half a wrap still unwraps right). Tracker frames that are MISSING (flag or NaN position)
+a gap longer than half a wrap still unwraps right) by the tick and wrap of the robot description's clock of
+the device that stamps it (the clock sync fits). Tracker frames that are MISSING (flag or NaN position)
 or carry an NDI port-status fault go, then Hampel outliers on position; pressure rows with a Hampel outlier
 on any channel go.
 
@@ -17,17 +18,24 @@ import numpy as np
 import pandas as pd
 from numpy.lib.stride_tricks import sliding_window_view
 
+from acquisition.schemas import topics as T
 from acquisition.schemas.stamps import unwrap_ticks
-from acquisition.schemas.topics import PRESSURE, TRACKER
+from models.robot import ClockSpecModel, RobotDescription
 from pipeline.clock import unwrap_stamps
 from pipeline.tables import SessionTables, StageReport, columns
 
 MISSING, PORT_STATUS, OUTLIER, DUPLICATE = "missing", "port_status", "outlier", "duplicate"
 
-# the device stamp of each message layout: where it wraps and its tick (s). The tracker's frame counter ticks
-# once a frame (the Aurora's 40 Hz); at 2³² frames it never wraps in a session, so its tick only scales the
-# host-aided unwrap, which cannot change it.
-DEVICE_STAMPS = {"tick_ms": (1 << 15, 1e-3), "micros": (1 << 32, 1e-6), "frame": (1 << 32, 1 / 40)}
+DEVICE_TICKS = "device_ticks"  # the unwrapped device counter this stage adds to each stamped stream
+# topic → (the devices whose clock stamps it, the first one the robot has; the stamp field). Its tick and wrap
+# are that device's ``clock`` in the robot description.
+STAMPS: dict[str, tuple[tuple[str, ...], str]] = {
+    T.SERVO_STATE: (("servo_bus", "main_board"), "tick_ms"),
+    T.PRESSURE: (("pressure_board", "main_board"), "micros"),
+    T.STEPPER: (("stepper_board",), "micros"),
+    T.TRACKER: (("tracker",), "frame"),
+    T.ACCEL: (("accelerometer",), "micros"),
+}
 SEQUENCE_WRAP = 1 << 32  # seq and frame are uint32
 SEQUENCE_COLUMNS = ("seq", "frame")
 HOST_COLUMNS = ("log_time", "publish_time", "t")
@@ -50,19 +58,36 @@ def clean(session: SessionTables, hampel_window: int = 7, hampel_sigmas: float =
     report = session.report.copy()
     streams = {}
     for topic, df in session.streams.items():
-        df = clean_stream(topic, df, report)
-        if topic == TRACKER:
+        df = clean_stream(topic, df, report, session.robot)
+        if topic == T.TRACKER:
             df = clean_tracker(df, report, hampel_window, hampel_sigmas, topic)
-        elif topic == PRESSURE:
+        elif topic == T.PRESSURE:
             df = drop_outliers(df, "pressure", report, topic, hampel_window, hampel_sigmas)
         streams[topic] = df
     return session.replace(streams=streams, report=report)
 
 
-def clean_stream(topic: str, df: pd.DataFrame, report: StageReport) -> pd.DataFrame:
-    """Any stream: drop duplicates, sort by device sequence (late arrivals counted), add ``device_ticks``."""
+def stamp_clock(robot: RobotDescription, topic: str) -> tuple[str, str] | None:
+    """(device, stamp field) of the device clock that stamps ``topic`` on ``robot``; None if none does."""
+    if topic not in STAMPS:
+        return None
+    names, field = STAMPS[topic]
+    device = next((n for n in names if n in robot.devices), None)
+    return None if device is None else (device, field)
+
+
+def device_ticks(df: pd.DataFrame, field: str, clock: ClockSpecModel) -> np.ndarray:
+    """The stamp column ``field`` unwrapped (int64) by the tick and wrap of the device ``clock`` that wrote
+    it, host log times guiding the unwrap (``clock.unwrap_stamps``)."""
+    raw, host = df[field].to_numpy(dtype=np.int64), df["log_time"].to_numpy(dtype=np.int64)
+    return unwrap_stamps(raw, host, clock.tick_s, clock.wrap)
+
+
+def clean_stream(topic: str, df: pd.DataFrame, report: StageReport, robot: RobotDescription) -> pd.DataFrame:
+    """Any stream: drop duplicates, sort by device sequence (late arrivals counted), add ``device_ticks`` when
+    a device clock of ``robot`` stamps it."""
     sequence = next((c for c in SEQUENCE_COLUMNS if c in df.columns), None)
-    payload = [c for c in df.columns if c not in HOST_COLUMNS and c != "device_ticks"]
+    payload = [c for c in df.columns if c not in HOST_COLUMNS and c != DEVICE_TICKS]
     duplicated = df.duplicated(subset=payload).to_numpy() if payload and len(df) else np.zeros(len(df), bool)
     report.remove(topic, DUPLICATE, int(duplicated.sum()))
     df = df[~duplicated]
@@ -73,17 +98,16 @@ def clean_stream(topic: str, df: pd.DataFrame, report: StageReport) -> pd.DataFr
         if late:
             df = df.iloc[np.argsort(order_key, kind="stable")]
     df = df.reset_index(drop=True)
-    stamp = next((c for c in DEVICE_STAMPS if c in df.columns), None)
-    if stamp is not None:
-        wrap, tick_s = DEVICE_STAMPS[stamp]
-        ticks = unwrap_stamps(df[stamp].to_numpy(), df["log_time"].to_numpy(), tick_s, wrap)
-        df = df.assign(device_ticks=ticks)
+    stamped = stamp_clock(robot, topic)
+    if stamped is not None and stamped[1] in df.columns:
+        device, field = stamped
+        df = df.assign(**{DEVICE_TICKS: device_ticks(df, field, robot.devices[device].clock)})
     report.values[f"clean/{topic}"] = {"out_of_order": late, "rows": len(df)}
     return df
 
 
 def clean_tracker(
-    df: pd.DataFrame, report: StageReport, window: int, sigmas: float, topic: str = TRACKER
+    df: pd.DataFrame, report: StageReport, window: int, sigmas: float, topic: str = T.TRACKER
 ) -> pd.DataFrame:
     """Drop MISSING frames, then frames with port-status faults, then Hampel outliers on position."""
     position = columns(df, "position") if len(df) else np.zeros((0, 3))

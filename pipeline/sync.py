@@ -16,21 +16,13 @@ import numpy as np
 import pandas as pd
 
 from acquisition.schemas import topics as T
-from pipeline.clock import ClockFit, ClockModel, unwrap_stamps
+from pipeline.clean import DEVICE_TICKS, STAMPS, device_ticks, stamp_clock
+from pipeline.clock import ClockModel
 from pipeline.errors import PipelineError
 from pipeline.tables import SessionTables, columns
 
 log = logging.getLogger(__name__)
 
-UNWRAPPED = "device_ticks"  # the unwrapped counter column pipeline.clean adds
-# topic → (devices whose clock stamps it, first one the robot has; the stamp field)
-STAMPS: dict[str, tuple[tuple[str, ...], str]] = {
-    T.SERVO_STATE: (("servo_bus", "main_board"), "tick_ms"),
-    T.PRESSURE: (("pressure_board", "main_board"), "micros"),
-    T.STEPPER: (("stepper_board",), "micros"),
-    T.TRACKER: (("tracker",), "frame"),
-    T.ACCEL: (("accelerometer",), "micros"),
-}
 # what the timeline interpolates at the tracker's frames: topic → (column prefix, fields)
 TIMELINE_FIELDS: dict[str, tuple[str, tuple[str, ...]]] = {
     T.SERVO_STATE: ("servo_", ("position", "velocity", "current")),
@@ -80,35 +72,27 @@ def resample(t_query: np.ndarray, sources: Mapping[str, tuple[np.ndarray, np.nda
     return pd.DataFrame(out)
 
 
-def _stamp_device(session: SessionTables, topic: str) -> tuple[str, str] | None:
-    if topic not in STAMPS:
-        return None
-    names, field = STAMPS[topic]
+def fit_stream(
+    session: SessionTables, topic: str, **fit_options
+) -> tuple[str, ClockModel, np.ndarray] | None:
+    """Fit the clock of the device that stamps ``topic``: (device, fitted :class:`ClockModel`, unwrapped
+    ticks), or None (not stamped, or fewer than 2 rows). The ticks are clean's ``device_ticks``, or the stamps
+    unwrapped the same way for a stream that was not cleaned."""
+    stamped = stamp_clock(session.robot, topic)
     df = session.streams[topic]
-    device = next((n for n in names if n in session.robot.devices), None)
-    if device is None or (field not in df.columns and UNWRAPPED not in df.columns):
+    if stamped is None or len(df) < 2 or not {stamped[1], DEVICE_TICKS} & set(df.columns):
         return None
-    return device, field
-
-
-def fit_stream(session: SessionTables, topic: str, **fit_options) -> tuple[str, ClockFit, np.ndarray] | None:
-    """Fit the clock of the device that stamps ``topic``: (device, fit, unwrapped ticks), or None (not
-    stamped, or fewer than 2 rows)."""
-    found = _stamp_device(session, topic)
-    df = session.streams[topic]
-    if found is None or len(df) < 2:
-        return None
-    device, field = found
+    device, field = stamped
     spec = session.robot.devices[device]
     host = df["log_time"].to_numpy(dtype=np.int64)
-    if UNWRAPPED in df.columns:
-        ticks = df[UNWRAPPED].to_numpy(dtype=np.int64)
+    if DEVICE_TICKS in df.columns:
+        ticks = df[DEVICE_TICKS].to_numpy(dtype=np.int64)
     else:
-        ticks = unwrap_stamps(df[field].to_numpy(dtype=np.int64), host, spec.clock.tick_s, spec.clock.wrap)
+        ticks = device_ticks(df, field, spec.clock)
     phase = 0.0 if field == "frame" else 0.5  # a frame number is the sampling event; a counter is floored
     model = ClockModel(spec.clock.tick_s, spec.host_link.latency_s, ref_ns=session.t0_ns, stamp_phase=phase,
                        **fit_options)  # fmt: skip
-    return device, model.fit(ticks, host).clock_, ticks
+    return device, model.fit(ticks, host), ticks
 
 
 def hold_last(t_src: np.ndarray, values: np.ndarray, t_query: np.ndarray) -> np.ndarray:
@@ -170,8 +154,9 @@ def sync(
                 out.report.warnings.append(f"{topic}: no device stamps to fit; t is the host log time")
             df["t"] = (df["log_time"].to_numpy(dtype=np.int64) - t0) * 1e-9
         else:
-            device, fit, ticks = fitted
-            df["t"] = (fit.to_host_ns(ticks, fit.labels()) - t0) * 1e-9
+            device, model, ticks = fitted
+            fit = model.clock_
+            df["t"] = (model.predict(ticks, fit.labels()) - t0) * 1e-9
             out.report.values[f"clock/{device}"] = fit.as_dict()
             if fit.resets:
                 out.report.warnings.append(f"{device}: {fit.resets} counter reset(s), segments fitted apart")

@@ -96,7 +96,7 @@ def test_duplicates_and_out_of_order_samples():
     resent["pressure_0"] += 1.0  # same seq, other payload: not a duplicate
     mixed = pd.concat([shuffled, dup, resent], ignore_index=True)
     report = StageReport()
-    out = clean_stream(T.PRESSURE, mixed, report)
+    out = clean_stream(T.PRESSURE, mixed, report, load_robot("vsl"))
     assert report.removed == {T.PRESSURE: {DUPLICATE: 3}}
     assert report.values[f"clean/{T.PRESSURE}"]["out_of_order"] == 3  # 20, 100 and the resent 8 came late
     assert len(out) == N + 1 and np.all(np.diff(out["seq"].to_numpy().astype(np.int64)) >= 0)
@@ -116,7 +116,7 @@ def test_device_ticks_unwrap_across_wraps():
     df = _pressure()
     micros = df["micros"].to_numpy()
     assert np.any(np.diff(micros.astype(np.int64)) < 0)  # the fixture wraps
-    out = clean_stream(T.PRESSURE, df, StageReport())
+    out = clean_stream(T.PRESSURE, df, StageReport(), load_robot("vsl"))
     ticks = out["device_ticks"].to_numpy()
     assert ticks.dtype == np.int64 and np.all(np.diff(ticks) == 10_000) and ticks[0] == micros[0]
     np.testing.assert_array_equal(out["micros"].to_numpy(), micros)  # raw stamps stay
