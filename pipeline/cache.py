@@ -100,23 +100,33 @@ def _normalised(name: str, root: Path) -> tuple[str, frozenset[str]] | None:
     return ast.dump(tree, annotate_fields=False, include_attributes=False), frozenset(imports)
 
 
+_ALL_STAGES = tuple(sorted({m for ms in STAGE_MODULES.values() for m in ms}))
+
+
+def code_version(*modules: str, root: Path | None = None) -> str:
+    """Hash of the code that ``modules`` run: theirs and every project module they import, transitively (and
+    the packages holding them), each as its syntax tree without docstrings and comments. A docstring or
+    comment edit leaves it as it was; a change of what the code does changes it. No modules: the code of
+    every stage. ``root``: the checkout whose code is read (this one by default)."""
+    return _tree_version(modules or _ALL_STAGES, Path(ROOT if root is None else root))
+
+
 @cache
-def code_version(*modules: str, root: Path = ROOT) -> str:
-    """Hash of the code that ``modules`` run: theirs and every project module they import, transitively,
-    each as its syntax tree without docstrings and comments. A docstring or comment edit leaves it as it was;
-    a change of what the code does changes it. No modules: the code of every stage."""
-    pending = list(modules or sorted({m for ms in STAGE_MODULES.values() for m in ms}))
+def _tree_version(modules: tuple[str, ...], root: Path) -> str:
+    """``code_version`` of ``modules`` under ``root``, worked out once per process."""
+    pending = list(modules)
     seen: dict[str, str] = {}
     while pending:
         name = pending.pop()
         if name in seen:
             continue
-        module = _normalised(name, Path(root))
+        module = _normalised(name, root)
         if module is None:
             seen[name] = ""
             continue
         seen[name], imports = module
-        pending.extend(imports - seen.keys())
+        parents = {name.rsplit(".", k)[0] for k in range(1, name.count(".") + 1)}  # their __init__ runs first
+        pending.extend((imports | parents) - seen.keys())
     h = hashlib.sha256()
     for name in sorted(seen):
         if seen[name]:
@@ -127,7 +137,7 @@ def code_version(*modules: str, root: Path = ROOT) -> str:
 def stage_version(stage: str, root: Path | None = None) -> str:
     """The code version of one stage (a key of ``STAGE_MODULES``), of the code under ``root`` (this
     checkout's by default)."""
-    return code_version(*STAGE_MODULES[stage], root=ROOT if root is None else Path(root))
+    return code_version(*STAGE_MODULES[stage], root=root)
 
 
 def stage_key(stage: str, inputs: list[str], parameters: dict) -> str:

@@ -30,7 +30,7 @@ def tree(tmp_path, monkeypatch):
 
 
 def _forget() -> None:
-    cache.code_version.cache_clear()
+    cache._tree_version.cache_clear()
     cache._normalised.cache_clear()
 
 
@@ -76,6 +76,20 @@ def test_an_edit_in_a_module_imported_on_the_way_re_versions_the_stage(tree):
     before = _versions()
     _edit(tree / "models" / "errors.py", "class NotFittedError(", "X = 1\n\n\nclass NotFittedError(")
     assert _versions()["session"] != before["session"]
+
+
+def test_a_package_runs_its_init_before_its_modules(tree):
+    before = _versions()
+    (tree / "pipeline" / "__init__.py").write_text("X = 1\n")
+    after = _versions()
+    assert all(after[stage] != before[stage] for stage in ("session", "dataset", "model"))
+
+
+def test_the_root_read_is_a_parameter(tree):
+    copied = cache.code_version("pipeline.clean")
+    _edit(tree / "pipeline" / "clean.py", "hampel_sigmas: float = 4.0", "hampel_sigmas: float = 4.5")
+    _forget()
+    assert cache.code_version("pipeline.clean", root=ROOT) == copied != cache.code_version("pipeline.clean")
 
 
 def test_an_edit_in_code_no_stage_runs_changes_no_version(tree):
