@@ -18,6 +18,12 @@ from pathlib import Path
 from acquisition.plans.sim_runner import simulate_experiment
 
 TARGET_S = 300.0
+GROUPS = {  # what --only picks → the experiments it runs
+    "experiment1": ("experiment1",),
+    "campaign": ("campaign",),
+    "experiment2": ("experiment2",),
+    "popup": ("popup_static", "popup_impact", "popup_deploy"),
+}
 
 
 def run(protocol: str, benches: int, overrides: dict) -> None:
@@ -39,20 +45,16 @@ def run(protocol: str, benches: int, overrides: dict) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--only", choices=GROUPS, help="one group of experiments (default: all)")
     parser.add_argument("--points", type=int, default=17568, help="campaign size (the paper's n = 17568)")
     parser.add_argument("--benches", type=int, default=128, help="twin benches stepped together")
-    parser.add_argument("--only", choices=("experiment1", "campaign", "experiment2", "popup"))
     args = parser.parse_args()
+    overrides = {"campaign": {"points": args.points}, "experiment2": {"commands": ["ik", "static"]}}
     print("simulated-time runner (numba twin, sessions written to MCAP)")
-    if args.only in (None, "experiment1"):
-        run("experiment1", args.benches, {})
-    if args.only in (None, "campaign"):
-        run("campaign", args.benches, {"points": args.points})
-    if args.only in (None, "experiment2"):
-        run("experiment2", args.benches, {"commands": ["ik", "static"]})
-    if args.only in (None, "popup"):
-        for protocol in ("popup_static", "popup_impact", "popup_deploy"):
-            run(protocol, args.benches, {})
+    for group, experiments in GROUPS.items():
+        if args.only in (None, group):
+            for experiment in experiments:
+                run(experiment, args.benches, overrides.get(experiment, {}))
 
 
 if __name__ == "__main__":

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, ClassVar, Literal, Self
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -31,8 +31,30 @@ class RobotDescriptionError(ModelError, ValueError):
     """A robot description file is missing, unreadable or invalid."""
 
 
+# how a limit pair may be the wrong way round, and what the error says then
+_OUT_OF_ORDER = {"<": (np.greater_equal, "must be below"), "<=": (np.greater, "exceeds")}
+
+
+def _shown(value: object) -> str:
+    return str(value) if np.ndim(value) else f"({value})"
+
+
 class _Model(BaseModel):
+    """A part of a description: unknown keys refused, values frozen. ``_limits`` lists the part's limit
+    pairs as ``(low, "<" or "<=", high)`` field names, checked on every axis of a vector."""
+
     model_config = ConfigDict(extra="forbid", frozen=True)
+    _limits: ClassVar[tuple[tuple[str, str, str], ...]] = ()
+
+    @model_validator(mode="after")
+    def _limits_in_order(self) -> Self:
+        for low, order, high in self._limits:
+            wrong, says = _OUT_OF_ORDER[order]
+            a, b = getattr(self, low), getattr(self, high)
+            if np.any(wrong(a, b)):
+                axes = " on every axis" if np.ndim(a) else ""
+                raise ValueError(f"{low} {_shown(a)} {says} {high} {_shown(b)}{axes}")
+        return self
 
 
 # ---------------------------------------------------------------------------------------------- kinematics
@@ -143,12 +165,7 @@ class JointSpec(_Model):
     lower_rad: float
     upper_rad: float
     drive: Literal["servo", "stepper", "motor"]
-
-    @model_validator(mode="after")
-    def _ordered(self) -> JointSpec:
-        if self.lower_rad >= self.upper_rad:
-            raise ValueError(f"lower_rad ({self.lower_rad}) must be below upper_rad ({self.upper_rad})")
-        return self
+    _limits = (("lower_rad", "<", "upper_rad"),)
 
 
 # -------------------------------------------------------------------------------------------- actuators
@@ -199,14 +216,7 @@ class PneumaticsSpec(_Model):
     leak_time_constant_s: PositiveFloat
     min_operating_pa: NonNegFloat
     max_operating_pa: PositiveFloat
-
-    @model_validator(mode="after")
-    def _limits(self) -> PneumaticsSpec:
-        if self.min_operating_pa >= self.max_operating_pa:
-            raise ValueError("min_operating_pa must be below max_operating_pa")
-        if self.max_operating_pa > self.regulator_max_pa:
-            raise ValueError("max_operating_pa exceeds regulator_max_pa")
-        return self
+    _limits = (("min_operating_pa", "<", "max_operating_pa"), ("max_operating_pa", "<=", "regulator_max_pa"))
 
 
 # ---------------------------------------------------------------------------------------------- sensors
@@ -221,12 +231,7 @@ class PressureSensorSpec(_Model):
     adc_lsb_v: PositiveFloat
     adc_noise_v: NonNegFloat
     sample_rate_hz: PositiveFloat
-
-    @model_validator(mode="after")
-    def _span(self) -> PressureSensorSpec:
-        if self.v_max <= self.v_min:
-            raise ValueError(f"v_max ({self.v_max}) must be above v_min ({self.v_min})")
-        return self
+    _limits = (("v_min", "<", "v_max"),)
 
     def counts_to_pa(self, counts: np.ndarray) -> np.ndarray:
         """Gauge pressure (Pa) of ADC counts."""
@@ -255,12 +260,7 @@ class TrackerSpec(_Model):
     field_min_m: tuple[float, float, float]
     field_max_m: tuple[float, float, float]
     frame_rate_hz: PositiveFloat
-
-    @model_validator(mode="after")
-    def _box(self) -> TrackerSpec:
-        if any(lo >= hi for lo, hi in zip(self.field_min_m, self.field_max_m, strict=True)):
-            raise ValueError("field_min_m must be below field_max_m on every axis")
-        return self
+    _limits = (("field_min_m", "<", "field_max_m"),)
 
 
 class AccelerometerSpec(_Model):
@@ -273,11 +273,10 @@ class AccelerometerSpec(_Model):
     noise_density_m_s2_per_sqrt_hz: NonNegFloat
     bandwidth_hz: PositiveFloat
     sample_rate_hz: PositiveFloat
+    _limits = (("lsb_m_s2", "<", "full_scale_m_s2"),)
 
     @model_validator(mode="after")
-    def _resolution(self) -> AccelerometerSpec:
-        if self.lsb_m_s2 >= self.full_scale_m_s2:
-            raise ValueError("lsb_m_s2 must be below full_scale_m_s2")
+    def _nyquist(self) -> AccelerometerSpec:
         if self.bandwidth_hz > self.sample_rate_hz / 2:
             raise ValueError("bandwidth_hz exceeds the Nyquist frequency sample_rate_hz / 2")
         return self
@@ -326,12 +325,7 @@ class SafetySpec(_Model):
     wrinkling_fraction: Annotated[float, Field(gt=0, le=1)] = 1.0  # of M_w: the limit of ordinary plans
     collapse_fraction: Annotated[float, Field(gt=0, le=1)] = 0.9  # of M_c: plans that allow wrinkling
     pressure_tolerance_pa: NonNegFloat = 5000.0  # measured pressure may overshoot max_operating_pa by this
-
-    @model_validator(mode="after")
-    def _box(self) -> SafetySpec:
-        if any(lo >= hi for lo, hi in zip(self.workspace_min_m, self.workspace_max_m, strict=True)):
-            raise ValueError("workspace_min_m must be below workspace_max_m on every axis")
-        return self
+    _limits = (("workspace_min_m", "<", "workspace_max_m"),)
 
 
 # ------------------------------------------------------------------------------------------- the robot

@@ -9,6 +9,8 @@ sequence number and its wrapping ``micros()`` stamp. Bodies are printable ASCII 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import reduce
+from operator import xor
 
 from acquisition.errors import CodecError
 
@@ -72,10 +74,7 @@ class BoardSyntaxError(CodecError):
 
 def checksum(body: bytes) -> int:
     """XOR of the body bytes (0–255)."""
-    value = 0
-    for byte in body:
-        value ^= byte
-    return value
+    return reduce(xor, body, 0)
 
 
 def encode(body: str) -> bytes:
@@ -128,10 +127,16 @@ class Command:
 
 
 @dataclass(frozen=True)
-class Ok:
-    """``OK <tag> <verb>``: the command was applied."""
+class TaggedReply:
+    """A reply to a command the board could read: it repeats the command's tag (an ``Err`` may not)."""
 
     tag: int
+
+
+@dataclass(frozen=True)
+class Ok(TaggedReply):
+    """``OK <tag> <verb>``: the command was applied."""
+
     verb: str
 
 
@@ -145,20 +150,18 @@ class Err:
 
 
 @dataclass(frozen=True)
-class Ident:
+class Ident(TaggedReply):
     """``ID <tag> <board> <firmware> <serial>``."""
 
-    tag: int
     board: str
     firmware: str
     serial: str
 
 
 @dataclass(frozen=True)
-class Position:
+class Position(TaggedReply):
     """``POS <tag> <micros> <position_steps> <moving>`` (stepper board's answer to ``POS?``)."""
 
-    tag: int
     micros: int
     position_steps: int
     moving: bool

@@ -13,13 +13,29 @@ from acquisition.codecs import dynamixel as dx
 from acquisition.codecs import xm430
 from acquisition.errors import DeviceReplyError
 
+# what each error number says the servo did, for messages a user can act on (ROBOTIS e-manual, protocol2)
+MEANINGS = {
+    dx.ERR_RESULT_FAIL: "it could not carry out the instruction",
+    dx.ERR_INSTRUCTION: "it does not know the instruction, or got Action without Reg Write",
+    dx.ERR_CRC: "the packet it received was corrupted",
+    dx.ERR_DATA_RANGE: "the value (or the address) is outside the item's range",
+    dx.ERR_DATA_LENGTH: "the write does not cover the whole item",
+    dx.ERR_DATA_LIMIT: "the value is outside the servo's limit items",
+    dx.ERR_ACCESS: "the item cannot be written now",
+    dx.ERR_HARDWARE_ALERT: "a hardware error is latched and the servo has switched its torque off",
+}
+
 
 class ServoStatusError(DeviceReplyError):
     """A servo answered with an error status: ``dxl_id`` refused the item at ``address`` (None: not an
-    item, e.g. a ping) with status byte ``error``."""
+    item, e.g. a ping) with status byte ``error``. Each subclass stands for one error ``number``."""
 
     number = 0
     meaning = "an unknown error"
+
+    def __init_subclass__(cls, number: int, **kwargs: object) -> None:
+        super().__init_subclass__(**kwargs)
+        cls.number, cls.meaning = number, MEANINGS[number]
 
     def __init__(self, message: str, dxl_id: int, address: int | None, error: int) -> None:
         super().__init__(message)
@@ -28,46 +44,31 @@ class ServoStatusError(DeviceReplyError):
         self.error = error
 
 
-class ServoResultFail(ServoStatusError):
-    number, meaning = dx.ERR_RESULT_FAIL, "it could not carry out the instruction"
+class ServoResultFail(ServoStatusError, number=dx.ERR_RESULT_FAIL): ...
 
 
-class ServoInstructionError(ServoStatusError):
-    number, meaning = dx.ERR_INSTRUCTION, "it does not know the instruction, or got Action without Reg Write"
+class ServoInstructionError(ServoStatusError, number=dx.ERR_INSTRUCTION): ...
 
 
-class ServoCrcError(ServoStatusError):
-    number, meaning = dx.ERR_CRC, "the packet it received was corrupted"
+class ServoCrcError(ServoStatusError, number=dx.ERR_CRC): ...
 
 
-class ServoDataRangeError(ServoStatusError):
-    number, meaning = dx.ERR_DATA_RANGE, "the value (or the address) is outside the item's range"
+class ServoDataRangeError(ServoStatusError, number=dx.ERR_DATA_RANGE): ...
 
 
-class ServoDataLengthError(ServoStatusError):
-    number, meaning = dx.ERR_DATA_LENGTH, "the write does not cover the whole item"
+class ServoDataLengthError(ServoStatusError, number=dx.ERR_DATA_LENGTH): ...
 
 
-class ServoDataLimitError(ServoStatusError):
-    number, meaning = dx.ERR_DATA_LIMIT, "the value is outside the servo's limit items"
+class ServoDataLimitError(ServoStatusError, number=dx.ERR_DATA_LIMIT): ...
 
 
-class ServoAccessError(ServoStatusError):
-    number, meaning = dx.ERR_ACCESS, "the item cannot be written now"
+class ServoAccessError(ServoStatusError, number=dx.ERR_ACCESS): ...
 
 
-class ServoHardwareAlert(ServoStatusError):
-    number, meaning = (
-        dx.ERR_HARDWARE_ALERT,
-        "a hardware error is latched and the servo has switched its torque off",
-    )
+class ServoHardwareAlert(ServoStatusError, number=dx.ERR_HARDWARE_ALERT): ...
 
 
-BY_NUMBER: dict[int, type[ServoStatusError]] = {
-    cls.number: cls
-    for cls in (ServoResultFail, ServoInstructionError, ServoCrcError, ServoDataRangeError,
-                ServoDataLengthError, ServoDataLimitError, ServoAccessError)
-}  # fmt: skip
+BY_NUMBER: dict[int, type[ServoStatusError]] = {cls.number: cls for cls in ServoStatusError.__subclasses__()}
 HARDWARE_ERROR_BITS = {0: "input voltage", 2: "overheating", 3: "motor encoder", 4: "electrical shock",
                        5: "overload"}  # fmt: skip
 

@@ -27,9 +27,9 @@ from acquisition.errors import (
     DeviceTimeoutError,
 )
 
-log = logging.getLogger(__name__)
-
 MM = 1e-3  # the wire's millimetres → metres
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -145,9 +145,7 @@ class Tracker(Device):
 
         try:
             handles, _, frames, tracking, quality = self._ndi.get_frame()
-        except (
-            OSError
-        ) as exc:  # ndicapy 3.7.6 raises on port errors ("Error 0x0104: Serial port write error")
+        except OSError as exc:  # ndicapy 3.7.6 on a port error: "Error 0x0104: Serial port write error"
             code = ndicapy.ndiGetError(self._ndi._device)
             if code in (ndicapy.NDI_TIMEOUT, ndicapy.NDI_BAD_CRC):
                 self._check_error(ndicapy, code)

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import mmap
 import os
+from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -33,6 +34,19 @@ SLOT_HEAD = 16  # int64 host_ns, int32 length, int32 pad
 _MAGIC, _CAPACITY, _SLOT_SIZE, _HEAD, _TAIL, _WRITTEN, _DROPPED = range(7)
 _EXPECTED, _LOST, _LAST_SEQ, _LAST_NS, _GAPS, _RECEIVED, _WRITER_LOST, _BRIDGE = range(7, 15)
 _NO_SEQ = -1
+
+
+def map_file(path: Path) -> mmap.mmap:
+    """All of the file ``path`` mapped read-write, shared with every process that maps it (rings and status
+    blocks alike)."""
+    with open(path, "r+b") as f:
+        return mmap.mmap(f.fileno(), 0)
+
+
+def unmap(mm: mmap.mmap) -> None:
+    """Close a mapping; while a caller still holds a view of it, the mapping goes with the process instead."""
+    with suppress(BufferError):
+        mm.close()
 
 
 @dataclass(frozen=True)
@@ -95,17 +109,12 @@ class Ring:
     @classmethod
     def attach(cls, path: Path) -> Ring:
         """Map an existing ring file (any process)."""
-        with open(path, "r+b") as f:
-            mm = mmap.mmap(f.fileno(), 0)
-        return cls(path, mm)
+        return cls(path, map_file(path))
 
     def close(self) -> None:
         """Unmap (the file stays; the supervisor removes it at the end of the session)."""
         self.header = self.slots = self._times = self._lengths = None  # type: ignore[assignment]
-        try:
-            self._mm.close()
-        except BufferError:  # a caller still holds a view; the mapping goes with the process
-            pass
+        unmap(self._mm)
 
     # ---------------------------------------------------------------------------------- producer
     @property

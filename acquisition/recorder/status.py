@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from acquisition.recorder.ring import map_file, unmap
+
 _WORDS = 8
 _TEXT = 512
 _PID, _HEARTBEAT, _PHASE, _CONNECTED, _STARTS, _REFUSED = range(6)
@@ -27,6 +29,32 @@ class Phase(enum.IntEnum):
     STREAMING = 2
     GAP = 3  # the device is lost; reconnecting
     CLOSED = 4  # exited in order
+
+
+class _Word:
+    """A word of the status block, read as an attribute of type ``kind`` (the daemon writes ``words``)."""
+
+    def __init__(self, k: int, kind: type = int) -> None:
+        self.k, self.kind = k, kind
+
+    def __get__(self, status: DaemonStatus | None, owner: type | None = None):
+        return self if status is None else self.kind(status.words[self.k])
+
+    def __set__(self, status: DaemonStatus, value: object) -> None:
+        raise AttributeError("the supervisor only reads a daemon's status words")
+
+
+class _Text:
+    """A text field of the status block, read and written as an attribute (UTF-8, cut to fit)."""
+
+    def __init__(self, k: int) -> None:
+        self.k = k
+
+    def __get__(self, status: DaemonStatus | None, owner: type | None = None) -> str:
+        return self if status is None else status._get(self.k)  # type: ignore[return-value]
+
+    def __set__(self, status: DaemonStatus, text: str) -> None:
+        status._set(self.k, text)
 
 
 class DaemonStatus:
@@ -47,16 +75,11 @@ class DaemonStatus:
 
     @classmethod
     def attach(cls, path: Path) -> DaemonStatus:
-        with open(path, "r+b") as f:
-            mm = mmap.mmap(f.fileno(), 0)
-        return cls(path, mm)
+        return cls(path, map_file(path))
 
     def close(self) -> None:
         self.words = self._text = None  # type: ignore[assignment]
-        try:
-            self._mm.close()
-        except BufferError:
-            pass
+        unmap(self._mm)
 
     # the daemon's side
     def begin(self) -> None:
@@ -79,21 +102,8 @@ class DaemonStatus:
         self.words[_PHASE] = int(value)
         self.words[_CONNECTED] = int(value == Phase.STREAMING)
 
-    @property
-    def error(self) -> str:
-        return self._get(_ERROR)
-
-    @error.setter
-    def error(self, text: str) -> None:
-        self._set(_ERROR, text)
-
-    @property
-    def priority(self) -> str:
-        return self._get(_PRIORITY)
-
-    @priority.setter
-    def priority(self, text: str) -> None:
-        self._set(_PRIORITY, text)
+    error = _Text(_ERROR)  # the daemon's last error
+    priority = _Text(_PRIORITY)  # the scheduling it got
 
     def refuse(self, why: str) -> None:
         """The command guard refused a command (counted; the last reason kept)."""
@@ -106,21 +116,10 @@ class DaemonStatus:
         return int(self.words[_REFUSED]), self._get(_REFUSAL)
 
     # the supervisor's side
-    @property
-    def pid(self) -> int:
-        return int(self.words[_PID])
-
-    @property
-    def heartbeat_ns(self) -> int:
-        return int(self.words[_HEARTBEAT])
-
-    @property
-    def connected(self) -> bool:
-        return bool(self.words[_CONNECTED])
-
-    @property
-    def starts(self) -> int:
-        return int(self.words[_STARTS])
+    pid = _Word(_PID)
+    heartbeat_ns = _Word(_HEARTBEAT)
+    connected = _Word(_CONNECTED, bool)
+    starts = _Word(_STARTS)
 
     def _get(self, k: int) -> str:
         raw = bytes(self._text[k])

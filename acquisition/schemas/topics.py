@@ -29,6 +29,15 @@ MESSAGE_ENCODING = "cdr"
 SCHEMA_ENCODING = "ros2msg"
 
 
+def _board_sample(what: str) -> tuple[Field, Field]:
+    """What a board's sample starts with: its number and the board's ``micros()`` stamp, the clock the
+    pipeline fits to host time."""
+    return Field("seq", "uint32", doc=what), Field("micros", "uint32", doc="board micros(), wraps at 2^32")
+
+
+_COMMAND_SEQ = Field("seq", "uint32", doc="command number")
+
+
 def servo_state(n: int) -> FixedMessage:
     return FixedMessage(
         "vslab_msgs/msg/ServoState",
@@ -48,7 +57,7 @@ def servo_goal(n: int) -> FixedMessage:
     return FixedMessage(
         "vslab_msgs/msg/ServoGoal",
         (
-            Field("seq", "uint32", doc="command number"),
+            _COMMAND_SEQ,
             Field("position", "float64", n, "rad"),
             Field("profile_velocity", "float64", n, "rad/s, 0 = unlimited"),
             Field("profile_acceleration", "float64", n, "rad/s^2, 0 = unlimited"),
@@ -61,8 +70,7 @@ def pressure(c: int) -> FixedMessage:
     return FixedMessage(
         "vslab_msgs/msg/Pressure",
         (
-            Field("seq", "uint32", doc="board sample number"),
-            Field("micros", "uint32", doc="board micros(), wraps at 2^32"),
+            *_board_sample("board sample number"),
             Field("counts", "int16", c, "ADS1115 counts per channel"),
             Field("pressure", "float64", c, "Pa (gauge), from the configured sensor chain"),
             Field("valve_open", "bool", c),
@@ -75,7 +83,7 @@ def pressure_command(c: int) -> FixedMessage:
     return FixedMessage(
         "vslab_msgs/msg/PressureCommand",
         (
-            Field("seq", "uint32", doc="command number"),
+            _COMMAND_SEQ,
             Field("setpoint", "float64", c, "Pa (gauge), regulator set-points"),
             Field("valve_open", "bool", c),
         ),
@@ -87,8 +95,7 @@ def stepper(s: int) -> FixedMessage:
     return FixedMessage(
         "vslab_msgs/msg/StepperState",
         (
-            Field("seq", "uint32", doc="board report number"),
-            Field("micros", "uint32", doc="board micros(), wraps at 2^32"),
+            *_board_sample("board report number"),
             Field("position_steps", "int32", s, "microsteps"),
             Field("position", "float64", s, "rad"),
             Field("moving", "bool"),
@@ -114,8 +121,7 @@ TRACKER_POSE = FixedMessage(
 ACCELERATION = FixedMessage(
     "vslab_msgs/msg/Acceleration",
     (
-        Field("seq", "uint32", doc="sample number"),
-        Field("micros", "uint32", doc="board micros(), wraps at 2^32"),
+        *_board_sample("sample number"),
         Field("acceleration", "float64", 3, "m/s^2, sensor frame, gravity included"),
     ),
     "Accelerometer on the link under test (POPUP impact test).",

@@ -121,8 +121,24 @@ class TwinServos:
         return self._present
 
 
-class TwinPressure:
+class _BoardClock:
+    """A board's ``micros()`` on the twin: the rig's device counter ``counter``, read and inverted."""
+
+    rig: Rig
+    counter: str
+
+    def micros(self, now_s: float) -> int:
+        self.rig.advance(now_s)
+        return self.rig.ticks(self.counter)
+
+    def micros_due_s(self, micros: int, now_s: float) -> float:
+        return _counter_due_s(self.rig, self.counter, micros, now_s)
+
+
+class TwinPressure(_BoardClock):
     """Regulators, valves and the transducer/ADS1115 chain of the pressure board."""
+
+    counter = "pressure_board"
 
     def __init__(self, rig: Rig) -> None:
         self.rig = rig
@@ -146,16 +162,11 @@ class TwinPressure:
         )
         return int(counts[0]), int(counts[1])
 
-    def micros(self, now_s: float) -> int:
-        self.rig.advance(now_s)
-        return self.rig.ticks("pressure_board")
 
-    def micros_due_s(self, micros: int, now_s: float) -> float:
-        return _counter_due_s(self.rig, "pressure_board", micros, now_s)
-
-
-class TwinStepper:
+class TwinStepper(_BoardClock):
     """The J1 stepper behind the Nano: microstep positions of the twin's stepper joint."""
+
+    counter = "stepper_board"
 
     def __init__(self, rig: Rig) -> None:
         self.rig = rig
@@ -183,13 +194,6 @@ class TwinStepper:
             abs(st.ref_vel[0, self.joint]) > 0
             or st.ref_pos[0, self.joint] != self.rig.world.commands.goal[0, self.joint]
         )
-
-    def micros(self, now_s: float) -> int:
-        self.rig.advance(now_s)
-        return self.rig.ticks("stepper_board")
-
-    def micros_due_s(self, micros: int, now_s: float) -> float:
-        return _counter_due_s(self.rig, "stepper_board", micros, now_s)
 
 
 class TwinTrackerSource:

@@ -86,10 +86,7 @@ static void handleCommand(const vsl::Command &cmd) {
     setValve((uint8_t)x, y != 0);
     vsl::sendOk(tag, "VALVE");
   } else if (strcmp(cmd.verb, "STREAM") == 0) {
-    if (cmd.nargs != 1) return vsl::sendError(tag, E_ARGS);
-    if ((err = vsl::parseArg(cmd.args[0], 0, MAX_STREAM_HZ, &x))) return vsl::sendError(tag, err);
-    stream.setRate(x, micros());
-    vsl::sendOk(tag, "STREAM");
+    stream.answerStream(cmd, MAX_STREAM_HZ);
   } else if (strcmp(cmd.verb, "STOP") == 0) {
     if (cmd.nargs != 0) return vsl::sendError(tag, E_ARGS);
     safeState();

@@ -62,10 +62,7 @@ static void handleCommand(const vsl::Command &cmd) {
              (long)stepper.currentPosition(), (unsigned)(stepper.distanceToGo() != 0));
     vsl::sendLine(reply);
   } else if (strcmp(cmd.verb, "STREAM") == 0) {
-    if (cmd.nargs != 1) return vsl::sendError(tag, E_ARGS);
-    if ((err = vsl::parseArg(cmd.args[0], 0, MAX_STREAM_HZ, &x))) return vsl::sendError(tag, err);
-    stream.setRate(x, micros());
-    vsl::sendOk(tag, "STREAM");
+    stream.answerStream(cmd, MAX_STREAM_HZ);
   } else if (strcmp(cmd.verb, "STOP") == 0) {
     if (cmd.nargs != 0) return vsl::sendError(tag, E_ARGS);
     stepper.stop();  // decelerate to a stop at the current acceleration

@@ -179,25 +179,27 @@ class AuroraEmulator(Emulator):
         except ValueError:
             return None
 
-    def _cmd_pinit(self, params: str, now_s: float) -> bytes:
+    def _on_port(self, params: str, *, initialized: bool | None = None, enabled: bool | None = None) -> bytes:
+        """PINIT, PENA and PDIS: refused unless ``params`` names our tool's port handle (and, to enable it,
+        the tool is initialised); otherwise the port takes the given states and the answer is OKAY."""
         if self._handle_of(params) != TOOL_HANDLE:
             return ndi.error_reply(ERR_BAD_HANDLE)
-        self.initialized = True
+        if enabled and not self.initialized:
+            return ndi.error_reply(ERR_NOT_INITIALIZED)
+        if initialized is not None:
+            self.initialized = initialized
+        if enabled is not None:
+            self.enabled = enabled
         return ndi.format_reply("OKAY")
+
+    def _cmd_pinit(self, params: str, now_s: float) -> bytes:
+        return self._on_port(params, initialized=True)
 
     def _cmd_pena(self, params: str, now_s: float) -> bytes:
-        if self._handle_of(params) != TOOL_HANDLE:
-            return ndi.error_reply(ERR_BAD_HANDLE)
-        if not self.initialized:
-            return ndi.error_reply(ERR_NOT_INITIALIZED)
-        self.enabled = True
-        return ndi.format_reply("OKAY")
+        return self._on_port(params, enabled=True)
 
     def _cmd_pdis(self, params: str, now_s: float) -> bytes:
-        if self._handle_of(params) != TOOL_HANDLE:
-            return ndi.error_reply(ERR_BAD_HANDLE)
-        self.enabled = False
-        return ndi.format_reply("OKAY")
+        return self._on_port(params, enabled=False)
 
     def _cmd_tstart(self, params: str, now_s: float) -> bytes:
         self.tracking = True

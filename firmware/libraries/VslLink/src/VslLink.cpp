@@ -117,6 +117,15 @@ void StreamClock::setRate(int32_t rateHz, uint32_t nowUs) {
   nextUs = nowUs;  // first sample on the next loop pass
 }
 
+void StreamClock::answerStream(const Command &cmd, int32_t maxHz) {
+  int32_t rateHz = 0;
+  uint8_t err = 0;
+  if (cmd.nargs != 1) return sendError(cmd.tag, E_ARGS);
+  if ((err = parseArg(cmd.args[0], 0, maxHz, &rateHz))) return sendError(cmd.tag, err);
+  setRate(rateHz, micros());
+  sendOk(cmd.tag, "STREAM");
+}
+
 bool StreamClock::due(uint32_t nowUs) {
   if (periodUs == 0 || (int32_t)(nowUs - nextUs) < 0) return false;  // off, or not due (wrap-safe)
   nextUs += periodUs;

@@ -1,7 +1,7 @@
 // VslLink: the line protocol shared by the VSL boards (firmware/PROTOCOL.md, v1.0).
 // Lines are "<BODY>*<XX>\n" with XX the XOR of the body bytes; commands are "<tag> <VERB> [args]".
-// This library owns framing, checksums, tokenising, error replies and the streaming clock; each sketch
-// only implements its verbs. No dynamic allocation.
+// This library owns framing, checksums, tokenising, error replies and the streaming clock with its STREAM
+// verb; each sketch only implements its own verbs. No dynamic allocation.
 #pragma once
 
 #include <Arduino.h>
@@ -42,6 +42,8 @@ struct StreamClock {
   uint32_t seq;
   void setRate(int32_t rateHz, uint32_t nowUs);
   bool due(uint32_t nowUs);
+  // The STREAM verb, alike on every board: "STREAM <rate_hz 0..maxHz>" sets the rate, answered OK or ERR.
+  void answerStream(const Command &cmd, int32_t maxHz);
 };
 
 }  // namespace vsl
