@@ -21,6 +21,7 @@ from models.kinematics import DHChain, DHRow
 from models.yaml_files import read_yaml
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "robots"
+CAN_DIR = CONFIG_DIR.parent / "can"  # the CAN devices' EDS and DBC files
 TIP_FRAME = "tip"
 
 PositiveFloat = Annotated[float, Field(gt=0)]

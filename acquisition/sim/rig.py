@@ -25,15 +25,18 @@ from acquisition.codecs import dynamixel as dx
 from acquisition.codecs.board_lines import MAX_SET_PA
 from acquisition.processes import RT_PRIORITY, die_with_parent, elevate
 from acquisition.sim import sensors
+from acquisition.sim.can_bus import CanBus
 from acquisition.sim.clocks import _TICK_EPS as TICK_EPS
 from acquisition.sim.emulators.aurora import AuroraEmulator
 from acquisition.sim.emulators.base import Emulator
 from acquisition.sim.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
+from acquisition.sim.emulators.cia402_drive import FAULTS, Cia402Drive
 from acquisition.sim.emulators.dynamixel import DynamixelBusEmulator
+from acquisition.sim.emulators.slcan_adapter import SlcanAdapter
 from acquisition.sim.ptyhost import PtyHost
-from acquisition.sim.twin_devices import TwinPressure, TwinServos, TwinStepper, TwinTrackerSource
+from acquisition.sim.twin_devices import TwinJoint, TwinPressure, TwinServos, TwinStepper, TwinTrackerSource
 from acquisition.sim.world import World
-from models.robot import RobotDescription, load_robot
+from models.robot import CAN_DIR, RobotDescription, load_robot
 
 log = logging.getLogger(__name__)
 
@@ -56,6 +59,11 @@ class Rig:
             )
         if "stepper_board" in robot.devices and robot.stepper is not None:
             self.emulators["stepper_board"] = StepperBoardEmulator(TwinStepper(self))
+        self.can_bus: CanBus | None = None
+        self.drives: dict[int, Cia402Drive] = {}
+        for name, spec in robot.devices.items():
+            if spec.driver == "popup_can":
+                self.emulators[name] = self._can_bus(spec)
         self.coil = TwinTrackerSource(self)
         if "tracker" in robot.devices:
             self.emulators["tracker"] = AuroraEmulator(self.coil)
@@ -73,6 +81,16 @@ class Rig:
                 int(sensors.encoder_counts(self.world.state.out_pos[0, joint], hardware.zero)),
             )
         return bus
+
+    def _can_bus(self, spec) -> SlcanAdapter:
+        """The arm's CAN bus at the description's bit rate (``baud``) with a CiA 402 drive per joint of
+        ``ids``, behind a USB-CAN adapter speaking slcan."""
+        self.can_bus = CanBus(spec.baud)
+        for joint, node_id in spec.ids.items():
+            drive = Cia402Drive(node_id, CAN_DIR / "popup_drive.eds", TwinJoint(self, joint))
+            self.drives[node_id] = drive
+            self.can_bus.attach(drive)
+        return SlcanAdapter(self.can_bus)
 
     def advance(self, now_s: float) -> None:
         """Step the twin up to ``now_s`` (rig time): it has then taken ``int(now_s / dt)`` steps."""
@@ -105,6 +123,8 @@ class Rig:
         if op == "coil":  # the tracker coil leaves (inside=false) or re-enters the field volume
             self.coil.force_out = not bool(cmd["inside"])
             return {"ok": True}
+        if op == "can":  # the CAN bus's faults and counters
+            return self._can_control(cmd)
         if op == "state":
             st = self.world.state
             cmd = self.world.commands  # what the emulators passed on to the twin (what the devices took)
@@ -112,6 +132,30 @@ class Rig:
                     "pressure_pa": st.p_link[0].tolist(), "goal_q": cmd.goal[0].tolist(),
                     "pressure_set_pa": cmd.pressure_set[0].tolist()}  # fmt: skip
         raise ValueError(f"unknown command {op!r}")
+
+    def _can_control(self, cmd: dict) -> dict:
+        """``{"op": "can", "bus_off": bool}``, ``{"op": "can", "node": id, "power": bool}`` (a drive loses its
+        supply: silent, no heartbeat), ``{"op": "can", "node": id, "fault": code}`` (a drive fault: EMCY),
+        ``{"op": "can"}`` alone: the bus's counters."""
+        if self.can_bus is None:
+            raise ValueError(f"{self.robot.name} has no CAN bus")
+        now = self.world.t
+        if "bus_off" in cmd:
+            self.can_bus.set_bus_off(bool(cmd["bus_off"]))
+        if "node" in cmd:
+            drive = self.drives.get(int(cmd["node"]))
+            if drive is None:
+                raise ValueError(f"no drive {cmd['node']} on the bus (drives: {sorted(self.drives)})")
+            if "power" in cmd:
+                drive.power(bool(cmd["power"]), now)
+            if "fault" in cmd:
+                code = int(cmd["fault"])
+                if code not in FAULTS:
+                    raise ValueError(f"fault code {code:#06x} not one of {[hex(c) for c in FAULTS]}")
+                drive.fault(code, now)
+        c = self.can_bus.counters
+        return {"ok": True, "bitrate": self.can_bus.bitrate, "frames": c.frames, "bits": c.bits,
+                "busy_s": c.busy_s, "lost": c.lost, "t": now, "bus_off": self.can_bus.bus_off}  # fmt: skip
 
 
 def serve_rig(robot: RobotDescription, run_dir: Path, seed: int = 0) -> None:

@@ -223,3 +223,28 @@ class TwinTrackerSource:
             missing=bool(reading.missing[0]),
             port_status=int(reading.port_status[0]),
         )
+
+
+class TwinJoint:
+    """One motor joint of the twin behind a CiA 402 drive (POPUP): sensed as the drive's encoder and
+    torque estimate see it, moved by the drive's position loop (the twin's servo model), held by its brake."""
+
+    def __init__(self, rig: Rig, joint: str) -> None:
+        self.rig = rig
+        self.j = rig.robot.actuated_joints.index(joint)
+
+    def sense(self, t: float) -> tuple[float, float, float]:
+        self.rig.advance(t)
+        st = self.rig.world.state
+        return float(st.out_pos[0, self.j]), float(st.out_vel[0, self.j]), float(st.torque[0, self.j])
+
+    def command(self, goal_rad: float, velocity_rad_s: float, acceleration_rad_s2: float, t: float) -> None:
+        self.rig.advance(t)
+        cmd = self.rig.world.commands
+        cmd.goal[0, self.j] = goal_rad
+        cmd.profile_vel[0, self.j] = velocity_rad_s
+        cmd.profile_acc[0, self.j] = acceleration_rad_s2
+
+    def hold(self, t: float) -> None:
+        self.rig.advance(t)
+        self.rig.world.commands.goal[0, self.j] = self.rig.world.state.out_pos[0, self.j]
