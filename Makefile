@@ -34,6 +34,7 @@ bench: $(BIN)/.installed
 	$(BIN)/python bench/acquire.py --seconds 60
 	$(BIN)/python bench/simulate.py
 	$(BIN)/python bench/ingest.py
+	$(BIN)/python bench/can_bus.py
 
 lint format: $(BIN)/.installed
 	$(BIN)/ruff check --fix .

@@ -1,0 +1,98 @@
+"""POPUP's CAN bus on the rig: frames per second through slcan, the PDO loop rate achieved, the bus load.
+
+    python bench/can_bus.py      (not bench/can.py: a script of that name would shadow python-can) [--seconds 10] [--rate 100 200 500]
+
+Starts the POPUP rig (its own process, as on the bench), opens the three CiA 402 drives with python-can's
+slcan interface and canopen, enables them and runs the PDO loop at each SYNC rate: every cycle one SYNC, the
+drives' two TPDOs each and one target-position RPDO per drive. Prints per rate the cycles run and answered
+by every drive, the frames per second through the adapter (both directions), the loop's period jitter, and
+the bus load the rig's bus measured (bits carried / bit rate / seconds, stuff bits included). States the
+machine's load as it ran.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from acquisition.devices.can_drives import CanDrives  # noqa: E402
+from acquisition.sim.ptyhost import send_control, wait_for_ports  # noqa: E402
+from models.robot import load_robot  # noqa: E402
+
+
+def run_rate(drives: CanDrives, run_dir: Path, rate_hz: float, seconds: float) -> dict:
+    period = 1.0 / rate_hz
+    before = send_control(run_dir, {"op": "can"})
+    start = time.monotonic()
+    next_t, stamps, answered, cycles = start, [], 0, 0
+    goal = None
+    while time.monotonic() - start < seconds:
+        cycle = drives.sync()
+        stamps.append(time.monotonic())
+        if cycle is not None:
+            cycles += 1
+            answered += bool(cycle.answered.all())
+            if goal is None and cycle.answered.all():
+                goal = cycle.position_rad.copy()
+        if goal is not None:
+            drives.write_goals(goal)
+        next_t += period
+        time.sleep(max(0.0, next_t - time.monotonic()))
+    elapsed = time.monotonic() - start
+    after = send_control(run_dir, {"op": "can"})
+    frames = after["frames"] - before["frames"]
+    busy = after["busy_s"] - before["busy_s"]
+    bus_s = after["t"] - before["t"]
+    dt = np.diff(stamps) * 1e3
+    return {"rate": rate_hz, "cycles": cycles, "answered": answered, "loop_hz": len(stamps) / elapsed,
+            "frames_s": frames / bus_s, "load": busy / bus_s, "dt_p50": np.median(dt),
+            "dt_p99": np.percentile(dt, 99)}  # fmt: skip
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--rate", type=float, nargs="+", default=[100.0, 200.0, 500.0])
+    args = parser.parse_args()
+    robot = load_robot("popup")
+    spec = robot.devices["main_board"]
+    load1, load5, _ = os.getloadavg()
+    print(
+        f"POPUP CAN bus on the rig: {len(spec.ids)} CiA 402 drives, {spec.baud / 1e6:g} Mbit/s, slcan over a pty"
+    )
+    print(f"machine: {os.cpu_count()} cores, load average {load1:.2f} (1 min) {load5:.2f} (5 min) at start")
+    with tempfile.TemporaryDirectory() as tmp:
+        run_dir = Path(tmp)
+        rig = subprocess.Popen(
+            [sys.executable, "-m", "acquisition.sim.rig", "--robot", "popup", "--run-dir", tmp]
+        )
+        try:
+            port = wait_for_ports(run_dir)["main_board"]
+            limits = {j.name: (j.lower_rad, j.upper_rad) for j in robot.joints}
+            with CanDrives(port, spec.ids, limits_rad=limits, bitrate=spec.baud) as drives:
+                drives.enable()
+                print(f"{'SYNC Hz':>8} {'loop Hz':>8} {'cycles':>7} {'all answered':>13} {'frames/s':>9} "
+                      f"{'bus load':>9} {'period p50/p99 ms':>18}")  # fmt: skip
+                for rate in args.rate:
+                    r = run_rate(drives, run_dir, rate, args.seconds)
+                    print(f"{r['rate']:8.0f} {r['loop_hz']:8.1f} {r['cycles']:7d} "
+                          f"{r['answered'] / max(r['cycles'], 1):13.1%} {r['frames_s']:9.0f} {r['load']:9.1%} "
+                          f"{r['dt_p50']:8.2f} / {r['dt_p99']:6.2f}")  # fmt: skip
+        finally:
+            rig.terminate()
+            rig.wait(timeout=10)
+    load1, _, _ = os.getloadavg()
+    print(f"load average {load1:.2f} (1 min) at the end")
+
+
+if __name__ == "__main__":
+    main()
