@@ -1,6 +1,8 @@
 """POPUP's CAN bus on the rig: frames per second through slcan, the PDO loop rate achieved, the bus load.
 
-    python bench/can_bus.py      (not bench/can.py: a script of that name would shadow python-can) [--seconds 10] [--rate 100 200 500]
+    python bench/can_bus.py [--seconds 10] [--rate 100 200 500]
+
+(Not bench/can.py: a script of that name would shadow python-can's ``can`` package.)
 
 Starts the POPUP rig (its own process, as on the bench), opens the three CiA 402 drives with python-can's
 slcan interface and canopen, enables them and runs the PDO loop at each SYNC rate: every cycle one SYNC, the
@@ -22,11 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
-from acquisition.devices.can_drives import CanDrives  # noqa: E402
-from acquisition.sim.ptyhost import send_control, wait_for_ports  # noqa: E402
-from models.robot import load_robot  # noqa: E402
+from acquisition.devices.can_drives import CanDrives
+from acquisition.sim.ptyhost import send_control, wait_for_ports
+from models.robot import load_robot
 
 
 def run_rate(drives: CanDrives, run_dir: Path, rate_hz: float, seconds: float) -> dict:
@@ -66,9 +66,8 @@ def main() -> None:
     robot = load_robot("popup")
     spec = robot.devices["main_board"]
     load1, load5, _ = os.getloadavg()
-    print(
-        f"POPUP CAN bus on the rig: {len(spec.ids)} CiA 402 drives, {spec.baud / 1e6:g} Mbit/s, slcan over a pty"
-    )
+    drives = f"{len(spec.ids)} CiA 402 drives, {spec.baud / 1e6:g} Mbit/s"
+    print(f"POPUP CAN bus on the rig: {drives}, slcan over a pty")
     print(f"machine: {os.cpu_count()} cores, load average {load1:.2f} (1 min) {load5:.2f} (5 min) at start")
     with tempfile.TemporaryDirectory() as tmp:
         run_dir = Path(tmp)
@@ -85,7 +84,8 @@ def main() -> None:
                 for rate in args.rate:
                     r = run_rate(drives, run_dir, rate, args.seconds)
                     print(f"{r['rate']:8.0f} {r['loop_hz']:8.1f} {r['cycles']:7d} "
-                          f"{r['answered'] / max(r['cycles'], 1):13.1%} {r['frames_s']:9.0f} {r['load']:9.1%} "
+                          f"{r['answered'] / max(r['cycles'], 1):13.1%} {r['frames_s']:9.0f} "
+                          f"{r['load']:9.1%} "
                           f"{r['dt_p50']:8.2f} / {r['dt_p99']:6.2f}")  # fmt: skip
         finally:
             rig.terminate()
