@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from acquisition.codecs.can import CanFrame, frame_bits
 
@@ -48,7 +48,6 @@ class BusCounters:
     bits: int = 0
     busy_s: float = 0.0
     lost: int = 0
-    by_id: dict[int, int] = field(default_factory=dict)
 
 
 class CanBus:
@@ -68,8 +67,10 @@ class CanBus:
 
     def offer(self, node: CanNode, ready_s: float, frame: CanFrame) -> None:
         """``node`` wants to send ``frame`` from ``ready_s`` on."""
-        if self.bus_off or node.silent:
-            self.counters.lost += not node.silent
+        if node.silent:
+            return
+        if self.bus_off:
+            self.counters.lost += 1
             return
         heapq.heappush(self._pending, (ready_s, frame.can_id, next(self._order), frame, node))
 
@@ -88,11 +89,6 @@ class CanBus:
             self._collect(t)
             if not self._pending:
                 return
-            if max(self.free_at, self._pending[0][0]) > t:
-                return
-            self._collect(
-                max(self.free_at, self._pending[0][0])
-            )  # ready while the bus was busy: they contend
             start, winner = self._arbitrate()
             end = start + self._duration(winner[3])
             if end > t:
@@ -126,7 +122,6 @@ class CanBus:
         c.frames += 1
         c.bits += bits
         c.busy_s += end - start
-        c.by_id[frame.can_id] = c.by_id.get(frame.can_id, 0) + 1
         for node in self.nodes:
             if node is sender or node.silent:
                 continue

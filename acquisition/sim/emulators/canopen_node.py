@@ -111,9 +111,6 @@ class CanopenNode(CanNode):
         """A SYNC arrived (after the buffered RPDOs were applied)."""
 
     # ------------------------------------------------------------------------------------ frames
-    def _frame(self, can_id: int, data: bytes) -> CanFrame:
-        return CanFrame(can_id, data)
-
     def receive(self, frame: CanFrame, t: float) -> list[tuple[float, CanFrame]]:
         if self.state == BOOT_UP:
             return []
@@ -129,7 +126,7 @@ class CanopenNode(CanNode):
             and len(frame.data) == 8
         ):
             answer = self._sdo(frame.data, t)
-            return [] if answer is None else [(ready, self._frame(0x580 + self.node_id, answer))]
+            return [] if answer is None else [(ready, CanFrame(0x580 + self.node_id, answer))]
         if self.state == OPERATIONAL:
             self._rpdo(cid, frame.data, t)
         return []
@@ -141,11 +138,11 @@ class CanopenNode(CanNode):
     def produce(self, t: float) -> list[tuple[float, CanFrame]]:
         out = []
         if self._boot is not None and self._boot <= t:
-            out.append((self._boot, self._frame(0x700 + self.node_id, bytes([BOOT_UP]))))
+            out.append((self._boot, CanFrame(0x700 + self.node_id, bytes([BOOT_UP]))))
             self.state, self._boot = PRE_OPERATIONAL, None
             self._schedule_heartbeat(out[-1][0])
         while self._next_heartbeat is not None and self._next_heartbeat <= t:
-            out.append((self._next_heartbeat, self._frame(0x700 + self.node_id, bytes([self.state]))))
+            out.append((self._next_heartbeat, CanFrame(0x700 + self.node_id, bytes([self.state]))))
             self._schedule_heartbeat(self._next_heartbeat)
         for n in list(self._next_event):
             period = self.get(0x1800 + n, 5) * 1e-3
@@ -166,7 +163,7 @@ class CanopenNode(CanNode):
     def emcy(self, code: int, manufacturer: bytes = b"\0" * 5) -> CanFrame:
         """The EMCY message for error ``code`` (0: error reset) with the current error register."""
         data = struct.pack("<HB", code, self.get(0x1001)) + manufacturer[:5].ljust(5, b"\0")
-        return self._frame(0x080 + self.node_id, data)
+        return CanFrame(0x080 + self.node_id, data)
 
     # --------------------------------------------------------------------------------------- NMT
     def _nmt(self, command: int, target: int, ready: float) -> list[tuple[float, CanFrame]]:
@@ -180,10 +177,14 @@ class CanopenNode(CanNode):
         elif command == NMT_PRE_OP:
             self.state = PRE_OPERATIONAL
         elif command in (NMT_RESET_NODE, NMT_RESET_COMM):
-            self._reset(comm_only=command == NMT_RESET_COMM)
-            self.state, self._next_heartbeat, self._boot = BOOT_UP, None, ready
-            self.on_reset(command == NMT_RESET_COMM)
+            self.reboot(ready, comm_only=command == NMT_RESET_COMM)
         return []
+
+    def reboot(self, t: float, comm_only: bool = False) -> None:
+        """Reset (the communication objects only, or the whole node) and send the boot-up message at ``t``."""
+        self._reset(comm_only)
+        self.on_reset(comm_only)
+        self.state, self._next_heartbeat, self._boot = BOOT_UP, None, t
 
     def on_reset(self, comm_only: bool) -> None:
         """After an NMT reset (the application's state, for reset node)."""
@@ -347,4 +348,4 @@ class CanopenNode(CanNode):
             raw = var.encode_raw(self.get(index, sub)) if var is not None else b"\0" * (size // 8)
             bits |= int.from_bytes(raw, "little") << offset
             offset += size
-        return self._frame(self.get(0x1800 + n, 1) & 0x7FF, bits.to_bytes((offset + 7) // 8, "little"))
+        return CanFrame(self.get(0x1800 + n, 1) & 0x7FF, bits.to_bytes((offset + 7) // 8, "little"))

@@ -47,6 +47,7 @@ FAULT_NAMES = {0x2310: "over-current", 0x4310: "over-temperature", 0x3220: "unde
 SW_VOLTAGE, SW_REMOTE, SW_TARGET_REACHED, SW_LIMIT = 1 << 4, 1 << 9, 1 << 10, 1 << 11
 SW_SETPOINT_ACK, SW_FOLLOWING = 1 << 12, 1 << 13  # bit 12: PP set-point acknowledge, CSP "following"
 STANDSTILL_RAD_S = 0.01
+BOOT_S = 0.05  # from power-up to the boot-up message (ASSUMED)
 
 
 class State(enum.IntEnum):
@@ -155,9 +156,7 @@ class Cia402Drive(CanopenNode):
             return
         if self.silent:
             self.silent = False
-            self._reset(comm_only=False)
-            self.on_reset(comm_only=False)
-            self.state, self._next_heartbeat, self._boot = 0x00, None, t + 0.05
+            self.reboot(t + BOOT_S)
 
     # -------------------------------------------------------------------------- state machine
     def on_write(self, index: int, sub: int, t: float) -> None:
