@@ -64,7 +64,7 @@ def main() -> None:
     parser.add_argument("--rate", type=float, nargs="+", default=[100.0, 200.0, 500.0])
     args = parser.parse_args()
     robot = load_robot("popup")
-    spec = robot.devices["main_board"]
+    spec = robot.devices["can_bus"]
     load1, load5, _ = os.getloadavg()
     drives = f"{len(spec.ids)} CiA 402 drives, {spec.baud / 1e6:g} Mbit/s"
     print(f"POPUP CAN bus on the rig: {drives}, slcan over a pty")
@@ -75,7 +75,7 @@ def main() -> None:
             [sys.executable, "-m", "acquisition.sim.rig", "--robot", "popup", "--run-dir", tmp]
         )
         try:
-            port = wait_for_ports(run_dir)["main_board"]
+            port = wait_for_ports(run_dir)["can_bus"]
             limits = {j.name: (j.lower_rad, j.upper_rad) for j in robot.joints}
             with CanDrives(port, spec.ids, limits_rad=limits, bitrate=spec.baud) as drives:
                 drives.enable()

@@ -23,6 +23,17 @@ from models.yaml_files import read_yaml
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "robots"
 CAN_DIR = CONFIG_DIR.parent / "can"  # the CAN devices' EDS and DBC files
 TIP_FRAME = "tip"
+# What each driver's device does for the robot (RobotDescription.device_of): a description names its devices
+# as it likes; the twin, the topics and the pipeline find them by role.
+DRIVER_ROLES = {
+    "dynamixel": "joints",
+    "popup_can": "joints",  # POPUP's CAN bus: the CiA 402 joint drives (and the boards on the same bus)
+    "vslab_pressure_board": "pressure",
+    "popup_main_board": "pressure",  # POPUP's main board: link pressures and valves, over CAN
+    "vslab_stepper_board": "stepper",
+    "ndi_aurora": "tracker",
+    "popup_link_board": "link",  # a POPUP link board: IMU and flex sensors of its link, over CAN
+}
 
 PositiveFloat = Annotated[float, Field(gt=0)]
 NonNegFloat = Annotated[float, Field(ge=0)]
@@ -269,6 +280,7 @@ class AccelerometerSpec(_Model):
     its own frame (the tip frame), with white noise over its bandwidth, quantised and clipped."""
 
     frame: Literal["tip"] = "tip"
+    device: str = "accelerometer"  # the device that reads it (POPUP: link 2's board, at the link's end)
     full_scale_m_s2: PositiveFloat
     lsb_m_s2: PositiveFloat
     noise_density_m_s2_per_sqrt_hz: NonNegFloat
@@ -283,11 +295,23 @@ class AccelerometerSpec(_Model):
         return self
 
 
+class FlexSensorSpec(_Model):
+    """Four resistive flex sensors around an inflatable link (at 0°, 90°, 180°, 270° about its axis), read by
+    the link's board: sensor i reads the link's bend κ_i = δ_a cos φ_i + δ_b sin φ_i (its two virtual
+    joints) as ADC counts about ``counts_straight``, with white noise, clipped to the ADC's range."""
+
+    counts_straight: Annotated[int, Field(ge=0, le=4095)] = 2048
+    counts_per_rad: float = Field(gt=0)
+    noise_counts: NonNegFloat = 0.0
+    adc_max_counts: Annotated[int, Field(gt=0)] = 4095
+
+
 class SensorsSpec(_Model):
     servo: ServoSensorSpec | None = None
     pressure: PressureSensorSpec
     tracker: TrackerSpec
     accelerometer: AccelerometerSpec | None = None
+    flex: FlexSensorSpec | None = None
 
 
 class ClockSpecModel(_Model):
@@ -313,6 +337,8 @@ class DeviceSpec(_Model):
     rate_hz: PositiveFloat | None = None
     baud: int = Field(default=1_000_000, gt=0)
     ids: dict[str, int] = Field(default_factory=dict)
+    bus: str | None = None  # a device on another device's bus (a CAN board): that device's port reaches it
+    link: str | None = None  # a link board: the link it sits on
     clock: ClockSpecModel
     host_link: HostLinkModel
 
@@ -388,6 +414,16 @@ class RobotDescription(_Model):
                 raise ValueError(f"mass {m.name!r}: frame {m.frame!r} is not one of {sorted(frames)}")
         if "accelerometer" in self.devices and self.sensors.accelerometer is None:
             raise ValueError("devices has an accelerometer but sensors has no accelerometer section")
+        accel = self.sensors.accelerometer
+        if accel is not None and accel.device not in self.devices:
+            raise ValueError(f"sensors.accelerometer.device {accel.device!r} is not one of the devices")
+        for name, dev in self.devices.items():
+            if dev.bus is not None and (dev.bus not in self.devices or self.devices[dev.bus].bus is not None):
+                raise ValueError(f"devices.{name}.bus {dev.bus!r} is not a device with a port of its own")
+            if dev.link is not None and dev.link not in link_names:
+                raise ValueError(f"devices.{name}.link {dev.link!r} is not one of the links {link_names}")
+            if DRIVER_ROLES.get(dev.driver) == "link" and (dev.link is None or self.sensors.flex is None):
+                raise ValueError(f"devices.{name}: a link board needs its link and a sensors.flex section")
         drives = {j.drive for j in self.joints}
         if drives & {"servo", "motor"} and self.servo is None:
             raise ValueError(
@@ -398,6 +434,16 @@ class RobotDescription(_Model):
         return self
 
     # ------------------------------------------------------------------ derived, plain-number views
+    def device_of(self, role: str) -> str | None:
+        """The name of the device that has ``role`` (see :data:`DRIVER_ROLES`: "joints", "pressure",
+        "stepper", "tracker"), None if the robot has none: how the twin, the topics and the pipeline find
+        "the device that reads the link pressures" whatever a description calls it."""
+        return next((n for n, d in self.devices.items() if DRIVER_ROLES.get(d.driver) == role), None)
+
+    def link_boards(self) -> dict[str, str]:
+        """Link name → the name of the board on it."""
+        return {d.link: n for n, d in self.devices.items() if DRIVER_ROLES.get(d.driver) == "link"}
+
     def dh_rows(self) -> list[DHRowSpec]:
         """The full chain including virtual joints (for the anthropomorphic arm: generated from L1–L3)."""
         kin = self.kinematics

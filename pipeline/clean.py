@@ -27,14 +27,15 @@ from pipeline.tables import SessionTables, StageReport, columns
 MISSING, PORT_STATUS, OUTLIER, DUPLICATE = "missing", "port_status", "outlier", "duplicate"
 
 DEVICE_TICKS = "device_ticks"  # the unwrapped device counter this stage adds to each stamped stream
-# topic → (the devices whose clock stamps it, the first one the robot has; the stamp field). Its tick and wrap
-# are that device's ``clock`` in the robot description.
-STAMPS: dict[str, tuple[tuple[str, ...], str]] = {
-    T.SERVO_STATE: (("servo_bus", "main_board"), "tick_ms"),
-    T.PRESSURE: (("pressure_board", "main_board"), "micros"),
-    T.STEPPER: (("stepper_board",), "micros"),
-    T.TRACKER: (("tracker",), "frame"),
-    T.ACCEL: (("accelerometer",), "micros"),
+# topic → (the role of the device whose clock stamps it (models.robot.DRIVER_ROLES; "accelerometer": the
+# device sensors.accelerometer names), the stamp field). Its tick and wrap are that device's ``clock`` in the
+# robot description.
+STAMPS: dict[str, tuple[str, str]] = {
+    T.SERVO_STATE: ("joints", "tick_ms"),
+    T.PRESSURE: ("pressure", "micros"),
+    T.STEPPER: ("stepper", "micros"),
+    T.TRACKER: ("tracker", "frame"),
+    T.ACCEL: ("accelerometer", "micros"),
 }
 SEQUENCE_WRAP = 1 << 32  # seq and frame are uint32
 SEQUENCE_COLUMNS = ("seq", "frame")
@@ -71,8 +72,12 @@ def stamp_clock(robot: RobotDescription, topic: str) -> tuple[str, str] | None:
     """(device, stamp field) of the device clock that stamps ``topic`` on ``robot``; None if none does."""
     if topic not in STAMPS:
         return None
-    names, field = STAMPS[topic]
-    device = next((n for n in names if n in robot.devices), None)
+    role, field = STAMPS[topic]
+    if role == "accelerometer":
+        accel = robot.sensors.accelerometer
+        device = accel.device if accel is not None and accel.device in robot.devices else None
+    else:
+        device = robot.device_of(role)
     return None if device is None else (device, field)
 
 

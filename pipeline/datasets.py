@@ -41,7 +41,8 @@ def joint_angles(df: pd.DataFrame, robot: RobotDescription, servo: str = "servo_
     (a stepper lands on its commanded step; NaN where no goal was recorded)."""
     q = np.full((len(df), len(robot.joints)), np.nan)
     steppers = [k for k, j in enumerate(robot.joints) if j.drive == "stepper"]
-    servo_dev = robot.devices.get("servo_bus") or robot.devices.get("main_board")
+    joints = robot.device_of("joints")
+    servo_dev = robot.devices[joints] if joints else None
     names = [j.name for j in robot.joints]
     servos = [names.index(n) for n in (servo_dev.ids if servo_dev else {}) if n in names]
     if steppers:

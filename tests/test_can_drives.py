@@ -28,7 +28,7 @@ def rig(tmp_path_factory):
 
     run_dir = tmp_path_factory.mktemp("popup-rig")
     with emulator_host(run_dir, module="acquisition.sim.rig", extra=("--robot", "popup")) as ports:
-        yield run_dir, ports["main_board"]
+        yield run_dir, ports["can_bus"]
 
 
 @pytest.fixture

@@ -8,6 +8,7 @@ worst-case estimate (reference: ISO 11898-1; CRC-15 polynomial 0x4599).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 from acquisition.errors import CodecError
@@ -91,6 +92,7 @@ def stuff_bits(bits: list[int]) -> int:
     return count
 
 
+@functools.lru_cache(maxsize=256)  # the bus times a frame when it arbitrates and again when it ends
 def frame_bits(frame: CanFrame) -> int:
     """Bits the frame occupies on the bus, stuff bits and the 3-bit interframe space included (an 8-byte
     standard frame: 111 plus 0–24 stuff bits)."""

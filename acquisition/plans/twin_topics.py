@@ -10,6 +10,8 @@ from acquisition.schemas import topics as T
 from acquisition.sim.streams import Stream
 from models.robot import RobotDescription
 
+# a CiA 402 drive in OPERATION ENABLED following CSP targets: state 0x27, voltage, remote, bit 12
+DRIVE_ENABLED_STATUSWORD = 0x0027 | 1 << 4 | 1 << 9 | 1 << 12
 TopicRows = tuple[np.ndarray, np.ndarray, np.ndarray]  # robot index, host log time (ns), message rows
 
 
@@ -31,6 +33,33 @@ def stream_rows(robot: RobotDescription, topics: dict[str, T.Topic], streams: di
             }
         )
         out[T.SERVO_STATE] = (s["robot"], s["host_ns"], rows)
+    if "drives" in streams and T.JOINT_STATE in topics:
+        s = streams["drives"]
+        n = s["position_counts"].shape[1]
+        rows = topics[T.JOINT_STATE].message.pack(
+            {
+                "seq": s["seq"] % 2**32,
+                "position": s["position_counts"] / s["counts_per_rad"][:, None],
+                "velocity": s["velocity_counts"] / s["counts_per_rad"][:, None],
+                "torque": s["torque_per_mille"] * 1e-3 * s["rated_nm"][:, None],
+                "statusword": np.full((len(s["seq"]), n), DRIVE_ENABLED_STATUSWORD),
+                "answered": np.ones((len(s["seq"]), n), bool),
+            }
+        )
+        out[T.JOINT_STATE] = (s["robot"], s["host_ns"], rows)
+    for link, board in robot.link_boards().items():
+        s = streams.get(f"link_board:{board}")
+        if s is None:
+            continue
+        seq = s["seq"] % 2**32
+        orientation = topics[T.link_orientation_topic(link)].message.pack(
+            {"seq": seq, "micros": s["micros"], "rpy": s["rpy"]}
+        )
+        flex = topics[T.link_flex_topic(link)].message.pack(
+            {"seq": seq, "micros": s["micros"], "counts": s["flex"]}
+        )
+        out[T.link_orientation_topic(link)] = (s["robot"], s["host_ns"], orientation)
+        out[T.link_flex_topic(link)] = (s["robot"], s["host_ns"], flex)
     if "pressure_board" in streams:
         s = streams["pressure_board"]
         counts = s["counts"]

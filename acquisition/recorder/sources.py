@@ -289,9 +289,15 @@ class TrackerSource(Source):
         return out
 
 
-SOURCES: dict[str, type[Source]] = {
-    cls.driver: cls for cls in (ServoSource, PressureSource, StepperSource, TrackerSource)
-}
+def _sources() -> dict[str, type[Source]]:
+    from acquisition.recorder.can_source import PopupCanSource  # it builds on Source, defined above
+
+    return {
+        cls.driver: cls for cls in (ServoSource, PressureSource, StepperSource, TrackerSource, PopupCanSource)
+    }
+
+
+SOURCES: dict[str, type[Source]] = _sources()
 
 
 def make_source(robot: RobotDescription, name: str, port: str, rate_hz: float | None = None) -> Source:

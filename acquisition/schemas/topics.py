@@ -24,6 +24,18 @@ PRESSURE_COMMAND = "/pressure/command"
 STEPPER = "/stepper/state"
 TRACKER = "/tracker/pose"
 ACCEL = "/imu/accel"
+JOINT_STATE = "/joint/state"
+
+
+def link_orientation_topic(link: str) -> str:
+    """The topic of the orientation of ``link``'s end (its board's IMU)."""
+    return f"/{link}/orientation"
+
+
+def link_flex_topic(link: str) -> str:
+    """The topic of ``link``'s four flex sensors."""
+    return f"/{link}/flex"
+
 
 MESSAGE_ENCODING = "cdr"
 SCHEMA_ENCODING = "ros2msg"
@@ -50,6 +62,21 @@ def servo_state(n: int) -> FixedMessage:
             Field("moving", "bool", n),
         ),
         "One Sync Read of every servo on the bus (order: the robot's servo ids).",
+    )
+
+
+def joint_state(n: int) -> FixedMessage:
+    return FixedMessage(
+        "vslab_msgs/msg/JointState",
+        (
+            Field("seq", "uint32", doc="the SYNC the drives answered (host count)"),
+            Field("position", "float64", n, "rad (drive encoder), NaN where a drive did not answer"),
+            Field("velocity", "float64", n, "rad/s"),
+            Field("torque", "float64", n, "N·m (the drive's torque estimate)"),
+            Field("statusword", "uint16", n, "CiA 402 statusword (0x6041)"),
+            Field("answered", "bool", n, "the drive sent its PDOs for this SYNC"),
+        ),
+        "What every CiA 402 joint drive answered to one SYNC (order: the robot's drive node ids).",
     )
 
 
@@ -128,6 +155,25 @@ ACCELERATION = FixedMessage(
 )
 
 
+LINK_ORIENTATION = FixedMessage(
+    "vslab_msgs/msg/LinkOrientation",
+    (
+        *_board_sample("the link board's sample number"),
+        Field("rpy", "float64", 3, "rad: roll, pitch, yaw of the link's end frame in the base frame (ZYX)"),
+    ),
+    "Orientation of an inflatable link's end, from its board's IMU.",
+)
+
+LINK_FLEX = FixedMessage(
+    "vslab_msgs/msg/LinkFlex",
+    (
+        *_board_sample("the link board's sample number"),
+        Field("counts", "uint16", 4, "12-bit ADC counts of the flex sensors at 0, 90, 180, 270 deg"),
+    ),
+    "The four flex sensors around an inflatable link.",
+)
+
+
 @dataclass(frozen=True)
 class Topic:
     name: str
@@ -144,12 +190,15 @@ class Topic:
 
 def session_topics(robot: RobotDescription) -> dict[str, Topic]:
     """Every topic a session of ``robot`` may write, by topic name."""
-    servo_dev = robot.devices.get("servo_bus") or robot.devices.get("main_board")
-    servos = [n for n in (servo_dev.ids if servo_dev else {}) if _drive(robot, n) != "stepper"]
+    joints = robot.device_of("joints")
+    joint_dev = robot.devices[joints] if joints else None
+    servos = [n for n in (joint_dev.ids if joint_dev else {}) if _drive(robot, n) != "stepper"]
+    dynamixel = joint_dev is not None and joint_dev.driver == "dynamixel"
     steppers = [j.name for j in robot.joints if j.drive == "stepper"]
     c = robot.pneumatics.channels
     messages: dict[str, FixedMessage | None] = {
-        SERVO_STATE: servo_state(len(servos)) if servos else None,
+        SERVO_STATE: servo_state(len(servos)) if servos and dynamixel else None,
+        JOINT_STATE: joint_state(len(servos)) if servos and not dynamixel else None,
         SERVO_GOAL: servo_goal(len(servos)) if servos else None,
         PRESSURE: pressure(c),
         PRESSURE_COMMAND: pressure_command(c),
@@ -158,6 +207,9 @@ def session_topics(robot: RobotDescription) -> dict[str, Topic]:
         ACCEL: ACCELERATION,
         EVENTS: None,
     }
+    for link in robot.link_boards():
+        messages[link_orientation_topic(link)] = LINK_ORIENTATION
+        messages[link_flex_topic(link)] = LINK_FLEX
     return {name: Topic(name, msg) for name, msg in messages.items() if msg is not None or name == EVENTS}
 
 

@@ -22,6 +22,7 @@ import numba
 import numpy as np
 
 from acquisition.codecs import dynamixel as dx
+from acquisition.codecs import popup_boards
 from acquisition.codecs.board_lines import MAX_SET_PA
 from acquisition.processes import RT_PRIORITY, die_with_parent, elevate
 from acquisition.sim import sensors
@@ -32,9 +33,19 @@ from acquisition.sim.emulators.base import Emulator
 from acquisition.sim.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
 from acquisition.sim.emulators.cia402_drive import FAULTS, Cia402Drive
 from acquisition.sim.emulators.dynamixel import DynamixelBusEmulator
+from acquisition.sim.emulators.popup_boards import BoardNode, LinkBoard, MainBoard
 from acquisition.sim.emulators.slcan_adapter import SlcanAdapter
 from acquisition.sim.ptyhost import PtyHost
-from acquisition.sim.twin_devices import TwinJoint, TwinPressure, TwinServos, TwinStepper, TwinTrackerSource
+from acquisition.sim.twin_devices import (
+    RecentSteps,
+    TwinBoardTimer,
+    TwinJoint,
+    TwinLinkBoard,
+    TwinPressure,
+    TwinServos,
+    TwinStepper,
+    TwinTrackerSource,
+)
 from acquisition.sim.world import World
 from models.robot import CAN_DIR, RobotDescription, load_robot
 
@@ -48,7 +59,9 @@ class Rig:
         self.robot = robot
         home = np.deg2rad([0.0, 30.0, -60.0]) if q0 is None else q0
         self.world = World(robot, batch=1, seed=seed, q0=home)
-        self.steps = 0
+        self.recent = RecentSteps(self.world.dt)  # the last steps, for samples due a little in the past
+        self.recent.append(self.world.step(1))
+        self.steps = 1
         self.emulators: dict[str, Emulator] = {}
         if "servo_bus" in robot.devices:
             self.emulators["servo_bus"] = self._servo_bus()
@@ -61,6 +74,7 @@ class Rig:
             self.emulators["stepper_board"] = StepperBoardEmulator(TwinStepper(self))
         self.can_bus: CanBus | None = None
         self.drives: dict[int, Cia402Drive] = {}
+        self.boards: dict[str, BoardNode] = {}  # POPUP's boards on the CAN bus, by device name
         for name, spec in robot.devices.items():
             if spec.driver == "popup_can":
                 self.emulators[name] = self._can_bus(spec)
@@ -90,13 +104,34 @@ class Rig:
             drive = Cia402Drive(node_id, CAN_DIR / "popup_drive.eds", TwinJoint(self, joint))
             self.drives[node_id] = drive
             self.can_bus.attach(drive)
+        for name, dev in self.robot.devices.items():
+            if dev.bus is not None:
+                self.boards[name] = self._board(name, dev)
+                self.can_bus.attach(self.boards[name])
         return SlcanAdapter(self.can_bus)
+
+    def _board(self, name: str, dev) -> BoardNode:
+        """POPUP's main board or a link board on the CAN bus, sampling the twin on its own clock."""
+        t0 = self.world.t
+        if dev.driver == "popup_main_board":
+            max_set = min(self.robot.pneumatics.regulator_max_pa, popup_boards.setpoint_max_pa())
+            status = TwinBoardTimer(self, name, popup_boards.STATUS_PERIOD_S)
+            return MainBoard(
+                TwinPressure(self), TwinBoardTimer(self, name, 1.0 / dev.rate_hz), status, max_set, t0
+            )
+        if dev.driver == "popup_link_board":
+            accel = self.robot.sensors.accelerometer
+            accel_timer = (TwinBoardTimer(self, name, 1.0 / accel.sample_rate_hz)
+                           if accel is not None and accel.device == name else None)  # fmt: skip
+            return LinkBoard(dev.ids["board"], TwinLinkBoard(self, dev.link),
+                             TwinBoardTimer(self, name, 1.0 / dev.rate_hz), accel_timer, t0)  # fmt: skip
+        raise ValueError(f"{self.robot.name}: device {name} ({dev.driver}) cannot sit on the CAN bus")
 
     def advance(self, now_s: float) -> None:
         """Step the twin up to ``now_s`` (rig time): it has then taken ``int(now_s / dt)`` steps."""
         n = int(now_s / self.world.dt) - self.steps
         if n > 0:
-            self.world.step(n)
+            self.recent.append(self.world.step(n))
             self.steps += n
 
     def step_due_s(self, steps: int) -> float:
@@ -136,12 +171,18 @@ class Rig:
     def _can_control(self, cmd: dict) -> dict:
         """``{"op": "can", "bus_off": bool}``, ``{"op": "can", "node": id, "power": bool}`` (a drive loses its
         supply: silent, no heartbeat), ``{"op": "can", "node": id, "fault": code}`` (a drive fault: EMCY),
+        ``{"op": "can", "board": name, "power": bool}`` (a board's frames stop or resume),
         ``{"op": "can"}`` alone: the bus's counters."""
         if self.can_bus is None:
             raise ValueError(f"{self.robot.name} has no CAN bus")
         now = self.world.t
         if "bus_off" in cmd:
             self.can_bus.set_bus_off(bool(cmd["bus_off"]))
+        if "board" in cmd:
+            board = self.boards.get(str(cmd["board"]))
+            if board is None:
+                raise ValueError(f"no board {cmd['board']!r} on the bus (boards: {sorted(self.boards)})")
+            board.power(bool(cmd.get("power", True)), now)
         if "node" in cmd:
             drive = self.drives.get(int(cmd["node"]))
             if drive is None:

@@ -101,6 +101,31 @@ def accelerometer_reading(
     return np.clip(np.rint(f / lsb_m_s2), -limit, limit) * lsb_m_s2
 
 
+# ------------------------------------------------------------------------------ link boards (POPUP)
+FLEX_ANGLES_RAD = np.deg2rad([0.0, 90.0, 180.0, 270.0])  # the four flex sensors around a link's axis
+
+
+def flex_counts(bend_rad: np.ndarray, spec, rng: np.random.Generator) -> np.ndarray:
+    """The four flex sensors' ADC counts (..., 4) of links bent by their two virtual joints ``bend_rad``
+    (..., 2): sensor i reads κ_i = δ_a cos φ_i + δ_b sin φ_i (``FlexSensorSpec``)."""
+    bend = np.asarray(bend_rad, dtype=float)
+    kappa = bend[..., :1] * np.cos(FLEX_ANGLES_RAD) + bend[..., 1:2] * np.sin(FLEX_ANGLES_RAD)
+    counts = spec.counts_straight + spec.counts_per_rad * kappa
+    if spec.noise_counts > 0:
+        counts = counts + rng.normal(0.0, spec.noise_counts, size=counts.shape)
+    return np.clip(np.rint(counts), 0, spec.adc_max_counts).astype(np.int64)
+
+
+def rpy_from_rotation(rotation: np.ndarray) -> np.ndarray:
+    """(roll, pitch, yaw) (..., 3) of rotations R = Rz(yaw) Ry(pitch) Rx(roll) (the inverse of
+    :func:`rotation_from_rpy`): what an IMU's attitude filter reports."""
+    r = np.asarray(rotation, dtype=float)
+    roll = np.arctan2(r[..., 2, 1], r[..., 2, 2])
+    pitch = -np.arcsin(np.clip(r[..., 2, 0], -1.0, 1.0))
+    yaw = np.arctan2(r[..., 1, 0], r[..., 0, 0])
+    return np.stack([roll, pitch, yaw], axis=-1)
+
+
 # --------------------------------------------------------------------------------------- rotations
 def rotation_from_rpy(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
     """R = Rz(yaw) · Ry(pitch) · Rx(roll), shape (..., 3, 3) for broadcast angle arrays (rad)."""

@@ -8,14 +8,18 @@ reading. Streams are column tables (dict of equal-length arrays) with a ``robot`
 
 from __future__ import annotations
 
+import functools
+
+import canopen
 import numpy as np
 
 from acquisition.sim import sensors
 from acquisition.sim.clocks import DeviceClocks, HostLinkSpec, host_receive_ns
 from acquisition.sim.kernel import Trace
-from models.robot import PressureSensorSpec, RobotDescription
+from models.robot import CAN_DIR, PressureSensorSpec, RobotDescription
 
 Stream = dict[str, np.ndarray]
+RPY_LSB_RAD = 1e-4  # a link board's orientation resolution (configs/can/popup_boards.dbc)
 
 
 def device_sample_instants(clocks: DeviceClocks, period_s: float, t0: float, t1: float):
@@ -68,10 +72,57 @@ def servo_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt
     counts = servo_counts(
         robot, trace.q[r, idx][:, joints], trace.qd[r, idx][:, joints], trace.torque[r, idx][:, joints], rng
     )
-    device = robot.devices.get("servo_bus") or robot.devices.get("main_board")
+    device = robot.devices[robot.device_of("joints")]
     return {
         **_stamped(device, clocks, r, k, t, rng, "tick"),
         **counts,
+    }
+
+
+@functools.cache
+def drive_scales(eds: str) -> tuple[float, float]:
+    """(encoder counts per rad, rated torque N·m) of the CiA 402 drives whose EDS is ``eds`` (its defaults of
+    0x2000 and 0x6076: what the driver reads by SDO)."""
+    od = canopen.import_od(eds)
+    return od[0x2000].default / (2 * np.pi), od[0x6076].default * 1e-3
+
+
+def drive_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float, rate_hz: float,
+                 rng: np.random.Generator) -> Stream:  # fmt: skip
+    """The CiA 402 drives' answers to the host's SYNC at ``rate_hz``: position and velocity in encoder
+    counts, torque in thousandths of the rated torque (what their PDOs carry), operation enabled."""
+    joints = [i for i, j in enumerate(robot.joints) if j.drive != "stepper"]
+    r, k, t = host_poll_instants(trace.q.shape[0], 1.0 / rate_hz, trace.t[0] - dt, trace.t[-1])
+    idx = _step_index(trace, t, dt)
+    counts_per_rad, rated_nm = drive_scales(str(CAN_DIR / "popup_drive.eds"))
+    return {
+        **_stamped(robot.devices[robot.device_of("joints")], clocks, r, k, t, rng),
+        "position_counts": np.rint(trace.q[r, idx][:, joints] * counts_per_rad),
+        "velocity_counts": np.rint(trace.qd[r, idx][:, joints] * counts_per_rad),
+        "torque_per_mille": np.clip(
+            np.rint(trace.torque[r, idx][:, joints] / rated_nm * 1000), -32768, 32767
+        ),
+        "counts_per_rad": np.full(len(r), counts_per_rad),
+        "rated_nm": np.full(len(r), rated_nm),
+    }
+
+
+def link_board_stream(robot: RobotDescription, board: str, clocks: DeviceClocks, trace: Trace, dt: float,
+                      rng: np.random.Generator) -> Stream:  # fmt: skip
+    """A POPUP link board on its own clock at its rate: the orientation of its link's end (roll, pitch, yaw
+    at the IMU's resolution) and its four flex sensors' counts."""
+    dev = robot.devices[board]
+    link = next(lk for lk in robot.links if lk.name == dev.link)
+    chain = robot.chain()
+    frame = [row.joint for row in chain.rows].index(link.virtual_joints[-1]) + 1
+    bend = [chain.virtual.index(v) for v in link.virtual_joints]
+    r, k, t = device_sample_instants(clocks, 1.0 / dev.rate_hz, trace.t[0] - dt, trace.t[-1])
+    idx = _step_index(trace, t, dt)
+    rotation = chain.frames(trace.q[r, idx], trace.delta[r, idx])[:, frame, :3, :3]
+    return {
+        **_stamped(dev, clocks, r, k, t, rng),
+        "rpy": np.rint(sensors.rpy_from_rotation(rotation) / RPY_LSB_RAD) * RPY_LSB_RAD,
+        "flex": sensors.flex_counts(trace.delta[r, idx][:, bend], robot.sensors.flex, rng),
     }
 
 
@@ -103,7 +154,7 @@ def pressure_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace,
     rate = robot.sensors.pressure.sample_rate_hz
     r, k, t = device_sample_instants(clocks, 1.0 / rate, trace.t[0] - dt, trace.t[-1])
     idx = _step_index(trace, t, dt)
-    device = robot.devices.get("pressure_board") or robot.devices.get("main_board")
+    device = robot.devices[robot.device_of("pressure")]
     return {
         **_stamped(device, clocks, r, k, t, rng),
         "counts": sensors.pressure_to_adc_counts(trace.pressure[r, idx], pressure_spec(robot), rng),
@@ -123,7 +174,7 @@ def stepper_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, 
     idx = _step_index(trace, t, dt)
     steps = np.rint(trace.q[r, idx][:, joints] / robot.stepper.rad_per_microstep).astype(np.int64)
     return {
-        **_stamped(robot.devices["stepper_board"], clocks, r, k, t, rng),
+        **_stamped(robot.devices[robot.device_of("stepper")], clocks, r, k, t, rng),
         "position_steps": steps,
     }
 
@@ -152,7 +203,7 @@ def tracker_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, 
         "robot": r,
         "frame": k,
         "t_true": t,
-        "host_ns": _host(robot.devices["tracker"].host_link, t, rng),
+        "host_ns": _host(robot.devices[robot.device_of("tracker")].host_link, t, rng),
         "position": reading.position_m,
         "quaternion": reading.quaternion,
         "rms_error": reading.rms_error,
@@ -187,7 +238,7 @@ def accelerometer_stream(robot: RobotDescription, clocks: DeviceClocks, trace: T
     force = np.einsum("nji,nj->ni", rot, accel - np.asarray(robot.gravity_m_s2))
     noise_rms = spec.noise_density_m_s2_per_sqrt_hz * np.sqrt(spec.bandwidth_hz)
     return {
-        **_stamped(robot.devices["accelerometer"], clocks, r, k, t, rng),
+        **_stamped(robot.devices[spec.device], clocks, r, k, t, rng),
         "acceleration": sensors.accelerometer_reading(
             force, spec.lsb_m_s2, spec.full_scale_m_s2, noise_rms, rng
         ),

@@ -136,12 +136,12 @@ class _BoardClock:
 
 
 class TwinPressure(_BoardClock):
-    """Regulators, valves and the transducer/ADS1115 chain of the pressure board."""
-
-    counter = "pressure_board"
+    """Regulators, valves and the transducer/ADS1115 chain of the board that reads the link pressures (the
+    VSL pressure board; POPUP's main board)."""
 
     def __init__(self, rig: Rig) -> None:
         self.rig = rig
+        self.counter = rig.robot.device_of("pressure")
         self.spec = streams.pressure_spec(rig.robot)
 
     def set_pressure(self, channel: int, pa: float) -> None:
@@ -158,9 +158,21 @@ class TwinPressure(_BoardClock):
     def sample(self, now_s: float) -> tuple[int, int]:
         self.rig.advance(now_s)
         counts = sensors.pressure_to_adc_counts(
-            self.rig.world.state.p_link[0, :2], self.spec, self.rig.world.rng
+            self.rig.recent.at(now_s).p_link[:2], self.spec, self.rig.world.rng
         )
         return int(counts[0]), int(counts[1])
+
+    def regulating(self, channel: int) -> bool:
+        return bool(self.rig.world.commands.valve_open[0, channel])
+
+    def valves(self, channel: int, now_s: float, band_pa: float = 1000.0) -> tuple[bool, bool]:
+        """(supply, exhaust) of ``channel``'s valve group as a bang-bang regulator with a ``band_pa``
+        dead band drives them: supply below the set-point, exhaust above, both closed in the band or when
+        the channel is not regulated (it holds)."""
+        if not self.regulating(channel):
+            return False, False
+        error = self.rig.world.commands.pressure_set[0, channel] - self.rig.recent.at(now_s).p_link[channel]
+        return bool(error > band_pa), bool(error < -band_pa)
 
 
 class TwinStepper(_BoardClock):
@@ -248,3 +260,116 @@ class TwinJoint:
     def hold(self, t: float) -> None:
         self.rig.advance(t)
         self.rig.world.commands.goal[0, self.j] = self.rig.world.state.out_pos[0, self.j]
+
+
+class RecentStep:
+    """The twin's true state at one step (robot 0), as the rig keeps it for samples due a little late."""
+
+    __slots__ = ("before", "delta", "p_link", "q", "t", "tip")
+
+    def __init__(self, t, q, delta, tip, p_link, before) -> None:
+        self.t, self.q, self.delta, self.tip, self.p_link = t, q, delta, tip, p_link
+        self.before = before  # the tip positions of the two steps before (for its acceleration)
+
+
+class RecentSteps:
+    """The last ``capacity`` steps of the twin's trace: a board's sample due at rig time t reads the step
+    that held at t, even when the twin has been stepped past t (a busy host wakes late), so a late sample
+    is not a later one. A sample older than the ring reads the oldest step kept (and is counted)."""
+
+    def __init__(self, dt: float, capacity: int = 128) -> None:
+        self.dt, self.capacity = dt, capacity
+        self.t = np.full(capacity, -np.inf)
+        self.q = self.delta = self.tip = self.p_link = None
+        self.head = 0  # steps appended so far
+        self.too_old = 0
+
+    def append(self, trace) -> None:
+        n = min(len(trace.t), self.capacity)
+        if self.q is None:
+
+            def ring(a):
+                return np.zeros((self.capacity, *a.shape[2:]))
+
+            self.q, self.delta, self.tip, self.p_link = (
+                ring(trace.q), ring(trace.delta), ring(trace.tip_pos), ring(trace.pressure))  # fmt: skip
+            self.tip[:] = trace.tip_pos[0, 0]  # at rest before the first step: no acceleration
+        slots = (self.head + len(trace.t) - n + np.arange(n)) % self.capacity
+        self.t[slots] = trace.t[-n:]
+        self.q[slots], self.delta[slots] = trace.q[0, -n:], trace.delta[0, -n:]
+        self.tip[slots], self.p_link[slots] = trace.tip_pos[0, -n:], trace.pressure[0, -n:]
+        self.head += len(trace.t)
+
+    def at(self, t: float) -> RecentStep:
+        """The step holding at rig time ``t`` (the last that ended at or before it)."""
+        newest = (self.head - 1) % self.capacity
+        back = int(np.floor((self.t[newest] - t) / self.dt + 1e-9)) if t < self.t[newest] else 0
+        kept = (
+            min(self.head, self.capacity - 2) - 1
+        )  # steps behind the newest (two more for the acceleration)
+        if back > kept:
+            self.too_old += 1
+            back = kept
+        i = (newest - back) % self.capacity
+        before = self.tip[[(i - 2) % self.capacity, (i - 1) % self.capacity]]
+        return RecentStep(self.t[i], self.q[i], self.delta[i], self.tip[i], self.p_link[i], before)
+
+
+class TwinBoardTimer:
+    """When a board of the twin takes its samples: every ``period_s`` of its own clock (the rig's device
+    clock ``device``: drift and offset), numbered by its clock (sample k at device time k · period)."""
+
+    def __init__(self, rig: Rig, device: str, period_s: float) -> None:
+        clocks = rig.world.clocks[device]
+        self.rate = 1.0 + float(clocks.drift_ppm[0]) * 1e-6
+        self.offset = float(clocks.offset_s[0])
+        self.period_s = period_s
+
+    def first_after(self, t: float) -> int:
+        return math.floor((self.rate * t + self.offset) / self.period_s) + 1
+
+    def instant(self, k: int) -> float:
+        return (k * self.period_s - self.offset) / self.rate
+
+
+class TwinLinkBoard:
+    """What a POPUP link board senses on its link: the IMU at the link's end (specific force in the IMU's
+    frame, orientation) and the four flex sensors over the link's two virtual joints (``sensors``)."""
+
+    def __init__(self, rig: Rig, link: str) -> None:
+        robot = rig.robot
+        self.rig = rig
+        spec = next(lk for lk in robot.links if lk.name == link)
+        chain = robot.chain()
+        self.chain = chain
+        self.bend = [chain.virtual.index(v) for v in spec.virtual_joints]
+        rows = [r.joint for r in chain.rows]
+        self.frame = rows.index(spec.virtual_joints[-1]) + 1  # the frame at the link's end
+        self.accel_spec = robot.sensors.accelerometer
+        self.flex_spec = robot.sensors.flex
+        self.gravity = np.asarray(robot.gravity_m_s2)
+
+    def _rotation(self, step: RecentStep) -> np.ndarray:
+        return self.chain.frames(step.q, step.delta)[self.frame, :3, :3]
+
+    def acceleration(self, t: float) -> np.ndarray:
+        """Specific force (m/s², 3) at the chain's tip (link 2's end), as ``streams.accelerometer_stream``."""
+        self.rig.advance(t)
+        step = self.rig.recent.at(t)
+        x0, x1 = step.before
+        accel = (step.tip - 2.0 * x1 + x0) / self.rig.world.dt**2
+        force = self._rotation(step).T @ (accel - self.gravity)
+        spec = self.accel_spec
+        noise = spec.noise_density_m_s2_per_sqrt_hz * math.sqrt(spec.bandwidth_hz)
+        return sensors.accelerometer_reading(force, spec.lsb_m_s2, spec.full_scale_m_s2, noise,
+                                             self.rig.world.rng)  # fmt: skip
+
+    def orientation(self, t: float) -> np.ndarray:
+        """(roll, pitch, yaw) of the link's end frame in the base frame (rad)."""
+        self.rig.advance(t)
+        return sensors.rpy_from_rotation(self._rotation(self.rig.recent.at(t)))
+
+    def flex(self, t: float) -> np.ndarray:
+        self.rig.advance(t)
+        bend = self.rig.recent.at(t).delta[self.bend]
+        return sensors.flex_counts(bend, self.flex_spec, self.rig.world.rng)

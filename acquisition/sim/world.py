@@ -259,19 +259,29 @@ class World:
         Servos are polled by the host at ``servo_rate_hz``; the boards and the tracker run on their clocks."""
         robot, dt, rng, clocks = self.robot, self.dt, self.rng, self.clocks
         out: dict[str, streams.Stream] = {}
-        if "servo_bus" in clocks:
-            out["servo_bus"] = streams.servo_stream(robot, clocks["servo_bus"], trace, dt, servo_rate_hz, rng)
-        if "pressure_board" in clocks:
-            out["pressure_board"] = streams.pressure_stream(robot, clocks["pressure_board"], trace, dt, rng)
-        if "stepper_board" in clocks and robot.stepper is not None:
-            out["stepper_board"] = streams.stepper_stream(robot, clocks["stepper_board"], trace, dt, rng)
-        if "tracker" in clocks:
-            out["tracker"] = streams.tracker_stream(robot, clocks["tracker"], trace, dt, rng)
-        if "accelerometer" in clocks and robot.sensors.accelerometer is not None:
+        servos, pressure = robot.device_of("joints"), robot.device_of("pressure")
+        stepper, tracker = robot.device_of("stepper"), robot.device_of("tracker")
+        if servos is not None and robot.devices[servos].driver == "dynamixel":
+            out["servo_bus"] = streams.servo_stream(robot, clocks[servos], trace, dt, servo_rate_hz, rng)
+        elif servos is not None:  # CiA 402 drives, answering the host's SYNC at the bus's rate
+            rate = robot.devices[servos].rate_hz or servo_rate_hz
+            out["drives"] = streams.drive_stream(robot, clocks[servos], trace, dt, rate, rng)
+        for board in robot.link_boards().values():
+            out[f"link_board:{board}"] = streams.link_board_stream(
+                robot, board, clocks[board], trace, dt, rng
+            )
+        if pressure is not None:
+            out["pressure_board"] = streams.pressure_stream(robot, clocks[pressure], trace, dt, rng)
+        if stepper is not None and robot.stepper is not None:
+            out["stepper_board"] = streams.stepper_stream(robot, clocks[stepper], trace, dt, rng)
+        if tracker is not None:
+            out["tracker"] = streams.tracker_stream(robot, clocks[tracker], trace, dt, rng)
+        accel = robot.sensors.accelerometer
+        if accel is not None and accel.device in clocks:
             tail = self._tip_tail
             before = tail[1] if tail is not None and abs(trace.t[0] - dt - tail[0]) < dt / 2 else None
             out["accelerometer"] = streams.accelerometer_stream(
-                robot, clocks["accelerometer"], trace, dt, rng, before
+                robot, clocks[accel.device], trace, dt, rng, before
             )
             if trace.tip_pos.shape[1] >= 2:
                 self._tip_tail = (float(trace.t[-1]), trace.tip_pos[:, -2:].copy())

@@ -1,0 +1,173 @@
+"""POPUP's CAN bus as one recorded device: the CiA 402 joint drives, the main board and the link boards,
+all through one USB-CAN adapter (driver ``popup_can``; the boards are the devices whose ``bus`` names it).
+
+Polled at the bus's SYNC rate: each slot sends one SYNC and records what the drives answered to the previous
+one (``/joint/state``, numbered by that SYNC), then every board frame that arrived (link pressures, the tip
+IMU's acceleration, each link's orientation and flex sensors), numbered by the boards' own counters.
+
+The drives run in cyclic synchronous position mode, which expects the host to interpolate: a goal is not sent
+as one jump (the drive would fault on its following error) but approached at its profile velocity, one step
+per SYNC. The safe state holds the joints where they were last measured and leaves the pressures as they are
+(an inflatable arm must not be vented under load).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from acquisition.codecs import popup_boards as pb
+from acquisition.devices.base import host_now_ns
+from acquisition.devices.can_drives import CanDrives
+from acquisition.devices.popup_boards import BoardFrames, BoardSample
+from acquisition.recorder.sources import SEQ_MODULO, Row, Source
+from acquisition.schemas import topics as T
+
+
+class PopupCanSource(Source):
+    driver = "popup_can"
+
+    def __init__(self, robot, name, spec, port, rate_hz) -> None:
+        boards = {n: d for n, d in robot.devices.items() if d.bus == name}
+        self.main = next((n for n, d in boards.items() if d.driver == "popup_main_board"), None)
+        self.links = {n: d.link for n, d in boards.items() if d.driver == "popup_link_board"}
+        accel = robot.sensors.accelerometer
+        self.accel_board = accel.device if accel is not None and accel.device in self.links else None
+        sampled = [T.JOINT_STATE]
+        if self.main:
+            sampled.append(T.PRESSURE)
+        if self.accel_board:
+            sampled.append(T.ACCEL)
+        for link in self.links.values():
+            sampled += [T.link_orientation_topic(link), T.link_flex_topic(link)]
+        self.sampled_topics = tuple(sampled)
+        self.command_topics = (T.SERVO_GOAL, T.PRESSURE_COMMAND) if self.main else (T.SERVO_GOAL,)
+        super().__init__(robot, name, spec, port, rate_hz)
+        self.joints = list(spec.ids)
+        limits = {j.name: (j.lower_rad, j.upper_rad) for j in robot.joints if j.name in spec.ids}
+        self.drives = CanDrives(port, spec.ids, limits, bitrate=spec.baud)
+        # every stream's period on its board's clock: the sample number times it is the board's micros
+        self.period_us: dict[str, float] = {}
+        periods_s = {}
+        for board, dev in boards.items():
+            periods_s[board] = 1.0 / dev.rate_hz
+            node = dev.ids["board"]
+            if board == self.main:
+                self.period_us[pb.MAIN_PRESSURE] = 1e6 / dev.rate_hz
+                periods_s[board] = pb.STATUS_PERIOD_S
+            else:
+                for what in (pb.ORIENTATION, pb.FLEX):
+                    self.period_us[pb.link_message(node, what)] = 1e6 / dev.rate_hz
+                if board == self.accel_board:
+                    self.period_us[pb.link_message(node, pb.ACCEL)] = 1e6 / accel.sample_rate_hz
+        self.boards = BoardFrames({n: d.ids["board"] for n, d in boards.items()}, periods_s)
+        self._topic_of = self._board_topics(boards)
+        self.calibration = robot.sensors.pressure
+        self.position: np.ndarray | None = None  # last measured joint angles: where a hold holds
+        self.target: np.ndarray | None = None  # the CSP target sent at the last SYNC
+        self.goal: np.ndarray | None = None  # where the targets are heading
+        self.speed = np.zeros(len(self.joints))
+        self.first_sync = 0
+        self._synced_at = 0.0
+
+    def _board_topics(self, boards) -> dict[str, str]:
+        out = {pb.MAIN_PRESSURE: T.PRESSURE} if self.main else {}
+        for board, link in self.links.items():
+            node = boards[board].ids["board"]
+            out[pb.link_message(node, pb.ORIENTATION)] = T.link_orientation_topic(link)
+            out[pb.link_message(node, pb.FLEX)] = T.link_flex_topic(link)
+            if board == self.accel_board:
+                out[pb.link_message(node, pb.ACCEL)] = T.ACCEL
+        return out
+
+    # ---------------------------------------------------------------------------------- lifecycle
+    def open(self) -> None:
+        self.drives.open()
+        self.boards.attach(self.drives.network)
+        cycles = self.drives.enable(period_s=1.0 / self.rate_hz)
+        self.position = np.asarray(cycles[-1].position_rad, float) if cycles else None
+        self.target = self.goal = None if self.position is None else self.position.copy()
+        self.first_sync = self.drives.syncs  # the SYNCs before were enabling's: their answers are not samples
+
+    def close(self) -> None:
+        self.boards.detach()
+        self.drives.close()
+
+    # ------------------------------------------------------------------------------------ reading
+    def read(self, slot: int) -> list[Row]:
+        self.boards.check()
+        self._interpolate()
+        # the drives need time to answer a SYNC: a slot that follows the last one too closely (the first
+        # after connecting, or catching up after a stall) waits for half a period, so no answer is cut off
+        wait = self._synced_at + 0.5 / self.rate_hz - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)
+        cycle = self.drives.sync()
+        self._synced_at = time.monotonic()
+        rows = []
+        if cycle is not None and cycle.sync >= self.first_sync:
+            if cycle.answered.all():
+                self.position = cycle.position_rad
+            rows.append(self.row(T.JOINT_STATE, cycle.host_ns, cycle.sync, seq=cycle.sync % SEQ_MODULO,
+                                 position=cycle.position_rad, velocity=cycle.velocity_rad_s,
+                                 torque=cycle.torque_nm, statusword=cycle.statusword,
+                                 answered=cycle.answered))  # fmt: skip
+        rows += [r for s in self.boards.take() if (r := self._board_row(s)) is not None]
+        return rows
+
+    def _board_row(self, s: BoardSample) -> Row | None:
+        topic = self._topic_of.get(s.message)
+        if topic is None:
+            return None  # MainStatus: the board's uptime and rejected commands (not a sampled stream)
+        seq, sig = s.seq % SEQ_MODULO, s.signals
+        micros = round(s.seq * self.period_us[s.message]) % (1 << 32)
+        if topic == T.PRESSURE:
+            counts = np.array([sig["Link1Counts"], sig["Link2Counts"]])
+            return self.row(topic, s.host_ns, s.seq, seq=seq, micros=micros, counts=counts,
+                            pressure=self.calibration.counts_to_pa(counts),
+                            valve_open=[bool(sig["Regulate1"]), bool(sig["Regulate2"])])  # fmt: skip
+        if topic == T.ACCEL:
+            return self.row(topic, s.host_ns, s.seq, seq=seq, micros=micros,
+                            acceleration=[sig["AccelX"], sig["AccelY"], sig["AccelZ"]])  # fmt: skip
+        if topic.endswith("/orientation"):
+            return self.row(topic, s.host_ns, s.seq, seq=seq, micros=micros,
+                            rpy=[sig["Roll"], sig["Pitch"], sig["Yaw"]])  # fmt: skip
+        return self.row(topic, s.host_ns, s.seq, seq=seq, micros=micros,
+                        counts=[sig[f"Flex{i}"] for i in range(1, 5)])  # fmt: skip
+
+    def _interpolate(self) -> None:
+        """Move the CSP targets one SYNC period toward the goals at their profile speeds."""
+        if self.goal is None or self.target is None or np.array_equal(self.target, self.goal):
+            return
+        step = self.speed / self.rate_hz
+        self.target = self.target + np.clip(self.goal - self.target, -step, step)
+        self.drives.write_goals(self.target)
+
+    # ----------------------------------------------------------------------------------- commands
+    def command(self, cmd: dict) -> list[Row]:
+        op = cmd["op"]
+        if op == "torque":  # the drives were enabled when the bus opened; disabling is the close
+            return []
+        if op == "goals":
+            position, velocity = self.guard.servo_goals(self.joints, cmd["position"], cmd["profile_velocity"])
+            self.speed = np.where(velocity > 0, velocity, self.robot.servo.max_speed_rad_s)
+            self.goal = position
+            if self.target is None:
+                self.target = self.position.copy() if self.position is not None else position.copy()
+            return [self.row(T.SERVO_GOAL, host_now_ns(), None, seq=int(cmd.get("seq", 0)), position=position,
+                             profile_velocity=velocity, profile_acceleration=0.0)]  # fmt: skip
+        if op == "pressures" and self.main:
+            setpoint, valves = self.guard.pressures(cmd["setpoint"], cmd["valve_open"])
+            self.boards.send_pressures(setpoint.tolist(), valves.tolist())
+            sent = dict(seq=int(cmd.get("seq", 0)), setpoint=setpoint, valve_open=valves)
+            return [self.row(T.PRESSURE_COMMAND, host_now_ns(), None, **sent)]
+        if op == "hold":
+            self.safe()
+            return []
+        return super().command(cmd)
+
+    def safe(self) -> None:
+        if self.position is not None and self.drives.network is not None:
+            self.goal = self.target = self.position.copy()
+            self.drives.write_goals(self.position)

@@ -1,0 +1,148 @@
+"""POPUP's main board and link boards on the CAN bus, through the real stack (python-can slcan, canopen's
+network, cantools and the DBC) against the rig; and a POPUP session recorded from the rig, read by both MCAP
+readers. Rates are checked with wide margins and times are generous: the rig runs in its own process, and the
+machine may be busy."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from acquisition.codecs import popup_boards as pb
+from acquisition.codecs.can import CanFrame
+from acquisition.devices.can_drives import CanDrives
+from acquisition.devices.popup_boards import BoardFrames, BoardLostError
+from acquisition.schemas import topics as T
+from acquisition.schemas.fast_read import read_fixed_topics
+from acquisition.sim.ptyhost import send_control
+
+IDS = {"q1": 1, "q2": 2, "q3": 3}
+BOARDS = {"main_board": 0x10, "link1_board": 0x11, "link2_board": 0x12}
+PERIODS = {"main_board": 0.1, "link1_board": 0.01, "link2_board": 0.01}
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    from tests.conftest import emulator_host
+
+    run_dir = tmp_path_factory.mktemp("popup-boards")
+    with emulator_host(run_dir, module="acquisition.sim.rig", extra=("--robot", "popup")) as ports:
+        yield run_dir, ports["can_bus"]
+
+
+@pytest.fixture
+def bus(rig):
+    run_dir, port = rig
+    with CanDrives(port, IDS) as drives:
+        boards = BoardFrames(BOARDS, PERIODS)
+        boards.attach(drives.network)
+        yield drives, boards
+        boards.detach()
+    send_control(run_dir, {"op": "can", "board": "link2_board", "power": True})
+
+
+def _collect(boards: BoardFrames, seconds: float) -> list:
+    out, end = [], time.monotonic() + seconds
+    while time.monotonic() < end:
+        time.sleep(0.05)
+        out += boards.take()
+    return out + boards.take()
+
+
+def test_board_frames_arrive_numbered_at_their_rates(bus):
+    _, boards = bus
+    boards.take()
+    samples = _collect(boards, 1.0)
+    by_message: dict[str, list] = {}
+    for s in samples:
+        by_message.setdefault(s.message, []).append(s)
+    expected_hz = {"Link2Accel": 1000, pb.MAIN_PRESSURE: 250, "Link1Orientation": 100, "Link1Flex": 100,
+                   "Link2Orientation": 100, "Link2Flex": 100}  # fmt: skip
+    assert "Link1Accel" not in by_message  # only link 2's board carries the arm's accelerometer
+    for message, hz in expected_hz.items():
+        got = by_message[message]
+        seq = np.array([s.seq for s in got])
+        assert (np.diff(seq) == 1).all(), message  # every sample, in order, none lost
+        span_s = (got[-1].host_ns - got[0].host_ns) / 1e9
+        assert len(got) / max(span_s, 1e-3) == pytest.approx(hz, rel=0.3), message
+    flex = by_message["Link1Flex"][-1].signals
+    assert all(0 <= flex[f"Flex{i}"] <= 4095 for i in range(1, 5))
+    accel = [[s.signals[a] for a in ("AccelX", "AccelY", "AccelZ")] for s in by_message["Link2Accel"]]
+    assert np.linalg.norm(np.mean(accel, axis=0)) == pytest.approx(9.81, abs=0.5)  # on average: gravity
+
+
+def test_the_main_board_regulates_to_the_commanded_set_points(bus, rig):
+    run_dir, _ = rig
+    _, boards = bus
+    boards.send_pressures([40_000.0, 60_000.0], [True, True])
+    deadline = time.monotonic() + 3.0
+    while time.monotonic() < deadline:
+        state = send_control(run_dir, {"op": "state"})
+        if state["pressure_set_pa"] == [40_000.0, 60_000.0]:
+            break
+        time.sleep(0.05)
+    assert state["pressure_set_pa"] == [40_000.0, 60_000.0]
+    time.sleep(1.5)  # the regulators' time constant is 0.2 s
+    pressure = [s for s in _collect(boards, 0.3) if s.message == pb.MAIN_PRESSURE][-1]
+    assert pressure.signals["Regulate1"] == pressure.signals["Regulate2"] == 1
+    counts = np.array([pressure.signals["Link1Counts"], pressure.signals["Link2Counts"]])
+    from models.robot import load_robot
+
+    measured = load_robot("popup").sensors.pressure.counts_to_pa(counts)
+    np.testing.assert_allclose(measured, [40_000.0, 60_000.0], atol=2_000.0)
+
+
+def test_a_set_point_beyond_the_regulators_is_rejected_by_the_board(bus, rig):
+    run_dir, _ = rig
+    drives, boards = bus
+    before = send_control(run_dir, {"op": "state"})["pressure_set_pa"]
+    status = [s for s in _collect(boards, 0.3) if s.message == pb.MAIN_STATUS][-1]
+    frame = pb.encode(pb.PRESSURE_COMMAND, {"Setpoint1": 120_000, "Setpoint2": 0, "Regulate1": 1,
+                                            "Regulate2": 1, "Counter": 1})  # fmt: skip
+    drives.network.send_message(frame.can_id, frame.data)  # past the host's guard: the board's own check
+    after = [s for s in _collect(boards, 0.5) if s.message == pb.MAIN_STATUS][-1]
+    assert after.signals["Rejected"] == status.signals["Rejected"] + 1
+    assert send_control(run_dir, {"op": "state"})["pressure_set_pa"] == before
+
+
+def test_a_board_whose_frames_stop_is_detected(bus, rig):
+    run_dir, _ = rig
+    _, boards = bus
+    boards.check()
+    send_control(run_dir, {"op": "can", "board": "link2_board", "power": False})
+    with pytest.raises(BoardLostError, match="link2_board"):
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline:
+            boards.take()
+            boards.check()
+            time.sleep(0.05)
+
+
+def test_a_frame_that_is_not_the_dbc_s_is_refused_by_the_codec():
+    with pytest.raises(Exception, match="not a board frame"):
+        pb.decode(0x190, b"\x01")  # MainPressure is 8 bytes
+    assert CanFrame(0x190, b"\x00" * 8).can_id in pb.frame_ids()
+
+
+@pytest.mark.slow
+def test_a_popup_session_recorded_from_the_rig_reads_in_both_mcap_readers(tmp_path, ros2_agrees):
+    """``vslab record --robot popup --rig``: every stream of the bus (drives, main board, link boards) and the
+    tracker, nothing lost, and the fast reader and mcap-ros2-support agree on every message."""
+    lab = tmp_path / "lab"
+    done = subprocess.run([sys.executable, "-m", "vslab.cli", "--lab", str(lab), "--quiet", "record", "--robot", "popup",
+                           "--rig", "--duration", "3", "--session", "p"],
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    part = lab / "sessions" / "p" / "p_000.mcap"
+    data = read_fixed_topics(part)
+    for topic in (T.JOINT_STATE, T.PRESSURE, T.ACCEL, "/link1/orientation", "/link2/flex", T.TRACKER):
+        assert len(data[topic]) > 0, topic
+        seq = data[topic].rows["seq" if topic != T.TRACKER else "frame"].astype(np.int64)
+        assert (np.diff(np.sort(seq)) == 1).all(), topic  # numbered without gaps
+    joints = data[T.JOINT_STATE].rows
+    assert joints["answered"].all() and (joints["statusword"] & 0x6F == 0x27).all()
+    assert ros2_agrees(part)[T.ACCEL] == len(data[T.ACCEL])
