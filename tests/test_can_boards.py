@@ -133,8 +133,8 @@ def test_a_popup_session_recorded_from_the_rig_reads_in_both_mcap_readers(tmp_pa
     """``vslab record --robot popup --rig``: every stream of the bus (drives, main board, link boards) and the
     tracker, nothing lost, and the fast reader and mcap-ros2-support agree on every message."""
     lab = tmp_path / "lab"
-    done = subprocess.run([sys.executable, "-m", "vslab.cli", "--lab", str(lab), "--quiet", "record", "--robot", "popup",
-                           "--rig", "--duration", "3", "--session", "p"],
+    cli = [sys.executable, "-m", "vslab.cli", "--lab", str(lab), "--quiet"]
+    done = subprocess.run([*cli, "record", "--robot", "popup", "--rig", "--duration", "3", "--session", "p"],
                           capture_output=True, text=True, timeout=120)  # fmt: skip
     assert done.returncode == 0, done.stderr[-2000:]
     part = lab / "sessions" / "p" / "p_000.mcap"
