@@ -144,5 +144,8 @@ def test_a_popup_session_recorded_from_the_rig_reads_in_both_mcap_readers(tmp_pa
         seq = data[topic].rows["seq" if topic != T.TRACKER else "frame"].astype(np.int64)
         assert (np.diff(np.sort(seq)) == 1).all(), topic  # numbered without gaps
     joints = data[T.JOINT_STATE].rows
-    assert joints["answered"].all() and (joints["statusword"] & 0x6F == 0x27).all()
+    # a drive's answer that comes after the next SYNC (a busy host) is counted unanswered, never repeated
+    assert joints["answered"].mean() > 0.95
+    assert np.isnan(joints["position"][~joints["answered"]]).all()
+    assert (joints["statusword"][joints["answered"]] & 0x6F == 0x27).all()
     assert ros2_agrees(part)[T.ACCEL] == len(data[T.ACCEL])

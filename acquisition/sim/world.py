@@ -263,13 +263,6 @@ class World:
         stepper, tracker = robot.device_of("stepper"), robot.device_of("tracker")
         if servos is not None and robot.devices[servos].driver == "dynamixel":
             out["servo_bus"] = streams.servo_stream(robot, clocks[servos], trace, dt, servo_rate_hz, rng)
-        elif servos is not None:  # CiA 402 drives, answering the host's SYNC at the bus's rate
-            rate = robot.devices[servos].rate_hz or servo_rate_hz
-            out["drives"] = streams.drive_stream(robot, clocks[servos], trace, dt, rate, rng)
-        for board in robot.link_boards().values():
-            out[f"link_board:{board}"] = streams.link_board_stream(
-                robot, board, clocks[board], trace, dt, rng
-            )
         if pressure is not None:
             out["pressure_board"] = streams.pressure_stream(robot, clocks[pressure], trace, dt, rng)
         if stepper is not None and robot.stepper is not None:
@@ -285,6 +278,16 @@ class World:
             )
             if trace.tip_pos.shape[1] >= 2:
                 self._tip_tail = (float(trace.t[-1]), trace.tip_pos[:, -2:].copy())
+        # drawn last: the other devices' noise is what it was before POPUP's bus was modelled
+        if (
+            servos is not None and robot.devices[servos].driver != "dynamixel"
+        ):  # CiA 402 drives, answering the host's SYNC at the bus's rate
+            rate = robot.devices[servos].rate_hz or servo_rate_hz
+            out["drives"] = streams.drive_stream(robot, clocks[servos], trace, dt, rate, rng)
+        for board in robot.link_boards().values():
+            out[f"link_board:{board}"] = streams.link_board_stream(
+                robot, board, clocks[board], trace, dt, rng
+            )
         return out
 
     def settle(self, seconds: float = 2.0) -> None:
