@@ -288,6 +288,11 @@ class AccelerometerSpec(_Model):
     sample_rate_hz: PositiveFloat
     _limits = (("lsb_m_s2", "<", "full_scale_m_s2"),)
 
+    @property
+    def noise_rms_m_s2(self) -> float:
+        """White noise per axis over the sensor's bandwidth."""
+        return self.noise_density_m_s2_per_sqrt_hz * math.sqrt(self.bandwidth_hz)
+
     @model_validator(mode="after")
     def _nyquist(self) -> AccelerometerSpec:
         if self.bandwidth_hz > self.sample_rate_hz / 2:
@@ -436,9 +441,21 @@ class RobotDescription(_Model):
     # ------------------------------------------------------------------ derived, plain-number views
     def device_of(self, role: str) -> str | None:
         """The name of the device that has ``role`` (see :data:`DRIVER_ROLES`: "joints", "pressure",
-        "stepper", "tracker"), None if the robot has none: how the twin, the topics and the pipeline find
-        "the device that reads the link pressures" whatever a description calls it."""
+        "stepper", "tracker"; and "accelerometer": the device ``sensors.accelerometer`` names), None if the
+        robot has none: how the twin, the topics and the pipeline find "the device that reads the link
+        pressures" whatever a description calls it."""
+        if role == "accelerometer":
+            accel = self.sensors.accelerometer
+            return accel.device if accel is not None and accel.device in self.devices else None
         return next((n for n, d in self.devices.items() if DRIVER_ROLES.get(d.driver) == role), None)
+
+    def link_end(self, link: str) -> tuple[int, list[int]]:
+        """(index of the frame at ``link``'s end in ``chain().frames``, the indices of its two virtual joints
+        in δ): where its board's IMU sits and what bends its flex sensors."""
+        spec = next(lk for lk in self.links if lk.name == link)
+        chain = self.chain()
+        frame = [row.joint for row in chain.rows].index(spec.virtual_joints[-1]) + 1
+        return frame, [chain.virtual.index(v) for v in spec.virtual_joints]
 
     def link_boards(self) -> dict[str, str]:
         """Link name → the name of the board on it."""

@@ -27,8 +27,8 @@ from pipeline.tables import SessionTables, StageReport, columns
 MISSING, PORT_STATUS, OUTLIER, DUPLICATE = "missing", "port_status", "outlier", "duplicate"
 
 DEVICE_TICKS = "device_ticks"  # the unwrapped device counter this stage adds to each stamped stream
-# topic → (the role of the device whose clock stamps it (models.robot.DRIVER_ROLES; "accelerometer": the
-# device sensors.accelerometer names), the stamp field). Its tick and wrap are that device's ``clock`` in the
+# topic → (the role of the device whose clock stamps it (models.robot.RobotDescription.device_of), the stamp
+# field). Its tick and wrap are that device's ``clock`` in the
 # robot description.
 STAMPS: dict[str, tuple[str, str]] = {
     T.SERVO_STATE: ("joints", "tick_ms"),
@@ -73,11 +73,7 @@ def stamp_clock(robot: RobotDescription, topic: str) -> tuple[str, str] | None:
     if topic not in STAMPS:
         return None
     role, field = STAMPS[topic]
-    if role == "accelerometer":
-        accel = robot.sensors.accelerometer
-        device = accel.device if accel is not None and accel.device in robot.devices else None
-    else:
-        device = robot.device_of(role)
+    device = robot.device_of(role)
     return None if device is None else (device, field)
 
 

@@ -46,6 +46,14 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+@pytest.fixture(scope="module")
+def popup_rig(tmp_path_factory):
+    """A POPUP rig for one test module: (its run directory, the port of its CAN adapter)."""
+    run_dir = tmp_path_factory.mktemp("popup-rig")
+    with emulator_host(run_dir, module="acquisition.sim.rig", extra=("--robot", "popup")) as ports:
+        yield run_dir, ports["can_bus"]
+
+
 @pytest.fixture
 def host_factory(tmp_path):
     """``with host_factory('name=module:factory') as ports:`` in a fresh run directory."""

@@ -25,18 +25,9 @@ BOARDS = {"main_board": 0x10, "link1_board": 0x11, "link2_board": 0x12}
 PERIODS = {"main_board": 0.1, "link1_board": 0.01, "link2_board": 0.01}
 
 
-@pytest.fixture(scope="module")
-def rig(tmp_path_factory):
-    from tests.conftest import emulator_host
-
-    run_dir = tmp_path_factory.mktemp("popup-boards")
-    with emulator_host(run_dir, module="acquisition.sim.rig", extra=("--robot", "popup")) as ports:
-        yield run_dir, ports["can_bus"]
-
-
 @pytest.fixture
-def bus(rig):
-    run_dir, port = rig
+def bus(popup_rig):
+    run_dir, port = popup_rig
     with CanDrives(port, IDS) as drives:
         boards = BoardFrames(BOARDS, PERIODS)
         boards.attach(drives.network)
@@ -75,8 +66,8 @@ def test_board_frames_arrive_numbered_at_their_rates(bus):
     assert np.linalg.norm(np.mean(accel, axis=0)) == pytest.approx(9.81, abs=0.5)  # on average: gravity
 
 
-def test_the_main_board_regulates_to_the_commanded_set_points(bus, rig):
-    run_dir, _ = rig
+def test_the_main_board_regulates_to_the_commanded_set_points(bus, popup_rig):
+    run_dir, _ = popup_rig
     _, boards = bus
     boards.send_pressures([40_000.0, 60_000.0], [True, True])
     deadline = time.monotonic() + 3.0
@@ -96,8 +87,8 @@ def test_the_main_board_regulates_to_the_commanded_set_points(bus, rig):
     np.testing.assert_allclose(measured, [40_000.0, 60_000.0], atol=2_000.0)
 
 
-def test_a_set_point_beyond_the_regulators_is_rejected_by_the_board(bus, rig):
-    run_dir, _ = rig
+def test_a_set_point_beyond_the_regulators_is_rejected_by_the_board(bus, popup_rig):
+    run_dir, _ = popup_rig
     drives, boards = bus
     before = send_control(run_dir, {"op": "state"})["pressure_set_pa"]
     status = [s for s in _collect(boards, 0.3) if s.message == pb.MAIN_STATUS][-1]
@@ -109,8 +100,8 @@ def test_a_set_point_beyond_the_regulators_is_rejected_by_the_board(bus, rig):
     assert send_control(run_dir, {"op": "state"})["pressure_set_pa"] == before
 
 
-def test_a_board_whose_frames_stop_is_detected(bus, rig):
-    run_dir, _ = rig
+def test_a_board_whose_frames_stop_is_detected(bus, popup_rig):
+    run_dir, _ = popup_rig
     _, boards = bus
     boards.check()
     send_control(run_dir, {"op": "can", "board": "link2_board", "power": False})

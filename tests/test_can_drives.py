@@ -22,18 +22,9 @@ IDS = {"q1": 1, "q2": 2, "q3": 3}
 PERIOD_S = 0.01
 
 
-@pytest.fixture(scope="module")
-def rig(tmp_path_factory):
-    from tests.conftest import emulator_host
-
-    run_dir = tmp_path_factory.mktemp("popup-rig")
-    with emulator_host(run_dir, module="acquisition.sim.rig", extra=("--robot", "popup")) as ports:
-        yield run_dir, ports["can_bus"]
-
-
 @pytest.fixture
-def drives(rig, popup):
-    run_dir, port = rig
+def drives(popup_rig, popup):
+    run_dir, port = popup_rig
     limits = {j.name: (j.lower_rad, j.upper_rad) for j in popup.joints}
     with CanDrives(port, IDS, limits_rad=limits, heartbeat_ms=100) as d:
         yield d
@@ -76,9 +67,9 @@ def test_every_sync_is_answered_by_every_drive_and_counted(drives):
     assert answered.mean() > 0.95, "the PDO loop loses no more than a busy host's occasional late answer"
 
 
-def test_an_injected_drive_fault_arrives_as_an_emcy(drives, rig):
+def test_an_injected_drive_fault_arrives_as_an_emcy(drives, popup_rig):
     drives.enable()
-    send_control(rig[0], {"op": "can", "node": 3, "fault": 0x4310})
+    send_control(popup_rig[0], {"op": "can", "node": 3, "fault": 0x4310})
     with pytest.raises(DriveFaultError, match=r"q3 faulted: EMCY 0x4310 \(over-temperature\)"):
         _cycles(drives, 50)
     cycles = drives.enable()  # a fault reset brings it back
@@ -86,10 +77,10 @@ def test_an_injected_drive_fault_arrives_as_an_emcy(drives, rig):
 
 
 @pytest.mark.parametrize("fault", [{"node": 2, "power": False}, {"bus_off": True}])
-def test_a_lost_heartbeat_is_detected(drives, rig, fault):
+def test_a_lost_heartbeat_is_detected(drives, popup_rig, fault):
     drives.enable()
     _cycles(drives, 5)
-    send_control(rig[0], {"op": "can", **fault})
+    send_control(popup_rig[0], {"op": "can", **fault})
     t0 = time.monotonic()
     with pytest.raises(DriveLostError, match="sent no heartbeat"):
         _cycles(drives, 200)
@@ -104,6 +95,6 @@ def test_goals_that_are_not_angles_never_reach_the_bus(drives):
         drives.write_goals([0.0, 0.0])
 
 
-def test_a_missing_drive_is_named(rig):
+def test_a_missing_drive_is_named(popup_rig):
     with pytest.raises(DeviceNotFoundError, match=r"drive q9 \(node 9\): no answer"):
-        CanDrives(rig[1], {"q1": 1, "q9": 9}).open()
+        CanDrives(popup_rig[1], {"q1": 1, "q9": 9}).open()

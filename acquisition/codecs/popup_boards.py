@@ -34,6 +34,14 @@ def database() -> cantools.database.can.Database:
     return cantools.database.load_file(str(DBC))
 
 
+HOST = "HOST"  # the DBC's node for the computer
+
+
+def node_of(can_id: int) -> int:
+    """The node id whose PDO slot ``can_id`` is (its low 7 bits)."""
+    return can_id & 0x7F
+
+
 def link_message(node_id: int, what: str) -> str:
     """The name of link board ``node_id``'s message ``what`` (ACCEL, ORIENTATION, FLEX)."""
     k = node_id - MAIN_NODE

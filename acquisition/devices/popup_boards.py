@@ -60,10 +60,11 @@ class BoardFrames:
     def __init__(self, nodes: dict[str, int], periods_s: dict[str, float]) -> None:
         self.nodes = dict(nodes)
         self.limit_s = {n: max(SILENT_PERIODS * periods_s[n], MIN_SILENT_S) for n in nodes}
-        ids = pb.frame_ids()
-        self.board_of = {can_id: name for can_id, name in ids.items() if pb.database().get_message_by_name(
-            name).senders and self._node_of(name) in self.nodes.values()}  # fmt: skip
-        self._node_device = {node: n for n, node in self.nodes.items()}
+        device_of_node = {node: n for n, node in self.nodes.items()}
+        # can id → (message, device) of every frame these boards send (the host's command is not one)
+        sent = [m for m in pb.database().messages if pb.HOST not in m.senders]
+        self.board_of = {m.frame_id: (m.name, device_of_node[pb.node_of(m.frame_id)])
+                         for m in sent if pb.node_of(m.frame_id) in device_of_node}  # fmt: skip
         self.network: canopen.Network | None = None
         self._lock = threading.Lock()
         self._frames: list[tuple[int, int, bytes]] = []
@@ -71,12 +72,6 @@ class BoardFrames:
         self._last_heard: dict[str, float] = {}
         self._command_counter = 0
         self.undecodable = 0
-
-    @staticmethod
-    def _node_of(message: str) -> int:
-        if message.startswith("Link"):
-            return pb.MAIN_NODE + int(message[4])
-        return pb.MAIN_NODE
 
     def attach(self, network: canopen.Network) -> None:
         """Listen on ``network`` (the drives' bus): every board frame is queued from now on."""
@@ -103,8 +98,8 @@ class BoardFrames:
         out = []
         now = time.monotonic()
         for can_id, host_ns, data in frames:
-            name = self.board_of[can_id]
-            self._last_heard[self._node_device[self._node_of(name)]] = now
+            name, device = self.board_of[can_id]
+            self._last_heard[device] = now
             try:
                 signals = pb.decode(can_id, data)
             except CodecError:

@@ -7,11 +7,12 @@ import numpy as np
 
 from acquisition.codecs import dynamixel as dx
 from acquisition.schemas import topics as T
+from acquisition.sim.emulators.cia402_drive import SW_REMOTE, SW_SETPOINT_ACK, SW_VOLTAGE, State
 from acquisition.sim.streams import Stream
 from models.robot import RobotDescription
 
-# a CiA 402 drive in OPERATION ENABLED following CSP targets: state 0x27, voltage, remote, bit 12
-DRIVE_ENABLED_STATUSWORD = 0x0027 | 1 << 4 | 1 << 9 | 1 << 12
+# a CiA 402 drive in OPERATION ENABLED following CSP targets, as the emulated drive shows it
+DRIVE_ENABLED_STATUSWORD = int(State.OPERATION_ENABLED) | SW_VOLTAGE | SW_REMOTE | SW_SETPOINT_ACK
 TopicRows = tuple[np.ndarray, np.ndarray, np.ndarray]  # robot index, host log time (ns), message rows
 
 

@@ -31,38 +31,31 @@ class PopupCanSource(Source):
     def __init__(self, robot, name, spec, port, rate_hz) -> None:
         boards = {n: d for n, d in robot.devices.items() if d.bus == name}
         self.main = next((n for n, d in boards.items() if d.driver == "popup_main_board"), None)
-        self.links = {n: d.link for n, d in boards.items() if d.driver == "popup_link_board"}
-        accel = robot.sensors.accelerometer
-        self.accel_board = accel.device if accel is not None and accel.device in self.links else None
-        sampled = [T.JOINT_STATE]
-        if self.main:
-            sampled.append(T.PRESSURE)
-        if self.accel_board:
-            sampled.append(T.ACCEL)
-        for link in self.links.values():
-            sampled += [T.link_orientation_topic(link), T.link_flex_topic(link)]
-        self.sampled_topics = tuple(sampled)
+        accel_board = robot.device_of("accelerometer")
+        # every board message recorded → (its topic, its period on its board's clock: the sample number
+        # times it is the board's micros); and each board's slowest period (how long it may stay silent)
+        self.board_streams: dict[str, tuple[str, float]] = {}
+        slowest_s = {}
+        for board, dev in boards.items():
+            node, period_us = dev.ids["board"], 1e6 / dev.rate_hz
+            if board == self.main:
+                self.board_streams[pb.MAIN_PRESSURE] = (T.PRESSURE, period_us)
+                slowest_s[board] = pb.STATUS_PERIOD_S
+                continue
+            if board == accel_board:
+                odr_us = 1e6 / robot.sensors.accelerometer.sample_rate_hz
+                self.board_streams[pb.link_message(node, pb.ACCEL)] = (T.ACCEL, odr_us)
+            self.board_streams[pb.link_message(node, pb.ORIENTATION)] = (T.link_orientation_topic(dev.link),
+                                                                         period_us)  # fmt: skip
+            self.board_streams[pb.link_message(node, pb.FLEX)] = (T.link_flex_topic(dev.link), period_us)
+            slowest_s[board] = 1.0 / dev.rate_hz
+        self.sampled_topics = (T.JOINT_STATE, *(topic for topic, _ in self.board_streams.values()))
         self.command_topics = (T.SERVO_GOAL, T.PRESSURE_COMMAND) if self.main else (T.SERVO_GOAL,)
         super().__init__(robot, name, spec, port, rate_hz)
         self.joints = list(spec.ids)
         limits = {j.name: (j.lower_rad, j.upper_rad) for j in robot.joints if j.name in spec.ids}
         self.drives = CanDrives(port, spec.ids, limits, bitrate=spec.baud)
-        # every stream's period on its board's clock: the sample number times it is the board's micros
-        self.period_us: dict[str, float] = {}
-        periods_s = {}
-        for board, dev in boards.items():
-            periods_s[board] = 1.0 / dev.rate_hz
-            node = dev.ids["board"]
-            if board == self.main:
-                self.period_us[pb.MAIN_PRESSURE] = 1e6 / dev.rate_hz
-                periods_s[board] = pb.STATUS_PERIOD_S
-            else:
-                for what in (pb.ORIENTATION, pb.FLEX):
-                    self.period_us[pb.link_message(node, what)] = 1e6 / dev.rate_hz
-                if board == self.accel_board:
-                    self.period_us[pb.link_message(node, pb.ACCEL)] = 1e6 / accel.sample_rate_hz
-        self.boards = BoardFrames({n: d.ids["board"] for n, d in boards.items()}, periods_s)
-        self._topic_of = self._board_topics(boards)
+        self.boards = BoardFrames({n: d.ids["board"] for n, d in boards.items()}, slowest_s)
         self.calibration = robot.sensors.pressure
         self.position: np.ndarray | None = None  # last measured joint angles: where a hold holds
         self.target: np.ndarray | None = None  # the CSP target sent at the last SYNC
@@ -70,16 +63,6 @@ class PopupCanSource(Source):
         self.speed = np.zeros(len(self.joints))
         self.first_sync = 0
         self._synced_at = 0.0
-
-    def _board_topics(self, boards) -> dict[str, str]:
-        out = {pb.MAIN_PRESSURE: T.PRESSURE} if self.main else {}
-        for board, link in self.links.items():
-            node = boards[board].ids["board"]
-            out[pb.link_message(node, pb.ORIENTATION)] = T.link_orientation_topic(link)
-            out[pb.link_message(node, pb.FLEX)] = T.link_flex_topic(link)
-            if board == self.accel_board:
-                out[pb.link_message(node, pb.ACCEL)] = T.ACCEL
-        return out
 
     # ---------------------------------------------------------------------------------- lifecycle
     def open(self) -> None:
@@ -117,11 +100,12 @@ class PopupCanSource(Source):
         return rows
 
     def _board_row(self, s: BoardSample) -> Row | None:
-        topic = self._topic_of.get(s.message)
-        if topic is None:
+        stream = self.board_streams.get(s.message)
+        if stream is None:
             return None  # MainStatus: the board's uptime and rejected commands (not a sampled stream)
+        topic, period_us = stream
         seq, sig = s.seq % SEQ_MODULO, s.signals
-        micros = round(s.seq * self.period_us[s.message]) % (1 << 32)
+        micros = round(s.seq * period_us) % (1 << 32)
         if topic == T.PRESSURE:
             counts = np.array([sig["Link1Counts"], sig["Link2Counts"]])
             return self.row(topic, s.host_ns, s.seq, seq=seq, micros=micros, counts=counts,

@@ -120,9 +120,11 @@ class Rig:
                 TwinPressure(self), TwinBoardTimer(self, name, 1.0 / dev.rate_hz), status, max_set, t0
             )
         if dev.driver == "popup_link_board":
-            accel = self.robot.sensors.accelerometer
-            accel_timer = (TwinBoardTimer(self, name, 1.0 / accel.sample_rate_hz)
-                           if accel is not None and accel.device == name else None)  # fmt: skip
+            accel_timer = None
+            if self.robot.device_of("accelerometer") == name:
+                accel_timer = TwinBoardTimer(
+                    self, name, 1.0 / self.robot.sensors.accelerometer.sample_rate_hz
+                )
             return LinkBoard(dev.ids["board"], TwinLinkBoard(self, dev.link),
                              TwinBoardTimer(self, name, 1.0 / dev.rate_hz), accel_timer, t0)  # fmt: skip
         raise ValueError(f"{self.robot.name}: device {name} ({dev.driver}) cannot sit on the CAN bus")

@@ -13,13 +13,13 @@ import functools
 import canopen
 import numpy as np
 
+from acquisition.codecs import popup_boards
 from acquisition.sim import sensors
 from acquisition.sim.clocks import DeviceClocks, HostLinkSpec, host_receive_ns
 from acquisition.sim.kernel import Trace
 from models.robot import CAN_DIR, PressureSensorSpec, RobotDescription
 
 Stream = dict[str, np.ndarray]
-RPY_LSB_RAD = 1e-4  # a link board's orientation resolution (configs/can/popup_boards.dbc)
 
 
 def device_sample_instants(clocks: DeviceClocks, period_s: float, t0: float, t1: float):
@@ -112,16 +112,14 @@ def link_board_stream(robot: RobotDescription, board: str, clocks: DeviceClocks,
     """A POPUP link board on its own clock at its rate: the orientation of its link's end (roll, pitch, yaw
     at the IMU's resolution) and its four flex sensors' counts."""
     dev = robot.devices[board]
-    link = next(lk for lk in robot.links if lk.name == dev.link)
-    chain = robot.chain()
-    frame = [row.joint for row in chain.rows].index(link.virtual_joints[-1]) + 1
-    bend = [chain.virtual.index(v) for v in link.virtual_joints]
+    frame, bend = robot.link_end(dev.link)
+    lsb = popup_boards.scale(popup_boards.link_message(dev.ids["board"], popup_boards.ORIENTATION), "Roll")
     r, k, t = device_sample_instants(clocks, 1.0 / dev.rate_hz, trace.t[0] - dt, trace.t[-1])
     idx = _step_index(trace, t, dt)
-    rotation = chain.frames(trace.q[r, idx], trace.delta[r, idx])[:, frame, :3, :3]
+    rotation = robot.chain().frames(trace.q[r, idx], trace.delta[r, idx])[:, frame, :3, :3]
     return {
         **_stamped(dev, clocks, r, k, t, rng),
-        "rpy": np.rint(sensors.rpy_from_rotation(rotation) / RPY_LSB_RAD) * RPY_LSB_RAD,
+        "rpy": np.rint(sensors.rpy_from_rotation(rotation) / lsb) * lsb,
         "flex": sensors.flex_counts(trace.delta[r, idx][:, bend], robot.sensors.flex, rng),
     }
 
@@ -236,10 +234,9 @@ def accelerometer_stream(robot: RobotDescription, clocks: DeviceClocks, trace: T
     accel = tip_acceleration(trace, dt, tip_before)[r, idx]
     rot = robot.chain().fk(trace.q[r, idx], trace.delta[r, idx])[..., :3, :3]
     force = np.einsum("nji,nj->ni", rot, accel - np.asarray(robot.gravity_m_s2))
-    noise_rms = spec.noise_density_m_s2_per_sqrt_hz * np.sqrt(spec.bandwidth_hz)
     return {
         **_stamped(robot.devices[spec.device], clocks, r, k, t, rng),
         "acceleration": sensors.accelerometer_reading(
-            force, spec.lsb_m_s2, spec.full_scale_m_s2, noise_rms, rng
+            force, spec.lsb_m_s2, spec.full_scale_m_s2, spec.noise_rms_m_s2, rng
         ),
     }

@@ -265,11 +265,18 @@ class TwinJoint:
 class RecentStep:
     """The twin's true state at one step (robot 0), as the rig keeps it for samples due a little late."""
 
-    __slots__ = ("before", "delta", "p_link", "q", "t", "tip")
+    __slots__ = ("_i", "_ring", "delta", "p_link", "q", "t", "tip")
 
-    def __init__(self, t, q, delta, tip, p_link, before) -> None:
-        self.t, self.q, self.delta, self.tip, self.p_link = t, q, delta, tip, p_link
-        self.before = before  # the tip positions of the two steps before (for its acceleration)
+    def __init__(self, ring: RecentSteps, i: int) -> None:
+        self._ring, self._i = ring, i
+        self.t, self.q, self.delta = ring.t[i], ring.q[i], ring.delta[i]
+        self.tip, self.p_link = ring.tip[i], ring.p_link[i]
+
+    @property
+    def before(self) -> np.ndarray:
+        """The tip positions of the two steps before (2, 3): for the tip's acceleration."""
+        n = self._ring.capacity
+        return self._ring.tip[[(self._i - 2) % n, (self._i - 1) % n]]
 
 
 class RecentSteps:
@@ -304,15 +311,12 @@ class RecentSteps:
         """The step holding at rig time ``t`` (the last that ended at or before it)."""
         newest = (self.head - 1) % self.capacity
         back = int(np.floor((self.t[newest] - t) / self.dt + 1e-9)) if t < self.t[newest] else 0
-        kept = (
-            min(self.head, self.capacity - 2) - 1
-        )  # steps behind the newest (two more for the acceleration)
+        # how far behind the newest step a sample may read (two more are kept for its acceleration)
+        kept = min(self.head, self.capacity - 2) - 1
         if back > kept:
             self.too_old += 1
             back = kept
-        i = (newest - back) % self.capacity
-        before = self.tip[[(i - 2) % self.capacity, (i - 1) % self.capacity]]
-        return RecentStep(self.t[i], self.q[i], self.delta[i], self.tip[i], self.p_link[i], before)
+        return RecentStep(self, (newest - back) % self.capacity)
 
 
 class TwinBoardTimer:
@@ -339,12 +343,8 @@ class TwinLinkBoard:
     def __init__(self, rig: Rig, link: str) -> None:
         robot = rig.robot
         self.rig = rig
-        spec = next(lk for lk in robot.links if lk.name == link)
-        chain = robot.chain()
-        self.chain = chain
-        self.bend = [chain.virtual.index(v) for v in spec.virtual_joints]
-        rows = [r.joint for r in chain.rows]
-        self.frame = rows.index(spec.virtual_joints[-1]) + 1  # the frame at the link's end
+        self.chain = robot.chain()
+        self.frame, self.bend = robot.link_end(link)
         self.accel_spec = robot.sensors.accelerometer
         self.flex_spec = robot.sensors.flex
         self.gravity = np.asarray(robot.gravity_m_s2)
@@ -360,8 +360,7 @@ class TwinLinkBoard:
         accel = (step.tip - 2.0 * x1 + x0) / self.rig.world.dt**2
         force = self._rotation(step).T @ (accel - self.gravity)
         spec = self.accel_spec
-        noise = spec.noise_density_m_s2_per_sqrt_hz * math.sqrt(spec.bandwidth_hz)
-        return sensors.accelerometer_reading(force, spec.lsb_m_s2, spec.full_scale_m_s2, noise,
+        return sensors.accelerometer_reading(force, spec.lsb_m_s2, spec.full_scale_m_s2, spec.noise_rms_m_s2,
                                              self.rig.world.rng)  # fmt: skip
 
     def orientation(self, t: float) -> np.ndarray:

@@ -269,13 +269,11 @@ class World:
             out["stepper_board"] = streams.stepper_stream(robot, clocks[stepper], trace, dt, rng)
         if tracker is not None:
             out["tracker"] = streams.tracker_stream(robot, clocks[tracker], trace, dt, rng)
-        accel = robot.sensors.accelerometer
-        if accel is not None and accel.device in clocks:
+        accel = robot.device_of("accelerometer")
+        if accel is not None:
             tail = self._tip_tail
             before = tail[1] if tail is not None and abs(trace.t[0] - dt - tail[0]) < dt / 2 else None
-            out["accelerometer"] = streams.accelerometer_stream(
-                robot, clocks[accel.device], trace, dt, rng, before
-            )
+            out["accelerometer"] = streams.accelerometer_stream(robot, clocks[accel], trace, dt, rng, before)
             if trace.tip_pos.shape[1] >= 2:
                 self._tip_tail = (float(trace.t[-1]), trace.tip_pos[:, -2:].copy())
         # drawn last: the other devices' noise is what it was before POPUP's bus was modelled
