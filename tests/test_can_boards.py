@@ -140,3 +140,17 @@ def test_a_popup_session_recorded_from_the_rig_reads_in_both_mcap_readers(tmp_pa
     assert np.isnan(joints["position"][~joints["answered"]]).all()
     assert (joints["statusword"][joints["answered"]] & 0x6F == 0x27).all()
     assert ros2_agrees(part)[T.ACCEL] == len(data[T.ACCEL])
+
+
+@pytest.mark.parametrize(
+    "cmd",
+    [{"op": "can", "board": "main_board", "power": "off"}, {"op": "can", "board": "main_board"},
+     {"op": "can", "board": "nope", "power": False}, {"op": "can", "bus_off": 1}],
+)  # fmt: skip
+def test_the_rig_refuses_a_malformed_can_fault(popup, cmd):
+    from acquisition.sim.rig import Rig
+
+    rig = Rig(popup)
+    with pytest.raises(ValueError):
+        rig.control(cmd)
+    assert not any(b.silent for b in rig.boards.values()) and not rig.can_bus.bus_off

@@ -158,7 +158,7 @@ class Rig:
             self.world.tap(float(cmd["nms"]))
             return {"ok": True}
         if op == "coil":  # the tracker coil leaves (inside=false) or re-enters the field volume
-            self.coil.force_out = not bool(cmd["inside"])
+            self.coil.force_out = not _flag(cmd, "inside")
             return {"ok": True}
         if op == "can":  # the CAN bus's faults and counters
             return self._can_control(cmd)
@@ -179,18 +179,18 @@ class Rig:
             raise ValueError(f"{self.robot.name} has no CAN bus")
         now = self.world.t
         if "bus_off" in cmd:
-            self.can_bus.set_bus_off(bool(cmd["bus_off"]))
+            self.can_bus.set_bus_off(_flag(cmd, "bus_off"))
         if "board" in cmd:
             board = self.boards.get(str(cmd["board"]))
             if board is None:
                 raise ValueError(f"no board {cmd['board']!r} on the bus (boards: {sorted(self.boards)})")
-            board.power(bool(cmd.get("power", True)), now)
+            board.power(_flag(cmd, "power"), now)
         if "node" in cmd:
             drive = self.drives.get(int(cmd["node"]))
             if drive is None:
                 raise ValueError(f"no drive {cmd['node']} on the bus (drives: {sorted(self.drives)})")
             if "power" in cmd:
-                drive.power(bool(cmd["power"]), now)
+                drive.power(_flag(cmd, "power"), now)
             if "fault" in cmd:
                 code = int(cmd["fault"])
                 if code not in FAULTS:
@@ -199,6 +199,14 @@ class Rig:
         c = self.can_bus.counters
         return {"ok": True, "bitrate": self.can_bus.bitrate, "frames": c.frames, "bits": c.bits,
                 "busy_s": c.busy_s, "lost": c.lost, "t": now, "bus_off": self.can_bus.bus_off}  # fmt: skip
+
+
+def _flag(cmd: dict, key: str) -> bool:
+    """A control command's true/false field; anything else (a string, a number, missing) is refused."""
+    value = cmd.get(key)
+    if not isinstance(value, bool):
+        raise ValueError(f"{cmd.get('op')}: {key!r} must be true or false, got {value!r}")
+    return value
 
 
 def serve_rig(robot: RobotDescription, run_dir: Path, seed: int = 0) -> None:
