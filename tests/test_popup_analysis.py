@@ -18,8 +18,11 @@ INERTIA = (
     0.0358  # the twin's link 2 about its virtual hinge: 0.30 kg · 0.295² + 0.0097 (configs/robots/popup.yaml)
 )
 IMPACT = {"pressures_kpa": [10, 50, 90], "taps": 2, "record_s": 1.2, "settle_s": 1.0}
+# hold_s: the static k at 10 kPa rests on 3 loads below M_w, each the mean of the tracker over its hold; with
+# 0.8 s holds the inertia I = k / w_n² spread 2.7 % (rms) over seeds 1-8 (worst 5.1 %, against k-hat's 5 %),
+# with 2 s holds 1.3 % (worst 2.5 %)
 STATIC = {"pressures_kpa": [10, 50], "repetitions": 2, "pressure_settle_s": 1.0, "settle_s": 1.2,
-          "hold_s": 0.8}  # fmt: skip
+          "hold_s": 2.0}  # fmt: skip
 
 
 @pytest.fixture(scope="module")
