@@ -142,6 +142,25 @@ def test_an_unplugged_device_is_a_marked_gap_counted_lost_and_the_others_keep_re
         assert account[topic]["expected"] == card[topic]["expected"], topic
 
 
+def test_a_device_absent_when_the_recording_starts_counts_its_wait_as_lost(host_factory, tmp_path, vsl):
+    """A stream that starts in a gap (the device did not answer at first) has no earlier sample to bridge
+    from: the time from its first failed attempt to its first sample is counted lost, not left out."""
+    with host_factory(**RIG) as ports:
+        run_dir = tmp_path / "run"
+        send_control(run_dir, {"op": "fault", "device": "pressure_board", "kind": "unplug"})
+        with Recorder(vsl, ports, tmp_path / "s", "late") as rec:
+            time.sleep(1.5)
+            send_control(run_dir, {"op": "fault", "device": "pressure_board", "kind": "plug"})
+            deadline = time.monotonic() + 10.0  # the Uno resets when the port opens again (~1.4 s boot)
+            while not rec.connected(T.PRESSURE) and time.monotonic() < deadline:
+                time.sleep(0.05)
+            time.sleep(0.5)
+    pressure = _card(tmp_path / "s")["counters"][T.PRESSURE]
+    assert pressure["gaps"] == 1 and pressure["lost"] > 1.5 * 250, pressure  # > 1.5 s at 250 Hz
+    assert pressure["expected"] == pressure["received"] + pressure["lost"]
+    assert _card(tmp_path / "s")["counters"][T.SERVO_STATE]["lost"] == 0
+
+
 def test_corrupted_replies_are_retried_in_place(host_factory, tmp_path, vsl):
     """A few corrupted Sync Read replies: retried within their slot, no reconnection, no gap."""
     with host_factory(**RIG) as ports, Recorder(vsl, ports, tmp_path / "s", "corrupt") as rec:

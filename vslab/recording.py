@@ -260,15 +260,21 @@ def record(
         rec, view = _recorder(desc, port_map, session_id, experiment, rates, live, live_host, live_port)
         with view as live_server:
             rec.live = live_server
-            start = time.monotonic()
-            with _recording(rec), Live(console=console, refresh_per_second=2, transient=False) as counters:
+            # the duration counts from when every device has answered (connecting may take seconds); the live
+            # table goes when the recording stops, and the session's final account is printed in its place
+            with _recording(rec), Live(console=console, refresh_per_second=2, transient=True) as counters:
+                start = time.monotonic()
                 try:
                     while duration <= 0 or time.monotonic() - start < duration:
-                        time.sleep(0.5)
+                        left = start + duration - time.monotonic() if duration > 0 else 0.5
+                        time.sleep(min(0.5, max(0.0, left)))
                         if not Settings.quiet:
                             counters.update(_counter_table(rec.snapshot(), time.monotonic() - start))
                 except KeyboardInterrupt:
                     pass
+                recorded_s = time.monotonic() - start
+    if not Settings.quiet and rec.final is not None:
+        console.print(_counter_table(rec.final, recorded_s, title=f"recorded {recorded_s:.1f} s"))
     _finish(rec)
 
 
@@ -413,9 +419,9 @@ def _live_view(desc, host: str, port: int):
     return server
 
 
-def _counter_table(snapshot: dict, elapsed: float) -> Table:
+def _counter_table(snapshot: dict, elapsed: float, title: str = "") -> Table:
     table = Table("topic", "expected", "received", "lost", "written", "dropped", "rate Hz",
-                  title=f"recording {elapsed:.0f} s")  # fmt: skip
+                  title=title or f"recording {elapsed:.0f} s")  # fmt: skip
     for topic, c in sorted(snapshot.items()):
         rate = c["received"] / elapsed if elapsed > 0 else 0.0
         counts = [f"{c[k]:,}" for k in ("expected", "received", "lost", "written", "dropped")]

@@ -111,6 +111,7 @@ class CanDrives(Device):
         self.drives: list[_Drive] = []
         self.syncs = 0
         self._lock = threading.Lock()
+        self._all_answered = threading.Condition(self._lock)  # every drive sent both PDOs since the SYNC
         self._faults: list[tuple[str, int]] = []
 
     @property
@@ -132,6 +133,10 @@ class CanDrives(Device):
         self.network.nmt.state = "OPERATIONAL"
         for d in self.drives:
             d.node.nmt.state = "OPERATIONAL"  # canopen's local view (the broadcast above did it on the bus)
+            # heartbeats are watched from here: configuring the drives one by one (dozens of SDO round trips)
+            # may take longer than a heartbeat's allowance, and a drive's first one may come before its
+            # callback was added
+            d.last_heartbeat = time.monotonic()
         self.syncs = 0
 
     def _configure(self, joint: str, node_id: int) -> _Drive:
@@ -199,6 +204,8 @@ class CanDrives(Device):
         values = [var.raw for var in pdo]
         with self._lock:
             drive.answers[n] = (host_now_ns(), values)
+            if all(len(d.answers) == 2 for d in self.drives):
+                self._all_answered.notify_all()
 
     def _on_emcy(self, drive: _Drive, err) -> None:
         if err.code:
@@ -206,6 +213,14 @@ class CanDrives(Device):
                 self._faults.append((drive.joint, err.code))
 
     # ------------------------------------------------------------------------------------ cycle
+    def wait_answers(self, until: float) -> bool:
+        """Wait until every drive has answered the last SYNC, or until ``until`` (``time.monotonic``);
+        returns whether they all did."""
+        with self._all_answered:
+            return self._all_answered.wait_for(
+                lambda: all(len(d.answers) == 2 for d in self.drives), max(0.0, until - time.monotonic())
+            )
+
     def sync(self) -> DriveCycle | None:
         """Send SYNC number ``syncs + 1``; return the drives' answers to the previous SYNC (None before the
         first). Raises :class:`DriveLostError` or :class:`DriveFaultError`."""

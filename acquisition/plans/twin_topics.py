@@ -44,7 +44,6 @@ def stream_rows(robot: RobotDescription, topics: dict[str, T.Topic], streams: di
                 "velocity": s["velocity_counts"] / s["counts_per_rad"][:, None],
                 "torque": s["torque_per_mille"] * 1e-3 * s["rated_nm"][:, None],
                 "statusword": np.full((len(s["seq"]), n), DRIVE_ENABLED_STATUSWORD),
-                "answered": np.ones((len(s["seq"]), n), bool),
             }
         )
         out[T.JOINT_STATE] = (s["robot"], s["host_ns"], rows)

@@ -2,8 +2,10 @@
 all through one USB-CAN adapter (driver ``popup_can``; the boards are the devices whose ``bus`` names it).
 
 Polled at the bus's SYNC rate: each slot sends one SYNC and records what the drives answered to the previous
-one (``/joint/state``, numbered by that SYNC), then every board frame that arrived (link pressures, the tip
-IMU's acceleration, each link's orientation and flex sensors), numbered by the boards' own counters.
+one (``/joint/state``, numbered by that SYNC; the SYNC waits up to a period for late answers, and a SYNC not
+every drive answered is a hole in the numbers, counted lost), then every board frame that arrived (link
+pressures, the tip IMU's acceleration, each link's orientation and flex sensors), numbered by the boards' own
+counters.
 
 The drives run in cyclic synchronous position mode, which expects the host to interpolate: a goal is not sent
 as one jump (the drive would fault on its following error) but approached at its profile velocity, one step
@@ -13,6 +15,7 @@ per SYNC. The safe state holds the joints where they were last measured and leav
 
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
@@ -23,6 +26,8 @@ from acquisition.devices.can_drives import CanDrives
 from acquisition.devices.popup_boards import BoardFrames, BoardSample
 from acquisition.recorder.sources import SEQ_MODULO, Row, Source
 from acquisition.schemas import topics as T
+
+log = logging.getLogger(__name__)
 
 
 class PopupCanSource(Source):
@@ -81,21 +86,21 @@ class PopupCanSource(Source):
     def read(self, slot: int) -> list[Row]:
         self.boards.check()
         self._interpolate()
-        # the drives need time to answer a SYNC: a slot that follows the last one too closely (the first
-        # after connecting, or catching up after a stall) waits for half a period, so no answer is cut off
-        wait = self._synced_at + 0.5 / self.rate_hz - time.monotonic()
-        if wait > 0:
-            time.sleep(wait)
+        # the drives answer a SYNC within a millisecond on the bus, but a busy host (or twin) may read the
+        # answers later: the next SYNC waits for them, up to a period past its slot (the SYNC then comes
+        # late, as it would from any master that waits), so a late answer is neither lost nor taken for the
+        # next SYNC's. A SYNC some drive left unanswered past that is no joint state: a hole in the sequence
+        # numbers, counted lost (a joint-state vector with a drive missing is not a sample)
+        if self._synced_at and not self.drives.wait_answers(until=self._synced_at + 2.0 / self.rate_hz):
+            log.info("%s: SYNC %d not answered by every drive", self.name, self.drives.syncs)
         cycle = self.drives.sync()
         self._synced_at = time.monotonic()
         rows = []
-        if cycle is not None and cycle.sync >= self.first_sync:
-            if cycle.answered.all():
-                self.position = cycle.position_rad
+        if cycle is not None and cycle.sync >= self.first_sync and cycle.answered.all():
+            self.position = cycle.position_rad
             rows.append(self.row(T.JOINT_STATE, cycle.host_ns, cycle.sync, seq=cycle.sync % SEQ_MODULO,
                                  position=cycle.position_rad, velocity=cycle.velocity_rad_s,
-                                 torque=cycle.torque_nm, statusword=cycle.statusword,
-                                 answered=cycle.answered))  # fmt: skip
+                                 torque=cycle.torque_nm, statusword=cycle.statusword))  # fmt: skip
         rows += [r for s in self.boards.take() if (r := self._board_row(s)) is not None]
         return rows
 

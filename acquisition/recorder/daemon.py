@@ -238,6 +238,7 @@ class Daemon:
         push_event(self.events, Event(EventKind.DEVICE_GAP_START, label=self.device, text=why))
         for topic in self.sampled:
             self.rings[topic].note_gap()
+            self.rings[topic].start_in_gap(self.gap_start_ns)
             if not self.source.slot_numbered:  # the device may restart its counter when it comes back
                 self.rings[topic].restart_sequence()
 

@@ -192,12 +192,13 @@ class Ring:
         """The producer took the sample numbered ``seq`` (the device's counter, wrapping at ``modulo``, or a
         poll slot): count it as expected, and every number it skipped as expected and lost. A number that
         does not follow (the device was reset, or the counter jumped back) is bridged by the time since the
-        last sample at ``rate_hz``. The first sample of a session starts the account. False: the number
-        was the last one again (a repeated sample, not a new one)."""
+        last sample at ``rate_hz``. The first sample of a session starts the account, unless the stream
+        started in a gap (:meth:`start_in_gap`): then it is bridged by the time since the gap began. False:
+        the number was the last one again (a repeated sample, not a new one)."""
         h = self.header
         last = int(h[_LAST_SEQ])
         if last == _NO_SEQ:
-            n = 1
+            n = max(1, round((host_ns - int(h[_LAST_NS])) * rate_hz / 1e9)) if h[_LAST_NS] else 1
         else:
             step = (seq - last) % modulo
             if step == 0 and not h[_BRIDGE]:
@@ -215,6 +216,12 @@ class Ring:
     def restart_sequence(self) -> None:
         """The device's counter starts afresh (a reconnection reset it): bridge the next sample by time."""
         self.header[_BRIDGE] = 1
+
+    def start_in_gap(self, since_ns: int) -> None:
+        """The device did not answer at first (from ``since_ns``): before the stream's first sample, the time
+        until it counts as lost samples. Once a sample is in, a gap is bridged from the last one instead."""
+        if int(self.header[_LAST_SEQ]) == _NO_SEQ:
+            self.header[_LAST_NS] = since_ns
 
     def note_gap(self) -> None:
         """The producer lost its device (or was restarted): one more gap in this stream."""

@@ -69,12 +69,15 @@ def joint_state(n: int) -> FixedMessage:
     return FixedMessage(
         "vslab_msgs/msg/JointState",
         (
-            Field("seq", "uint32", doc="the SYNC the drives answered (host count)"),
-            Field("position", "float64", n, "rad (drive encoder), NaN where a drive did not answer"),
+            Field(
+                "seq",
+                "uint32",
+                doc="the SYNC the drives answered (host count; one every drive did not answer is a hole)",
+            ),
+            Field("position", "float64", n, "rad (drive encoder)"),
             Field("velocity", "float64", n, "rad/s"),
             Field("torque", "float64", n, "N·m (the drive's torque estimate)"),
             Field("statusword", "uint16", n, "CiA 402 statusword (0x6041)"),
-            Field("answered", "bool", n, "the drive sent its PDOs for this SYNC"),
         ),
         "What every CiA 402 joint drive answered to one SYNC (order: the robot's drive node ids).",
     )
