@@ -82,9 +82,14 @@ def _devices(desc, ports: Path | None, rig: bool, session_id: str):
     rig_proc = None
     if rig:
         ports = Settings.lab / "rig" / session_id
+        # the rig simulates this very description: an experiment's variant of the robot (a link made rigid,
+        # joints fixed, the flange off) is what its plans expect, not the robot of the same name
+        ports.mkdir(parents=True, exist_ok=True)
+        described = ports / "robot.yaml"
+        described.write_text(desc.model_dump_json())  # JSON is YAML
         # its own session (Ctrl-C reaches only us, who stop it in order); it dies with us, even by SIGKILL
         rig_proc = subprocess.Popen(
-            [sys.executable, "-m", "acquisition.sim.rig", "--robot", desc.name, "--run-dir", str(ports),
+            [sys.executable, "-m", "acquisition.sim.rig", "--robot", str(described), "--run-dir", str(ports),
              "--parent-pid", str(os.getpid())], start_new_session=True,
         )  # fmt: skip
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)

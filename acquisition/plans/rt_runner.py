@@ -4,11 +4,12 @@ Commands go through the recorder to the device daemons (each owns its port), whi
 servo goals on ``/servo/goal``, pressure set-points and valves on ``/pressure/command``. The plan's clock is
 the host's monotonic clock, paused while the operator is busy (hanging a payload, tapping the link). Every
 ``1/check_hz`` the latest measured state is checked against the safety limits; a violation, a device silent
-for longer than ``stale_s`` or Ctrl-C makes a safe stop: the servos hold where they are, the stepper stops,
-the pressures stay (an inflatable arm must not be vented under load), a SAFETY_STOP event says why, and the
-session stays valid. Every command passes the command guard before it is sent (a compensator's output
-included): one outside the robot's limits, or not a number, is a safe stop too, and nothing of it is sent. The
-daemons check again where the ports are; a refusal there also stops the plan.
+for longer than ``stale_s``, a fault a device reports (a drive's EMCY) or Ctrl-C makes a safe stop: the
+servos (or CiA 402 drives) hold where they are, the stepper stops, the pressures stay (an inflatable arm must
+not be vented under load), a SAFETY_STOP event says why, and the session stays valid. Every command passes
+the command guard before it is sent (a compensator's output included): one outside the robot's limits, or
+not a number, is a safe stop too, and nothing of it is sent. The daemons check again where the ports are; a
+refusal there also stops the plan.
 
     with Recorder(robot, ports, directory, session_id) as rec:
         report = RealTimeRunner(rec, plan, on_payload=prompt).run()
@@ -73,13 +74,17 @@ class RealTimeRunner:
         joints = self.robot.joints
         self.servo_joints = [i for i, j in enumerate(joints) if j.drive != "stepper"]
         self.stepper_joints = [i for i, j in enumerate(joints) if j.drive == "stepper"]
-        servo_dev = self.robot.devices.get("servo_bus")
-        if servo_dev is not None:  # goals in the bus's id order
+        joints_dev = self.robot.device_of("joints")
+        if joints_dev is not None:  # goals in the bus's id order (Dynamixel IDs, CANopen node ids)
             names = [j.name for j in joints]
-            self.servo_joints = [names.index(n) for n in servo_dev.ids if n in names]
+            ids = self.robot.devices[joints_dev].ids
+            self.servo_joints = [names.index(n) for n in ids if n in names and joints[names.index(n)].drive
+                                 != "stepper"]  # fmt: skip
+        # the servos' Sync Reads (current in A) or the CiA 402 drives' answers to SYNC (torque, no current)
+        self.joint_topic = T.joint_state_topic(self.robot) or T.SERVO_STATE
         self.commands = 0
         self._goal_seq = self._pressure_seq = 0
-        self._refused = 0  # refusals by the daemons' guards before this plan started
+        self._refused = self._faults = 0  # refusals and device faults before this plan started
 
     # --------------------------------------------------------------------------------------- running
     def run(self) -> RunReport:
@@ -87,7 +92,7 @@ class RealTimeRunner:
         plan = self.plan
         self.safety.require_safe(plan)
         self._require_devices()
-        self._refused = self.rec.refusals()[0]
+        self._refused, self._faults = self.rec.refusals()[0], self.rec.faults()[0]
         self.rec.event(Event(EventKind.PLAN_STEP, 0, label="plan-start", text=plan.name))
         self._send_torque(True)
         cursor = {"goal": -1, "pressure": -1, "payload": -1, "tap": -1, "event": 0}
@@ -140,7 +145,7 @@ class RealTimeRunner:
 
     def _needed(self) -> list[str]:
         """The streams the plan commands by (and watches)."""
-        needed = [T.SERVO_STATE] if self.servo_joints else []
+        needed = [self.joint_topic] if self.servo_joints else []
         needed.append(T.PRESSURE)
         return needed + ([T.STEPPER] if self.stepper_joints else [])
 
@@ -162,9 +167,10 @@ class RealTimeRunner:
         current = np.zeros(len(self.robot.joints))
         stamps = []
         if self.servo_joints:
-            s = self.rec.latest(T.SERVO_STATE)
+            s = self.rec.latest(self.joint_topic)
             q[self.servo_joints] = s.values["position"]
-            current[self.servo_joints] = s.values["current"]
+            if self.joint_topic == T.SERVO_STATE:  # the CiA 402 drives report torque: no current to give
+                current[self.servo_joints] = s.values["current"]
             stamps.append(s.host_ns)
         if self.stepper_joints:
             s = self.rec.latest(T.STEPPER)
@@ -228,6 +234,9 @@ class RealTimeRunner:
         refused, why = self.rec.refusals()
         if refused > self._refused:
             return "command", f"refused by a device daemon: {why}"
+        faults, fault = self.rec.faults()
+        if faults > self._faults:
+            return "device", f"fault: {fault}"
         q, pressure, _, oldest = self._measured()
         if host_now_ns() - oldest > self.stale_ns:
             lost = [topic for topic in self._needed() if not self.rec.connected(topic)]

@@ -117,6 +117,9 @@ class Daemon:
             rows = self.source.read(slot)
         except (DeviceDisconnectedError, DeviceNotFoundError):
             raise
+        except DeviceReplyError as exc:  # the device is there and says it failed (a drive's EMCY)
+            self._fault(str(exc))
+            return
         except DeviceError as exc:  # a timeout or a corrupted reply: retried in place next slot
             if now - self.last_ok_ns > self.stale_ns:
                 raise
@@ -194,6 +197,12 @@ class Daemon:
             self._refused(f"{op}: {exc}")
             return
         self._put(rows)
+
+    def _fault(self, why: str) -> None:
+        """A fault the device reported: counted (a plan running stops on it), and an event says what."""
+        log.warning("%s: fault: %s", self.device, why)
+        self.status.fault(why)
+        push_event(self.events, Event(EventKind.DEVICE_FAULT, label=self.device, text=why))
 
     def _refused(self, why: str) -> None:
         """A command refused (by the guard, or by the device): counted, and an event says why."""

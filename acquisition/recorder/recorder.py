@@ -285,6 +285,16 @@ class Recorder:
                 last = f"{name}: {why}"
         return total, last
 
+    def faults(self) -> tuple[int, str]:
+        """How many faults the devices reported so far (a drive's EMCY), and the last (``device: fault``)."""
+        total, last = 0, ""
+        for name, status in self._statuses.items():
+            n, why = status.faults
+            total += n
+            if n and why:
+                last = f"{name}: {why}"
+        return total, last
+
     def snapshot(self) -> dict[str, dict[str, int]]:
         """Every stream's account now: expected, received, lost, written, dropped, gaps."""
         if self.final is not None:

@@ -18,9 +18,9 @@ from acquisition.recorder.ring import map_file, unmap
 
 _WORDS = 8
 _TEXT = 512
-_PID, _HEARTBEAT, _PHASE, _CONNECTED, _STARTS, _REFUSED = range(6)
-_ERROR, _PRIORITY, _REFUSAL = 0, 1, 2  # text fields
-_TEXTS = 3
+_PID, _HEARTBEAT, _PHASE, _CONNECTED, _STARTS, _REFUSED, _FAULTS = range(7)
+_ERROR, _PRIORITY, _REFUSAL, _FAULT = 0, 1, 2, 3  # text fields
+_TEXTS = 4
 
 
 class Phase(enum.IntEnum):
@@ -114,6 +114,16 @@ class DaemonStatus:
     def refusals(self) -> tuple[int, str]:
         """How many commands were refused, and why the last one was."""
         return int(self.words[_REFUSED]), self._get(_REFUSAL)
+
+    def fault(self, why: str) -> None:
+        """The device reported a fault while streaming (counted; the last one kept)."""
+        self._set(_FAULT, why)
+        self.words[_FAULTS] += 1
+
+    @property
+    def faults(self) -> tuple[int, str]:
+        """How many faults the device reported, and the last one."""
+        return int(self.words[_FAULTS]), self._get(_FAULT)
 
     # the supervisor's side
     pid = _Word(_PID)

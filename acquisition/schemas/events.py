@@ -32,6 +32,7 @@ class EventKind(enum.IntEnum):
     SAFETY_STOP = 9  # label = which limit, text = why
     PLAN_STEP = 10  # index = step number, label = step kind
     COMMAND_REFUSED = 11  # the command guard kept a command from a device; label = device, text = why
+    DEVICE_FAULT = 12  # a streaming device reported a fault (a drive's EMCY); label = device, text = it
 
 
 EVENT_SCHEMA = (

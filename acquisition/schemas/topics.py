@@ -216,5 +216,14 @@ def session_topics(robot: RobotDescription) -> dict[str, Topic]:
     return {name: Topic(name, msg) for name, msg in messages.items() if msg is not None or name == EVENTS}
 
 
+def joint_state_topic(robot: RobotDescription) -> str | None:
+    """Where ``robot``'s joint angles are measured: the Dynamixel bus's Sync Reads (``/servo/state``) or the
+    CiA 402 drives' answers to SYNC (``/joint/state``); None without a joints device."""
+    joints = robot.device_of("joints")
+    if joints is None:
+        return None
+    return SERVO_STATE if robot.devices[joints].driver == "dynamixel" else JOINT_STATE
+
+
 def _drive(robot: RobotDescription, joint: str) -> str | None:
     return next((j.drive for j in robot.joints if j.name == joint), None)
