@@ -169,17 +169,13 @@ def dh_chain_from_table(rows_mm: Sequence[tuple[float, float, float, str]]) -> D
 def _dh_transforms(a: Array, alpha: Array, d: Array, theta: Array) -> Array:
     """Per-row transforms (..., R, 4, 4) for broadcast row parameters and θ (..., R)."""
     ct, st = np.cos(theta), np.sin(theta)
-    ca, sa = np.cos(alpha) * np.ones_like(theta), np.sin(alpha) * np.ones_like(theta)
-    zero, one = np.zeros_like(theta), np.ones_like(theta)
-    return np.stack(
-        [
-            np.stack([ct, -st * ca, st * sa, a * ct], -1),
-            np.stack([st, ct * ca, -ct * sa, a * st], -1),
-            np.stack([zero, sa, ca, d * one], -1),
-            np.stack([zero, zero, zero, one], -1),
-        ],
-        -2,
-    )
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    out = np.zeros((*np.shape(theta), 4, 4))  # filled in place: small stacks cost more than the maths
+    out[..., 0, 0], out[..., 0, 1], out[..., 0, 2], out[..., 0, 3] = ct, -st * ca, st * sa, a * ct
+    out[..., 1, 0], out[..., 1, 1], out[..., 1, 2], out[..., 1, 3] = st, ct * ca, -ct * sa, a * st
+    out[..., 2, 1], out[..., 2, 2], out[..., 2, 3] = sa, ca, d
+    out[..., 3, 3] = 1.0
+    return out
 
 
 class DHChain:
@@ -199,9 +195,12 @@ class DHChain:
         self._d = np.array([r.d for r in rows])
         self._offset = np.array([r.offset for r in rows])
         self._is_actuated = np.array([r.actuated for r in rows])
-        self._index = np.array(
+        index = np.array(
             [self.actuated.index(r.joint) if r.actuated else self.virtual.index(r.joint) for r in rows]
         )
+        # each row's θ read from q (actuated rows) or δ (virtual ones); the other index is any valid one
+        self._q_rows = index.clip(max=max(len(self._actuated) - 1, 0))
+        self._delta_rows = index.clip(max=max(len(self._virtual) - 1, 0))
 
     @property
     def actuated(self) -> tuple[str, ...]:
@@ -230,12 +229,9 @@ class DHChain:
                 f"delta has shape {delta.shape}, the chain needs (..., {len(self.virtual)})"
                 f" matching q's batch {q.shape[:-1]}: {self.virtual}"
             ) from None
-        values = np.where(self._is_actuated, q[..., self._index.clip(max=q.shape[-1] - 1)], 0.0)
-        if self.virtual:
-            values = np.where(
-                self._is_actuated, values, delta[..., self._index.clip(max=len(self.virtual) - 1)]
-            )
-        return values + self._offset
+        if not self.virtual:
+            return q[..., self._q_rows] + self._offset
+        return np.where(self._is_actuated, q[..., self._q_rows], delta[..., self._delta_rows]) + self._offset
 
     def frames(self, q: ArrayLike, delta: ArrayLike | None = None) -> Array:
         """Cumulative transforms (..., R + 1, 4, 4): index 0 is the base, i + 1 the frame after row i."""

@@ -280,6 +280,7 @@ class CanDrives(Device):
             deadline = time.monotonic() + timeout_s
             while True:
                 time.sleep(period_s)
+                self.wait_answers(until=time.monotonic() + period_s)  # late answers (a busy host) still count
                 cycle = self.sync()
                 if cycle is not None:
                     cycles.append(cycle)

@@ -228,9 +228,10 @@ def main(argv: list[str] | None = None) -> None:
     logging.basicConfig(level=logging.WARNING)
     if args.parent_pid is not None:  # a rig started for one recording dies with it, even by SIGKILL
         die_with_parent(args.parent_pid)
-    # the rig stands in for hardware, which a busy computer does not slow down: a real-time priority where
-    # the OS allows it (the daemons get a higher one)
-    log.info("rig priority: %s", elevate(fifo_priority=RT_PRIORITY - 1))
+    # the rig stands in for hardware, which a busy computer does not slow down: a real-time priority above
+    # the daemons' where the OS allows it (below them, two busy daemons on a 2-core machine kept it from
+    # answering a 1 kHz servo bus in time: the losses were the twin's, not the recorder's)
+    log.info("rig priority: %s", elevate(fifo_priority=RT_PRIORITY + 1))
     serve_rig(load_robot(args.robot), args.run_dir, args.seed)
 
 

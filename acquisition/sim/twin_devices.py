@@ -273,6 +273,11 @@ class RecentStep:
         self.tip, self.p_link = ring.tip[i], ring.p_link[i]
 
     @property
+    def slot(self) -> int:
+        """Where this step is in its ring."""
+        return self._i
+
+    @property
     def before(self) -> np.ndarray:
         """The tip positions of the two steps before (2, 3): for the tip's acceleration."""
         n = self._ring.capacity
@@ -348,9 +353,22 @@ class TwinLinkBoard:
         self.accel_spec = robot.sensors.accelerometer
         self.flex_spec = robot.sensors.flex
         self.gravity = np.asarray(robot.gravity_m_s2)
+        self._rotations: np.ndarray | None = None  # the link end's rotation at each step of rig.recent
+        self._rotated = 0  # rig.recent's steps whose rotation is in _rotations
 
     def _rotation(self, step: RecentStep) -> np.ndarray:
-        return self.chain.frames(step.q, step.delta)[self.frame, :3, :3]
+        """The link end's rotation at ``step``. Computed for every step the rig appended since the last
+        call in one batch (one forward kinematics per sample made the 1 kHz IMU most of the rig's time)."""
+        recent = self.rig.recent
+        if self._rotated < recent.head:
+            n = min(recent.head - self._rotated, recent.capacity)
+            slots = (recent.head - n + np.arange(n)) % recent.capacity
+            if self._rotations is None:
+                self._rotations = np.zeros((recent.capacity, 3, 3))
+            frames = self.chain.frames(recent.q[slots], recent.delta[slots])
+            self._rotations[slots] = frames[:, self.frame, :3, :3]
+            self._rotated = recent.head
+        return self._rotations[step.slot]
 
     def acceleration(self, t: float) -> np.ndarray:
         """Specific force (m/s², 3) at the chain's tip (link 2's end), as ``streams.accelerometer_stream``."""
