@@ -19,6 +19,7 @@ On a lab PC, grant the recording user real-time priority once (as root), then lo
 from __future__ import annotations
 
 import ctypes
+import gc
 import logging
 import os
 import signal
@@ -35,6 +36,17 @@ SHORT_SLICE_NS = 100_000  # the shortest slice the kernel grants (it clamps to 0
 RT_PRIORITY = 30  # SCHED_FIFO priority of device daemons (below the kernel's own threads at 50)
 ELEVATE_ENV = "VSLAB_RT_PRIORITY"  # "0": only what an unprivileged user gets (to show the targets hold so)
 BATCH_NICE_ENV = "VSLAB_BATCH_NICE"  # the nice value of batch work (default 19, as `nice -n 19`; 0: as it is)
+
+
+def settle_heap(collect: bool = True) -> None:
+    """Collect the garbage of start-up now (``collect``) and freeze what survived (``gc.freeze``): a
+    real-time loop then never pays for a full collection over the start-up heap (imports, numba, numpy:
+    measured 40-80 ms, one per process some seconds in, which lost 50-80 slots of a 1 kHz servo stream).
+    Later objects are collected as usual, over a small heap. Without ``collect`` only the freeze (a few
+    microseconds: for a device that already streams, which a 25 ms collection would hold up)."""
+    if collect:
+        gc.collect()
+    gc.freeze()
 
 
 def die_with_parent(parent_pid: int, sig: int = signal.SIGTERM) -> None:
@@ -54,52 +66,68 @@ def parent_alive(parent_pid: int) -> bool:
     return os.getppid() == parent_pid
 
 
+def _threads() -> list[int]:
+    """This process's threads (Linux: each has its own scheduling; a thread started before an elevation,
+    such as python-can's reader, would keep the ordinary one), or ``[0]``: the calling thread."""
+    try:
+        return sorted(int(tid) for tid in os.listdir("/proc/self/task"))
+    except (OSError, ValueError):
+        return [0]
+
+
 def elevate(fifo_priority: int = RT_PRIORITY, nice: int = -10) -> str:
     """Ask for SCHED_FIFO at ``fifo_priority``, else ``nice``, and a short slice where the policy is the
-    ordinary one; returns what this process runs at. With ``VSLAB_RT_PRIORITY=0`` it asks only for what an
-    unprivileged user gets (the short slice)."""
+    ordinary one, for every thread of this process (and so the threads they start); returns what it runs
+    at. With ``VSLAB_RT_PRIORITY=0`` it asks only for what an unprivileged user gets (the short slice)."""
     got = "normal (elevation off)"
     if os.environ.get(ELEVATE_ENV, "1") != "0":
         try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(fifo_priority))
+            for tid in _threads():
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(fifo_priority))
             return f"SCHED_FIFO {fifo_priority}"
         except (PermissionError, OSError, AttributeError):
             pass
         try:
-            os.setpriority(os.PRIO_PROCESS, 0, nice)
+            for tid in _threads():
+                os.setpriority(os.PRIO_PROCESS, tid, nice)
             got = f"nice {nice}"
         except (PermissionError, OSError):
             got = "normal (no privilege to raise it)"
-    if short_slice():
+    if all([short_slice(tid=tid) for tid in _threads()]):
         got += f", {SHORT_SLICE_NS / 1e6:g} ms slice"
     return got
 
 
-def short_slice(slice_ns: int = SHORT_SLICE_NS) -> bool:
-    """Ask the fair scheduler for a ``slice_ns`` time slice (``sched_setattr`` with ``sched_runtime`` on an
-    ordinary policy, Linux >= 6.12; no privilege needed). Returns whether the kernel took it."""
+def short_slice(slice_ns: int = SHORT_SLICE_NS, tid: int = 0) -> bool:
+    """Ask the fair scheduler for a ``slice_ns`` time slice for thread ``tid`` (0: the calling one;
+    ``sched_setattr`` with ``sched_runtime`` on an ordinary policy, Linux >= 6.12; no privilege needed).
+    Returns whether the kernel took it."""
     number = _SYS_SCHED_SETATTR.get(os.uname().machine)
     if not sys.platform.startswith("linux") or number is None:
         return False
     # struct sched_attr: size, policy, flags, nice, priority, runtime, deadline, period, util_min, util_max
-    nice = os.getpriority(os.PRIO_PROCESS, 0)
+    try:
+        nice = os.getpriority(os.PRIO_PROCESS, tid)
+    except OSError:
+        return False
     attr = struct.pack("IIQiIQQQII", 56, 0, 0, nice, 0, slice_ns, 0, 0, 0, 0)
     try:
         libc = ctypes.CDLL(None, use_errno=True)
-        return libc.syscall(number, 0, ctypes.create_string_buffer(attr, len(attr)), 0) == 0
+        return libc.syscall(number, tid, ctypes.create_string_buffer(attr, len(attr)), 0) == 0
     except (OSError, AttributeError):
         return False
 
 
 def relinquish() -> None:
-    """Back to the ordinary scheduling (a daemon that has stopped acquiring: its teardown must not hold up
-    the daemons still reading)."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        if os.getpriority(os.PRIO_PROCESS, 0) < 0:
-            os.setpriority(os.PRIO_PROCESS, 0, 0)
-    except (PermissionError, OSError, AttributeError):
-        pass
+    """Back to the ordinary scheduling, every thread (a daemon that has stopped acquiring: its teardown, or
+    its reconnecting, must not hold up the daemons still reading)."""
+    for tid in _threads():
+        try:
+            os.sched_setscheduler(tid, os.SCHED_OTHER, os.sched_param(0))
+            if os.getpriority(os.PRIO_PROCESS, tid) < 0:
+                os.setpriority(os.PRIO_PROCESS, tid, 0)
+        except (PermissionError, OSError, AttributeError):
+            pass
 
 
 def lower_priority(own_session: bool = True) -> None:

@@ -195,7 +195,7 @@ def _recorder(desc, port_map: dict, session_id: str, experiment: str, rates: dic
         _error(f"session {session_id} exists already in {directory.parent}: choose another --session")
     try:
         rec = Recorder(desc, port_map, directory, session_id, experiment=experiment, rates=rates,
-                       metadata={k: str(v) for k, v in meta.items()})  # fmt: skip
+                       metadata=meta)  # fmt: skip
     except RecorderError as exc:
         _error(str(exc))
     if not rec.devices:
@@ -368,7 +368,8 @@ def run_plan(experiment: str, plan: str = "0", overrides: dict | None = None, *,
         on_payload, on_tap = _operator(rig_dir if rig else None)
         name = the_plan.parameters.get("experiment", experiment)
         rec, view = _recorder(desc, port_map, session_id, name, device_rates, live, live_host, live_port,
-                              plan=the_plan.name, runner="real-time")  # fmt: skip
+                              plan=the_plan.name, runner="real-time",
+                              parameters=the_plan.parameters)  # fmt: skip
         with view as live_server:
             rec.live = live_server
             with _recording(rec):

@@ -32,7 +32,7 @@ from pathlib import Path
 
 from acquisition.command_guard import CommandRefused
 from acquisition.errors import DeviceDisconnectedError, DeviceError, DeviceNotFoundError, DeviceReplyError
-from acquisition.processes import elevate, parent_alive, relinquish
+from acquisition.processes import elevate, parent_alive, relinquish, settle_heap
 from acquisition.recorder.layout import Layout
 from acquisition.recorder.ring import Ring
 from acquisition.recorder.sources import SEQ_MODULO, Row, Source, make_source
@@ -83,6 +83,9 @@ class Daemon:
     # --------------------------------------------------------------------------------------- loop
     def serve(self) -> None:
         self.status.begin()
+        settle_heap()  # the imports' heap, before any device is open
+        # elevated before connecting: a bus that carries frames all the time (POPUP's CAN) must be read as
+        # fast as it comes while the drives are configured, or their SDO answers wait behind it and time out
         self.status.priority = elevate()
         self.status.phase = Phase.CONNECTING
         while not (self.stopping or self.terminating):
@@ -222,6 +225,7 @@ class Daemon:
                 self.status.phase = Phase.GAP
             self._safe_close()
             return False
+        settle_heap(collect=False)  # what opening built (canopen's object dictionaries)
         self.connected = True
         self.last_ok_ns = time.monotonic_ns()
         self.next_slot = None

@@ -32,7 +32,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -45,6 +45,7 @@ from acquisition.recorder.status import DaemonStatus, Phase
 from acquisition.recorder.writer import RotationPolicy
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
+from acquisition.schemas.session_card import as_metadata
 from models.robot import RobotDescription
 
 if TYPE_CHECKING:  # the live view (foxglove) is imported only by those who use it
@@ -102,7 +103,7 @@ class Recorder:
         directory: Path,
         session_id: str,
         experiment: str = "manual",
-        metadata: dict[str, str] | None = None,
+        metadata: dict[str, Any] | None = None,  # strings as they are, anything else as JSON
         rates: dict[str, float] | None = None,  # device → Hz, over the robot description's
         rotation: RotationPolicy | None = None,
         batch_s: float = 0.05,
@@ -134,7 +135,7 @@ class Recorder:
             run_dir=Path(), session_dir=self.directory, session_id=session_id, experiment=experiment,
             robot_json=robot.model_dump_json(), parent_pid=os.getpid(), t0_ns=now,
             unix_offset_ns=time.time_ns() - time.monotonic_ns(), devices=devices,
-            metadata={**{k: str(v) for k, v in (metadata or {}).items()},
+            metadata={**as_metadata(metadata or {}),
                       "rates_hz": json.dumps({n: d.rate_hz for n, d in devices.items()})},
             batch_s=batch_s, flush_s=flush_s, rotate_bytes=rotation.max_bytes,
             rotate_seconds=rotation.max_seconds, stale_s=stale_s,

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from acquisition.processes import parent_alive
+from acquisition.processes import parent_alive, settle_heap
 from acquisition.recorder.layout import Layout
 from acquisition.recorder.ring import Ring
 from acquisition.recorder.status import DaemonStatus, Phase
@@ -75,6 +75,7 @@ class WriterProcess:
 
     def serve(self) -> None:
         self.writer.open()
+        settle_heap()  # a full collection later would stall the drain (the rings then fill)
         last_flush = last_card = time.monotonic()
         while not self.stopping:
             started = time.monotonic()

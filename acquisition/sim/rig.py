@@ -24,7 +24,7 @@ import numpy as np
 from acquisition.codecs import dynamixel as dx
 from acquisition.codecs import popup_boards
 from acquisition.codecs.board_lines import MAX_SET_PA
-from acquisition.processes import RT_PRIORITY, die_with_parent, elevate
+from acquisition.processes import RT_PRIORITY, die_with_parent, elevate, settle_heap
 from acquisition.sim import sensors
 from acquisition.sim.can_bus import CanBus
 from acquisition.sim.clocks import _TICK_EPS as TICK_EPS
@@ -214,6 +214,7 @@ def serve_rig(robot: RobotDescription, run_dir: Path, seed: int = 0) -> None:
     numba.set_num_threads(1)  # one robot: worker threads would only steal the client's core
     rig = Rig(robot, seed=seed)
     host = PtyHost(run_dir, rig.emulators, tick=rig.advance, control=rig.control)  # tick: see PtyHost
+    settle_heap()
     log.info("rig for %s serving %s in %s", robot.name, ", ".join(rig.emulators), run_dir)
     host.serve_forever()
 
