@@ -81,7 +81,7 @@ def _events(directory: Path) -> list[tuple[int, Event]]:
 
 
 def test_a_session_meets_its_rates_loses_nothing_and_its_file_agrees(
-    host_factory, tmp_path, vsl, ros2_agrees
+    host_factory, tmp_path, vsl, ros2_agrees, real_time
 ):
     """Servo 1 kHz, pressure 250 Hz, stepper 100 Hz, tracker 40 Hz: every sample expected is received and
     written; the account computed from the file with the mcap reader equals session.json's; the generic
@@ -91,6 +91,7 @@ def test_a_session_meets_its_rates_loses_nothing_and_its_file_agrees(
         time.sleep(seconds)
     card = _card(tmp_path / "s")
     assert card["status"] == "complete" and rec.write_error is None
+    real_time()
     account = file_account(readable_parts(tmp_path / "s"), vsl)
     for topic, rate in RATES.items():
         c, f = card["counters"][topic], account[topic]
@@ -102,13 +103,14 @@ def test_a_session_meets_its_rates_loses_nothing_and_its_file_agrees(
     ros2_agrees(part)
 
 
-def test_rate_override_sets_the_servo_poll_rate(host_factory, tmp_path, vsl):
+def test_rate_override_sets_the_servo_poll_rate(host_factory, tmp_path, vsl, real_time):
     """``rates=`` (``vslab record --rate servo_bus=500``) polls the bus at that rate, not the description's
     1 kHz. (How fast the bus can be polled is bench/record.py's to measure: 1.5 kHz, tried here before, sat
     at the edge of what the 2-core machine gave and lost slots when it was busy.)"""
     with host_factory(**RIG) as ports:
         with Recorder(vsl, ports, tmp_path / "s", "slow", rates={"servo_bus": 500}) as rec:
             time.sleep(3.0)
+    real_time()
     c = rec.final[T.SERVO_STATE]
     assert c["lost"] == 0 and c["expected"] == c["written"]
     assert file_account(readable_parts(tmp_path / "s"), vsl)[T.SERVO_STATE]["rate_hz"] == pytest.approx(
@@ -118,7 +120,7 @@ def test_rate_override_sets_the_servo_poll_rate(host_factory, tmp_path, vsl):
 
 
 def test_an_unplugged_device_is_a_marked_gap_counted_lost_and_the_others_keep_recording(
-    host_factory, tmp_path, vsl
+    host_factory, tmp_path, vsl, real_time
 ):
     with host_factory(**RIG) as ports:
         run_dir = tmp_path / "run"
@@ -132,6 +134,7 @@ def test_an_unplugged_device_is_a_marked_gap_counted_lost_and_the_others_keep_re
                 time.sleep(0.05)
             time.sleep(0.5)
     kinds = [(e.kind, e.label) for _, e in _events(tmp_path / "s")]
+    real_time()
     assert (EventKind.DEVICE_GAP_START, "pressure_board") in kinds
     assert (EventKind.DEVICE_GAP_END, "pressure_board") in kinds
     account = file_account(readable_parts(tmp_path / "s"), vsl)
@@ -145,7 +148,9 @@ def test_an_unplugged_device_is_a_marked_gap_counted_lost_and_the_others_keep_re
         assert account[topic]["expected"] == card[topic]["expected"], topic
 
 
-def test_a_device_absent_when_the_recording_starts_counts_its_wait_as_lost(host_factory, tmp_path, vsl):
+def test_a_device_absent_when_the_recording_starts_counts_its_wait_as_lost(
+    host_factory, tmp_path, vsl, real_time
+):
     """A stream that starts in a gap (the device did not answer at first) has no earlier sample to bridge
     from: the time from its first failed attempt to its first sample is counted lost, not left out."""
     with host_factory(**RIG) as ports:
@@ -158,6 +163,7 @@ def test_a_device_absent_when_the_recording_starts_counts_its_wait_as_lost(host_
             while not rec.connected(T.PRESSURE) and time.monotonic() < deadline:
                 time.sleep(0.05)
             time.sleep(0.5)
+    real_time()
     pressure = _card(tmp_path / "s")["counters"][T.PRESSURE]
     assert pressure["gaps"] == 1 and pressure["lost"] > 1.5 * 250, pressure  # > 1.5 s at 250 Hz
     assert pressure["expected"] == pressure["received"] + pressure["lost"]
@@ -176,7 +182,7 @@ def test_corrupted_replies_are_retried_in_place(host_factory, tmp_path, vsl):
 
 
 def test_a_killed_daemon_is_restarted_within_a_second_and_only_its_stream_has_a_gap(
-    host_factory, tmp_path, vsl
+    host_factory, tmp_path, vsl, real_time
 ):
     with host_factory(**RIG) as ports, Recorder(vsl, ports, tmp_path / "s", "kill") as rec:
         time.sleep(1.5)
@@ -184,6 +190,7 @@ def test_a_killed_daemon_is_restarted_within_a_second_and_only_its_stream_has_a_
         killed = time.monotonic_ns()
         os.kill(pid, signal.SIGKILL)
         time.sleep(3.0)
+    real_time()
     assert rec.restarts == {"servo_bus": 1}
     events = _events(tmp_path / "s")
     starts = [(t, e) for t, e in events if e.kind == EventKind.DEVICE_GAP_START and e.label == "servo_bus"]
