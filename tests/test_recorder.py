@@ -119,6 +119,15 @@ def test_rate_override_sets_the_servo_poll_rate(host_factory, tmp_path, vsl, rea
     assert json.loads(_card(tmp_path / "s")["rates_hz"])["servo_bus"] == 500
 
 
+def _plug_pressure_board_back(run_dir: Path, rec: Recorder) -> None:
+    """Plug the pressure board in again and record until its stream is back (and half a second more)."""
+    send_control(run_dir, {"op": "fault", "device": "pressure_board", "kind": "plug"})
+    deadline = time.monotonic() + 10.0  # the Uno resets when the port opens again (~1.4 s boot)
+    while not rec.connected(T.PRESSURE) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.5)
+
+
 def test_an_unplugged_device_is_a_marked_gap_counted_lost_and_the_others_keep_recording(
     host_factory, tmp_path, vsl, real_time
 ):
@@ -128,11 +137,7 @@ def test_an_unplugged_device_is_a_marked_gap_counted_lost_and_the_others_keep_re
             time.sleep(1.0)
             send_control(run_dir, {"op": "fault", "device": "pressure_board", "kind": "unplug"})
             time.sleep(1.5)
-            send_control(run_dir, {"op": "fault", "device": "pressure_board", "kind": "plug"})
-            deadline = time.monotonic() + 10.0  # the Uno resets when the port opens again (~1.4 s boot)
-            while not rec.connected(T.PRESSURE) and time.monotonic() < deadline:
-                time.sleep(0.05)
-            time.sleep(0.5)
+            _plug_pressure_board_back(run_dir, rec)
     kinds = [(e.kind, e.label) for _, e in _events(tmp_path / "s")]
     real_time()
     assert (EventKind.DEVICE_GAP_START, "pressure_board") in kinds
@@ -158,11 +163,7 @@ def test_a_device_absent_when_the_recording_starts_counts_its_wait_as_lost(
         send_control(run_dir, {"op": "fault", "device": "pressure_board", "kind": "unplug"})
         with Recorder(vsl, ports, tmp_path / "s", "late") as rec:
             time.sleep(1.5)
-            send_control(run_dir, {"op": "fault", "device": "pressure_board", "kind": "plug"})
-            deadline = time.monotonic() + 10.0  # the Uno resets when the port opens again (~1.4 s boot)
-            while not rec.connected(T.PRESSURE) and time.monotonic() < deadline:
-                time.sleep(0.05)
-            time.sleep(0.5)
+            _plug_pressure_board_back(run_dir, rec)
     real_time()
     pressure = _card(tmp_path / "s")["counters"][T.PRESSURE]
     assert pressure["gaps"] == 1 and pressure["lost"] > 1.5 * 250, pressure  # > 1.5 s at 250 Hz

@@ -278,19 +278,17 @@ class Recorder:
 
     def refusals(self) -> tuple[int, str]:
         """How many commands the daemons' guards refused so far, and the last reason (``device: op: why``)."""
-        total, last = 0, ""
-        for name, status in self._statuses.items():
-            n, why = status.refusals
-            total += n
-            if n and why:
-                last = f"{name}: {why}"
-        return total, last
+        return self._tally("refusals")
 
     def faults(self) -> tuple[int, str]:
         """How many faults the devices reported so far (a drive's EMCY), and the last (``device: fault``)."""
+        return self._tally("faults")
+
+    def _tally(self, counter: str) -> tuple[int, str]:
+        """A status counter (``refusals``, ``faults``) summed over the daemons, with the last reason."""
         total, last = 0, ""
         for name, status in self._statuses.items():
-            n, why = status.faults
+            n, why = getattr(status, counter)
             total += n
             if n and why:
                 last = f"{name}: {why}"
