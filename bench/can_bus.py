@@ -37,9 +37,7 @@ def run_rate(drives: CanDrives, run_dir: Path, rate_hz: float, seconds: float) -
     next_t, stamps, answered, cycles = start, [], 0, 0
     goal = None
     while time.monotonic() - start < seconds:
-        if stamps:  # as the recorder: late answers are waited for, up to a period past the slot
-            drives.wait_answers(until=stamps[-1] + 2 * period)
-        cycle = drives.sync()
+        cycle = drives.sync(wait_s=2 * period)  # as the recorder: late answers waited for, a period past
         stamps.append(time.monotonic())
         if cycle is not None:
             cycles += 1

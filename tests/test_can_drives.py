@@ -37,8 +37,7 @@ def drives(popup_rig, popup):
 def _cycles(drives: CanDrives, n: int, goals=None) -> list:
     out = []
     for k in range(n):
-        drives.wait_answers(until=time.monotonic() + PERIOD_S)  # as the recorder does: late answers count
-        cycle = drives.sync()
+        cycle = drives.sync(wait_s=2 * PERIOD_S)  # as the recorder does: late answers count
         if cycle is not None:
             out.append(cycle)
         if goals is not None:

@@ -112,6 +112,7 @@ class CanDrives(Device):
         self.syncs = 0
         self._lock = threading.Lock()
         self._all_answered = threading.Condition(self._lock)  # every drive sent both PDOs since the SYNC
+        self._synced_at = 0.0  # when the last SYNC went out (time.monotonic)
         self._faults: list[tuple[str, int]] = []
 
     @property
@@ -204,7 +205,7 @@ class CanDrives(Device):
         values = [var.raw for var in pdo]
         with self._lock:
             drive.answers[n] = (host_now_ns(), values)
-            if all(len(d.answers) == 2 for d in self.drives):
+            if self._answered():
                 self._all_answered.notify_all()
 
     def _on_emcy(self, drive: _Drive, err) -> None:
@@ -213,24 +214,28 @@ class CanDrives(Device):
                 self._faults.append((drive.joint, err.code))
 
     # ------------------------------------------------------------------------------------ cycle
-    def wait_answers(self, until: float) -> bool:
-        """Wait until every drive has answered the last SYNC, or until ``until`` (``time.monotonic``);
-        returns whether they all did."""
-        with self._all_answered:
-            return self._all_answered.wait_for(
-                lambda: all(len(d.answers) == 2 for d in self.drives), max(0.0, until - time.monotonic())
-            )
+    def _answered(self) -> bool:
+        """Whether every drive has sent both its PDOs since the last SYNC (call with the lock held)."""
+        return all(len(d.answers) == 2 for d in self.drives)
 
-    def sync(self) -> DriveCycle | None:
+    def sync(self, wait_s: float = 0.0) -> DriveCycle | None:
         """Send SYNC number ``syncs + 1``; return the drives' answers to the previous SYNC (None before the
-        first). Raises :class:`DriveLostError` or :class:`DriveFaultError`."""
+        first). The drives answer within a millisecond on the bus, but a busy host (or twin) may read the
+        answers later: with ``wait_s`` this first waits for them, up to ``wait_s`` after the previous SYNC
+        (the new one then goes out late, as from any master that waits), so a late answer is neither lost
+        nor taken for the next SYNC's. Raises :class:`DriveLostError` or :class:`DriveFaultError`."""
         self.check()
-        with self._lock:
+        with self._all_answered:
+            if self.syncs and wait_s > 0:
+                self._all_answered.wait_for(
+                    self._answered, max(0.0, self._synced_at + wait_s - time.monotonic())
+                )
             answers = [d.answers for d in self.drives]
             for d in self.drives:
                 d.answers = {}
         cycle = self._cycle(answers) if self.syncs else None
         self.network.sync.transmit()
+        self._synced_at = time.monotonic()
         self.syncs += 1
         return cycle
 
@@ -280,8 +285,7 @@ class CanDrives(Device):
             deadline = time.monotonic() + timeout_s
             while True:
                 time.sleep(period_s)
-                self.wait_answers(until=time.monotonic() + period_s)  # late answers (a busy host) still count
-                cycle = self.sync()
+                cycle = self.sync(wait_s=2 * period_s)  # late answers (a busy host) still count
                 if cycle is not None:
                     cycles.append(cycle)
                     if cycle.answered.all() and _reached(cycle.statusword, state).all():

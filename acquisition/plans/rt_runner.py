@@ -78,8 +78,7 @@ class RealTimeRunner:
         if joints_dev is not None:  # goals in the bus's id order (Dynamixel IDs, CANopen node ids)
             names = [j.name for j in joints]
             ids = self.robot.devices[joints_dev].ids
-            self.servo_joints = [names.index(n) for n in ids if n in names and joints[names.index(n)].drive
-                                 != "stepper"]  # fmt: skip
+            self.servo_joints = [names.index(n) for n in ids if n in names]
         # the servos' Sync Reads (current in A) or the CiA 402 drives' answers to SYNC (torque, no current)
         self.joint_topic = T.joint_state_topic(self.robot) or T.SERVO_STATE
         self.commands = 0

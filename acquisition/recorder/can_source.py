@@ -16,7 +16,6 @@ per SYNC. The safe state holds the joints where they were last measured and leav
 from __future__ import annotations
 
 import logging
-import time
 
 import numpy as np
 
@@ -67,7 +66,6 @@ class PopupCanSource(Source):
         self.goal: np.ndarray | None = None  # where the targets are heading
         self.speed = np.zeros(len(self.joints))
         self.first_sync = 0
-        self._synced_at = 0.0
 
     # ---------------------------------------------------------------------------------- lifecycle
     def open(self) -> None:
@@ -86,15 +84,12 @@ class PopupCanSource(Source):
     def read(self, slot: int) -> list[Row]:
         self.boards.check()
         self._interpolate()
-        # the drives answer a SYNC within a millisecond on the bus, but a busy host (or twin) may read the
-        # answers later: the next SYNC waits for them, up to a period past its slot (the SYNC then comes
-        # late, as it would from any master that waits), so a late answer is neither lost nor taken for the
-        # next SYNC's. A SYNC some drive left unanswered past that is no joint state: a hole in the sequence
-        # numbers, counted lost (a joint-state vector with a drive missing is not a sample)
-        if self._synced_at and not self.drives.wait_answers(until=self._synced_at + 2.0 / self.rate_hz):
-            log.info("%s: SYNC %d not answered by every drive", self.name, self.drives.syncs)
-        cycle = self.drives.sync()
-        self._synced_at = time.monotonic()
+        # a SYNC waits up to a period past its slot for the last one's answers (see CanDrives.sync); one
+        # some drive left unanswered past that is no joint state: a hole in the sequence numbers, counted
+        # lost (a joint-state vector with a drive missing is not a sample)
+        cycle = self.drives.sync(wait_s=2.0 / self.rate_hz)
+        if cycle is not None and not cycle.answered.all():
+            log.info("%s: SYNC %d not answered by every drive", self.name, cycle.sync)
         rows = []
         if cycle is not None and cycle.sync >= self.first_sync and cycle.answered.all():
             self.position = cycle.position_rad
