@@ -94,6 +94,16 @@ class _Drive:
     answers: dict[int, tuple[int, list[int]]] = field(default_factory=dict)  # TPDO n → (host_ns, raw values)
 
 
+def _interpolation_period(period_s: float) -> tuple[int, int]:
+    """0x60C2's (value, index) for ``period_s``: value × 10^index s, the finest index whose value fits a
+    byte (10 ms → (100, -4))."""
+    for index in range(-6, 1):
+        value = round(period_s / 10.0**index)
+        if value <= 255:
+            return max(value, 1), index
+    raise ValueError(f"a SYNC period of {period_s} s is beyond 0x60C2's range")
+
+
 class CanDrives(Device):
     """The joint drives ``ids`` (joint name → node id) on the CAN adapter at ``port``."""
 
@@ -101,8 +111,10 @@ class CanDrives(Device):
 
     def __init__(self, port: str, ids: dict[str, int], limits_rad: dict[str, Limits] | None = None,
                  bitrate: int = 1_000_000, heartbeat_ms: int = 100, interface: str = "slcan", eds: Path = EDS,
-                 sleep_after_open_s: float = 0.0, retries: int = 2) -> None:  # fmt: skip
+                 sleep_after_open_s: float = 0.0, retries: int = 2,
+                 sync_period_s: float = 0.01) -> None:  # fmt: skip
         super().__init__(port, retries)
+        self.sync_period_s = sync_period_s  # the drives interpolate between targets over it (0x60C2)
         self.ids = dict(ids)
         self.limits_rad = dict(limits_rad or {})
         self.bitrate, self.heartbeat_ms, self.interface = bitrate, heartbeat_ms, interface
@@ -157,6 +169,8 @@ class CanDrives(Device):
             node.nmt.state = "PRE-OPERATIONAL"
             self._map_pdos(node)
             node.sdo[0x6060].raw = 8  # cyclic synchronous position
+            value, index = _interpolation_period(self.sync_period_s)
+            node.sdo[0x60C2][1].raw, node.sdo[0x60C2][2].raw = value, index  # a target per SYNC period
         except SdoCommunicationError as exc:
             raise DeviceNotFoundError(f"{what}: no answer ({exc}); is it powered and on the bus?") from exc
         except SdoAbortedError as exc:
@@ -270,10 +284,11 @@ class CanDrives(Device):
                                      f"no heartbeat for {silent:.2f} s (power, cable or bus?)")  # fmt: skip
 
     # --------------------------------------------------------------------------------- commands
-    def enable(self, timeout_s: float = 1.0, period_s: float = 0.01) -> list[DriveCycle]:
+    def enable(self, timeout_s: float = 1.0) -> list[DriveCycle]:
         """Every drive to OPERATION ENABLED (a faulted one reset first), its target first set where it
         stands, so enabling does not jump. The drives answer on SYNC, so this pumps SYNCs (every
-        ``period_s``) while it waits; returns the cycles they answered."""
+        ``sync_period_s``) while it waits; returns the cycles they answered."""
+        period_s = self.sync_period_s
         for d in self.drives:
             d.node.rpdo[2]["Target position"].raw = d.node.sdo[0x6064].raw
             d.node.rpdo[2].transmit()

@@ -11,6 +11,11 @@ the command guard before it is sent (a compensator's output included): one outsi
 not a number, is a safe stop too, and nothing of it is sent. The daemons check again where the ports are; a
 refusal there also stops the plan.
 
+A plan's ``settle`` waits for the bench, not only for its time: the plan's clock stands at each SETTLED
+event until the measured joints have been still and every regulated pressure at its set-point for
+``SETTLE_WINDOW_S`` (the arm still moving to a test pose, a link still filling), or stops the plan when that
+takes longer than ``settle_timeout_s``. A simulated run starts at the plan's first pose; the robot does not.
+
     with Recorder(robot, ports, directory, session_id) as rec:
         report = RealTimeRunner(rec, plan, on_payload=prompt).run()
 """
@@ -19,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -35,6 +41,14 @@ from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 
 log = logging.getLogger(__name__)
+
+# settled, over the last SETTLE_WINDOW_S: no joint drifted more than SETTLE_DRIFT_RAD (the mean of its first
+# and of its last fifth: a slow creep to the goal counts, encoder noise averages out) nor spread more than
+# SETTLE_SPREAD_RAD, and every regulated pressure stayed within SETTLE_PRESSURE_PA of its set-point (or
+# SETTLE_PRESSURE_FRACTION of it, if more). ASSUMED: a drive creeping its last counts at 2 mrad/s moves the
+# tip of an 0.3 m link by over 1 mm during a 2 s hold; 0.3 mrad in 0.4 s stops that
+SETTLE_WINDOW_S, SETTLE_DRIFT_RAD, SETTLE_SPREAD_RAD = 0.5, 3e-4, 5e-3
+SETTLE_PRESSURE_PA, SETTLE_PRESSURE_FRACTION = 2000.0, 0.03
 
 
 class RunnerError(AcquisitionError, RuntimeError):
@@ -62,6 +76,7 @@ class RealTimeRunner:
         tick_s: float = 0.002,
         check_hz: float = 20.0,
         stale_s: float = 0.5,
+        settle_timeout_s: float = 30.0,
     ) -> None:
         self.rec, self.plan, self.robot = recorder, plan, recorder.robot
         if plan.robot != self.robot.name:
@@ -69,6 +84,8 @@ class RealTimeRunner:
         self.compensator = compensator
         self.on_payload, self.on_tap = on_payload, on_tap
         self.tick_s, self.check_period, self.stale_ns = tick_s, 1.0 / check_hz, int(stale_s * 1e9)
+        self.settle_timeout_s = settle_timeout_s
+        self._recent: deque[tuple[float, np.ndarray, np.ndarray]] = deque()  # (monotonic, q, pressure)
         self.safety = SafetyChecker(self.robot)
         self.guard = CommandGuard(self.robot)
         joints = self.robot.joints
@@ -96,10 +113,24 @@ class RealTimeRunner:
         self._send_torque(True)
         cursor = {"goal": -1, "pressure": -1, "payload": -1, "tap": -1, "event": 0}
         payload = float(plan.payload_kg[0])
+        settles = [at for at, e in plan.events if e.kind == EventKind.SETTLED]
+        settling_since = None  # when the clock reached the next settle and stood still (time.monotonic)
         start, paused, next_check, t = time.monotonic(), 0.0, 0.0, 0.0
         try:
             while t <= plan.duration_s:
-                t = time.monotonic() - start - paused
+                now = time.monotonic()
+                t = now - start - paused
+                if settles:
+                    self._remember(*self._measured()[:2])
+                if settles and t >= settles[0]:  # the clock stands just before a settle until the bench is
+                    settling_since = settling_since or now
+                    if self._settled(plan.at(np.array([settles[0]]))):
+                        settles.pop(0)
+                        settling_since = None
+                    elif now - settling_since > self.settle_timeout_s:
+                        return self._safe_stop("stopped", settles[0], "settle", self._unsettled())
+                    else:
+                        paused, t = paused + t - settles[0] + 1e-9, settles[0] - 1e-9
                 g = int(np.searchsorted(plan.goal_t, t, side="right")) - 1
                 try:
                     if g != cursor["goal"]:
@@ -123,8 +154,8 @@ class RealTimeRunner:
                 while cursor["event"] < len(plan.events) and plan.events[cursor["event"]][0] <= t:
                     self.rec.event(plan.events[cursor["event"]][1])
                     cursor["event"] += 1
-                if t >= next_check:
-                    next_check = t + self.check_period
+                if now >= next_check:  # on the host's clock: the checks go on while the plan's stands
+                    next_check = now + self.check_period
                     problem = self._check(t, payload)
                     if problem is not None:
                         return self._safe_stop("stopped", t, *problem)
@@ -158,6 +189,39 @@ class RealTimeRunner:
                 if time.monotonic() > deadline:
                     raise RunnerError(f"no {topic} samples ({self.rec.error(topic) or 'silent'})")
                 time.sleep(0.01)
+
+    # -------------------------------------------------------------------------------------- settling
+    def _settled(self, cmd: dict) -> bool:
+        """Whether the joints have been still, and every pressure whose valves the plan holds open at its
+        set-point ``cmd`` (``Plan.at``), over the last ``SETTLE_WINDOW_S`` (sampled at the checks)."""
+        recent = self._recent
+        if not recent or recent[-1][0] - recent[0][0] < 0.9 * SETTLE_WINDOW_S:
+            return False
+        q = np.array([r[1] for r in recent])
+        pressure = np.array([r[2] for r in recent])
+        setpoint, regulated = cmd["pressure_pa"][0], cmd["valve_open"][0]
+        allowance = np.maximum(SETTLE_PRESSURE_PA, SETTLE_PRESSURE_FRACTION * setpoint)
+        off = np.abs(pressure - setpoint) > allowance
+        return bool(_drift(q).max() <= SETTLE_DRIFT_RAD and np.ptp(q, axis=0).max() <= SETTLE_SPREAD_RAD
+                    and not off[:, regulated].any())  # fmt: skip
+
+    def _unsettled(self) -> str:
+        """What kept the bench from settling, in words."""
+        if not self._recent:
+            return f"no measurements in {self.settle_timeout_s:g} s"
+        moved = _drift(np.array([r[1] for r in self._recent]))
+        joint = self.robot.joints[int(moved.argmax())].name
+        pressure = self._recent[-1][2]
+        return (
+            f"not settled in {self.settle_timeout_s:g} s: {joint} drifted {moved.max() * 1e3:.2f} mrad "
+            f"in {SETTLE_WINDOW_S:g} s; pressures {', '.join(f'{p / 1e3:.1f}' for p in pressure)} kPa"
+        )
+
+    def _remember(self, q: np.ndarray, pressure: np.ndarray) -> None:
+        now = time.monotonic()
+        self._recent.append((now, q, pressure))
+        while now - self._recent[0][0] > SETTLE_WINDOW_S:
+            self._recent.popleft()
 
     # --------------------------------------------------------------------------------------- sending
     def _measured(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
@@ -260,3 +324,9 @@ class RealTimeRunner:
         if self.stepper_joints:
             self.rec.command(T.STEPPER, {"op": "stop"})
         return RunReport(self.plan.name, status, t, f"{limit}: {why}", self.commands)
+
+
+def _drift(q: np.ndarray) -> np.ndarray:
+    """How far each joint moved over samples ``q`` (N, A): the mean of their last fifth less their first's."""
+    fifth = max(len(q) // 5, 1)
+    return np.abs(q[-fifth:].mean(axis=0) - q[:fifth].mean(axis=0))

@@ -58,7 +58,7 @@ class PopupCanSource(Source):
         super().__init__(robot, name, spec, port, rate_hz)
         self.joints = list(spec.ids)
         limits = {j.name: (j.lower_rad, j.upper_rad) for j in robot.joints if j.name in spec.ids}
-        self.drives = CanDrives(port, spec.ids, limits, bitrate=spec.baud)
+        self.drives = CanDrives(port, spec.ids, limits, bitrate=spec.baud, sync_period_s=1.0 / self.rate_hz)
         self.boards = BoardFrames({n: d.ids["board"] for n, d in boards.items()}, slowest_s)
         self.calibration = robot.sensors.pressure
         self.position: np.ndarray | None = None  # last measured joint angles: where a hold holds
@@ -71,7 +71,7 @@ class PopupCanSource(Source):
     def open(self) -> None:
         self.drives.open()
         self.boards.attach(self.drives.network)
-        cycles = self.drives.enable(period_s=1.0 / self.rate_hz)
+        cycles = self.drives.enable()
         self.position = np.asarray(cycles[-1].position_rad, float) if cycles else None
         self.target = self.goal = None if self.position is None else self.position.copy()
         self.first_sync = self.drives.syncs  # the SYNCs before were enabling's: their answers are not samples

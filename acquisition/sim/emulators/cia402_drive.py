@@ -3,7 +3,8 @@
 The device-control state machine (CiA 402 §6: switch on disabled → ready to switch on → switched on →
 operation enabled, quick stop active, fault reaction → fault, fault reset on the rising edge of bit 7) is
 driven by the controlword (0x6040) and shown in the statusword (0x6041). Enabled, the drive moves its twin
-joint: in cyclic synchronous position (mode 8) to every target position (0x607A) it is sent; in profile
+joint: in cyclic synchronous position (mode 8) to every target position (0x607A) it is sent, linearly over
+the interpolation time period (0x60C2, the master's SYNC period); in profile
 position (mode 1) to the target when bit 4 (new set-point) rises, with the profile velocity and acceleration.
 Not enabled, or faulted, the joint's brake holds it where it is.
 
@@ -31,7 +32,7 @@ from acquisition.sim.emulators.canopen_node import CanopenNode
 CONTROLWORD, STATUSWORD, ERROR_CODE, ERROR_REGISTER = 0x6040, 0x6041, 0x603F, 0x1001
 MODE, MODE_DISPLAY, QUICK_STOP_OPTION = 0x6060, 0x6061, 0x605A
 POSITION_ACTUAL, VELOCITY_ACTUAL, TORQUE_ACTUAL = 0x6064, 0x606C, 0x6077
-TARGET_POSITION, SOFTWARE_LIMITS = 0x607A, 0x607D
+TARGET_POSITION, SOFTWARE_LIMITS, INTERPOLATION_PERIOD = 0x607A, 0x607D, 0x60C2
 FOLLOWING_WINDOW, POSITION_WINDOW = 0x6065, 0x6067
 PROFILE_VELOCITY, PROFILE_ACCELERATION, QUICK_STOP_DECELERATION = 0x6081, 0x6083, 0x6085
 RATED_TORQUE, COUNTS_PER_REV = 0x6076, 0x2000
@@ -136,6 +137,12 @@ class Cia402Drive(CanopenNode):
     def counts_per_rad(self) -> float:
         return self.get(COUNTS_PER_REV) / (2 * math.pi)
 
+    @property
+    def interpolation_period_s(self) -> float:
+        """0x60C2: value × 10^index seconds (a zero or nonsensical period: 1 ms)."""
+        period = self.get(INTERPOLATION_PERIOD, 1) * 10.0 ** self.get(INTERPOLATION_PERIOD, 2)
+        return period if 1e-5 <= period <= 1.0 else 1e-3
+
     def on_reset(self, comm_only: bool) -> None:
         if comm_only:
             return
@@ -171,7 +178,11 @@ class Cia402Drive(CanopenNode):
             and self.ds == State.OPERATION_ENABLED
             and self.get(MODE_DISPLAY) == MODE_CSP
         ):
-            self._move_to(self.get(TARGET_POSITION), t, velocity=0.0, acceleration=0.0)
+            # CSP: from the demand to the new set-point in a straight line over the interpolation period (the
+            # master's SYNC period), as a drive's fine interpolator does, not a step the loop jumps at
+            target = self.get(TARGET_POSITION)
+            step = abs(target - (self._demand if self._demand is not None else target))
+            self._move_to(target, t, velocity=max(step, 1) / self.interpolation_period_s, acceleration=0.0)
         self._show()
 
     def _controlword(self, cw: int, t: float) -> None:

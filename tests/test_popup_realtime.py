@@ -1,0 +1,56 @@
+"""Seed 001's link tests in real time: ``vslab run popup_static|popup_impact --rig`` load and tap link 2
+through the rig while the tracker and the tip IMU stream over their wires (Aurora serial, the CAN bus at
+1 kHz), and the pipeline reads the sessions exactly as simulated ones: Table 1 comes back out as the twin's
+configured link within the bounds tests/test_popup_analysis.py holds the simulated sessions to (f_s 1 %,
+ζ 5 %, k̂ 5 %, ĉ 15 %).
+
+The arm starts at the rig's home pose, not at the test pose as a simulated run does: each plan's ``settle``
+waits, in real time, until the arm has reached the pose and the link its pressure."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from acquisition.recorder.sessions import session_info
+from analysis import popup_tests as pt
+from models import prbm
+from models.robot import load_robot
+
+INERTIA = 0.0358  # the twin's link 2 about its virtual hinge (tests/test_popup_analysis.py)
+PRESSURES_KPA = (10, 50)
+IMPACT = ["taps=2", "record_s=1.2", "settle_s=1.0"]
+# one repetition of the default loads (4 of them below M_w at 10 kPa): over seeds 1-6 of the simulated test
+# the mean static k of the two pressures was within 2.7 % of the configured link (k̂ rests on that mean)
+STATIC = ["repetitions=1", "pressure_settle_s=1.0", "settle_s=1.2", "hold_s=2.0"]
+
+
+def _run(lab, experiment: str, plan: int, settings: list[str], session: str):
+    cli = [sys.executable, "-m", "vslab.cli", "--lab", str(lab), "--quiet"]
+    pressures = f"pressures_kpa=[{', '.join(map(str, PRESSURES_KPA))}]"
+    sets = [arg for s in (pressures, *settings) for arg in ("--set", s)]
+    command = [*cli, "run", experiment, "--plan", str(plan), *sets, "--rig", "--session", session]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    assert session_info(lab / "sessions" / session).status == "complete"
+    return lab / "sessions" / session
+
+
+@pytest.mark.slow
+def test_table1_from_real_time_link_tests(tmp_path):
+    lab = tmp_path / "lab"
+    impact = [_run(lab, "popup_impact", i, IMPACT, f"impact-{kpa}") for i, kpa in enumerate(PRESSURES_KPA)]
+    static = [_run(lab, "popup_static", i, STATIC, f"static-{kpa}") for i, kpa in enumerate(PRESSURES_KPA)]
+    table = pt.table1(pt.static_stiffness(pt.link_static_curves(static)), pt.impact_parameters(impact))
+    assert table["pressure_kpa"].tolist() == list(PRESSURES_KPA)
+    link = load_robot("popup").link_table("link2")
+    p = table["pressure_kpa"].to_numpy() * 1e3
+    k = np.interp(p, link.pressure_pa, link.stiffness_nm_per_rad)
+    c = np.interp(p, link.pressure_pa, link.damping_nms_per_rad)
+    np.testing.assert_allclose(table["f_s_hz"], prbm.damped_frequency_hz(k, c, INERTIA), rtol=0.01)
+    np.testing.assert_allclose(table["zeta"], prbm.damping_ratio(k, c, INERTIA), rtol=0.05)
+    np.testing.assert_allclose(table["k_hat"], k, rtol=0.05)
+    np.testing.assert_allclose(table["c_hat"], c, rtol=0.15)
