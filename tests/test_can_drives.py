@@ -58,6 +58,11 @@ def test_drives_enable_and_follow_target_positions(drives):
     assert np.isfinite(final.torque_nm).all() and abs(final.torque_nm[1]) > 0.5  # q2 holds link 1 up
 
 
+def test_the_master_sets_the_drives_interpolation_period_to_its_sync_period(drives):
+    period = [(d.node.sdo[0x60C2][1].raw, d.node.sdo[0x60C2][2].raw) for d in drives.drives]
+    assert period == [(100, -4)] * 3  # 100 × 10⁻⁴ s = the 10 ms SYNC period (0x60C2 written by SDO)
+
+
 def test_every_sync_is_answered_by_every_drive_and_counted(drives):
     drives.enable()
     last = drives.syncs - 1  # the SYNC sent last: the next call returns its answers

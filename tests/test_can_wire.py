@@ -162,7 +162,7 @@ class Joint:
         return self.position, 0.0, 12.0
 
     def command(self, goal, velocity, acceleration, t):
-        self.goal = goal
+        self.goal, self.velocity = goal, velocity
         if not self.lag:
             self.position = goal
 
@@ -224,6 +224,24 @@ def test_a_target_beyond_the_software_limits_is_clamped_and_flagged():
     _write(drive, D.TARGET_POSITION, high + 50_000, 4)
     assert joint.goal == pytest.approx(high / drive.counts_per_rad)
     assert _read(drive, D.STATUSWORD) & D.SW_LIMIT
+
+
+def test_csp_set_points_are_interpolated_over_the_interpolation_period():
+    """A drive's fine interpolator: from one set-point to the next in a straight line over 0x60C2 (value ×
+    10^index s, INTEGER8 index), not a jump the position loop takes at full speed."""
+    joint = Joint()
+    drive = _booted(joint)
+    _write(drive, D.MODE, 8, 1)
+    assert _write(drive, D.INTERPOLATION_PERIOD, 100, 1, sub=1)[0] == 0x60
+    assert _write(drive, D.INTERPOLATION_PERIOD, -4, 1, sub=2)[0] == 0x60
+    assert drive.interpolation_period_s == pytest.approx(0.01)
+    for cw in (0x06, 0x07, 0x0F):
+        _write(drive, D.CONTROLWORD, cw, 2)
+    here = round(0.1 * drive.counts_per_rad)
+    _write(drive, D.TARGET_POSITION, here + 65, 4)  # 65 counts in 10 ms
+    assert joint.velocity * drive.counts_per_rad == pytest.approx(6500)
+    _write(drive, D.TARGET_POSITION, here + 65, 4)  # the same set-point: hold it, gently
+    assert joint.velocity * drive.counts_per_rad == pytest.approx(100)
 
 
 def test_a_following_error_faults_the_drive_with_an_emcy_and_a_reset_clears_it():
