@@ -100,6 +100,7 @@ class _Port:
         self.link = run_dir / name
         self.faults = Faults()
         self.master = -1
+        self._unsent = b""  # the rest of a reply the pty had room for only in part: it goes out first
         self.slave = -1
         # emulators that reset when their port opens (``port_opened``) have their slave watched
         self.watch = watch if emulator.resets_on_open else None
@@ -131,6 +132,7 @@ class _Port:
             if fd >= 0:
                 os.close(fd)
         self.master = self.slave = -1
+        self._unsent = b""
 
     def opened_or_closed(self, mask: int, now_s: float) -> None:
         """An inotify event on the slave: the first open resets the device (DTR rises)."""
@@ -153,12 +155,29 @@ class _Port:
             self.faults.corrupt_replies -= 1
             middle = len(data) // 2
             data = data[:middle] + bytes([data[middle] ^ 0x5A]) + data[middle + 1 :]
+        # a device whose host does not read drops whole replies (its output buffer overflows), never the
+        # end of one: what a full pty took in part is finished before anything newer goes out
+        if self._unsent:
+            if not self._send(self._unsent):
+                log.warning("%s: host not reading, %d bytes dropped", self.name, len(data))
+                return
+        self._send(data, whole=True)
+
+    def _send(self, data: bytes, whole: bool = False) -> bool:
+        """Write ``data``; keep what did not fit of a reply begun (``_unsent``); whether it all went out.
+        A reply not begun at all (``whole``) is dropped."""
         try:
-            os.write(self.master, data)
+            n = os.write(self.master, data)
         except BlockingIOError:
-            log.warning("%s: host not reading, %d bytes dropped", self.name, len(data))
+            n = 0
         except OSError as exc:  # EIO: no process has the slave open right now
             log.debug("%s: write failed: %s", self.name, exc)
+            self._unsent = b""
+            return False
+        if whole and n == 0:
+            log.warning("%s: host not reading, %d bytes dropped", self.name, len(data))
+        self._unsent = data[n:] if n > 0 else (b"" if whole else data)
+        return not self._unsent
 
 
 class PtyHost:
