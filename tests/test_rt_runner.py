@@ -39,7 +39,7 @@ def _plan(name="test/rt"):
     return b.build()
 
 
-def test_plan_runs_on_the_rig_and_is_recorded_as_sent(host_factory, tmp_path, vsl, ros2_agrees):
+def test_plan_runs_on_the_rig_and_is_recorded_as_sent(host_factory, tmp_path, vsl, ros2_agrees, real_time):
     plan = _plan()
     with host_factory(**RIG) as ports:
         rig_dir = tmp_path / "run"
@@ -68,11 +68,6 @@ def test_plan_runs_on_the_rig_and_is_recorded_as_sent(host_factory, tmp_path, vs
     np.testing.assert_allclose(
         data[T.PRESSURE].rows["pressure"][-50:].mean(axis=0), plan.pressure_pa[-1], rtol=0.03
     )
-    # goal log times follow the plan's clock (first goal at the start), which stood still while the first
-    # payload was hung at 1 s (the rig's answer took up to 80 ms on a busy machine)
-    start = data[T.SERVO_GOAL].log_time[0]
-    expected = plan.goal_t + np.where(plan.goal_t > plan.payload_t[0], pauses[0], 0.0)
-    np.testing.assert_allclose((data[T.SERVO_GOAL].log_time - start) / 1e9, expected, atol=0.05)
     kinds = [e.kind for _, e in read_events(part)]
     for kind in (
         EventKind.REPETITION_START,
@@ -84,6 +79,12 @@ def test_plan_runs_on_the_rig_and_is_recorded_as_sent(host_factory, tmp_path, vs
     assert EventKind.SAFETY_STOP not in kinds
     checked = ros2_agrees(part)  # the command topics decode with the reference ROS 2 decoder too
     assert checked[T.SERVO_GOAL] == len(plan.goal_t) and checked[T.PRESSURE_COMMAND] == len(plan.pressure_t)
+    real_time()  # a runner the hypervisor stopped sends late (measured: one goal 109 ms late, 2-3 s stolen)
+    # goal log times follow the plan's clock (first goal at the start), which stood still while the first
+    # payload was hung at 1 s (the rig's answer took up to 80 ms on a busy machine)
+    start = data[T.SERVO_GOAL].log_time[0]
+    expected = plan.goal_t + np.where(plan.goal_t > plan.payload_t[0], pauses[0], 0.0)
+    np.testing.assert_allclose((data[T.SERVO_GOAL].log_time - start) / 1e9, expected, atol=0.05)
 
 
 def test_watchdog_stops_the_plan_and_holds_the_arm(host_factory, tmp_path, vsl, monkeypatch):
