@@ -9,8 +9,7 @@ slcan interface and canopen, enables them and runs the PDO loop at each SYNC rat
 drives' two TPDOs each and one target-position RPDO per drive; a SYNC waits for late answers up to a period
 past its slot, as the recorder's. Prints per rate the cycles run and answered by every drive, the frames
 per second through the adapter (both directions), the loop's period jitter, and the bus load the rig's bus
-measured (bits carried / bit rate / seconds, stuff bits included). States the
-machine's load as it ran.
+measured (bits carried / bit rate / seconds, stuff bits included). States the machine's load as it ran.
 """
 
 from __future__ import annotations

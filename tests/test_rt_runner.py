@@ -112,6 +112,21 @@ def test_watchdog_stops_the_plan_and_holds_the_arm(host_factory, tmp_path, vsl, 
     assert session_info(tmp_path / "s").status == "complete"
 
 
+def test_a_bench_that_never_settles_stops_the_plan(host_factory, tmp_path, vsl):
+    """A settle waits for the bench; one that does not come within settle_timeout_s (here shorter than the
+    window the bench must be still for) is a safe stop that says what was still moving."""
+    b = PlanBuilder("test/never-settles", "vsl", joints=3, channels=2, parameters={"experiment": "test"})
+    b.goto([0.0, 0.9, -1.6]).pressure(1.0 * BAR).payload(0.0).settle(0.2).wait(1.0)
+    with host_factory(**RIG) as ports:
+        with Recorder(vsl, ports, tmp_path / "s", "s") as rec:
+            report = RealTimeRunner(rec, b.build(), on_payload=lambda kg: None, settle_timeout_s=0.2).run()
+    assert report.status == "stopped" and report.reason.startswith("settle: not settled in 0.2 s")
+    (part,) = sorted((tmp_path / "s").glob("*.mcap"))
+    events = [(e.kind, e.label) for _, e in read_events(part)]
+    assert (EventKind.SAFETY_STOP, "settle") in events
+    assert EventKind.SETTLED not in [kind for kind, _ in events]  # the clock never passed the settle
+
+
 @pytest.mark.slow
 def test_ctrl_c_on_vslab_run_is_a_safe_stop(tmp_path):
     """`vslab run --rig` interrupted (SIGINT) mid-plan: a SAFETY_STOP 'operator' event, a complete session."""

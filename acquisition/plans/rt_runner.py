@@ -120,7 +120,7 @@ class RealTimeRunner:
             while t <= plan.duration_s:
                 now = time.monotonic()
                 t = now - start - paused
-                if settles:
+                if settles and t >= settles[0] - SETTLE_WINDOW_S:  # the window before a settle, and at it
                     self._remember(*self._measured()[:2])
                 if settles and t >= settles[0]:  # the clock stands just before a settle until the bench is
                     settling_since = settling_since or now
@@ -193,7 +193,7 @@ class RealTimeRunner:
     # -------------------------------------------------------------------------------------- settling
     def _settled(self, cmd: dict) -> bool:
         """Whether the joints have been still, and every pressure whose valves the plan holds open at its
-        set-point ``cmd`` (``Plan.at``), over the last ``SETTLE_WINDOW_S`` (sampled at the checks)."""
+        set-point ``cmd`` (``Plan.at``), over the last ``SETTLE_WINDOW_S`` (sampled every tick)."""
         recent = self._recent
         if not recent or recent[-1][0] - recent[0][0] < 0.9 * SETTLE_WINDOW_S:
             return False
