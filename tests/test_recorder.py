@@ -171,14 +171,16 @@ def test_a_device_absent_when_the_recording_starts_counts_its_wait_as_lost(
     assert _card(tmp_path / "s")["counters"][T.SERVO_STATE]["lost"] == 0
 
 
-def test_corrupted_replies_are_retried_in_place(host_factory, tmp_path, vsl):
+def test_corrupted_replies_are_retried_in_place(host_factory, tmp_path, vsl, real_time):
     """A few corrupted Sync Read replies: retried within their slot, no reconnection, no gap."""
     with host_factory(**RIG) as ports, Recorder(vsl, ports, tmp_path / "s", "corrupt") as rec:
         time.sleep(1.0)
         send_control(tmp_path / "run", {"op": "fault", "device": "servo_bus", "kind": "corrupt", "count": 3})
         time.sleep(1.0)
     c = rec.final[T.SERVO_STATE]
-    assert c["gaps"] == 0 and c["lost"] <= 3 and c["expected"] == c["received"] + c["lost"]
+    assert c["expected"] == c["received"] + c["lost"]  # the account adds up whatever the host did
+    real_time()  # CI lost 158 samples here with seconds of CPU stolen: the budget below is the code's
+    assert c["gaps"] == 0 and c["lost"] <= 3, c
     assert not [e for _, e in _events(tmp_path / "s") if e.kind == EventKind.DEVICE_GAP_START]
 
 
