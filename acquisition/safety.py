@@ -7,7 +7,11 @@ that studies the non-linear range (POPUP's static link test) sets ``allow_wrinkl
 ``collapse_fraction`` · M_c instead.
 
 A link whose valve is closed below the operating minimum is *stowed* (deflated, as before deployment): it is
-not load-bearing, so its wrinkling limit does not apply, but no joint may move while it is stowed.
+not load-bearing, so its wrinkling limit does not apply, but no joint may move while it is stowed. Inflated
+from there, it stays out of the wrinkling check until its measured pressure reaches the operating minimum, as
+long as no joint has moved since it was stowed (a link filling in the pose it deployed in; at 0 kPa its
+M_w is 0 and any moment breaks it). A plan that begins with a link stowed cannot move the arm to its start:
+``check_start`` holds the measured bench to it (joints at the first pose, the stowed links deflated).
 
 Every check is vectorised over samples. ``check_plan`` looks at every commanded instant (and at points between
 consecutive joint goals); ``check_state`` at measured samples (the runners call it while a plan runs).
@@ -41,12 +45,15 @@ class SafetyError(AcquisitionError, RuntimeError):
 @dataclass(frozen=True)
 class Violation:
     t_s: float  # plan time (check_plan) or the sample's time (check_state)
-    limit: str  # "joint", "pressure", "workspace", "wrinkling", "collapse", "stowed-motion"
+    limit: str  # "joint", "pressure", "workspace", "wrinkling", "collapse", "stowed-motion", "start"
     detail: str
     sample: int = -1  # which sample (check_state) or instant (check_plan)
 
     def __str__(self) -> str:
         return f"t = {self.t_s:.3f} s: {self.limit}: {self.detail}"
+
+
+START_TOLERANCE_RAD = np.deg2rad(1.0)  # ASSUMED: a joint "at" a plan's start pose
 
 
 class SafetyChecker:
@@ -129,6 +136,19 @@ class SafetyChecker:
         t = start[:, None] + (end - start)[:, None] * frac[None]
         return np.clip(t.ravel(), 0.0, plan.duration_s)
 
+    def stowed(self, plan: Plan, t: np.ndarray) -> np.ndarray:
+        """(n, C): the links ``plan`` holds stowed at plan times ``t``: commanded closed below the operating
+        minimum at some instant since the joint goal in force at ``t`` was sent (the plan moves no joint
+        while a link is stowed, so a link filling from stowed counts until the arm next moves)."""
+        t = np.atleast_1d(np.asarray(t, float))
+        goal = np.searchsorted(plan.goal_t, t, side="right") - 1
+        since = np.where(goal >= 0, plan.goal_t[np.maximum(goal, 0)], 0.0)
+        first = np.maximum(np.searchsorted(plan.pressure_t, since, side="right") - 1, 0)
+        last = np.searchsorted(plan.pressure_t, t, side="right")  # one past the frame in force at t
+        frames = np.zeros((len(plan.pressure_t) + 1, plan.pressure_pa.shape[1]), int)
+        frames[1:] = np.cumsum(self._stowed(plan.pressure_pa, plan.valve_open), axis=0)
+        return frames[np.maximum(last, first)] - frames[first] > 0
+
     def _stowed(self, pressure: np.ndarray, valves: np.ndarray) -> np.ndarray:
         """(n, C): link channels closed below the operating minimum (deflated, not load-bearing)."""
         out = np.zeros(pressure.shape, bool)
@@ -148,6 +168,31 @@ class SafetyChecker:
             f"link channel {ch[c]} open at {pressure[i, ch[c]]:.0f} Pa < {least}" for i, c in low
         ])  # fmt: skip
 
+    def check_start(self, plan: Plan, q: np.ndarray, pressure: np.ndarray) -> list[Violation]:
+        """What keeps ``plan`` from starting on the bench as measured (joints ``q`` (A,), link pressures
+        (C,)): a plan that begins with a link stowed moves no joint before it is inflated, so each joint must
+        already be within START_TOLERANCE_RAD of the first pose and each link stowed at the start deflated
+        (below the operating minimum). Other plans start from anywhere (their first goal moves the arm)."""
+        stowed = self._stowed(plan.pressure_pa[:1], plan.valve_open[:1])[0]
+        if not stowed.any():
+            return []
+        names, first = self.robot.actuated_joints, plan.goal_q[0]
+        out = []
+        off = np.flatnonzero(np.abs(q - first) > START_TOLERANCE_RAD)
+        if len(off):
+            at = ", ".join(f"{names[j]} at {np.degrees(q[j]):.1f}°" for j in off)
+            then = ", ".join(f"{np.degrees(first[j]):.1f}°" for j in off)
+            out.append(Violation(0.0, "start", f"{at} (the plan starts at {then} and moves no joint while a "
+                                 "link is deflated)"))  # fmt: skip
+        full = sorted(
+            (c, n) for n, _, c, _ in self.inflatable if stowed[c] and pressure[c] >= self.pressure_min
+        )
+        if full:
+            at = ", ".join(f"{name} at {pressure[c] / 1e3:.1f} kPa" for c, name in full)
+            why = f"the plan starts with {'it' if len(full) == 1 else 'them'} deflated, below"
+            out.append(Violation(0.0, "start", f"{at} ({why} {self.pressure_min / 1e3:g} kPa)"))
+        return out
+
     # --------------------------------------------------------------------------------- measured state
     def check_state(
         self,
@@ -158,12 +203,13 @@ class SafetyChecker:
         delta: np.ndarray | None = None,
         allow_wrinkling: np.ndarray | bool = False,
         every: bool = False,
-        commanded: tuple[np.ndarray, np.ndarray] | None = None,
+        stowed: np.ndarray | None = None,
     ) -> list[Violation]:
         """Limits on measured samples: joints ``q`` (n, A), link pressures (n, C), the payload hanging now
         (per sample or one). The link bending δ is the true one on the twin, else the static estimate from
         k(p). ``allow_wrinkling`` may differ per sample. ``every``: all violations, not the first few.
-        ``commanded``: the (set-points, valves) in force at each sample, to know which links are stowed.
+        ``stowed``: (n, C) the links the plan holds stowed at each sample (:meth:`stowed`); those measured
+        below the operating minimum bear no load.
         """
         t, q, pressure = np.atleast_1d(t), np.atleast_2d(q), np.atleast_2d(pressure)
         payload = np.broadcast_to(np.asarray(payload_kg, float), t.shape)
@@ -177,8 +223,8 @@ class SafetyChecker:
             delta, _ = static_deflection(self.robot, q, pressure, payload)
         out += self._workspace(t, self.robot.chain().position(q, delta), keep)
         moments = gravity_moments(self.robot, q, delta, payload)
-        stowed = self._stowed(*commanded) if commanded is not None else np.zeros(pressure.shape, bool)
-        out += self._bending(t, moments, pressure, stowed, allow_wrinkling, keep)
+        limp = np.zeros(pressure.shape, bool) if stowed is None else stowed & (pressure < self.pressure_min)
+        out += self._bending(t, moments, pressure, limp, allow_wrinkling, keep)
         return sorted(out, key=lambda v: v.t_s)
 
     # ------------------------------------------------------------------------------------------ limits

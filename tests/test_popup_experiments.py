@@ -64,7 +64,7 @@ def test_deploy_plan_inflates_link1_then_link2(popup):
     _, (plan,) = _plans("popup_deploy", popup)
     start = plan.at(np.array([0.0]))
     assert np.all(start["pressure_pa"] == 0) and not start["valve_open"].any()
-    checks = pp.pressure_checks(plan)
+    checks = pp.pressure_checks(plan.events)
     assert [(ch, v) for _, ch, v in checks] == [(0, 50e3), (1, 50e3)]
     ((t_inflate2, _),) = [(t, e) for t, e in _kinds(plan, EventKind.PLAN_STEP, "inflate") if e.index == 1]
     assert t_inflate2 >= checks[0][0]
@@ -168,7 +168,7 @@ def test_deploy_pressure_checks_pass(sessions):
     ((plan, data, _),) = sessions["popup_deploy"]
     pressure = data[T.PRESSURE]
     t, p = _seconds(pressure.log_time), pressure.rows["pressure"]
-    results = pp.verify_pressure_checks(plan, t, p)
+    results = pp.verify_pressure_checks(pp.pressure_checks(plan.events), t, p)
     assert [r[0] for r in results] == [0, 1] and all(r[3] for r in results)
-    first_check = pp.pressure_checks(plan)[0][0]
+    first_check = pp.pressure_checks(plan.events)[0][0]
     assert p[t < first_check, 1].max() < 1e3  # link 2 stays deflated until link 1 is full

@@ -1,11 +1,14 @@
-"""Seed 001's link tests in real time: ``vslab run popup_static|popup_impact --rig`` load and tap link 2
-through the rig while the tracker and the tip IMU stream over their wires (Aurora serial, the CAN bus at
-1 kHz), and the pipeline reads the sessions exactly as simulated ones: Table 1 comes back out as the twin's
-configured link within the bounds tests/test_popup_analysis.py holds the simulated sessions to (f_s 1 %,
-ζ 5 %, k̂ 5 %, ĉ 15 %).
+"""Seed 001's experiments in real time on the rig, through the devices' wires (Aurora serial, the CAN bus with
+the tip IMU at 1 kHz):
 
-The arm starts at the rig's home pose, not at the test pose as a simulated run does: each plan's ``settle``
-waits, in real time, until the arm has reached the pose and the link its pressure."""
+- ``vslab run popup_static|popup_impact --rig`` load and tap link 2, and the pipeline reads the sessions
+  exactly as simulated ones: Table 1 comes back out as the twin's configured link within the bounds
+  tests/test_popup_analysis.py holds the simulated sessions to (f_s 1 %, ζ 5 %, k̂ 5 %, ĉ 15 %);
+- ``vslab run popup_deploy --rig`` inflates link 1, goes on to link 2 once link 1's transducer reads its set
+  point, and the session's own pressure checks pass.
+
+The rig starts as each plan begins (its bench set up by the operator); each ``settle`` waits, in real time,
+until the arm is still and every regulated link at its pressure."""
 
 from __future__ import annotations
 
@@ -15,7 +18,12 @@ import sys
 import numpy as np
 import pytest
 
+from acquisition.plans.popup_experiments import pressure_checks, verify_pressure_checks
 from acquisition.recorder.sessions import session_info
+from acquisition.schemas import topics as T
+from acquisition.schemas.events import EventKind
+from acquisition.schemas.fast_read import read_events, read_fixed_topics
+from acquisition.schemas.session_card import readable_parts
 from analysis import popup_tests as pt
 from models import prbm
 from models.robot import load_robot
@@ -30,8 +38,10 @@ STATIC = ["repetitions=1", "pressure_settle_s=1.0", "settle_s=1.2", "hold_s=2.0"
 
 def _run(lab, experiment: str, plan: int, settings: list[str], session: str):
     cli = [sys.executable, "-m", "vslab.cli", "--lab", str(lab), "--quiet"]
-    pressures = f"pressures_kpa=[{', '.join(map(str, PRESSURES_KPA))}]"
-    sets = [arg for s in (pressures, *settings) for arg in ("--set", s)]
+    pressures = (
+        [f"pressures_kpa=[{', '.join(map(str, PRESSURES_KPA))}]"] if experiment != "popup_deploy" else []
+    )
+    sets = [arg for s in (*pressures, *settings) for arg in ("--set", s)]
     command = [*cli, "run", experiment, "--plan", str(plan), *sets, "--rig", "--session", session]
     done = subprocess.run(command, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
@@ -54,3 +64,20 @@ def test_table1_from_real_time_link_tests(tmp_path):
     np.testing.assert_allclose(table["zeta"], prbm.damping_ratio(k, c, INERTIA), rtol=0.05)
     np.testing.assert_allclose(table["k_hat"], k, rtol=0.05)
     np.testing.assert_allclose(table["c_hat"], c, rtol=0.15)
+
+
+@pytest.mark.slow
+def test_a_deployment_in_real_time_checks_link_1_before_link_2(tmp_path):
+    session = _run(tmp_path / "lab", "popup_deploy", 0, [], "deploy")
+    (part,) = readable_parts(session)
+    pressure = read_fixed_topics(part)[T.PRESSURE]
+    events = [(t / 1e9, e) for t, e in read_events(part)]
+    assert EventKind.SAFETY_STOP not in [e.kind for _, e in events]
+    checks = pressure_checks(events)
+    t, p = pressure.log_time.astype(np.int64) / 1e9, pressure.rows["pressure"]
+    results = verify_pressure_checks(checks, t, p)
+    assert [r[0] for r in results] == [0, 1] and all(r[3] for r in results), results
+    inflate_link2 = next(at for at, e in events if e.label == "inflate" and e.index == 1)
+    assert checks[0][0] <= inflate_link2  # link 2's valve opened only after link 1's check
+    assert p[t < inflate_link2, 1].max() < 1e3  # link 2 stayed deflated until then
+    assert p[t < checks[0][0] - 1.0, 0].min() < 1e3  # link 1 started deflated (the bench set up as the plan)

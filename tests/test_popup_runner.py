@@ -7,8 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from acquisition.plans.experiments import load_experiment
 from acquisition.plans.plan import PlanBuilder
-from acquisition.plans.rt_runner import RealTimeRunner
+from acquisition.plans.popup_experiments import deployment
+from acquisition.plans.rt_runner import RealTimeRunner, RunnerError
 from acquisition.recorder.recorder import Recorder
 from acquisition.recorder.sessions import session_info
 from acquisition.schemas import topics as T
@@ -82,3 +84,18 @@ def test_a_drive_fault_or_a_silent_drive_stops_a_popup_plan(host_factory, tmp_pa
         faults = [e for _, e in read_events(part) if e.kind == EventKind.DEVICE_FAULT]
         assert faults and faults[0].label == "can_bus" and "over-current" in faults[0].text
     assert session_info(tmp_path / "s").status == "complete"
+
+
+def test_a_deployment_refuses_to_start_on_an_arm_that_is_not_set_up_for_it(host_factory, tmp_path, popup):
+    """A deployment begins with its links stowed and moves no joint before they are inflated: on the rig as
+    it boots (home pose, links at 90 kPa) it refuses to start, says what differs, and sends nothing."""
+    (plan,) = deployment(popup, load_experiment("popup_deploy"))
+    with host_factory(**RIG) as ports:
+        with Recorder(popup, {"can_bus": ports["can_bus"]}, tmp_path / "s", "s") as rec:
+            with pytest.raises(RunnerError) as refused:
+                RealTimeRunner(rec, plan).run()
+    assert f"plan {plan.name} cannot start on the bench as it is: q2 at 29." in str(refused.value)  # drooped
+    assert "link1 at 89.9 kPa, link2 at 89.9 kPa (the plan starts with them deflated" in str(refused.value)
+    (part,) = sorted((tmp_path / "s").glob("*.mcap"))
+    data = read_fixed_topics(part)
+    assert len(data[T.SERVO_GOAL]) == len(data[T.PRESSURE_COMMAND]) == 0

@@ -174,3 +174,38 @@ def test_unplugged_tracker_is_reported_and_reconnects(host_factory, tmp_path):
         send_control(run, {"op": "fault", "device": "tracker", "kind": "plug"})
         trk.reconnect()
         assert not trk.read().missing
+
+
+def test_the_bench_start_is_checked_against_the_robot():
+    """``--start``: the arm's pose, link pressures and valves the rig begins with, or one clear error."""
+    from acquisition.sim.rig import Rig, bench_start
+
+    popup = load_robot("popup")
+    start = {"q_rad": [0.0, 1.5, 0.0], "pressure_pa": [0.0, 0], "valve_open": [False, False]}
+    rig = Rig(popup, **bench_start(popup, start))
+    np.testing.assert_allclose(rig.world.state.out_pos[0], [0.0, 1.5, 0.0], atol=1e-3)  # one step in
+    np.testing.assert_array_equal(rig.world.state.p_link[0], [0.0, 0.0])
+    assert not rig.world.commands.valve_open.any()
+    for bad, says in [
+        ([1.0], "start must be a JSON object"),
+        ({"q": [0, 0, 0]}, "unknown key 'q'"),
+        ({"q_rad": [0.0, 1.5]}, "q_rad must be 3 finite numbers"),
+        ({"q_rad": [0.0, float("nan"), 0.0]}, "q_rad must be 3 finite numbers"),
+        ({"pressure_pa": [True, 0.0]}, "pressure_pa must be 2 finite numbers"),
+        ({"valve_open": [1, 0]}, "valve_open must be 2 booleans"),
+    ]:
+        with pytest.raises(ValueError, match=says):
+            bench_start(popup, bad)
+
+
+def test_a_broken_start_file_is_one_line_and_exit_2(tmp_path):
+    import subprocess
+    import sys
+
+    (tmp_path / "start.json").write_text('{"q_rad": [0, 1]}')
+    done = subprocess.run(
+        [sys.executable, "-m", "acquisition.sim.rig", "--robot", "popup", "--run-dir", str(tmp_path / "run"),
+         "--start", str(tmp_path / "start.json")], capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert "q_rad must be 3 finite numbers, got [0, 1]" in done.stderr.splitlines()[-1]

@@ -107,3 +107,52 @@ def test_measured_state_checks(popup):
     p = np.array([[50, 50], [50, 50], [96, 50]]) * KPA  # 96 kPa > 90 kPa + 5 kPa tolerance
     violations = check.check_state(t, q, p, payload_kg=[0.0, 2.0, 0.0])
     assert [(v.t_s, v.limit) for v in violations] == [(0.1, "wrinkling"), (0.2, "pressure")]
+
+
+def _deployment(popup, move_after: bool = False):
+    """Stowed at 0 kPa in an upright pose; both links inflated at 1 s, their valves closed at 3 s; optionally
+    a move at 4 s."""
+    b = PlanBuilder("test/deploy", "popup", joints=3, channels=2)
+    b.goto([0.0, np.pi / 2, 0.0]).pressure(0.0, False).payload(0.0).wait(1.0)
+    b.pressure(50 * KPA, True).wait(2.0).pressure(50 * KPA, False).wait(1.0)
+    if move_after:
+        b.goto([0.0, np.pi / 2 - 0.2, 0.0]).wait(1.0)
+    return b.build()
+
+
+def test_a_link_filling_from_stowed_bears_no_load_until_the_arm_moves(popup):
+    """A link inflated from stowed counts as stowed below the operating minimum (at 0 kPa M_w is 0: any
+    moment would break it), but only until a joint moves: a link that loses its pressure later is wrinkled."""
+    check = SafetyChecker(popup)
+    plan = _deployment(popup)
+    assert check.check_plan(plan) == []
+    t = np.array([0.5, 1.5, 3.5, 10.0])
+    np.testing.assert_array_equal(check.stowed(plan, t), [[1, 1], [1, 1], [1, 1], [1, 1]])
+    moved = _deployment(popup, move_after=True)
+    assert check.check_plan(moved) == []
+    np.testing.assert_array_equal(check.stowed(moved, np.array([3.5, 4.5])), [[1, 1], [0, 0]])
+    q = np.tile([0.0, np.pi / 2 - 0.05, 0.0], (2, 1))  # tilted a little: a small moment on both links
+    p = np.array([[2 * KPA, 0.0], [2 * KPA, 0.0]])  # both filling (or deflated again)
+    filling = check.stowed(plan, np.array([1.5, 1.6]))
+    assert check.check_state(np.array([1.5, 1.6]), q, p, 0.0, stowed=filling) == []
+    assert check.check_state(np.array([1.5, 1.6]), q, p, 0.0) != []  # the same state, not stowed: wrinkling
+    late = check.check_state(np.array([4.5]), q[:1], p[:1], 0.0, stowed=check.stowed(moved, np.array([4.5])))
+    assert {v.limit for v in late} == {"wrinkling"}
+    # stowed by the plan but measured inflated: load-bearing, checked (2 kg wrinkles link 2 at 50 kPa)
+    horizontal, high = np.array([[0.0, np.pi / 2, -np.pi / 2]]), np.array([[50 * KPA, 50 * KPA]])
+    wrinkled = check.check_state(np.array([0.5]), horizontal, high, 2.0, stowed=check.stowed(plan, [0.5]))
+    assert {v.limit for v in wrinkled} == {"wrinkling"}
+
+
+def test_a_plan_that_starts_stowed_needs_the_bench_set_up_as_it_starts(popup):
+    check = SafetyChecker(popup)
+    plan = _deployment(popup)
+    assert check.check_start(plan, np.array([0.0, np.pi / 2, 0.0]), np.array([0.0, 5 * KPA])) == []
+    problems = check.check_start(plan, np.deg2rad([0.0, 30.0, -60.0]), np.array([90 * KPA, 5 * KPA]))
+    assert [v.detail for v in problems] == [
+        "q2 at 30.0°, q3 at -60.0° (the plan starts at 90.0°, 0.0° and moves no joint while a link is "
+        "deflated)",
+        "link1 at 90.0 kPa (the plan starts with it deflated, below 10 kPa)",
+    ]
+    inflated = _popup_plan(50 * KPA, 0.0)  # a plan that starts inflated moves the arm to its start itself
+    assert check.check_start(inflated, np.deg2rad([0.0, 30.0, -60.0]), np.array([90 * KPA] * 2)) == []

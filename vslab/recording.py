@@ -75,9 +75,10 @@ def _session_id(given: str | None, default: str) -> str:
 
 
 @contextlib.contextmanager
-def _devices(desc, ports: Path | None, rig: bool, session_id: str):
+def _devices(desc, ports: Path | None, rig: bool, session_id: str, plan=None):
     """(port map, rig run directory or None): the devices named by ``ports``, or a rig started for the
-    session (stopped on exit). Every port is checked to be a serial port before anything opens it. SIGTERM
+    session (stopped on exit), its bench set up as ``plan`` starts (first pose, pressures and valves) as an
+    operator sets it up. Every port is checked to be a serial port before anything opens it. SIGTERM
     becomes KeyboardInterrupt, so both stop a session the same way."""
     rig_proc = None
     if rig:
@@ -87,10 +88,21 @@ def _devices(desc, ports: Path | None, rig: bool, session_id: str):
         ports.mkdir(parents=True, exist_ok=True)
         described = ports / "robot.yaml"
         described.write_text(desc.model_dump_json())  # JSON is YAML
+        start = []
+        if plan is not None:
+            first = {
+                "q_rad": plan.goal_q[:1],
+                "pressure_pa": plan.pressure_pa[:1],
+                "valve_open": plan.valve_open[:1],
+            }
+            (ports / "start.json").write_text(
+                json.dumps({k: v[0].tolist() for k, v in first.items() if len(v)})
+            )
+            start = ["--start", str(ports / "start.json")]
         # its own session (Ctrl-C reaches only us, who stop it in order); it dies with us, even by SIGKILL
         rig_proc = subprocess.Popen(
             [sys.executable, "-m", "acquisition.sim.rig", "--robot", str(described), "--run-dir", str(ports),
-             "--parent-pid", str(os.getpid())], start_new_session=True,
+             "--parent-pid", str(os.getpid()), *start], start_new_session=True,
         )  # fmt: skip
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
@@ -364,7 +376,7 @@ def run_plan(experiment: str, plan: str = "0", overrides: dict | None = None, *,
         compensator = InverseModelCompensator(model, desc)
     session_id = _session_id(session, time.strftime("%Y%m%d-%H%M%S-") + the_plan.name.replace("/", "-"))
     say(f"{the_plan.name}: {the_plan.duration_s:.1f} s on {desc.name}")
-    with _devices(desc, ports, rig, session_id) as (port_map, rig_dir):
+    with _devices(desc, ports, rig, session_id, the_plan) as (port_map, rig_dir):
         on_payload, on_tap = _operator(rig_dir if rig else None)
         name = the_plan.parameters.get("experiment", experiment)
         rec, view = _recorder(desc, port_map, session_id, name, device_rates, live, live_host, live_port,

@@ -19,7 +19,7 @@ from collections.abc import Callable
 import numpy as np
 
 from acquisition.plans.plan import Plan, PlanBuilder
-from acquisition.schemas.events import EventKind
+from acquisition.schemas.events import Event, EventKind
 from models.prbm import collapse_moment
 from models.robot import Hysteresis, RobotDescription
 from models.statics import gravity_moments
@@ -146,8 +146,9 @@ def fill_time_s(robot: RobotDescription, time_constants: float) -> float:
 
 
 def deployment(robot: RobotDescription, params: dict) -> list[Plan]:
-    """Links at 0 Pa with valves closed; channel 0 opened to its set point, a 'pressure-check' PLAN_STEP
-    (index = channel, value = set point) after the estimated fill time, its valve closed; then channel 1."""
+    """Links at 0 Pa with valves closed; channel 0 opened to its set point, a settle and a 'pressure-check'
+    PLAN_STEP (index = channel, value = set point) after the estimated fill time, its valve closed; then
+    channel 1."""
     set_points = np.asarray(params["set_points_kpa"], float) * KPA
     channels = robot.pneumatics.channels
     if len(set_points) != channels:
@@ -164,30 +165,34 @@ def deployment(robot: RobotDescription, params: dict) -> list[Plan]:
     for ch in params["order"]:
         pressure[ch], valves[ch] = set_points[ch], True
         b.pressure(pressure, valves).mark(EventKind.PLAN_STEP, ch, "inflate", value=float(set_points[ch]))
-        b.wait(fill_s).mark(EventKind.PLAN_STEP, ch, PRESSURE_CHECK, value=float(set_points[ch]))
+        # settle: in real time the plan goes on only once the link holds its set point (the seed's check of
+        # link 1's transducer before link 2), or stops after the runner's settle timeout
+        b.settle(fill_s, index=ch).mark(EventKind.PLAN_STEP, ch, PRESSURE_CHECK, value=float(set_points[ch]))
         valves[ch] = False  # normally-closed valves: the supply is cut once the link is full
         b.pressure(pressure, valves)
     b.wait(params["hold_s"])
     return [b.build()]
 
 
-def pressure_checks(plan: Plan) -> list[tuple[float, int, float]]:
-    """The plan's (time s, channel, set point Pa) pressure checks."""
+def pressure_checks(events: list[tuple[float, Event]]) -> list[tuple[float, int, float]]:
+    """The (time, channel, set point Pa) of every pressure check among ``events``: a plan's (plan seconds) or
+    a recorded session's (its log times), so a deployment is verified the same way on both."""
     return [
         (t, e.index, e.value)
-        for t, e in plan.events
+        for t, e in events
         if e.kind == EventKind.PLAN_STEP and e.label == PRESSURE_CHECK
     ]
 
 
 def verify_pressure_checks(
-    plan: Plan, t_s: np.ndarray, pressure_pa: np.ndarray, tolerance: float = 0.05
+    checks: list[tuple[float, int, float]], t: np.ndarray, pressure_pa: np.ndarray, tolerance: float = 0.05
 ) -> list[tuple[int, float, float, bool]]:
-    """At every check, the last measured pressure (``t_s`` plan seconds, ``pressure_pa`` (n, C)) of its
-    channel against the set point: (channel, set point, measured, within ``tolerance`` of it)."""
+    """At every check (:func:`pressure_checks`), the last measured pressure (``t`` on the checks' clock,
+    ``pressure_pa`` (n, C)) of its channel against the set point: (channel, set point, measured, within
+    ``tolerance`` of it)."""
     out = []
-    for t, ch, target in pressure_checks(plan):
-        i = int(np.searchsorted(t_s, t, side="right")) - 1
+    for at, ch, target in checks:
+        i = int(np.searchsorted(t, at, side="right")) - 1
         measured = float(pressure_pa[i, ch]) if i >= 0 else math.nan
         out.append((ch, target, measured, abs(measured - target) <= tolerance * target))
     return out

@@ -108,6 +108,10 @@ class RealTimeRunner:
         plan = self.plan
         self.safety.require_safe(plan)
         self._require_devices()
+        q, pressure = self._measured()[:2]
+        if problems := self.safety.check_start(plan, q, pressure):
+            raise RunnerError(f"plan {plan.name} cannot start on the bench as it is: "
+                              + "; ".join(v.detail for v in problems))  # fmt: skip
         self._refused, self._faults = self.rec.refusals()[0], self.rec.faults()[0]
         self.rec.event(Event(EventKind.PLAN_STEP, 0, label="plan-start", text=plan.name))
         self._send_torque(True)
@@ -124,11 +128,14 @@ class RealTimeRunner:
                     self._remember(*self._measured()[:2])
                 if settles and t >= settles[0]:  # the clock stands just before a settle until the bench is
                     settling_since = settling_since or now
-                    if self._settled(plan.at(np.array([settles[0]]))):
+                    # what the bench settles to: the commands in force up to the settle (those at its
+                    # instant, such as the next link's valve opening, come after it)
+                    before = max(float(np.nextafter(settles[0], 0.0)), 0.0)
+                    if self._settled(plan.at(np.array([before]))):
                         settles.pop(0)
                         settling_since = None
                     elif now - settling_since > self.settle_timeout_s:
-                        return self._safe_stop("stopped", settles[0], "settle", self._unsettled())
+                        return self._safe_stop("stopped", settles[0], "settle", self._unsettled(before))
                     else:
                         paused, t = paused + t - settles[0] + 1e-9, settles[0] - 1e-9
                 g = int(np.searchsorted(plan.goal_t, t, side="right")) - 1
@@ -205,16 +212,22 @@ class RealTimeRunner:
         return bool(_drift(q).max() <= SETTLE_DRIFT_RAD and np.ptp(q, axis=0).max() <= SETTLE_SPREAD_RAD
                     and not off[:, regulated].any())  # fmt: skip
 
-    def _unsettled(self) -> str:
-        """What kept the bench from settling, in words."""
+    def _unsettled(self, at: float) -> str:
+        """What kept the bench from settling to the commands in force at plan time ``at``, in words."""
         if not self._recent:
             return f"no measurements in {self.settle_timeout_s:g} s"
-        moved = _drift(np.array([r[1] for r in self._recent]))
+        q = np.array([r[1] for r in self._recent])
+        moved, spread = _drift(q), np.ptp(q, axis=0)
         joint = self.robot.joints[int(moved.argmax())].name
-        pressure = self._recent[-1][2]
+        cmd = self.plan.at(np.array([at]))
+        pressure, setpoint, regulated = self._recent[-1][2], cmd["pressure_pa"][0], cmd["valve_open"][0]
+        links = ", ".join(
+            f"{p / 1e3:.1f} kPa" + (f" (set {s / 1e3:g})" if r else " (held)")
+            for p, s, r in zip(pressure, setpoint, regulated, strict=True)
+        )
         return (
             f"not settled in {self.settle_timeout_s:g} s: {joint} drifted {moved.max() * 1e3:.2f} mrad "
-            f"in {SETTLE_WINDOW_S:g} s; pressures {', '.join(f'{p / 1e3:.1f}' for p in pressure)} kPa"
+            f"(spread {spread.max() * 1e3:.2f} mrad) in {SETTLE_WINDOW_S:g} s; links at {links}"
         )
 
     def _remember(self, q: np.ndarray, pressure: np.ndarray) -> None:
@@ -306,10 +319,9 @@ class RealTimeRunner:
             why = "; ".join(f"{topic} lost: {self.rec.error(topic)}" for topic in lost) or "devices silent"
             return "device", f"no fresh samples for {(host_now_ns() - oldest) / 1e9:.2f} s ({why})"
         allow = bool(self.plan.parameters.get("allow_wrinkling"))
-        cmd = self.plan.at(np.array([t]))
         violations = self.safety.check_state(
             np.array([t]), q[None], pressure[None], payload_kg, allow_wrinkling=allow,
-            commanded=(cmd["pressure_pa"], cmd["valve_open"]),
+            stowed=self.safety.stowed(self.plan, np.array([t])),
         )  # fmt: skip
         if violations:
             return violations[0].limit, violations[0].detail

@@ -210,9 +210,7 @@ def simulate(
             t1 = float(trace.t[-1])
             for r, c in enumerate(cmds):
                 c["goal_q"] = goal[:, r]  # the goals as sent (compensated where a compensator is set)
-            stops = (
-                _safety_stops(safety, plans, trace, (payload, pressure, valves), durations) if safety else {}
-            )
+            stops = _safety_stops(safety, plans, trace, payload, durations) if safety else {}
             refused = compensation.take_refusals()
             for r, (t_refused, event) in refused.items():
                 if t_refused <= durations[r] and (r not in stops or t_refused <= stops[r][0]):
@@ -320,12 +318,11 @@ class _Compensation:
 
 
 def _safety_stops(
-    safety: SafetyChecker, plans: list[Plan], trace: Trace, commands: tuple[np.ndarray, ...],
+    safety: SafetyChecker, plans: list[Plan], trace: Trace, payload: np.ndarray,
     durations: np.ndarray, rate_hz: float = 20.0,
 ) -> dict[int, tuple[float, Event]]:  # fmt: skip
     """The first limit each running bench broke in this window (true state sampled at ``rate_hz``);
-    ``commands``: the payload, pressure set-points and valves of every block (nb, B, ...)."""
-    payload, setpoint, valves = commands
+    ``payload``: every block's (nb, B)."""
     steps_per_block = len(trace.t) // payload.shape[0]
     step = max(1, round(1.0 / (rate_hz * (trace.t[1] - trace.t[0])))) if len(trace.t) > 1 else 1
     idx = np.arange(step - 1, len(trace.t), step)
@@ -338,10 +335,11 @@ def _safety_stops(
         return np.swapaxes(x[idx // steps_per_block], 0, 1).reshape(benches * n, -1)
 
     allow = np.array([bool(p.parameters.get("allow_wrinkling")) for p in plans])
+    stowed = np.concatenate([safety.stowed(plan, trace.t[idx]) for plan in plans])
     violations = safety.check_state(
         np.tile(trace.t[idx], benches), flat(trace.q), flat(trace.pressure),
         per_block(payload[..., None])[:, 0], flat(trace.delta),
-        allow_wrinkling=np.repeat(allow, n), every=True, commanded=(per_block(setpoint), per_block(valves)),
+        allow_wrinkling=np.repeat(allow, n), every=True, stowed=stowed,
     )  # fmt: skip
     stops: dict[int, tuple[float, Event]] = {}
     for v in violations:

@@ -2,7 +2,10 @@
 
     python -m acquisition.sim.rig --robot vsl --run-dir lab/rig      (or: vslab rig --robot vsl)
 
-Drivers (and the recorder) find the ports in ``<run-dir>/ports.json``. The control socket takes the
+Drivers (and the recorder) find the ports in ``<run-dir>/ports.json``. The arm starts at its home pose with
+its links at their operating pressure, or as ``--start`` sets the bench up (``vslab run --rig`` passes the
+plan's first pose, pressures and valves, as an operator sets the bench up for it: a deployment starts with
+its links deflated). The control socket takes the
 operator's inputs ({"op": "payload", "kg": 0.05}), test faults of the twin ({"op": "coil", "inside": false}:
 the tracker coil leaves the field volume) and queries ({"op": "state"}) besides the port faults.
 
@@ -14,6 +17,7 @@ housekeeping wake-up (see ``PtyHost``): an idle rig costs almost nothing, a busy
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import math
 from pathlib import Path
@@ -55,10 +59,21 @@ log = logging.getLogger(__name__)
 class Rig:
     """One simulated bench, advanced to the wall clock whenever a device is touched or the host ticks."""
 
-    def __init__(self, robot: RobotDescription, seed: int = 0, q0: np.ndarray | None = None) -> None:
+    def __init__(
+        self,
+        robot: RobotDescription,
+        seed: int = 0,
+        q0: np.ndarray | None = None,
+        pressure_pa: np.ndarray | None = None,
+        valve_open: np.ndarray | None = None,
+    ) -> None:
+        """The arm at ``q0`` (rad; default the home pose), its links at ``pressure_pa`` (default the operating
+        maximum) with the valves ``valve_open`` (default open: regulated)."""
         self.robot = robot
         home = np.deg2rad([0.0, 30.0, -60.0]) if q0 is None else q0
-        self.world = World(robot, batch=1, seed=seed, q0=home)
+        self.world = World(robot, batch=1, seed=seed, q0=home, pressure_pa=pressure_pa)
+        if valve_open is not None:
+            self.world.set_valves(np.asarray(valve_open, bool))
         self.recent = RecentSteps(self.world.dt)  # the last steps, for samples due a little in the past
         self.recent.append(self.world.step(1))
         self.steps = 1
@@ -209,14 +224,39 @@ def _flag(cmd: dict, key: str) -> bool:
     return value
 
 
-def serve_rig(robot: RobotDescription, run_dir: Path, seed: int = 0) -> None:
-    """Run the rig until SIGTERM/SIGINT."""
+def serve_rig(robot: RobotDescription, run_dir: Path, seed: int = 0, start: dict | None = None) -> None:
+    """Run the rig until SIGTERM/SIGINT; ``start``: Rig's ``q0``, ``pressure_pa`` and ``valve_open``."""
     numba.set_num_threads(1)  # one robot: worker threads would only steal the client's core
-    rig = Rig(robot, seed=seed)
+    rig = Rig(robot, seed=seed, **bench_start(robot, start or {}))
     host = PtyHost(run_dir, rig.emulators, tick=rig.advance, control=rig.control)  # tick: see PtyHost
     settle_heap()
     log.info("rig for %s serving %s in %s", robot.name, ", ".join(rig.emulators), run_dir)
     host.serve_forever()
+
+
+def bench_start(robot: RobotDescription, start: dict) -> dict:
+    """``start`` ({"q_rad": [...], "pressure_pa": [...], "valve_open": [...]}, any of them) checked against
+    the robot: Rig's keyword arguments. A value of the wrong size or kind is a ValueError."""
+    channels = robot.pneumatics.channels
+    sizes = {"q_rad": len(robot.actuated_joints), "pressure_pa": channels, "valve_open": channels}
+    if not isinstance(start, dict):
+        raise ValueError(f"start must be a JSON object, got {type(start).__name__}")
+    out = {}
+    for key, value in start.items():
+        if key not in sizes:
+            raise ValueError(f"start: unknown key {key!r} (known: {', '.join(sizes)})")
+        flags = key == "valve_open"
+        if flags:
+            valid = all(type(v) is bool for v in value) if isinstance(value, list) else False
+        else:
+            valid = isinstance(value, list) and all(
+                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in value
+            )
+        if not valid or len(value) != sizes[key]:
+            kind = "booleans" if flags else "finite numbers"
+            raise ValueError(f"start: {key} must be {sizes[key]} {kind}, got {value!r}")
+        out["q0" if key == "q_rad" else key] = np.array(value, bool if flags else float)
+    return out
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -225,6 +265,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--run-dir", type=Path, required=True)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--parent-pid", type=int, help="end (in order) when this process dies")
+    parser.add_argument(
+        "--start", type=Path, help="the bench's start: JSON with q_rad, pressure_pa, valve_open"
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     if args.parent_pid is not None:  # a rig started for one recording dies with it, even by SIGKILL
@@ -233,7 +276,15 @@ def main(argv: list[str] | None = None) -> None:
     # the daemons' where the OS allows it (below them, two busy daemons on a 2-core machine kept it from
     # answering a 1 kHz servo bus in time: the losses were the twin's, not the recorder's)
     log.info("rig priority: %s", elevate(fifo_priority=RT_PRIORITY + 1))
-    serve_rig(load_robot(args.robot), args.run_dir, args.seed)
+    robot = load_robot(args.robot)
+    start = None
+    if args.start is not None:
+        try:
+            start = json.loads(args.start.read_text())
+            bench_start(robot, start)
+        except (OSError, ValueError) as exc:
+            parser.error(f"--start {args.start}: {exc}")
+    serve_rig(robot, args.run_dir, args.seed, start)
 
 
 if __name__ == "__main__":
