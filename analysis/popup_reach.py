@@ -21,7 +21,7 @@ import numpy as np
 from analysis.figure_files import save_figure
 from models.robot import RobotDescription
 from models.statics import static_deflection
-from models.trajectories import velocity_law
+from models.trajectories import velocity_law_reach
 
 PAPER = {"difference_start_mm": 6.6, "difference_target_mm": 24.4}  # seed 001, Sec. 6
 TASK = {"payload_kg": 2.0, "pressure_pa": 60e3, "v0_m_s": 0.1, "a0_m_s2": 0.05,
@@ -49,27 +49,17 @@ def reach(robot: RobotDescription, task: dict | None = None, dt: float = 0.02, t
     task = TASK | (task or {})
     chain = robot.chain()
     target = np.asarray(task["target_mm"], float) * 1e-3
-    q = np.radians(np.asarray(task["q0_deg"], float))
     pressure = np.full(robot.pneumatics.channels, task["pressure_pa"])
-    ts, qs = [0.0], [q.copy()]
-    t = 0.0
-    while t < max_s:
-        if visual_servoing:
-            delta, _ = static_deflection(robot, q, pressure, task["payload_kg"])
-            d = target - chain.position(q, delta)
-        else:
-            d = target - chain.position(q)
-        if np.linalg.norm(d) < tol_m:
-            break
-        v = velocity_law(d, t, task["v0_m_s"], task["a0_m_s2"])
-        q = q + np.linalg.pinv(chain.jacobian(q)) @ v * dt
-        t += dt
-        ts.append(t)
-        qs.append(q.copy())
-    q_path = np.asarray(qs)
+
+    def soft_tip(q: np.ndarray) -> np.ndarray:
+        return chain.position(q, static_deflection(robot, q, pressure, task["payload_kg"])[0])
+
+    q0, law = np.radians(task["q0_deg"]), (task["v0_m_s"], task["a0_m_s2"])
+    tip = soft_tip if visual_servoing else None
+    ts, q_path = velocity_law_reach(chain, q0, target, *law, dt=dt, tol_m=tol_m, max_s=max_s, tip=tip)
     pressure = np.full((len(q_path), robot.pneumatics.channels), task["pressure_pa"])
     delta, _ = static_deflection(robot, q_path, pressure, task["payload_kg"])
-    return Reach(np.asarray(ts), q_path, chain.position(q_path), chain.position(q_path, delta), target)
+    return Reach(ts, q_path, chain.position(q_path), chain.position(q_path, delta), target)
 
 
 def figures_15_16(rigid: Reach, servoed: Reach, out_dir: Path, made_from: dict | None = None) -> dict:

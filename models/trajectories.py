@@ -1,4 +1,5 @@
-"""Timed set-points: Algorithms 1–2 and Experiment 1's trajectories of seed 000, the velocity law of seed 001.
+"""Timed set-points: Algorithms 1–2 and Experiment 1's trajectories of seed 000, the velocity law of seed 001
+(eq. 3) and its target reaching.
 
 A plan is a ``SetPoints``: times t (N,), Cartesian targets x (N, 3), joint set-points q from the IK (N, 3)
 and joint velocities q̇ = J⁻¹(q) ẋ (N, 3), which the paper's Move(q, q̇) sends as profile velocities.
@@ -6,6 +7,7 @@ and joint velocities q̇ = J⁻¹(q) ẋ (N, 3), which the paper's Move(q, q̇) 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -172,6 +174,38 @@ def velocity_law(d: ArrayLike, t: ArrayLike, v0: float, a0: float) -> Array:
     dist = np.linalg.norm(d, axis=-1, keepdims=True)
     speed = np.minimum(np.minimum(a0 * np.asarray(t, dtype=float)[..., None], v0), np.sqrt(2 * a0 * dist))
     return np.divide(speed * d, dist, out=np.zeros_like(d), where=dist > 0)
+
+
+def velocity_law_reach(
+    chain,
+    q0: ArrayLike,
+    target: ArrayLike,
+    v0: float,
+    a0: float,
+    dt: float = 0.02,
+    tol_m: float = 1e-3,
+    max_s: float = 60.0,
+    tip: Callable[[Array], Array] | None = None,
+) -> tuple[Array, Array]:
+    """Seed 001's target reaching (Figs. 12–16): joint angles (times (n,), q (n, A)) every ``dt`` from ``q0``
+    until the tip is within ``tol_m`` of ``target`` (m) or ``max_s`` passed. At each step the tip moves with
+    eq. (3)'s velocity towards the target, mapped to joint rates by the pseudo-inverse of ``chain``'s rigid
+    Jacobian. ``tip(q)`` is where the error is measured: the rigid tip by default (the arm controlled as
+    rigid), the soft arm's for visual servoing."""
+    tip = tip or chain.position
+    target = np.asarray(target, float)
+    q = np.asarray(q0, float).copy()
+    ts, qs = [0.0], [q.copy()]
+    t = 0.0
+    while t < max_s:
+        d = target - tip(q)
+        if np.linalg.norm(d) < tol_m:
+            break
+        q = q + np.linalg.pinv(chain.jacobian(q)) @ velocity_law(d, t, v0, a0) * dt
+        t += dt
+        ts.append(t)
+        qs.append(q.copy())
+    return np.asarray(ts), np.asarray(qs)
 
 
 def distance_to_path(points: ArrayLike, path: ArrayLike, chunk: int = 4096) -> Array:

@@ -5,7 +5,9 @@ the tip IMU at 1 kHz):
   exactly as simulated ones: Table 1 comes back out as the twin's configured link within the bounds
   tests/test_popup_analysis.py holds the simulated sessions to (f_s 1 %, ζ 5 %, k̂ 5 %, ĉ 15 %);
 - ``vslab run popup_deploy --rig`` inflates link 1, goes on to link 2 once link 1's transducer reads its set
-  point, and the session's own pressure checks pass.
+  point, and the session's own pressure checks pass;
+- ``vslab run popup_reach --rig`` follows the velocity law of Figs. 12–13 and misses the target by the links'
+  bending, as the analysis predicts.
 
 The rig starts as each plan begins (its bench set up by the operator); each ``settle`` waits, in real time,
 until the arm is still and every regulated link at its pressure."""
@@ -24,9 +26,12 @@ from acquisition.schemas import topics as T
 from acquisition.schemas.events import EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
 from acquisition.schemas.session_card import readable_parts
+from acquisition.sim.streams import tracker_spec
 from analysis import popup_tests as pt
+from analysis.popup_reach import reach
 from models import prbm
 from models.robot import load_robot
+from models.statics import static_deflection
 
 INERTIA = 0.0358  # the twin's link 2 about its virtual hinge (tests/test_popup_analysis.py)
 PRESSURES_KPA = (10, 50)
@@ -38,9 +43,8 @@ STATIC = ["repetitions=1", "pressure_settle_s=1.0", "settle_s=1.2", "hold_s=2.0"
 
 def _run(lab, experiment: str, plan: int, settings: list[str], session: str):
     cli = [sys.executable, "-m", "vslab.cli", "--lab", str(lab), "--quiet"]
-    pressures = (
-        [f"pressures_kpa=[{', '.join(map(str, PRESSURES_KPA))}]"] if experiment != "popup_deploy" else []
-    )
+    tests = ("popup_static", "popup_impact")
+    pressures = [f"pressures_kpa=[{', '.join(map(str, PRESSURES_KPA))}]"] if experiment in tests else []
     sets = [arg for s in (*pressures, *settings) for arg in ("--set", s)]
     command = [*cli, "run", experiment, "--plan", str(plan), *sets, "--rig", "--session", session]
     done = subprocess.run(command, capture_output=True, text=True, timeout=300)
@@ -81,3 +85,33 @@ def test_a_deployment_in_real_time_checks_link_1_before_link_2(tmp_path):
     assert checks[0][0] <= inflate_link2  # link 2's valve opened only after link 1's check
     assert p[t < inflate_link2, 1].max() < 1e3  # link 2 stayed deflated until then
     assert p[t < checks[0][0] - 1.0, 0].min() < 1e3  # link 1 started deflated (the bench set up as the plan)
+
+
+@pytest.mark.slow
+def test_the_velocity_law_reach_in_real_time_misses_by_the_links_bending(tmp_path, popup):
+    """``vslab run popup_reach --rig``: the joints follow eq. (3)'s path planned on the rigid model with 2 kg
+    at 60 kPa; at the settled start and target the tracked tip (in the base frame by the twin's tracker
+    placement) is where the PRBM puts it, and away from the rigid model's tip by what
+    ``analysis.popup_reach`` predicts for Figs. 12–13."""
+    session = _run(tmp_path / "lab", "popup_reach", 0, [], "reach")
+    (part,) = readable_parts(session)
+    data = read_fixed_topics(part)
+    events = read_events(part)
+    assert EventKind.SAFETY_STOP not in [e.kind for _, e in events]
+    to_base = np.linalg.inv(tracker_spec(popup).base_to_tracker)
+    tracker, joints = data[T.TRACKER], data[T.JOINT_STATE]
+    tip_base = tracker.rows["position"] @ to_base[:3, :3].T + to_base[:3, 3]
+    predicted = reach(popup, dt=0.01)  # the experiment's defaults: seed 001's task
+    chain, pressure = popup.chain(), np.full(2, 60e3)
+    holds = [(t, e) for t, e in events if e.kind == EventKind.SETTLED and e.index >= 0]
+    assert [e.index for _, e in holds] == [0, 1]
+    for (t, e), planned in zip(holds, (predicted.q[0], predicted.q[-1]), strict=True):
+        window = slice(*np.searchsorted(joints.log_time, [t, t + e.value * 1e9]))
+        q = joints.rows["position"][window].mean(axis=0)
+        np.testing.assert_allclose(q, planned, atol=0.015)  # reached, within the drives' droop under 2 kg
+        window = slice(*np.searchsorted(tracker.log_time, [t, t + e.value * 1e9]))
+        tip = np.nanmean(tip_base[window], axis=0)
+        soft = chain.position(q, static_deflection(popup, q, pressure, 2.0)[0])
+        assert np.linalg.norm(tip - soft) < 3e-3, "the tracked tip is where the PRBM puts it"
+        expected = predicted.difference_mm[0 if e.index == 0 else -1]
+        assert 1e3 * np.linalg.norm(tip - chain.position(q)) == pytest.approx(expected, abs=3.0)

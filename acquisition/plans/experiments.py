@@ -68,11 +68,11 @@ def _shown(path: Path) -> str:
 COUNTS = {"points", "repetitions", "points_per_segment", "taps", "load_steps"}  # integers ≥ 1
 INDICES = {"order"}  # integers ≥ 0 (pressure channels)
 MAX_COUNT = 1_000_000  # far past any experiment (the paper's campaign: 17,568 points)
-SIGNED = {"pose_deg", "workspace_mm"}  # may be negative
+SIGNED = {"pose_deg", "workspace_mm", "q0_deg", "target_mm"}  # may be negative
 POSITIVE = {"speed_m_s", "move_speed_rad_s", "return_speed_rad_s", "fill_time_constants", "tap_impulse_nms",
-            "max_collapse_fraction"}  # fmt: skip
+            "max_collapse_fraction", "v0_m_s", "a0_m_s2", "dt_s", "tolerance_mm"}  # fmt: skip
 MAY_BE_EMPTY = {"without_masses", "rigid_links"}
-FIXED_LENGTH = {"pose_deg", "pressure_bar", "workspace_mm", "set_points_kpa"}  # as many values as the default
+FIXED_LENGTH = {"pose_deg", "pressure_bar", "workspace_mm", "set_points_kpa", "q0_deg", "target_mm"}  # as many values as the default
 
 
 def check_experiment(kind: str, params: dict, source: str, overridden=()) -> None:

@@ -6,7 +6,9 @@
   accelerometer (Table 1: damped frequency and log-decrement damping);
 - ``popup_deploy``: links deflated with valves closed, link 1 inflated to its set point, then link 2 once
   link 1's transducer has reached it (PLAN_STEP 'pressure-check' events, verified by
-  :func:`verify_pressure_checks`).
+  :func:`verify_pressure_checks`);
+- ``popup_reach``: the velocity-law reach of Figs. 12–13 (eq. 3), planned on the rigid model, followed with a
+  2 kg payload at 60 kPa, a settled hold at the start and at the target (SETTLED 0 and 1).
 
 Parameters come from ``configs/experiments/popup_*.yaml`` (``experiments.load_experiment``).
 """
@@ -23,6 +25,7 @@ from acquisition.schemas.events import Event, EventKind
 from models.prbm import collapse_moment
 from models.robot import Hysteresis, RobotDescription
 from models.statics import gravity_moments
+from models.trajectories import velocity_law_reach
 
 KPA, GRAM = 1e3, 1e-3
 PRESSURE_CHECK = "pressure-check"
@@ -174,6 +177,30 @@ def deployment(robot: RobotDescription, params: dict) -> list[Plan]:
     return [b.build()]
 
 
+def target_reach(robot: RobotDescription, params: dict) -> list[Plan]:
+    """One plan: links inflated to ``pressure_kpa``, the arm at ``q0_deg``, the payload hung and a settled
+    hold (SETTLED 0), the joint path of :func:`models.trajectories.velocity_law_reach` to ``target_mm`` every
+    ``dt_s`` (bracketed by REPETITION_START/END 'reach'), and a settled hold at the end (SETTLED 1)."""
+    pressure, payload = params["pressure_kpa"] * KPA, float(params["payload_kg"])
+    q0, target = np.radians(params["q0_deg"]), np.asarray(params["target_mm"], float) * 1e-3
+    law = (params["v0_m_s"], params["a0_m_s2"])
+    t, q = velocity_law_reach(
+        robot.chain(), q0, target, *law, dt=params["dt_s"], tol_m=params["tolerance_mm"] * 1e-3
+    )
+    if len(t) < 2:
+        raise ValueError(
+            f"popup_reach: the tip is already within {params['tolerance_mm']:g} mm of the target"
+        )
+    cell = {"experiment": "popup_reach", "pressure_pa": pressure, "payload_kg": payload,
+            "target_m": target.tolist(), "allow_wrinkling": bool(params["allow_wrinkling"])}  # fmt: skip
+    b = _builder(f"popup_reach/{params['pressure_kpa']:g}kPa-{payload * 1e3:g}g", robot, cell)
+    b.goto(q0).pressure(pressure).payload(0.0).settle(params["settle_s"])
+    b.payload(payload).settle(params["settle_s"], index=0, hold_s=params["hold_s"])
+    b.mark(EventKind.REPETITION_START, 0, "reach").follow(t, q, np.gradient(q, t, axis=0))
+    b.mark(EventKind.REPETITION_END, 0, "reach").settle(params["settle_s"], index=1, hold_s=params["hold_s"])
+    return [b.build()]
+
+
 def pressure_checks(events: list[tuple[float, Event]]) -> list[tuple[float, int, float]]:
     """The (time, channel, set point Pa) of every pressure check among ``events``: a plan's (plan seconds) or
     a recorded session's (its log times), so a deployment is verified the same way on both."""
@@ -202,4 +229,5 @@ EXPERIMENTS: dict[str, Callable[[RobotDescription, dict], list[Plan]]] = {
     "popup_static": static_test,
     "popup_impact": impact_test,
     "popup_deploy": deployment,
+    "popup_reach": target_reach,
 }
