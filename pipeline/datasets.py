@@ -1,10 +1,12 @@
 """The matrix D of seed 000 (IV): measured tip x, link pressures p, joint currents i, joint angles q, plus the
 model-based columns the hybrid networks take (the rigid FK of q, the rigid IK of x), ids and splits.
 
-Columns (SI): ``x_0..2`` (m, base frame), ``p_<c>`` (Pa, one per link channel), ``i_<k>`` (A, one per servo),
+Columns (SI): ``x_0..2`` (m, base frame), ``p_<c>`` (Pa, one per link channel), ``i_<k>`` (A, one per servo;
+``tau_<k>`` in N·m instead for CiA 402 drives, which report torque),
 ``q_<j>`` (rad, every actuated joint in the robot's order, measured by the encoders), ``qc_<j>`` (rad, the
 commanded joint angles: the servo goals in force, which the servos reach only up to their droop under load —
-the inverse model's target), ``fk_0..2`` (m), ``ik_<j>`` (rad; NaN where x is out of reach),
+the inverse model's target), ``fk_0..2`` (m), ``ik_<j>`` (rad; NaN where x is out of reach or the robot
+has no closed-form IK: POPUP),
 ``payload_kg``, ``robot``, ``session``, ``plan`` (the plan the session ran, e.g.
 ``experiment1/curve/vsl-1bar/25g``), ``point`` (static point number or −1), ``repetition`` (−1 for static
 points), ``t`` (s since the session's start), ``split_random`` and ``split_group`` ("train" / "val" / "test").
@@ -57,26 +59,30 @@ def joint_angles(df: pd.DataFrame, robot: RobotDescription, servo: str = "servo_
 
 def assemble(points: pd.DataFrame, robot: RobotDescription) -> pd.DataFrame:
     """D from registered rows (static points or trajectory samples) of one robot: ``x_0..2`` must already be
-    in the base frame; ``servo_position``/``stepper_position``, ``servo_current``, ``pressure`` columns as
-    the timeline names them."""
-    if not isinstance(robot.kinematics, AnthropomorphicKinematics):
-        raise ValueError(f"robot {robot.name!r}: the matrix D is defined for the anthropomorphic VSL arm")
-    kin = robot.kinematics
-    lengths = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+    in the base frame; ``servo_position``/``stepper_position``, ``servo_current`` (the Dynamixel servos) or
+    ``servo_torque`` (CiA 402 drives: ``tau_<k>`` in N·m in place of ``i_<k>``), ``pressure`` columns as the
+    timeline names them. The rigid FK is the robot's chain; the rigid IK is the anthropomorphic arm's closed
+    form, NaN on a robot without one (POPUP's D-H chain)."""
     q = joint_angles(points, robot)
     x = columns(points, "x")
     out = {f"x_{k}": x[:, k] for k in range(3)}
     pressure = columns(points, "pressure")
     out |= {f"p_{c}": pressure[:, c] for c in range(pressure.shape[1])}
-    current = columns(points, "servo_current")
-    out |= {f"i_{k}": current[:, k] for k in range(current.shape[1])}
+    for column, name in (("servo_current", "i"), ("servo_torque", "tau")):
+        if any(c.startswith(column + "_") for c in points.columns):
+            effort = columns(points, column)
+            out |= {f"{name}_{k}": effort[:, k] for k in range(effort.shape[1])}
     out |= {f"q_{j}": q[:, j] for j in range(q.shape[1])}
     commanded = joint_angles(points, robot, servo="goal_position")
     out |= {f"qc_{j}": commanded[:, j] for j in range(commanded.shape[1])}
-    fk = kinematics.vsl_fk(q, lengths)
+    if isinstance(robot.kinematics, AnthropomorphicKinematics):
+        kin = robot.kinematics
+        lengths = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+        fk, ik = kinematics.vsl_fk(q, lengths), _ik_or_nan(x, lengths)
+    else:
+        fk, ik = robot.chain().position(q), np.full((len(x), q.shape[1]), np.nan)
     out |= {f"fk_{k}": fk[:, k] for k in range(3)}
-    ik = _ik_or_nan(x, lengths)
-    out |= {f"ik_{j}": ik[:, j] for j in range(3)}
+    out |= {f"ik_{j}": ik[:, j] for j in range(ik.shape[1])}
     n = len(points)
     out["payload_kg"] = points["payload_kg"].to_numpy(float) if "payload_kg" in points else np.zeros(n)
     out["robot"] = np.full(n, robot.name)

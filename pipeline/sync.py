@@ -24,8 +24,11 @@ from pipeline.tables import SessionTables, columns
 log = logging.getLogger(__name__)
 
 # what the timeline interpolates at the tracker's frames: topic → (column prefix, fields)
+# (POPUP's CiA 402 servo drives answer SYNC with position, velocity and torque on /joint/state: the host
+# stamps it when the answers arrive, ≈ 1 ms after the SYNC they sample at)
 TIMELINE_FIELDS: dict[str, tuple[str, tuple[str, ...]]] = {
     T.SERVO_STATE: ("servo_", ("position", "velocity", "current")),
+    T.JOINT_STATE: ("servo_", ("position", "velocity", "torque")),
     T.PRESSURE: ("", ("pressure",)),
     T.STEPPER: ("stepper_", ("position",)),
 }

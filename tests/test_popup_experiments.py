@@ -88,6 +88,22 @@ def test_reach_plan_follows_the_velocity_law_to_the_target(popup):
     assert SafetyChecker(popup).check_plan(plan) == []  # past M_w, held below collapse
 
 
+def test_survey_plan_spreads_safe_settled_poses_over_the_joint_box(popup):
+    params, (plan,) = _plans("popup_survey", popup)
+    settled = _kinds(plan, EventKind.SETTLED)
+    assert [e.index for _, e in settled] == list(range(params["points"]))
+    assert {e.value for _, e in settled} == {params["hold_s"]}
+    lo, hi = (np.radians(params["joints_deg"][k]) for k in ("min", "max"))
+    assert ((plan.goal_q >= lo) & (plan.goal_q <= hi)).all()
+    assert np.ptp(plan.goal_q, axis=0).min() > 0.5 * (hi - lo).min()  # spread, not bunched
+    assert ((plan.pressure_pa >= 40e3) & (plan.pressure_pa <= 90e3)).all()
+    assert SafetyChecker(popup).check_plan(plan) == []
+    tip = popup.chain().position(plan.goal_q)
+    assert np.linalg.svd(tip - tip.mean(axis=0), compute_uv=False).min() > 0.1  # a volume: it registers
+    with pytest.raises(experiments.ExperimentError, match="joints_deg's min below its max"):
+        experiments.expand_experiment("popup_survey", {"joints_deg": {"min": [0, 0, 0], "max": [0, 1, 1]}})
+
+
 def test_plan_taps_must_be_ordered_and_inside():
     b = PlanBuilder("t", "popup", 3, 2).goto(np.zeros(3)).pressure(1e4).payload(0.0).wait(1.0).tap(0.01)
     plan = b.wait(1.0).build()

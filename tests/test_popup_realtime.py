@@ -14,13 +14,17 @@ until the arm is still and every regulated link at its pressure."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
 import numpy as np
+import pandas as pd
 import pytest
+from scipy.spatial.transform import Rotation
 
 from acquisition.plans.popup_experiments import pressure_checks, verify_pressure_checks
+from acquisition.plans.sim_runner import simulate_experiment
 from acquisition.recorder.sessions import session_info
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import EventKind
@@ -32,6 +36,8 @@ from analysis.popup_reach import reach
 from models import prbm
 from models.robot import load_robot
 from models.statics import static_deflection
+from pipeline.build import build
+from vslab.lab_job import sessions_of
 
 INERTIA = 0.0358  # the twin's link 2 about its virtual hinge (tests/test_popup_analysis.py)
 PRESSURES_KPA = (10, 50)
@@ -39,6 +45,32 @@ IMPACT = ["taps=2", "record_s=1.2", "settle_s=1.0"]
 # one repetition of the default loads (4 of them below M_w at 10 kPa): over seeds 1-6 of the simulated test
 # the mean static k of the two pressures was within 2.7 % of the configured link (k̂ rests on that mean)
 STATIC = ["repetitions=1", "pressure_settle_s=1.0", "settle_s=1.2", "hold_s=2.0"]
+
+
+# the module's real-time sessions: name → (experiment, plan number, --set settings)
+SESSIONS = {
+    **{f"impact-{kpa}": ("popup_impact", i, IMPACT) for i, kpa in enumerate(PRESSURES_KPA)},
+    **{f"static-{kpa}": ("popup_static", i, STATIC) for i, kpa in enumerate(PRESSURES_KPA)},
+    "deploy": ("popup_deploy", 0, []),
+    "reach": ("popup_reach", 0, []),
+}
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    """``recorded(name)``: the session of :data:`SESSIONS` run with ``vslab run … --rig`` into the module's
+    lab (each recorded once, when a test first needs it); ``recorded.lab`` is the lab."""
+    lab = tmp_path_factory.mktemp("popup-rt") / "lab"
+    done: dict[str, object] = {}
+
+    def session(name: str):
+        if name not in done:
+            experiment, plan, settings = SESSIONS[name]
+            done[name] = _run(lab, experiment, plan, settings, name)
+        return done[name]
+
+    session.lab = lab
+    return session
 
 
 def _run(lab, experiment: str, plan: int, settings: list[str], session: str):
@@ -54,10 +86,9 @@ def _run(lab, experiment: str, plan: int, settings: list[str], session: str):
 
 
 @pytest.mark.slow
-def test_table1_from_real_time_link_tests(tmp_path):
-    lab = tmp_path / "lab"
-    impact = [_run(lab, "popup_impact", i, IMPACT, f"impact-{kpa}") for i, kpa in enumerate(PRESSURES_KPA)]
-    static = [_run(lab, "popup_static", i, STATIC, f"static-{kpa}") for i, kpa in enumerate(PRESSURES_KPA)]
+def test_table1_from_real_time_link_tests(recorded):
+    impact = [recorded(f"impact-{kpa}") for kpa in PRESSURES_KPA]
+    static = [recorded(f"static-{kpa}") for kpa in PRESSURES_KPA]
     table = pt.table1(pt.static_stiffness(pt.link_static_curves(static)), pt.impact_parameters(impact))
     assert table["pressure_kpa"].tolist() == list(PRESSURES_KPA)
     link = load_robot("popup").link_table("link2")
@@ -71,8 +102,8 @@ def test_table1_from_real_time_link_tests(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_deployment_in_real_time_checks_link_1_before_link_2(tmp_path):
-    session = _run(tmp_path / "lab", "popup_deploy", 0, [], "deploy")
+def test_a_deployment_in_real_time_checks_link_1_before_link_2(recorded):
+    session = recorded("deploy")
     (part,) = readable_parts(session)
     pressure = read_fixed_topics(part)[T.PRESSURE]
     events = [(t / 1e9, e) for t, e in read_events(part)]
@@ -88,12 +119,12 @@ def test_a_deployment_in_real_time_checks_link_1_before_link_2(tmp_path):
 
 
 @pytest.mark.slow
-def test_the_velocity_law_reach_in_real_time_misses_by_the_links_bending(tmp_path, popup):
+def test_the_velocity_law_reach_in_real_time_misses_by_the_links_bending(recorded, popup):
     """``vslab run popup_reach --rig``: the joints follow eq. (3)'s path planned on the rigid model with 2 kg
     at 60 kPa; at the settled start and target the tracked tip (in the base frame by the twin's tracker
     placement) is where the PRBM puts it, and away from the rigid model's tip by what
     ``analysis.popup_reach`` predicts for Figs. 12–13."""
-    session = _run(tmp_path / "lab", "popup_reach", 0, [], "reach")
+    session = recorded("reach")
     (part,) = readable_parts(session)
     data = read_fixed_topics(part)
     events = read_events(part)
@@ -115,3 +146,37 @@ def test_the_velocity_law_reach_in_real_time_misses_by_the_links_bending(tmp_pat
         assert np.linalg.norm(tip - soft) < 3e-3, "the tracked tip is where the PRBM puts it"
         expected = predicted.difference_mm[0 if e.index == 0 else -1]
         assert 1e3 * np.linalg.norm(tip - chain.position(q)) == pytest.approx(expected, abs=3.0)
+
+
+@pytest.mark.slow
+def test_real_time_popup_sessions_build_into_datasets(recorded, popup):
+    """The pipeline builds the real-time deployment, reach and impact sessions as it builds simulated ones:
+    the tracker registered on a survey of the same setup (its static points span the workspace; a reach
+    moves the tip along a line, a link test not at all), D with the drives' torques, the reach's path."""
+    sessions = [recorded(name) for name in ("deploy", "reach", "impact-10")]
+    lab = recorded.lab
+    simulate_experiment("popup_survey", lab / "sessions", seed=1)
+    survey = build(sessions_of(lab / "sessions", "popup_survey"), lab, "popup_survey")
+    fitted = np.array(
+        json.loads((survey.path / "card.json").read_text())["registration"]["popup"]["base_to_tracker"]
+    )
+    truth = tracker_spec(popup).base_to_tracker
+    assert np.degrees(Rotation.from_matrix(fitted[:3, :3] @ truth[:3, :3].T).magnitude()) < 0.05
+    assert np.linalg.norm(fitted[:3, 3] - truth[:3, 3]) < 0.5e-3
+    borrowed = {"register": {"from_dataset": f"popup_survey@{survey.version}"}}
+    built = {s.name: build([s], lab, f"rt-{s.name}", borrowed) for s in sessions}
+    deploy = pd.read_parquet(built["deploy"].path / "data.parquet")
+    assert len(deploy) == 1 and deploy["p_0"].iloc[0] == pytest.approx(50e3, rel=0.03)  # the deployed arm
+    reach_d = pd.read_parquet(built["reach"].path / "data.parquet")
+    assert reach_d["point"].tolist() == [0, 1] and reach_d["payload_kg"].tolist() == [2.0, 2.0]
+    q = reach_d[[f"q_{j}" for j in range(3)]].to_numpy()
+    x = reach_d[[f"x_{k}" for k in range(3)]].to_numpy()
+    soft = popup.chain().position(q, static_deflection(popup, q, np.full((2, 2), 60e3), 2.0)[0])
+    assert np.linalg.norm(x - soft, axis=1).max() < 3e-3  # registered by the survey, where the PRBM says
+    assert np.isfinite(reach_d[[f"tau_{k}" for k in range(3)]].to_numpy()).all()  # the drives' torques
+    path = pd.read_parquet(built["reach"].path / "trajectories.parquet")
+    assert len(path) > 30 * 9 and (path["repetition"] == 0).all()  # ≈ 11 s at the tracker's 40 Hz
+    tip = path[[f"x_{k}" for k in range(3)]].to_numpy()
+    assert np.linalg.norm(tip[-1] - x[1]) < 0.02  # the path ends where the target hold is
+    taps = pd.read_parquet(built["impact-10"].path / "trajectories.parquet")
+    assert sorted(taps["repetition"].unique()) == [0, 1]

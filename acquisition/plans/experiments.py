@@ -68,11 +68,12 @@ def _shown(path: Path) -> str:
 COUNTS = {"points", "repetitions", "points_per_segment", "taps", "load_steps"}  # integers ≥ 1
 INDICES = {"order"}  # integers ≥ 0 (pressure channels)
 MAX_COUNT = 1_000_000  # far past any experiment (the paper's campaign: 17,568 points)
-SIGNED = {"pose_deg", "workspace_mm", "q0_deg", "target_mm"}  # may be negative
+SIGNED = {"pose_deg", "workspace_mm", "q0_deg", "target_mm", "joints_deg"}  # may be negative
 POSITIVE = {"speed_m_s", "move_speed_rad_s", "return_speed_rad_s", "fill_time_constants", "tap_impulse_nms",
             "max_collapse_fraction", "v0_m_s", "a0_m_s2", "dt_s", "tolerance_mm"}  # fmt: skip
 MAY_BE_EMPTY = {"without_masses", "rigid_links"}
-FIXED_LENGTH = {"pose_deg", "pressure_bar", "workspace_mm", "set_points_kpa", "q0_deg", "target_mm"}  # as many values as the default
+FIXED_LENGTH = {"pose_deg", "pressure_bar", "workspace_mm", "set_points_kpa", "q0_deg", "target_mm",
+                "pressure_kpa", "joints_deg"}  # fmt: skip  # as many values as the default
 
 
 def check_experiment(kind: str, params: dict, source: str, overridden=()) -> None:
@@ -98,6 +99,14 @@ def check_experiment(kind: str, params: dict, source: str, overridden=()) -> Non
             raise ExperimentError(
                 f"{where}: pressure_bar must be [low, high] and workspace_mm's min below its max on every "
                 "axis"
+            )
+    if kind == "popup_survey":
+        lo, hi = params["pressure_kpa"]
+        box = params["joints_deg"]
+        if lo > hi or any(a >= b for a, b in zip(box["min"], box["max"], strict=True)):
+            where = "--set" if {"pressure_kpa", "joints_deg"} & set(overridden) else source
+            raise ExperimentError(
+                f"{where}: pressure_kpa must be [low, high] and joints_deg's min below its max for each joint"
             )
     if kind == "popup_deploy" and any(ch >= len(params["set_points_kpa"]) for ch in params["order"]):
         where = "--set order" if "order" in overridden else f"{source}: order"

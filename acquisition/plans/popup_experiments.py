@@ -7,6 +7,8 @@
 - ``popup_deploy``: links deflated with valves closed, link 1 inflated to its set point, then link 2 once
   link 1's transducer has reached it (PLAN_STEP 'pressure-check' events, verified by
   :func:`verify_pressure_checks`);
+- ``popup_survey``: settled poses drawn over the workspace (ASSUMED: the seed has no data campaign), the
+  static points the pipeline registers the tracker on;
 - ``popup_reach``: the velocity-law reach of Figs. 12–13 (eq. 3), planned on the rigid model, followed with a
   2 kg payload at 60 kPa, a settled hold at the start and at the target (SETTLED 0 and 1).
 
@@ -151,7 +153,7 @@ def fill_time_s(robot: RobotDescription, time_constants: float) -> float:
 def deployment(robot: RobotDescription, params: dict) -> list[Plan]:
     """Links at 0 Pa with valves closed; channel 0 opened to its set point, a settle and a 'pressure-check'
     PLAN_STEP (index = channel, value = set point) after the estimated fill time, its valve closed; then
-    channel 1."""
+    channel 1; then the deployed arm held still (SETTLED 0: a static point)."""
     set_points = np.asarray(params["set_points_kpa"], float) * KPA
     channels = robot.pneumatics.channels
     if len(set_points) != channels:
@@ -170,10 +172,10 @@ def deployment(robot: RobotDescription, params: dict) -> list[Plan]:
         b.pressure(pressure, valves).mark(EventKind.PLAN_STEP, ch, "inflate", value=float(set_points[ch]))
         # settle: in real time the plan goes on only once the link holds its set point (the seed's check of
         # link 1's transducer before link 2), or stops after the runner's settle timeout
-        b.settle(fill_s, index=ch).mark(EventKind.PLAN_STEP, ch, PRESSURE_CHECK, value=float(set_points[ch]))
+        b.settle(fill_s).mark(EventKind.PLAN_STEP, ch, PRESSURE_CHECK, value=float(set_points[ch]))
         valves[ch] = False  # normally-closed valves: the supply is cut once the link is full
         b.pressure(pressure, valves)
-    b.wait(params["hold_s"])
+    b.settle(0.0, index=0, hold_s=params["hold_s"])  # the deployed arm at rest: one static point
     return [b.build()]
 
 
@@ -198,6 +200,42 @@ def target_reach(robot: RobotDescription, params: dict) -> list[Plan]:
     b.payload(payload).settle(params["settle_s"], index=0, hold_s=params["hold_s"])
     b.mark(EventKind.REPETITION_START, 0, "reach").follow(t, q, np.gradient(q, t, axis=0))
     b.mark(EventKind.REPETITION_END, 0, "reach").settle(params["settle_s"], index=1, hold_s=params["hold_s"])
+    return [b.build()]
+
+
+MAX_DRAWS = 100  # draws per survey point before the joint box is deemed unsafe at these loads
+
+
+def survey(robot: RobotDescription, params: dict, seed: int = 0) -> list[Plan]:
+    """One plan of ``points`` settled static points (SETTLED index = point): joint angles drawn uniformly in
+    the ``joints_deg`` box, link pressures uniformly in ``pressure_kpa``, payloads from ``payloads_g``; a pose
+    the safety checker refuses at its pressure and payload (the tip outside the workspace, a link past M_w)
+    is drawn again. The joints move at ``move_speed_rad_s``, then settle and hold."""
+    from acquisition.safety import SafetyChecker
+
+    rng = np.random.default_rng(seed)
+    check = SafetyChecker(robot)
+    lo, hi = (np.radians(params["joints_deg"][k]) for k in ("min", "max"))
+    p_lo, p_hi = (v * KPA for v in params["pressure_kpa"])
+    masses = np.asarray(params["payloads_g"], float) * GRAM
+    channels = robot.pneumatics.channels
+    b = _builder("popup_survey/" + f"{params['points']}points", robot,
+                 {"experiment": "popup_survey", "seed": seed, "points": params["points"]})  # fmt: skip
+    previous = None
+    for point in range(params["points"]):
+        for _ in range(MAX_DRAWS):
+            q, pressure, kg = rng.uniform(lo, hi), rng.uniform(p_lo, p_hi), float(rng.choice(masses))
+            if not check.check_state(np.zeros(1), q[None], np.full((1, channels), pressure), kg):
+                break
+        else:
+            raise ValueError(f"popup_survey: no safe pose in {MAX_DRAWS} draws in joints_deg at these loads")
+        b.pressure(pressure).payload(kg).goto(q, params["move_speed_rad_s"])
+        if (
+            previous is not None
+        ):  # the joints travel at the move speed first; settling starts when they arrive
+            b.wait(float(np.abs(q - previous).max()) / params["move_speed_rad_s"])
+        b.settle(params["settle_s"], index=point, hold_s=params["hold_s"])
+        previous = q
     return [b.build()]
 
 
@@ -230,4 +268,5 @@ EXPERIMENTS: dict[str, Callable[[RobotDescription, dict], list[Plan]]] = {
     "popup_impact": impact_test,
     "popup_deploy": deployment,
     "popup_reach": target_reach,
+    "popup_survey": survey,
 }
