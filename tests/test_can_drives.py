@@ -52,8 +52,10 @@ def test_drives_enable_and_follow_target_positions(drives):
     start = cycles[-1].position_rad.copy()
     step = np.array([0.3, -0.2, 0.25]) / 80
     followed = _cycles(drives, 100, lambda k: start + step * min(k + 1, 80))
-    final = followed[-1]
-    assert final.answered.all()
+    # the last cycle every drive answered in time (on a busy host a SYNC's answers may come too late: the
+    # answered rate is test_every_sync_is_answered_by_every_drive_and_counted's, under the steal guard)
+    final = next(c for c in reversed(followed) if c.answered.all())
+    assert final.sync >= followed[-1].sync - 10
     np.testing.assert_allclose(final.position_rad, start + step * 80, atol=0.02)  # within the drives' lag
     assert np.isfinite(final.torque_nm).all() and abs(final.torque_nm[1]) > 0.5  # q2 holds link 1 up
 
