@@ -72,6 +72,7 @@ SIGNED = {"pose_deg", "workspace_mm", "q0_deg", "target_mm", "joints_deg"}  # ma
 POSITIVE = {"speed_m_s", "move_speed_rad_s", "return_speed_rad_s", "fill_time_constants", "tap_impulse_nms",
             "max_collapse_fraction", "v0_m_s", "a0_m_s2", "dt_s", "tolerance_mm"}  # fmt: skip
 MAY_BE_EMPTY = {"without_masses", "rigid_links"}
+RANGES = {"campaign": ("pressure_bar", "workspace_mm"), "popup_survey": ("pressure_kpa", "joints_deg")}
 FIXED_LENGTH = {"pose_deg", "pressure_bar", "workspace_mm", "set_points_kpa", "q0_deg", "target_mm",
                 "pressure_kpa", "joints_deg"}  # fmt: skip  # as many values as the default
 
@@ -91,22 +92,13 @@ def check_experiment(kind: str, params: dict, source: str, overridden=()) -> Non
     for key, default in defaults.items():
         where = f"--set {key}" if key in overridden else f"{source}: {key}"
         _check_value(key, params[key], default, where)
-    if kind == "campaign":
-        lo, hi = params["pressure_bar"]
-        box = params["workspace_mm"]
-        if lo > hi or any(a >= b for a, b in zip(box["min"], box["max"], strict=True)):
-            where = "--set" if {"pressure_bar", "workspace_mm"} & set(overridden) else source
+    if kind in RANGES:  # a draw's pressure range [low, high] and its box, min below max on every axis
+        pressure, box = RANGES[kind]
+        lo, hi = params[pressure]
+        if lo > hi or any(a >= b for a, b in zip(params[box]["min"], params[box]["max"], strict=True)):
+            where = "--set" if {pressure, box} & set(overridden) else source
             raise ExperimentError(
-                f"{where}: pressure_bar must be [low, high] and workspace_mm's min below its max on every "
-                "axis"
-            )
-    if kind == "popup_survey":
-        lo, hi = params["pressure_kpa"]
-        box = params["joints_deg"]
-        if lo > hi or any(a >= b for a, b in zip(box["min"], box["max"], strict=True)):
-            where = "--set" if {"pressure_kpa", "joints_deg"} & set(overridden) else source
-            raise ExperimentError(
-                f"{where}: pressure_kpa must be [low, high] and joints_deg's min below its max for each joint"
+                f"{where}: {pressure} must be [low, high] and {box}'s min below its max on every axis"
             )
     if kind == "popup_deploy" and any(ch >= len(params["set_points_kpa"]) for ch in params["order"]):
         where = "--set order" if "order" in overridden else f"{source}: order"
