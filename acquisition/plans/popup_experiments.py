@@ -199,7 +199,10 @@ def target_reach(robot: RobotDescription, params: dict) -> list[Plan]:
     b.goto(q0).pressure(pressure).payload(0.0).settle(params["settle_s"])
     b.payload(payload).settle(params["settle_s"], index=0, hold_s=params["hold_s"])
     b.mark(EventKind.REPETITION_START, 0, "reach").follow(t, q, np.gradient(q, t, axis=0))
-    b.mark(EventKind.REPETITION_END, 0, "reach").settle(params["settle_s"], index=1, hold_s=params["hold_s"])
+    # the target again at the drives' own speed: the path's last set-points carry the law's last few mm/s
+    # as their profile speed, at which a drive would close what it lags behind (a creep of ≈ 2 mrad/s)
+    b.mark(EventKind.REPETITION_END, 0, "reach").goto(q[-1])
+    b.settle(params["settle_s"], index=1, hold_s=params["hold_s"])
     return [b.build()]
 
 
