@@ -255,9 +255,12 @@ def run_grid(
     executor: cf.Executor | None = None,
     progress: Callable[[int, int, dict], None] | None = None,
     workers: int | None = None,
+    threads: int | None = None,
 ) -> list[dict]:
     """Train every job of ``grid`` whose version is not in ``<lab>/models`` yet; one summary per job, in grid
-    order (``status``: "trained" or "existing"). ``progress(done, total, summary)`` after each job."""
+    order (``status``: "trained" or "existing"). ``progress(done, total, summary)`` after each job.
+    ``threads``: torch threads per job (default: this machine's cores shared among ``workers``; a cluster's
+    workers take 1 each)."""
     jobs = expand(lab, grid)
     root = Path(lab) / "models"
     results: dict[str, dict] = {}
@@ -274,7 +277,7 @@ def run_grid(
     if own:
         executor = (cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("forkserver"))
                     if workers > 1 and len(todo) > 1 else InlineExecutor())  # fmt: skip
-    threads = max(1, cores // workers)
+    threads = threads or max(1, cores // workers)
     for done, summary in enumerate(list(results.values()), 1):
         if progress:
             progress(done, len(jobs), summary)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from pathlib import Path
@@ -12,6 +13,7 @@ from rich.table import Table
 
 from models.robot import CONFIG_DIR, RobotDescriptionError
 from vslab import (
+    cluster_cmds,  # noqa: F401  (registers cluster on the app)
     models_cmds,  # noqa: F401  (registers train and models on the app)
     recording,  # noqa: F401  (registers record and run on the app)
     sessions_cmds,  # noqa: F401  (registers sessions on the app)
@@ -224,6 +226,13 @@ def build(
         list[str] | None, typer.Option("--set", help="A stage parameter: stage.key=value (repeatable).")
     ] = None,
     workers: Annotated[int, typer.Option(help="Parallel processes (0: one per core).")] = 0,
+    cluster: Annotated[
+        str | None,
+        typer.Option(
+            help="A Dask scheduler (tcp://host:port) whose workers process the sessions; they must see the "
+            "lab at the same path (vslab[cluster])."
+        ),
+    ] = None,
 ) -> None:
     """Build a versioned dataset from recorded sessions: ingest, clean, sync, register, segment, D + splits.
     Every stage is cached: building again with nothing changed does no work. A session that cannot be read
@@ -242,6 +251,7 @@ def build(
 
     from pipeline.build import BuildError
     from pipeline.build import build as build_dataset
+    from pipeline.cluster import ClusterError, cluster_executor
 
     parameters = _stage_parameters(set_ or [])
     wanted = protocol or name
@@ -257,27 +267,33 @@ def build(
         unusable = f" ({len(bad)} folder(s) skipped, see above)" if bad else ""
         _fail(escape(f"no usable session of protocol {wanted!r} in {Settings.lab / 'sessions'}{unusable} "
                      "(see `vslab sessions list`)"))  # fmt: skip
+    if cluster is not None and workers:
+        _fail("--workers and --cluster: the cluster's workers build (give one of them)")
     start = time.perf_counter()
-    executor = cf.ProcessPoolExecutor(workers) if workers > 0 else None
-    with Progress(console=console, disable=Settings.quiet, transient=True) as bar:
+    with (
+        contextlib.ExitStack() as stack,
+        Progress(console=console, disable=Settings.quiet, transient=True) as bar,
+    ):
         task = bar.add_task(f"{len(sessions)} sessions", total=len(sessions))
         try:
+            executor = None
+            if cluster is not None:
+                executor = stack.enter_context(cluster_executor(cluster))
+            elif workers > 0:
+                executor = stack.enter_context(cf.ProcessPoolExecutor(workers))
             report = build_dataset(sessions, Settings.lab, name, parameters, executor=executor,
                                    progress=lambda done, total: bar.update(task, completed=done))  # fmt: skip
         except BuildError as exc:
             bar.stop()
             warn(bad | exc.failed)
             _fail(escape(str(exc)))
-        except (ValueError, OSError) as exc:
+        except (ValueError, OSError, ClusterError) as exc:
             bar.stop()
             warn(bad)
             _fail(escape(str(exc)))
         except BrokenProcessPool:
             bar.stop()
             _fail("a build worker process died (out of memory?): try fewer --workers")
-        finally:
-            if executor is not None:
-                executor.shutdown()
     wall = time.perf_counter() - start
     what = "built" if report.built else "already built (nothing to do)"
     sources = f"{len(report.sessions)} sessions ({report.cached} cached)"

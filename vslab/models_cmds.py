@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
@@ -38,6 +39,13 @@ def train(
         typer.Option("--set", help="Override: a grid key (seeds=[0,1]) or a training field (max_epochs=5)."),
     ] = None,
     workers: Annotated[int, typer.Option(help="Parallel training processes (0: one per core).")] = 0,
+    cluster: Annotated[
+        str | None,
+        typer.Option(
+            help="A Dask scheduler (tcp://host:port) whose workers train the jobs, one torch thread "
+            "each; they must see the lab at the same path (vslab[cluster])."
+        ),
+    ] = None,
 ) -> None:
     """Train every job of a grid whose version is not in <lab>/models yet (a second run trains nothing)."""
     import concurrent.futures as cf
@@ -49,6 +57,7 @@ def train(
 
     from rich.progress import Progress
 
+    from pipeline.cluster import ClusterError, cluster_executor
     from pipeline.grid import expand, load_grid, run_grid
 
     if workers < 0:
@@ -59,26 +68,31 @@ def train(
         n_jobs = len(expand(Settings.lab, spec))
     except (ValueError, OSError) as exc:  # GridError; a damaged model already in the lab
         _error(str(exc))
-    executor = None
-    if workers > 1:
-        executor = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("forkserver"))
+    if cluster is not None and workers:
+        _error("--workers and --cluster: the cluster's workers train (give one of them)")
     start = time.perf_counter()
-    with Progress(console=console, disable=Settings.quiet, transient=True) as bar:
+    with (
+        contextlib.ExitStack() as stack,
+        Progress(console=console, disable=Settings.quiet, transient=True) as bar,
+    ):
         task = bar.add_task(f"{n_jobs} training jobs", total=n_jobs)
 
         def progress(done: int, total: int, summary: dict) -> None:
             bar.update(task, completed=done, description=f"{summary['name']} {summary['status']}")
 
         try:
-            results = run_grid(
-                Settings.lab, spec, executor=executor, progress=progress, workers=workers or None
-            )
-        except (ValueError, OSError) as exc:  # GridError; a damaged model or dataset in the lab; a full disk
+            executor, threads = None, None
+            if cluster is not None:
+                executor, threads = stack.enter_context(cluster_executor(cluster)), 1
+            elif workers > 1:
+                pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("forkserver"))
+                executor = stack.enter_context(_shut_down(pool))
+            results = run_grid(Settings.lab, spec, executor=executor, progress=progress,
+                               workers=workers or None, threads=threads)  # fmt: skip
+        # GridError; a damaged model or dataset; a full disk; no cluster at the address
+        except (ValueError, OSError, ClusterError) as exc:
             bar.stop()
             _error(str(exc))
-        finally:
-            if executor is not None:
-                executor.shutdown(cancel_futures=True)
     title = f"{len(results)} models in {Settings.lab / 'models'}"
     table = Table(_version(), "model", "dataset", "split", "seed", "test mean mm", "test p95 mm", "epochs",
                   "time s", "status", title=title)  # fmt: skip
@@ -206,3 +220,12 @@ def models_compare(
         cells = [f"{v:.4g}" if isinstance(v, float) else str(v) for v in df[column]]
         table.add_row(column, *cells)
     console.print(table)
+
+
+@contextlib.contextmanager
+def _shut_down(pool):
+    """A process pool, shut down on exit with the jobs not started cancelled."""
+    try:
+        yield pool
+    finally:
+        pool.shutdown(cancel_futures=True)
