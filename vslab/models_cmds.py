@@ -85,8 +85,10 @@ def train(
             if cluster is not None:
                 executor, threads = stack.enter_context(cluster_executor(cluster)), 1
             elif workers > 1:
-                pool = cf.ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("forkserver"))
-                executor = stack.enter_context(_shut_down(pool))
+                executor = cf.ProcessPoolExecutor(
+                    workers, mp_context=multiprocessing.get_context("forkserver")
+                )
+                stack.callback(executor.shutdown, cancel_futures=True)
             results = run_grid(Settings.lab, spec, executor=executor, progress=progress,
                                workers=workers or None, threads=threads)  # fmt: skip
         # GridError; a damaged model or dataset; a full disk; no cluster at the address
@@ -220,12 +222,3 @@ def models_compare(
         cells = [f"{v:.4g}" if isinstance(v, float) else str(v) for v in df[column]]
         table.add_row(column, *cells)
     console.print(table)
-
-
-@contextlib.contextmanager
-def _shut_down(pool):
-    """A process pool, shut down on exit with the jobs not started cancelled."""
-    try:
-        yield pool
-    finally:
-        pool.shutdown(cancel_futures=True)

@@ -23,6 +23,7 @@ from collections.abc import Callable
 import numpy as np
 
 from acquisition.plans.plan import Plan, PlanBuilder
+from acquisition.safety import SafetyChecker
 from acquisition.schemas.events import Event, EventKind
 from models.prbm import collapse_moment
 from models.robot import Hysteresis, RobotDescription
@@ -214,8 +215,6 @@ def survey(robot: RobotDescription, params: dict, seed: int = 0) -> list[Plan]:
     the ``joints_deg`` box, link pressures uniformly in ``pressure_kpa``, payloads from ``payloads_g``; a pose
     the safety checker refuses at its pressure and payload (the tip outside the workspace, a link past M_w)
     is drawn again. The joints move at ``move_speed_rad_s``, then settle and hold."""
-    from acquisition.safety import SafetyChecker
-
     rng = np.random.default_rng(seed)
     check = SafetyChecker(robot)
     lo, hi = (np.radians(params["joints_deg"][k]) for k in ("min", "max"))
@@ -233,9 +232,8 @@ def survey(robot: RobotDescription, params: dict, seed: int = 0) -> list[Plan]:
         else:
             raise ValueError(f"popup_survey: no safe pose in {MAX_DRAWS} draws in joints_deg at these loads")
         b.pressure(pressure).payload(kg).goto(q, params["move_speed_rad_s"])
-        if (
-            previous is not None
-        ):  # the joints travel at the move speed first; settling starts when they arrive
+        # the joints travel at the move speed first; settling starts when they arrive
+        if previous is not None:
             b.wait(float(np.abs(q - previous).max()) / params["move_speed_rad_s"])
         b.settle(params["settle_s"], index=point, hold_s=params["hold_s"])
         previous = q

@@ -225,9 +225,10 @@ def _flag(cmd: dict, key: str) -> bool:
 
 
 def serve_rig(robot: RobotDescription, run_dir: Path, seed: int = 0, start: dict | None = None) -> None:
-    """Run the rig until SIGTERM/SIGINT; ``start``: Rig's ``q0``, ``pressure_pa`` and ``valve_open``."""
+    """Run the rig until SIGTERM/SIGINT; ``start``: Rig's ``q0``, ``pressure_pa``, ``valve_open`` (see
+    :func:`bench_start`)."""
     numba.set_num_threads(1)  # one robot: worker threads would only steal the client's core
-    rig = Rig(robot, seed=seed, **bench_start(robot, start or {}))
+    rig = Rig(robot, seed=seed, **(start or {}))
     host = PtyHost(run_dir, rig.emulators, tick=rig.advance, control=rig.control)  # tick: see PtyHost
     settle_heap()
     log.info("rig for %s serving %s in %s", robot.name, ", ".join(rig.emulators), run_dir)
@@ -246,12 +247,12 @@ def bench_start(robot: RobotDescription, start: dict) -> dict:
         if key not in sizes:
             raise ValueError(f"start: unknown key {key!r} (known: {', '.join(sizes)})")
         flags = key == "valve_open"
-        if flags:
-            valid = all(type(v) is bool for v in value) if isinstance(value, list) else False
-        else:
-            valid = isinstance(value, list) and all(
-                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in value
-            )
+        valid = isinstance(value, list) and all(
+            type(v) is bool
+            if flags
+            else isinstance(v, int | float) and type(v) is not bool and math.isfinite(v)
+            for v in value
+        )
         if not valid or len(value) != sizes[key]:
             kind = "booleans" if flags else "finite numbers"
             raise ValueError(f"start: {key} must be {sizes[key]} {kind}, got {value!r}")
@@ -280,8 +281,7 @@ def main(argv: list[str] | None = None) -> None:
     start = None
     if args.start is not None:
         try:
-            start = json.loads(args.start.read_text())
-            bench_start(robot, start)
+            start = bench_start(robot, json.loads(args.start.read_text()))
         except (OSError, ValueError) as exc:
             parser.error(f"--start {args.start}: {exc}")
     serve_rig(robot, args.run_dir, args.seed, start)
