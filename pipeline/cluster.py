@@ -52,12 +52,13 @@ def cluster_executor(
     client, why = None, ""
     try:
         client = distributed.Client(address, timeout=timeout_s, set_as_default=False)
-    except (OSError, TimeoutError, ValueError, TypeError) as exc:
-        why = f"{type(exc).__name__}: {exc}"
+    except (OSError, TimeoutError) as exc:
+        why = f"no Dask scheduler answers at {address!r} within {timeout_s:g} s ({type(exc).__name__}: {exc})"
+    except (ValueError, TypeError) as exc:  # not an address
+        why = f"no Dask scheduler at {address!r}: {exc} (an address is tcp://host:port)"
     if client is None:
         _collect_quietly()
-        raise ClusterError(f"no Dask scheduler answers at {address!r} within {timeout_s:g} s ({why}); check "
-                           "the address, or start one: `vslab cluster local`")  # fmt: skip
+        raise ClusterError(f"{why}; check the address, or start one: `vslab cluster local`")
     try:
         # pure=False: every submission is its own task (a retried job is the same task run again)
         yield client.get_executor(retries=retries, pure=False)
