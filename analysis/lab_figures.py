@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from acquisition.storage import lab_path, local_folder, upload
 from analysis import diagnostics
 from analysis.report import Report
 from pipeline.datasets import load_dataset
@@ -36,7 +37,7 @@ def tagged_model(lab: Path, tag: str) -> tuple[str, Path] | None:
     main job's), or None where no such tag is set."""
     from pipeline.registry import find, tags
 
-    root = Path(lab) / "models"
+    root = lab_path(lab) / "models"
     if tag not in tags(root):
         return None
     path = find(root, tag)
@@ -44,9 +45,19 @@ def tagged_model(lab: Path, tag: str) -> tuple[str, Path] | None:
 
 
 def all_figures(lab: Path, out: Path | None = None) -> Results:
-    """Make every figure that the lab's data allow; what cannot be made is listed with its reason."""
-    lab = Path(lab)
-    out = Path(out or lab / "figures")
+    """Make every figure that the lab's data allow; what cannot be made is listed with its reason. On a
+    store the figures are drawn into a local folder, then uploaded (each figure's record after its files)."""
+    lab = lab_path(lab)
+    out = lab_path(out or lab / "figures")
+    with local_folder(out) as folder:
+        res = _all_figures(lab, folder)
+        if folder != out:
+            upload(folder, out, "*.json")
+            res.figures = {k: out / png.relative_to(folder).as_posix() for k, png in res.figures.items()}
+    return res
+
+
+def _all_figures(lab: Path, out: Path) -> Results:
     res = Results()
     datasets = {}
     for name in ("campaign", "experiment1", "experiment2"):
@@ -212,7 +223,7 @@ def realtime_sessions(lab: Path) -> pd.DataFrame:
     """The sessions recorded in real time (through the devices' drivers: the rig or hardware), one row per
     stream: messages, rate and drops, read from the MCAP summaries; empty when there are none."""
     rows = []
-    selected, bad = experiment_sessions(Path(lab) / "sessions", "all", runner="real-time")
+    selected, bad = experiment_sessions(lab_path(lab) / "sessions", "all", runner="real-time")
     for why in bad.values():  # a damaged session is left out of the table, and named
         log.warning("left out of the real-time sessions: %s", why)
     for directory in selected:
@@ -252,7 +263,7 @@ def lab_report(lab: Path, res: Results, timings: dict[str, float] | None = None)
         tables = {k: v for k, v in res.tables.items() if any(k.startswith(t) for t in table_keys)}
         if figures or tables:
             page.section(title, figures=figures, tables=tables)
-    return page.write(Path(lab) / "report" / "index.html")
+    return page.write(lab_path(lab) / "report" / "index.html")
 
 
 OVERVIEW = """Everything on this page was produced on the digital twin by vslab's main job: sessions recorded

@@ -14,11 +14,14 @@ import base64
 import html
 import json
 import os
+import posixpath
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
 import pandas as pd
+
+from acquisition.storage import is_local, lab_path
 
 STYLE = """
 body { font: 15px/1.45 system-ui, sans-serif; max-width: 1100px; margin: 2em auto; padding: 0 1em; }
@@ -66,7 +69,7 @@ class Report:
                 body.append(f"<h3>{html.escape(name)}</h3>")
                 body.append(_table(table))
             for png in s.figures:
-                body.append(_figure(Path(png), base))
+                body.append(_figure(lab_path(png), base))
             for name, card in s.cards.items():
                 pretty = html.escape(json.dumps(card, indent=1, default=str))
                 body.append(f"<details><summary>{html.escape(name)}</summary><pre>{pretty}</pre></details>")
@@ -74,7 +77,7 @@ class Report:
         return f"<!doctype html>\n<html><head>{head}</head><body>\n" + "\n".join(body) + "\n</body></html>\n"
 
     def write(self, path: Path) -> Path:
-        path = Path(path)
+        path = lab_path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(self.html(path.parent), encoding="utf-8")
         return path
@@ -84,13 +87,18 @@ def _table(df: pd.DataFrame) -> str:
     return df.to_html(float_format=lambda v: f"{v:.3g}", na_rep="–", border=0, escape=True)
 
 
+def _key(path: Path) -> str:
+    """A local path or a store's key, as a POSIX path (to make the PDF links relative)."""
+    return os.path.abspath(path) if is_local(path) else "/" + path.path
+
+
 def _figure(png: Path, base: Path | None) -> str:
     """The PNG inlined as a data URI, captioned with its name and a link to the PDF beside it."""
     if not png.is_file():
         return f"<p><em>missing figure {html.escape(png.name)}</em></p>"
     data = base64.b64encode(png.read_bytes()).decode()
     pdf = png.with_suffix(".pdf")
-    link = os.path.relpath(pdf, base) if base is not None else str(pdf)
+    link = posixpath.relpath(_key(pdf), _key(base)) if base is not None else str(pdf)
     caption = html.escape(png.stem) + (f' (<a href="{html.escape(link)}">PDF</a>)' if pdf.is_file() else "")
     image = f'<img alt="{html.escape(png.stem)}" src="data:image/png;base64,{data}">'
     return f"<figure>{image}<figcaption>{caption}</figcaption></figure>"

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from acquisition.storage import lab_path, read_parquet
 from models.robot import RobotDescription
 from pipeline import datasets
 from pipeline.cache import StageCache, stage_key, stage_version
@@ -140,8 +141,8 @@ def process_session(directory: str, parameters: dict, cache_root: str) -> dict:
     from pipeline.segment import Stillness, repetitions, static_points
     from pipeline.sync import sync
 
-    directory = Path(directory)
-    cache = StageCache(Path(cache_root))
+    directory = lab_path(directory)
+    cache = StageCache(lab_path(cache_root))
     try:
         parts = readable_parts(directory)
         if not parts:
@@ -191,9 +192,9 @@ def build(
     params = {k: {**DEFAULTS[k], **(parameters or {}).get(k, {})} for k in DEFAULTS}
     if "from_dataset" in params["register"]:  # pin the borrowed registration's version: part of ours
         params["register"]["from_dataset"] = _resolve(
-            Path(lab) / "datasets", params["register"]["from_dataset"]
+            lab_path(lab) / "datasets", params["register"]["from_dataset"]
         )
-    cache_root = Path(lab) / "cache"
+    cache_root = lab_path(lab) / "cache"
     own = executor is None
     if own:
         workers = max(1, min(len(sessions), os.cpu_count() or 1))
@@ -213,11 +214,11 @@ def build(
     failed = {r["session"]: r["error"] for r in results if "error" in r}
     sources = {r["session"]: r["source"] for r in good}
     version = datasets.dataset_version(sources, params)
-    root = Path(lab) / "datasets"
+    root = lab_path(lab) / "datasets"
     report = BuildReport(name, version, root / name / version, False, sorted(sources), failed,
                          sum(bool(r.get("cached")) for r in good))  # fmt: skip
-    if (report.path / "card.json").is_file():
-        report.rows = int(pd.read_parquet(report.path / "data.parquet", columns=["robot"]).shape[0])
+    if (report.path / datasets.CARD).is_file():
+        report.rows = int(read_parquet(report.path / "data.parquet", columns=["robot"]).shape[0])
         return report
     if not good:
         raise BuildError(failed)
@@ -229,7 +230,7 @@ def build(
         robot = RobotDescription.model_validate_json(mine[0][2]["robot_description"])
         static = _tagged([(rec, t["static"]) for _, t, rec in mine])
         trajectory = _tagged([(rec, t["trajectory"]) for _, t, rec in mine])
-        registration = _register(static, robot, params["register"], Path(lab) / "datasets")
+        registration = _register(static, robot, params["register"], lab_path(lab) / "datasets")
         registrations[robot_name] = registration
         for table, rows in (("data", static), ("trajectories", trajectory)):
             if len(rows):
@@ -310,7 +311,8 @@ def _dataset_card(root: Path, name: str, version: str | None) -> dict:
     try:
         _, card = datasets.load_dataset(root, name, version, table=None)
     except FileNotFoundError:
-        known = sorted(p.name for p in Path(root).glob("*") if p.is_dir()) if Path(root).is_dir() else []
+        root = lab_path(root)
+        known = sorted(p.name for p in root.glob("*") if p.is_dir()) if root.is_dir() else []
         raise ValueError(
             f"register.from_dataset={where}: no such dataset under {root} (datasets there: "
             f"{', '.join(known) or 'none'}); build it first (`vslab build --name {name}`)"

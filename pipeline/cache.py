@@ -11,14 +11,13 @@ from __future__ import annotations
 import ast
 import hashlib
 import json
-import os
-import shutil
-import tempfile
 from collections.abc import Iterable
 from functools import cache
 from pathlib import Path
 
 import pandas as pd
+
+from acquisition.storage import lab_path, publish, read_parquet
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("acquisition", "pipeline", "models", "analysis")  # whose code a result can depend on
@@ -29,6 +28,7 @@ STAGE_MODULES = {
     "model": ("pipeline.train", "pipeline.registry"),  # fit, evaluate, save
     "figure": ("analysis.lab_figures",),
 }
+RECORD = "record.json"  # a cache entry's manifest
 
 
 def digest(value: object) -> str:
@@ -40,7 +40,7 @@ def file_hash(paths: Iterable[Path], block: int = 1 << 22) -> str:
     """sha256 over the bytes of ``paths`` in the given order (streamed)."""
     h = hashlib.sha256()
     for path in paths:
-        with open(path, "rb") as f:
+        with path.open("rb") as f:
             while chunk := f.read(block):
                 h.update(chunk)
     return h.hexdigest()
@@ -151,35 +151,29 @@ class StageCache:
     """``<root>/<stage>/<key>/`` holding Parquet tables and a JSON record per entry."""
 
     def __init__(self, root: Path) -> None:
-        self.root = Path(root)
+        self.root = lab_path(root)
 
     def path(self, stage: str, key: str) -> Path:
         return self.root / stage / key
 
     def has(self, stage: str, key: str) -> bool:
-        return (self.path(stage, key) / "record.json").is_file()
+        return (self.path(stage, key) / RECORD).is_file()
 
     def load(self, stage: str, key: str) -> tuple[dict[str, pd.DataFrame], dict]:
         entry = self.path(stage, key)
-        record = json.loads((entry / "record.json").read_text())
-        tables = {name: pd.read_parquet(entry / f"{name}.parquet") for name in record["tables"]}
+        record = json.loads((entry / RECORD).read_text())
+        tables = {name: read_parquet(entry / f"{name}.parquet") for name in record["tables"]}
         return tables, record
 
     def store(self, stage: str, key: str, tables: dict[str, pd.DataFrame], record: dict) -> Path:
-        final = self.path(stage, key)
-        final.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{key}-", dir=final.parent))
-        try:
+        """Publish one entry whole (another process that finished the same work first keeps theirs)."""
+
+        def fill(folder: Path) -> None:
             for name, df in tables.items():
-                df.to_parquet(tmp / f"{name}.parquet", index=False)
-            (tmp / "record.json").write_text(
-                json.dumps({**record, "tables": sorted(tables)}, indent=1, default=str)
-            )
-            if final.exists():  # another process finished the same work first: keep theirs
-                shutil.rmtree(tmp)
-            else:
-                os.replace(tmp, final)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
+                df.to_parquet(folder / f"{name}.parquet", index=False)
+            whole = {**record, "tables": sorted(tables)}
+            (folder / RECORD).write_text(json.dumps(whole, indent=1, default=str))
+
+        final = self.path(stage, key)
+        publish(final, fill, RECORD)
         return final

@@ -6,8 +6,9 @@ go to a scheduler's workers on other machines, each retried on another worker wh
 Results do not depend on where a job ran (a job is a pure function of its inputs and seed), so a build or a
 grid gives the same versions and the same weights on a cluster as on one machine.
 
-The workers must see the lab at the same path as the client (a shared file system); each trains with one
-torch thread, so a worker per core never oversubscribes its machine.
+The workers must see the lab at the same path as the client (a shared file system), or the same store
+(``--lab s3://…``, reached with the same AWS environment: a job receives the lab's URL, never credentials);
+each trains with one torch thread, so a worker per core never oversubscribes its machine.
 
     with cluster_executor("tcp://10.0.0.5:8786") as executor:
         build(sessions, lab, "campaign", executor=executor)

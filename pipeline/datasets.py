@@ -19,21 +19,20 @@ unchanged inputs again gives the same version and writes nothing.
 from __future__ import annotations
 
 import json
-import os
-import shutil
-import tempfile
 from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from acquisition.storage import lab_path, publish, read_parquet
 from models import kinematics
 from models.robot import AnthropomorphicKinematics, RobotDescription
 from pipeline.cache import digest, stage_version
 from pipeline.tables import columns
 
 SPLITS = ("train", "val", "test")
+CARD = "card.json"  # a dataset version's manifest
 FRACTIONS = (0.70, 0.15, 0.15)  # seed 000: 70 / 15 / 15
 
 
@@ -132,24 +131,19 @@ def dataset_version(sources: dict[str, str], parameters: dict) -> str:
 def write_dataset(root: Path, name: str, version: str, tables: dict[str, pd.DataFrame], card: dict) -> Path:
     """``<root>/<name>/<version>/``: ``<table>.parquet`` for each table (``data`` is D) and card.json, written
     whole in a temporary directory, then renamed in (a killed build leaves no half dataset)."""
-    final = Path(root) / name / version
-    if (final / "card.json").is_file():
-        return final
-    final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{version}-", dir=final.parent))
-    try:
+    final = lab_path(root) / name / version
+
+    def fill(folder: Path) -> None:
         for table, df in tables.items():
-            df.to_parquet(tmp / f"{table}.parquet", index=False)
+            df.to_parquet(folder / f"{table}.parquet", index=False)
         data = tables["data"]
         counts = {"rows": len(data), **{f"rows_{s}": int((data["split_random"] == s).sum()) for s in SPLITS}}
         counts |= {f"rows_{t}": len(df) for t, df in tables.items() if t != "data"}
         created = datetime.now(UTC).isoformat(timespec="microseconds")
         whole = {"name": name, "version": version, "created": created, **card, "counts": counts}
-        (tmp / "card.json").write_text(json.dumps(whole, indent=1, default=str))
-        os.replace(tmp, final)
-    except BaseException:  # a failed or interrupted write leaves nothing behind
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        (folder / CARD).write_text(json.dumps(whole, indent=1, default=str))
+
+    publish(final, fill, CARD)  # a version written before (same inputs) stays as it is
     return final
 
 
@@ -158,7 +152,7 @@ def newest_version(root: Path, name: str) -> str | None:
     files' modification times, which a copy or a backup changes; only a card older than that field falls
     back to its file's); None where there is none."""
     created = []
-    for card in Path(root, name).glob("*/card.json"):
+    for card in (lab_path(root) / name).glob(f"*/{CARD}"):
         try:
             when = json.loads(card.read_text()).get("created")
             when = when or datetime.fromtimestamp(card.stat().st_mtime, UTC).isoformat(
@@ -173,13 +167,13 @@ def newest_version(root: Path, name: str) -> str | None:
 def load_dataset(root: Path, name: str, version: str | None = None, table: str | None = "data"):
     """A dataset's table (``data``: D; ``trajectories``; None: only the card) and its card, the newest
     version when none is named: (DataFrame or None, card)."""
-    base = Path(root) / name
+    base = lab_path(root) / name
     if version is None:
         version = newest_version(root, name)
         if version is None:
             raise FileNotFoundError(f"no dataset {name!r} under {root}")
     path = base / version
-    if not (path / "card.json").is_file():
+    if not (path / CARD).is_file():
         raise FileNotFoundError(f"no dataset {name}@{version} under {root}")
-    card = json.loads((path / "card.json").read_text())
-    return (pd.read_parquet(path / f"{table}.parquet") if table else None), card
+    card = json.loads((path / CARD).read_text())
+    return (read_parquet(path / f"{table}.parquet") if table else None), card

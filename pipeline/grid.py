@@ -18,6 +18,7 @@ import re
 from collections.abc import Callable
 from pathlib import Path
 
+from acquisition.storage import lab_path
 from models.hybrid import NetConfig, preset
 from models.yaml_files import read_yaml
 from pipeline.build import InlineExecutor
@@ -163,7 +164,7 @@ def resolve_dataset(root: Path, spec: str) -> tuple[str, str]:
     """(name, version) of ``name`` (its newest version under ``root``) or ``name@version``."""
     name, _, version = str(spec).partition("@")
     if version:
-        if not (Path(root) / name / version / "card.json").is_file():
+        if not (lab_path(root) / name / version / CARD).is_file():
             raise GridError(f"no dataset {name}@{version} under {root}")
         return name, version
     version = newest_version(root, name)
@@ -190,7 +191,7 @@ def expand(lab: Path, grid: dict) -> list[dict]:
         raise GridError(f"grid train: unknown fields {unknown} (known: {list(TRAIN_KEYS)})")
     jobs = []
     for spec in grid.get("datasets", []):
-        dataset, dataset_version = resolve_dataset(Path(lab) / "datasets", spec)
+        dataset, dataset_version = resolve_dataset(lab_path(lab) / "datasets", spec)
         for entry in grid.get("models", []):
             net = _net(entry)
             for split in grid.get("splits", ["split_random"]):
@@ -224,11 +225,11 @@ def train_job(job: dict, lab: str, threads: int = 1) -> dict:
     from pipeline.datasets import load_dataset
     from pipeline.train import evaluate, train
 
-    root = Path(lab) / "models"
+    root = lab_path(lab) / "models"
     existing = root / job["name"] / job["version"]
     if (existing / CARD).is_file():
         return _summary(job, load_card(existing), "existing")
-    data, _ = load_dataset(Path(lab) / "datasets", job["dataset"]["name"], job["dataset"]["version"])
+    data, _ = load_dataset(lab_path(lab) / "datasets", job["dataset"]["name"], job["dataset"]["version"])
     config = TrainConfig.from_dict(job["config"])
     result = train(data, config, threads=threads, device="cpu")
     metrics = evaluate(result.model, data, config.split, "test")
@@ -262,7 +263,7 @@ def run_grid(
     ``threads``: torch threads per job (default: this machine's cores shared among ``workers``; a cluster's
     workers take 1 each)."""
     jobs = expand(lab, grid)
-    root = Path(lab) / "models"
+    root = lab_path(lab) / "models"
     results: dict[str, dict] = {}
     todo = []
     for job in jobs:

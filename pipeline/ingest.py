@@ -39,6 +39,7 @@ from acquisition.schemas.mcap_reader import (
 from acquisition.schemas.ros2msg import parse_fixed_message
 from acquisition.schemas.session_card import SESSION_METADATA, as_current, readable_parts
 from acquisition.schemas.topics import EVENTS, session_topics
+from acquisition.storage import lab_path
 from models.robot import RobotDescription
 from pipeline.cache import file_hash
 from pipeline.errors import PipelineError
@@ -51,7 +52,7 @@ class IngestError(PipelineError):
     """A session that cannot be ingested: ``path`` says which file or directory, ``reason`` why."""
 
     def __init__(self, path: str | Path, reason: str) -> None:
-        self.path, self.reason = Path(path), reason
+        self.path, self.reason = lab_path(path), reason
         super().__init__(f"{path}: {reason}")
 
 
@@ -77,7 +78,7 @@ def source_hash(parts: Iterable[Path]) -> str:
 def ingest_session(directory: Path, generic_topics: Collection[str] = ()) -> SessionTables:
     """Every part of the session in ``directory`` as tables. Topics in ``generic_topics`` are decoded by the
     generic (message by message) path even when the fast path could read them (for checks and comparisons)."""
-    directory = Path(directory)
+    directory = lab_path(directory)
     if not directory.is_dir():
         raise IngestError(directory, "not a session directory")
     parts = readable_parts(directory)
@@ -131,7 +132,7 @@ def _read_part_checked(path: Path, generic_topics: set[str], report: StageReport
 
 
 def _read_part(path: Path, generic_topics: set[str], report: StageReport) -> _Part:
-    with open(path, "rb") as f:
+    with path.open("rb") as f:
         head = read_magic(f)
         if head != MAGIC:
             what = "not an MCAP file (no MCAP magic)" if head else "empty file (0 bytes)"
@@ -177,7 +178,7 @@ def _read_torn(path: Path, generic_topics: set[str], report: StageReport) -> _Pa
     """A part without a summary, read record by record up to the first cut-off or corrupt record."""
     part, schemas, channels = _Part(), {}, {}
     raw: dict[int, list[Message]] = {}
-    with open(path, "rb") as f:
+    with path.open("rb") as f:
         walk = RecordWalk(f)
         for record in walk:
             if isinstance(record, Schema):

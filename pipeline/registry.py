@@ -17,20 +17,20 @@ from __future__ import annotations
 
 import copy
 import datetime
+import io
 import json
 import logging
-import os
 import re
-import shutil
-import tempfile
 import warnings
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import safetensors.torch
 import torch
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 
+from acquisition.storage import is_local, lab_path, publish, published
 from models.hybrid import HybridNet, NetConfig
 from pipeline.cache import digest, file_hash, stage_version
 from pipeline.errors import PipelineError
@@ -65,7 +65,7 @@ class ModelIntegrityError(PipelineError, ValueError):
     lacks a field or was edited, a file whose bytes differ from the card's hash. Names the file and why."""
 
     def __init__(self, directory: Path, file: str, problem: str) -> None:
-        self.directory, self.file, self.problem = Path(directory), file, problem
+        self.directory, self.file, self.problem = lab_path(directory), file, problem
         model = f"{self.directory.parent.name}/{self.directory.name}"
         super().__init__(
             f"{self.directory / file}: {problem}: model {model} is damaged and is not loaded (restore the "
@@ -106,37 +106,31 @@ def export(model: HybridNet) -> torch.jit.ScriptModule:
 
 
 def save_model(root: Path, name: str, version: str, model: HybridNet, card: dict) -> Path:
-    """Write ``<root>/<name>/<version>/`` (weights, card, TorchScript); FileExistsError if it exists."""
-    final = Path(root) / name / version
+    """Publish ``<root>/<name>/<version>/`` whole (weights, card, TorchScript); FileExistsError if it exists
+    (another worker may have written the same version first: theirs stays)."""
+    final = lab_path(root) / name / version
     if final.exists():
         raise FileExistsError(f"model {name}/{version} already exists at {final}")
-    final.parent.mkdir(parents=True, exist_ok=True)
     if any(t.device.type != "cpu" for t in model.state_dict().values()):
         model = copy.deepcopy(model).cpu()  # the files are for CPU loading; the caller's model stays put
-    tmp = Path(tempfile.mkdtemp(prefix=f".{version}-", dir=final.parent))
-    try:
+
+    def fill(folder: Path) -> None:
         state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-        save_file(state, tmp / WEIGHTS)
-        (tmp / EXPORT).parent.mkdir()
-        export(model).save(str(tmp / EXPORT))
+        save_file(state, folder / WEIGHTS)
+        (folder / EXPORT).parent.mkdir()
+        export(model).save(str(folder / EXPORT))
         full = {
             "name": name, "version": version, **jsonable(card), "net": _net_config(model, card).to_dict(),
             "code_version": stage_version("model"), "torch": torch.__version__,
             "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "files": {f: file_hash([tmp / f]) for f in FILES},
+            "files": {f: file_hash([folder / f]) for f in FILES},
         }  # fmt: skip
         full = json.loads(json.dumps(full))  # hashed as it will read back (tuples → lists, …)
         full["card_sha256"] = card_digest(full)
-        (tmp / CARD).write_text(json.dumps(full, indent=1))
-        os.rename(tmp, final)  # fails if another process wrote this version first: theirs stays
-    except OSError as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if final.exists():
-            raise FileExistsError(f"model {name}/{version} already exists at {final}") from exc
-        raise
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        (folder / CARD).write_text(json.dumps(full, indent=1))
+
+    if not publish(final, fill, CARD):
+        raise FileExistsError(f"model {name}/{version} already exists at {final}")
     return final
 
 
@@ -155,7 +149,7 @@ def card_digest(card: dict) -> str:
 def load_card(path: Path) -> dict:
     """A model's card (``path``: its version directory), checked: valid JSON, every field, its own hash, the
     directory it is in. :class:`ModelIntegrityError` otherwise (the files beside it: :func:`check_model`)."""
-    path = Path(path)
+    path = lab_path(path)
     try:
         text = (path / CARD).read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -188,7 +182,7 @@ def load_card(path: Path) -> dict:
 def check_model(path: Path) -> dict:
     """The card of a version directory once every file is checked against it (:class:`ModelIntegrityError`
     names the first file that is missing, unreadable or not the one the card recorded)."""
-    path = Path(path)
+    path = lab_path(path)
     card = load_card(path)
     files = card["files"]
     hashes = files.values()
@@ -210,14 +204,14 @@ def check_model(path: Path) -> dict:
 def load_model(path: Path) -> tuple[HybridNet, dict]:
     """The network and its card from a version directory, every file checked first (:func:`check_model`):
     config from JSON, tensors from safetensors. A damaged version: :class:`ModelIntegrityError`."""
-    path = Path(path)
+    path = lab_path(path)
     card = check_model(path)
     try:
         config = NetConfig.from_dict(card["net"])
     except (TypeError, ValueError) as exc:
         raise ModelIntegrityError(path, CARD, f"'net' is not a network configuration ({exc})") from None
     try:
-        tensors = load_file(path / WEIGHTS)
+        tensors = safetensors.torch.load((path / WEIGHTS).read_bytes())
     except Exception as exc:  # safetensors' own error type (a Rust exception), or OSError
         raise ModelIntegrityError(path, WEIGHTS, f"not a safetensors file ({_why(exc)})") from None
     try:
@@ -231,12 +225,12 @@ def load_model(path: Path) -> tuple[HybridNet, dict]:
 def load_exported(path: Path) -> torch.jit.ScriptModule:
     """The TorchScript export of a version directory: ``module(x: float64 (n, 7)) -> float64 (n, 3)``; every
     file is checked first (:func:`check_model`)."""
-    path = Path(path)
+    path = lab_path(path)
     check_model(path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
         try:
-            return torch.jit.load(str(path / EXPORT), map_location="cpu").eval()
+            return torch.jit.load(io.BytesIO((path / EXPORT).read_bytes()), map_location="cpu").eval()
         except RuntimeError as exc:
             raise ModelIntegrityError(path, EXPORT, f"not a TorchScript file ({_why(exc)})") from None
 
@@ -259,7 +253,7 @@ def find(root: Path, version: str) -> Path:
 
 def tags(root: Path) -> dict[str, str]:
     """Every tag of the registry under ``root``: alias → full version id (``{}`` where none was set)."""
-    path = Path(root) / TAGS_FILE
+    path = lab_path(root) / TAGS_FILE
     if not path.is_file():
         return {}
     try:
@@ -280,19 +274,25 @@ def tag(root: Path, name: str, version: str) -> str:
     path = find(root, version)
     check_model(path)
     current = tags(root) | {name: path.name}
-    tmp = Path(root) / f".{TAGS_FILE}.tmp"
-    tmp.write_text(json.dumps(dict(sorted(current.items())), indent=1) + "\n")
-    tmp.replace(Path(root) / TAGS_FILE)
+    text = json.dumps(dict(sorted(current.items())), indent=1) + "\n"
+    root = lab_path(root)
+    if is_local(root):
+        tmp = root / f".{TAGS_FILE}.tmp"
+        tmp.write_text(text)
+        tmp.replace(root / TAGS_FILE)
+    else:  # one object written in one request: a reader sees the old file or the new one
+        (root / TAGS_FILE).write_text(text)
     return path.name
 
 
 def _version_dirs(root: Path) -> list[Path]:
     """Every ``<root>/<name>/<version>/`` folder (not the hidden ones a save is writing)."""
-    root = Path(root)
+    root = lab_path(root)
     if not root.is_dir():
         return []
     return sorted(v for n in root.iterdir() if n.is_dir() and not n.name.startswith(".")
-                  for v in n.iterdir() if v.is_dir() and not v.name.startswith("."))  # fmt: skip
+                  for v in n.iterdir() if v.is_dir() and not v.name.startswith(".")
+                  and published(v, CARD))  # fmt: skip
 
 
 def _why(exc: BaseException) -> str:

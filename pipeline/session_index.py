@@ -6,6 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from acquisition.recorder.sessions import SessionError, SessionInfo, read_card, session_info
+from acquisition.schemas.session_card import SESSION_CARD
+from acquisition.storage import lab_path, published
 
 __all__ = ["SessionError", "experiment_sessions", "read_session"]
 
@@ -17,9 +19,9 @@ def experiment_sessions(
     ``runner`` ("simulated", "real-time") if given, in name order; and the folders that are not readable
     sessions, each with why."""
     selected, bad = [], {}
-    for d in sorted(Path(root).glob(pattern)):
-        if not d.is_dir() or d.name.startswith("."):
-            continue
+    for d in sorted(lab_path(root).glob(pattern)):
+        if not d.is_dir() or d.name.startswith(".") or not published(d, SESSION_CARD):
+            continue  # not a folder; hidden; on a store, a session still being uploaded
         try:
             card = read_card(d)
         except SessionError as exc:

@@ -35,6 +35,7 @@ from models.robot import RobotDescription
 log = logging.getLogger(__name__)
 
 SIM_EPOCH_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z: simulated sessions start here on the host clock
+SIM_PREFIX = "sim-"  # the id of every simulated session starts so (a real-time one never does)
 
 
 @dataclass(frozen=True)
@@ -82,7 +83,7 @@ def twin_truth(world: World, bench: int) -> str:
 
 
 def session_id(plan: Plan) -> str:
-    return "sim-" + plan.name.replace("/", "-")
+    return SIM_PREFIX + plan.name.replace("/", "-")
 
 
 def _complete(directory: Path) -> bool:

@@ -9,6 +9,10 @@ raises ``SessionError``, one line naming the file, what is wrong and what to do;
 from __future__ import annotations
 
 import json
+import logging
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,6 +26,9 @@ from acquisition.schemas.session_card import (
     readable_parts,
     schema_version,
 )
+from acquisition.storage import LabPath, is_local, lab_path, upload
+
+log = logging.getLogger(__name__)
 
 CARD_FIELDS = ("robot", "experiment")  # what every session.json names (the writer always writes them)
 
@@ -31,7 +38,7 @@ class SessionError(AcquisitionError, ValueError):
     (what is wrong) and ``hint`` (what to do), said in one line."""
 
     def __init__(self, path: str | Path, reason: str, hint: str = "") -> None:
-        self.path, self.reason, self.hint = Path(path), reason, hint
+        self.path, self.reason, self.hint = lab_path(path), reason, hint
         super().__init__(f"{path}: {reason}" + (f"; {hint}" if hint else ""))
 
 
@@ -39,10 +46,10 @@ def read_card(directory: Path) -> dict:
     """A session's ``session.json`` as a dict; ``SessionError`` when it is missing, empty, not JSON
     (truncated, garbled) or lacks the fields every session has (robot, experiment). A version-1 card is
     read with the current keys (``session_card.as_current``)."""
-    path = Path(directory) / SESSION_CARD
-    aside = f"move the folder out of {Path(directory).parent} (or restore session.json from a backup)"
+    path = lab_path(directory) / SESSION_CARD
+    aside = f"move the folder out of {lab_path(directory).parent} (or restore session.json from a backup)"
     if not path.is_file():
-        raise SessionError(Path(directory), f"not a recorded session: no {SESSION_CARD}", aside)
+        raise SessionError(lab_path(directory), f"not a recorded session: no {SESSION_CARD}", aside)
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -122,7 +129,7 @@ def session_info(directory: Path) -> SessionInfo:
     """What a session holds, from its ``session.json`` and its parts' summaries. ``SessionError`` when the
     folder is not a readable session; a torn part (no readable summary or indexes) is not an error: it is
     listed in ``torn`` (``recover_session`` mends it)."""
-    directory = Path(directory)
+    directory = lab_path(directory)
     if not directory.is_dir():
         raise SessionError(directory, "no such session folder")
     card = read_card(directory)
@@ -150,7 +157,7 @@ def session_info(directory: Path) -> SessionInfo:
 def _check_part(part: Path) -> None:
     """``SessionError`` for a part that holds no MCAP at all (empty, or another kind of file)."""
     try:
-        with open(part, "rb") as f:
+        with part.open("rb") as f:
             head = f.read(len(MAGIC))
     except OSError as exc:
         raise SessionError(part, f"cannot be read ({exc.strerror or exc})", "check its permissions") from exc
@@ -164,7 +171,7 @@ def _part_streams(part: Path) -> dict[str, tuple[int, int | None, int | None]] |
     """Per topic of one part: (messages, first log time, last log time) from its summary and message
     indexes; None when either cannot be read (a torn or damaged part)."""
     try:
-        with open(part, "rb") as f:
+        with part.open("rb") as f:
             return topic_spans(f)
     except OSError:
         return None
@@ -185,7 +192,7 @@ def _add_counters(info: SessionInfo, counters: object, card: Path) -> None:
 def list_sessions(sessions_dir: Path) -> list[SessionInfo]:
     """Every folder under ``sessions_dir``, by id: readable sessions, and the others with ``problem`` saying
     why they are not (a bad session never hides the rest)."""
-    sessions_dir = Path(sessions_dir)
+    sessions_dir = lab_path(sessions_dir)
     if not sessions_dir.is_dir():
         return []
     out = []
@@ -203,3 +210,49 @@ def recover_session(directory: Path) -> list[RecoveryReport]:
     """Recover every torn part of a session (each into a new ``.recovered.mcap`` file); ``SessionError`` (and
     nothing written) when the folder is not a readable session."""
     return [recover(part) for part in session_info(directory).torn]
+
+
+def publish_session(directory: Path, sessions_root: LabPath) -> bool:
+    """Publish the local session ``directory`` under ``sessions_root`` (a store): its parts first, its
+    ``session.json`` last (the session exists for readers once that is there). Only a complete session is
+    published (``SessionError`` otherwise); False where the lab already holds it (a session is never
+    replaced: raw sessions are immutable)."""
+    card = read_card(directory)
+    if card.get("status") != "complete":
+        raise SessionError(directory, f"not complete (status {card.get('status')!r}): not published",
+                           "recover or record it again")  # fmt: skip
+    if torn := session_info(directory).torn:  # every part is MCAP; a torn one is mended locally first
+        raise SessionError(torn[0], "torn (no readable summary): not published",
+                           f"run `vslab sessions recover {directory}` first")  # fmt: skip
+    final = lab_path(sessions_root) / directory.name
+    if (final / SESSION_CARD).is_file():
+        return False
+    if is_local(final):
+        raise ValueError(f"{final}: publishing is for a store; copy a folder into a local lab")
+    upload(directory, final, SESSION_CARD)
+    return True
+
+
+@contextmanager
+def staged_sessions(sessions_root: LabPath, pattern: str = "*") -> Iterator[Path]:
+    """A local folder to write sessions for ``sessions_root`` into: the folder itself when it is local. For a
+    store: a temporary folder holding a copy of the card of each published session matching ``pattern`` (a
+    writer that skips complete sessions skips those); on leaving, every complete session written into it is
+    published (:func:`publish_session`) and the folder removed. An incomplete one is left out (a warning)."""
+    if is_local(sessions_root):
+        yield sessions_root
+        return
+    with tempfile.TemporaryDirectory(prefix="vslab-sessions-") as tmp:
+        folder, known = Path(tmp), set()
+        for card in sessions_root.glob(f"{pattern}/{SESSION_CARD}"):
+            (folder / card.parent.name).mkdir()
+            (folder / card.parent.name / SESSION_CARD).write_bytes(card.read_bytes())
+            known.add(card.parent.name)
+        try:
+            yield folder
+        finally:
+            for d in sorted(p for p in folder.iterdir() if p.is_dir() and p.name not in known):
+                try:
+                    publish_session(d, sessions_root)
+                except SessionError as exc:
+                    log.warning("not published: %s", exc)

@@ -17,6 +17,7 @@ from acquisition.schemas import mcap_reader
 from acquisition.schemas.cdr import FixedMessage, SchemaError
 from acquisition.schemas.events import EVENTS, Event
 from acquisition.schemas.ros2msg import parse_fixed_message
+from acquisition.storage import lab_path
 
 
 @dataclass
@@ -35,8 +36,8 @@ class TopicData:
 
 def read_fixed_topics(path: str | Path, topics: list[str] | None = None) -> dict[str, TopicData]:
     """Every fixed-layout topic of an indexed MCAP file (a finished or recovered one), in log-time order."""
-    path = Path(path)
-    with open(path, "rb") as f:
+    path = lab_path(path)
+    with path.open("rb") as f:
         summary = mcap_reader.read_summary(f)
         if summary is None:
             raise SchemaError(f"{path}: no readable summary (a torn file? run `vslab sessions recover`)")
@@ -72,5 +73,5 @@ def read_fixed_topics(path: str | Path, topics: list[str] | None = None) -> dict
 
 def read_events(path: str | Path) -> list[tuple[int, Event]]:
     """The events topic of an MCAP file (generic reader: few, variable-size messages): (log_time, event)."""
-    with open(path, "rb") as f:
+    with lab_path(path).open("rb") as f:
         return [(t, Event.decode(data)) for t, data in mcap_reader.topic_messages(f, [EVENTS])]

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from acquisition.errors import AcquisitionError
+from acquisition.storage import lab_path
 
 SCHEMA_VERSION = 2
 SESSION_CARD = "session.json"  # beside the parts
@@ -81,5 +82,5 @@ def recovered_path(part: Path) -> Path:
 
 def readable_parts(directory: Path) -> list[Path]:
     """A session's parts in order: each ``<id>_NNN.mcap``, or its recovered copy where one exists."""
-    parts = sorted(p for p in Path(directory).glob("*.mcap") if not p.name.endswith(RECOVERED_SUFFIX))
+    parts = sorted(p for p in lab_path(directory).glob("*.mcap") if not p.name.endswith(RECOVERED_SUFFIX))
     return [recovered_path(p) if recovered_path(p).is_file() else p for p in parts]

@@ -1,0 +1,168 @@
+"""Where the lab's files live: a local folder or any fsspec store (``s3://bucket/prefix``, ``gs://…``,
+``memory://…``), and how an entry is published whole on either.
+
+A local lab is a ``pathlib.Path``; a store is a ``upath.UPath`` (fsspec's pathlib), so code that joins,
+globs, opens and reads paths works on both. Credentials come from the store's standard environment and
+configuration (for S3: ``AWS_ACCESS_KEY_ID``/``AWS_SECRET_ACCESS_KEY``, ``AWS_PROFILE``, ``~/.aws/``,
+``AWS_ENDPOINT_URL`` for MinIO and other S3-compatible stores), never from vslab's files or cards.
+
+Publication (datasets, models, cache entries, sessions): the entry's files are written into a fresh local
+folder first, then
+- on a local lab the folder is renamed into place in one step;
+- on a store every file is uploaded, its manifest (the card or record that describes the entry) last.
+  Readers take an entry only when its manifest is there, so a half-uploaded one is never visible, and a
+  crashed upload is overwritten by the next with the same content (entries are content-addressed).
+Recordings are always written to a local folder (a network stall must not cost a sample) and published
+to a store afterwards.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import os
+import shutil
+import tempfile
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import TypeAlias
+
+from acquisition.errors import AcquisitionError
+
+try:  # pragma: no branch - a core dependency; the import is guarded only for the message below
+    from upath import UPath
+except ImportError:  # pragma: no cover
+    UPath = None  # type: ignore[assignment,misc]
+
+LabPath: TypeAlias = Path  # a local Path or a UPath: both join with "/", glob, open, read and write
+
+
+class StoreError(AcquisitionError, OSError):
+    """A lab store that cannot be used: its fsspec backend is not installed, it does not answer, the
+    bucket does not exist or the credentials are refused. The message names the URL and what to do."""
+
+
+EXTRAS = {"s3": "s3", "s3a": "s3", "gs": "gcs", "gcs": "gcs", "az": "azure", "abfs": "azure"}
+
+
+def is_url(text: str | os.PathLike) -> bool:
+    """Does ``text`` name a store (``protocol://…``) rather than a local path? (``file://`` is local.)"""
+    return isinstance(text, str) and "://" in text and not text.startswith("file://")
+
+
+def lab_path(where: str | os.PathLike) -> LabPath:
+    """A local folder as a ``Path``, a store URL (or a UPath) as a ``UPath``. A store whose fsspec backend is
+    not installed: :class:`StoreError` naming the package to install."""
+    if UPath is not None and isinstance(where, UPath) and not isinstance(where, Path):
+        return where
+    if isinstance(where, Path):
+        return where
+    text = os.fspath(where)
+    if text.startswith("file://"):
+        return Path(text.removeprefix("file://"))
+    if not is_url(text):
+        return Path(text)
+    try:
+        path = UPath(text)
+        path.fs  # noqa: B018 - the backend is imported here, so a missing one is said here
+        return path
+    except (ImportError, ValueError) as exc:  # fsspec: "Install s3fs to access S3"; an unknown protocol
+        protocol = text.split("://", 1)[0]
+        extra = EXTRAS.get(protocol)
+        hint = (
+            f"pip install 'vslab[{extra}]'"
+            if extra == "s3"
+            else f"install fsspec's backend for {protocol}://"
+        )
+        raise StoreError(f"{text}: cannot open this store ({_first_line(exc)}; {hint})") from None
+
+
+def is_local(path: LabPath) -> bool:
+    """Is ``path`` on this computer's file system (rename is atomic there)?"""
+    return isinstance(path, Path)
+
+
+def published(entry: LabPath, manifest: str) -> bool:
+    """Is ``entry`` a whole entry a reader may take? Locally every folder is (it was renamed in whole); on
+    a store only one whose manifest was uploaded (the others are uploads in progress or abandoned)."""
+    return is_local(entry) or (entry / manifest).is_file()
+
+
+def check_store(root: LabPath) -> None:
+    """Raise :class:`StoreError` unless the store under ``root`` answers and its bucket may be listed
+    (nothing to do for a local folder). One request: a listing of the bucket's top level."""
+    if is_local(root):
+        return
+    bucket = root.fs._strip_protocol(str(root)).split("/", 1)[0]
+    try:
+        root.fs.ls(bucket, detail=False)
+    except FileNotFoundError:
+        raise StoreError(f"{root}: the bucket {bucket!r} does not exist (create it first)") from None
+    except Exception as exc:  # botocore's, aiohttp's and fsspec's own errors: no common base to catch
+        why = _first_line(exc)
+        raise StoreError(f"{root}: the store does not answer or refuses access ({why})") from None
+
+
+def publish(final: LabPath, fill: Callable[[Path], None], manifest: str) -> bool:
+    """Write the entry ``final`` whole: ``fill(folder)`` writes its files into a fresh local folder, which
+    then becomes ``final`` (see the module's docstring); ``manifest`` is the file ``fill`` writes that
+    describes the entry. False, and nothing changed, where ``final`` was published before (another writer
+    got there first: theirs stays)."""
+    if (final / manifest).is_file():
+        return False
+    local = is_local(final)
+    if local:
+        final.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{final.name}-", dir=final.parent if local else None))
+    try:
+        fill(tmp)
+        if not (tmp / manifest).is_file():
+            raise ValueError(f"{final}: the entry's writer made no {manifest}")
+        if local:
+            try:
+                os.rename(tmp, final)
+            except OSError:
+                if final.exists():  # another process renamed the same entry in first
+                    return False
+                raise
+        else:
+            upload(tmp, final, manifest)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return True
+
+
+def upload(folder: Path, final: LabPath, manifest: str) -> None:
+    """Copy the local ``folder`` to the store entry ``final``, the manifest last (its presence publishes);
+    ``manifest`` may be a pattern (``*.json``: every record after every file it describes)."""
+    files = sorted(p for p in folder.rglob("*") if p.is_file())
+    last = [p for p in files if fnmatch.fnmatch(p.relative_to(folder).as_posix(), manifest)]
+    for path in [p for p in files if p not in last] + last:
+        final.fs.put_file(str(path), final.joinpath(*path.relative_to(folder).parts).path)
+
+
+def read_parquet(path: LabPath, columns: list[str] | None = None):
+    """A Parquet file of a local lab or a store as a DataFrame (pandas reads a local one by its path, a
+    store's from the open file)."""
+    import pandas as pd
+
+    if is_local(path):
+        return pd.read_parquet(path, columns=columns)
+    with path.open("rb") as f:
+        return pd.read_parquet(f, columns=columns)
+
+
+@contextmanager
+def local_folder(where: LabPath) -> Iterator[Path]:
+    """A local folder standing for ``where``: itself when it is local; a temporary folder otherwise (the
+    caller publishes what it wants kept)."""
+    if is_local(where):
+        yield where
+        return
+    with tempfile.TemporaryDirectory(prefix="vslab-stage-") as tmp:
+        yield Path(tmp)
+
+
+def _first_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
