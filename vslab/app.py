@@ -14,6 +14,7 @@ from rich.console import Console
 from rich.markup import escape
 from typer.core import TyperGroup
 
+from acquisition.storage import LabPath, StoreError, check_store, is_local, lab_path
 from models.errors import VslabError
 from models.robot import RobotDescriptionError, load_robot
 
@@ -63,23 +64,40 @@ console = Console()
 class Settings:
     """Options every command shares (set by the top-level callback)."""
 
-    lab: Path = Path("lab")
+    lab: LabPath = Path("lab")  # a local folder, or a store (a UPath)
     quiet: bool = False
+
+
+LAB_HELP = ("The lab: a folder, or an fsspec URL such as s3://bucket/prefix (credentials from the store's "
+            "own environment: AWS_* variables, ~/.aws).")  # fmt: skip
 
 
 @app.callback()
 def main(
-    lab: Annotated[
-        Path, typer.Option(help="Lab directory (sessions, datasets, models, figures).", envvar="VSLAB_LAB")
-    ] = Path("lab"),
+    lab: Annotated[str, typer.Option(help=LAB_HELP, envvar="VSLAB_LAB")] = "lab",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
 ) -> None:
     """Options shared by every command."""
-    if lab.exists() and not lab.is_dir():
+    try:
+        where = lab_path(lab)
+        check_store(where)
+    except StoreError as exc:
+        _error(f"--lab {exc}")
+    if is_local(where) and where.exists() and not where.is_dir():
         _error(f"--lab {lab}: not a directory (the lab is a folder of sessions, datasets, models, figures)")
-    Settings.lab = lab
+    Settings.lab = where
     Settings.quiet = quiet
     logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="%(levelname)s %(message)s")
+
+
+def local_lab(command: str) -> Path:
+    """The lab for a command that records (or runs a rig): a local folder, or one error line. A recording is
+    never written to a store directly (a network stall must not cost a sample): record into a local lab,
+    then publish with `vslab --lab URL sessions upload`."""
+    if not is_local(Settings.lab):
+        _error(f"{command} records into a local lab, not {Settings.lab}: give --lab FOLDER, then publish "
+               f"with `vslab --lab {Settings.lab} sessions upload FOLDER/sessions/ID`")  # fmt: skip
+    return Settings.lab
 
 
 def _print_error(message: str) -> None:
@@ -197,7 +215,7 @@ def load_inverse_model(version: str, lab: Path | None = None):
     against its card; an unknown, ambiguous, damaged or forward model is one error line."""
     from pipeline.registry import find, load_model
 
-    root = Path(lab or Settings.lab) / "models"
+    root = lab_path(lab or Settings.lab) / "models"
     try:
         model, _ = load_model(find(root, version))
     except (FileNotFoundError, ValueError) as exc:  # unknown; ambiguous; damaged (ModelIntegrityError)

@@ -27,6 +27,7 @@ from vslab.app import (
     app,
     console,
     load_inverse_model,
+    local_lab,
     robots_app,
     twin_app,
 )
@@ -85,7 +86,7 @@ def rig(
     from acquisition.sim.rig import serve_rig
 
     desc = _robot(robot)
-    where = run_dir or Settings.lab / "rig"
+    where = run_dir or local_lab("rig (without --run-dir)") / "rig"
     if not Settings.quiet:
         console.print(f"rig for {desc.name}: ports in {where / 'ports.json'} (Ctrl-C stops)")
     serve_rig(desc, where, seed=seed)
@@ -106,7 +107,7 @@ def demo(
         _error(f"--seed must be ≥ 0, got {seed}")
     start = time.perf_counter()
     report = lab_job.run(
-        Settings.lab,
+        local_lab("demo"),
         seed=seed,
         quick=quick,
         say=lambda m: console.print(m, highlight=False),
@@ -159,7 +160,8 @@ def simulate(
     import numpy as np
     from rich.progress import Progress
 
-    from acquisition.plans.sim_runner import simulate_experiment
+    from acquisition.plans.sim_runner import SIM_PREFIX, simulate_experiment
+    from acquisition.recorder.sessions import staged_sessions
     from acquisition.safety import SafetyError
     from pipeline.in_loop import InverseModelCompensator
 
@@ -184,10 +186,12 @@ def simulate(
             bar.update(tasks[label], completed=fraction)
 
         try:
-            reports = simulate_experiment(
-                experiment, sessions_dir, seed=seed, benches=benches, overrides=overrides, progress=progress,
-                inverse_model=hybrid if model is not None else None,
-            )  # fmt: skip
+            # on a store, the sessions are written locally and uploaded once whole
+            with staged_sessions(sessions_dir, f"{SIM_PREFIX}*") as folder:
+                reports = simulate_experiment(
+                    experiment, folder, seed=seed, benches=benches, overrides=overrides, progress=progress,
+                    inverse_model=hybrid if model is not None else None,
+                )  # fmt: skip
         except (ValueError, OSError, RobotDescriptionError, SafetyError) as exc:  # ExperimentError, full disk
             bar.stop()
             _error(str(exc))
@@ -230,7 +234,7 @@ def build(
         str | None,
         typer.Option(
             help="A Dask scheduler (tcp://host:port) whose workers process the sessions; they must see the "
-            "lab at the same path (vslab[cluster])."
+            "lab at the same path, or the same store (vslab[cluster])."
         ),
     ] = None,
 ) -> None:

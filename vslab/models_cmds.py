@@ -43,7 +43,7 @@ def train(
         str | None,
         typer.Option(
             help="A Dask scheduler (tcp://host:port) whose workers train the jobs, one torch thread "
-            "each; they must see the lab at the same path (vslab[cluster])."
+            "each; they must see the lab at the same path, or the same store (vslab[cluster])."
         ),
     ] = None,
 ) -> None:

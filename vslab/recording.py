@@ -28,6 +28,7 @@ from vslab.app import (
     app,
     console,
     load_inverse_model,
+    local_lab,
 )
 
 PORTS_HELP = "ports.json (or the rig's run directory) naming each device's port."
@@ -268,6 +269,7 @@ def record(
     """Record every device of a robot to one MCAP session, with live counters; Ctrl-C stops cleanly."""
     from rich.live import Live
 
+    local_lab("record")
     desc = _robot(robot)
     rates = _rates(rate, desc)
     if not (duration >= 0 and math.isfinite(duration)):
@@ -313,6 +315,7 @@ def run(
 ) -> None:
     """Run one plan of an experiment in real time on the devices (or the rig) while recording it. Payload
     changes and taps prompt the operator (on the rig: applied). Ctrl-C: a safe stop; the file stays valid."""
+    local_lab("run")
     try:
         the_plan, report = run_plan(experiment, plan, _overrides(set_ or []), ports=ports, rig=rig,
                                     session=session, inverse_model=inverse_model, rates=rate, live=live,

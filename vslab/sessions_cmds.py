@@ -1,4 +1,5 @@
-"""`vslab sessions`: the lab's recorded sessions listed, inspected and recovered (never changed in place)."""
+"""`vslab sessions`: the lab's recorded sessions listed, inspected, recovered (never changed in place) and
+uploaded to a lab on a store."""
 
 from __future__ import annotations
 
@@ -86,8 +87,11 @@ def sessions_recover(session: Annotated[str, typer.Argument(help="Session id or 
     a readable session is refused with one line; nothing is written."""
 
     from acquisition.recorder.recover import recover
+    from acquisition.storage import is_local
 
     torn = _session_info(session).torn
+    if torn and not is_local(torn[0]):  # never reached by an upload: torn sessions are not published
+        _fail(escape(f"{torn[0]}: a torn part on a store; recover the local session, then upload it"))
     if not torn:
         console.print("nothing to recover: every part is whole")
     for part in torn:
@@ -99,3 +103,31 @@ def sessions_recover(session: Annotated[str, typer.Argument(help="Session id or 
             f"{r.source.name} → {r.output.name}: {r.messages:,} messages ({r.reason or 'complete'})",
             soft_wrap=True, highlight=False, markup=False,
         )  # fmt: skip
+
+
+@sessions_app.command("upload")
+def sessions_upload(
+    folders: Annotated[list[Path], typer.Argument(help="Local session folders (a lab's sessions/<id>).")],
+) -> None:
+    """Publish local sessions into the lab on a store (--lab s3://…): each one's parts first, its
+    session.json last, so no reader ever sees half a session. A session the lab holds already is left as it
+    is; one that is not a complete, readable session is refused with one line and nothing of it uploaded."""
+    from acquisition.recorder.sessions import SessionError, publish_session
+    from acquisition.storage import is_local
+
+    root = Settings.lab / "sessions"
+    if is_local(root):
+        _fail(escape(f"--lab {Settings.lab} is a local folder: upload publishes into a lab on a store "
+                     "(--lab s3://bucket/prefix); copy folders into a local lab"))  # fmt: skip
+    for folder in folders:
+        if not folder.is_dir():
+            _fail(escape(f"{folder}: no such session folder"))
+    for folder in folders:
+        try:
+            uploaded = publish_session(folder, root)
+        except SessionError as exc:
+            _fail(escape(str(exc)))
+        except OSError as exc:
+            _fail(escape(f"{folder}: the upload to {root} failed ({exc}); nothing of it is visible there"))
+        what = "uploaded" if uploaded else "already in the lab (left as it is)"
+        console.print(f"{folder.name}: {what}", soft_wrap=True, highlight=False, markup=False)

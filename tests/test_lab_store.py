@@ -1,0 +1,241 @@
+"""The lab on object storage: a real S3 endpoint (moto in server mode on 127.0.0.1, started and stopped here)
+holds a whole lab — simulate → build → train → figures through the `vslab` command with ``--lab s3://…`` —
+that gives the local lab's dataset and model versions and bit-identical weights. Credentials come from the
+standard AWS environment only and appear in no object the lab writes. A half-uploaded entry is never
+visible; an unreachable store, a missing bucket and a recording aimed at a store are one line each."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+pytest.importorskip("s3fs", reason="the [s3] extra (dev installs it)")
+moto_server = pytest.importorskip("moto.server", reason="moto[server] (dev installs it)")
+
+from acquisition.storage import StoreError, check_store, lab_path, publish  # noqa: E402
+from pipeline.datasets import load_dataset, newest_version, write_dataset  # noqa: E402
+
+SECRET = "vslab-test-secret-6d1f0c"  # must never appear in what the lab writes
+KEY_ID = "vslab-test-key-id"
+GRID = {
+    "models": [{"direction": "forward", "preset": "small-residual", "hidden": [16, 16]},
+               {"direction": "inverse", "preset": "paper", "hidden": [16, 16]}],
+    "datasets": ["campaign"], "splits": ["split_random"], "seeds": [0],
+    "train": {"max_epochs": 4, "patience": 4, "batch_size": 64},
+}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def s3():
+    """An S3 endpoint on 127.0.0.1 with an empty bucket ``lab``; yields the environment a client needs (the
+    standard AWS variables: nothing else tells vslab where the store is or who it is)."""
+    server = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    env = {"AWS_ACCESS_KEY_ID": KEY_ID, "AWS_SECRET_ACCESS_KEY": SECRET, "AWS_DEFAULT_REGION": "us-east-1",
+           "AWS_ENDPOINT_URL": f"http://{host}:{port}"}  # fmt: skip
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)  # this process's own clients (the checks below) read the same variables
+    try:
+        import s3fs
+
+        s3fs.S3FileSystem.clear_instance_cache()
+        s3fs.S3FileSystem().mkdir("lab")
+        yield env
+    finally:
+        for k, v in saved.items():
+            os.environ.pop(k) if v is None else os.environ.__setitem__(k, v)
+        server.stop()
+
+
+def _vslab(env: dict, *args, timeout: float = 600) -> subprocess.CompletedProcess:
+    """`vslab ARGS` in a fresh process with ``env`` (the AWS variables) added to this one's."""
+    return subprocess.run([sys.executable, "-m", "vslab.cli", *map(str, args)], capture_output=True,
+                          text=True, timeout=timeout, env={**os.environ, **env, "VSLAB_BATCH_NICE": "0",
+                                                           "COLUMNS": "200"})  # fmt: skip
+
+
+def _ok(done: subprocess.CompletedProcess) -> str:
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    assert "Traceback" not in done.stdout + done.stderr, done.stderr[-3000:]
+    return done.stdout
+
+
+def _one_error_line(done: subprocess.CompletedProcess) -> str:
+    out = done.stdout + done.stderr
+    assert done.returncode == 2 and "Traceback" not in out, out
+    lines = [ln for ln in out.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), out
+    return lines[0]
+
+
+@pytest.mark.slow
+def test_a_lab_on_s3_simulates_builds_trains_and_draws_as_a_local_lab_does(s3, tmp_path, campaign_dataset):
+    src, local_version, _ = campaign_dataset  # the same campaign (seed 11, 600 points, 8 benches), local
+    url = "s3://lab/run1"
+    grid = tmp_path / "grid.yaml"
+    grid.write_text(yaml.safe_dump(GRID))
+    campaign = ["simulate", "campaign", "--seed", "11", "--benches", "8", "--set", "points=600"]
+    simulated = _ok(_vslab(s3, "--lab", url, "--quiet", *campaign))
+    assert "8 sessions written" in simulated and "s3://lab/run1/sessions" in simulated
+    again = _ok(_vslab(s3, "--lab", url, "--quiet", *campaign))
+    assert "0 sessions written, 8 already complete" in again  # the store's sessions are not simulated twice
+    built = _ok(_vslab(s3, "--lab", url, "--quiet", "build"))
+    assert f"dataset campaign {local_version}: built" in built  # the local build's version: same content
+    assert "already built" in _ok(_vslab(s3, "--lab", url, "--quiet", "build"))
+    trained = _ok(_vslab(s3, "--lab", url, "--quiet", "train", "--grid", grid, "--workers", "1"))
+    assert "2 trained" in trained
+    drawn = _ok(_vslab(s3, "--lab", url, "--quiet", "figures"))
+    assert "report: s3://lab/run1/report/index.html" in drawn
+
+    lab = lab_path(url)
+    # the sessions, the dataset and its frame are the local lab's
+    assert sorted(p.name for p in (lab / "sessions").iterdir()) == sorted(
+        p.name for p in (src / "sessions").iterdir()
+    )
+    stored, _ = load_dataset(lab / "datasets", "campaign", local_version)
+    local, _ = load_dataset(src / "datasets", "campaign", local_version)
+    assert stored.equals(local)
+    # the models: the versions and the weights' bytes a local run of the same grid gives
+    from pipeline.grid import load_grid, run_grid
+
+    mine = tmp_path / "local"
+    mine.mkdir()
+    (mine / "datasets").symlink_to(src / "datasets")
+    results = run_grid(mine, load_grid(grid), threads=1)
+    for r in results:
+        on_s3 = lab / "models" / r["name"] / r["version"] / "weights.safetensors"
+        assert (
+            on_s3.read_bytes()
+            == (mine / "models" / r["name"] / r["version"] / "weights.safetensors").read_bytes()
+        )
+    listed = _ok(_vslab(s3, "--lab", url, "models", "list"))
+    assert all(r["version"] in listed for r in results)
+    # the figures with their records, and the report linking their PDFs beside it
+    figures = {p.name for p in (lab / "figures").iterdir()}
+    assert {
+        "error_heatmaps.png",
+        "error_heatmaps.pdf",
+        "error_heatmaps.json",
+        "learning_curves.png",
+    } <= figures
+    page = (lab / "report" / "index.html").read_text()
+    assert 'href="../figures/error_heatmaps.pdf"' in page and "data:image/png;base64," in page
+    # no credential in anything the lab wrote (cards, records, metadata, the report)
+    for path in lab.rglob("*"):
+        if path.is_file() and path.suffix in (".json", ".html", ".mcap", ".yaml"):
+            data = path.read_bytes()
+            assert SECRET.encode() not in data and KEY_ID.encode() not in data, path
+
+
+def test_a_half_uploaded_entry_is_never_visible(s3, monkeypatch):
+    root = lab_path("s3://lab/torn") / "datasets"
+    table = {"data": __import__("pandas").DataFrame({"split_random": ["train"], "x_0": [1.0]})}
+    real_put = root.fs.put_file
+
+    def put_file(local, remote, *a, **k):
+        if remote.endswith("card.json"):  # the connection drops before the manifest goes up
+            raise ConnectionError("the network went away")
+        return real_put(local, remote, *a, **k)
+
+    monkeypatch.setattr(root.fs, "put_file", put_file)
+    with pytest.raises(ConnectionError):
+        write_dataset(root, "d", "v1", table, {})
+    assert (root / "d" / "v1" / "data.parquet").is_file()  # the data went up ...
+    assert newest_version(root, "d") is None  # ... but no reader takes the version
+    with pytest.raises(FileNotFoundError):
+        load_dataset(root, "d", "v1")
+    monkeypatch.setattr(root.fs, "put_file", real_put)
+    write_dataset(root, "d", "v1", table, {})  # the next writer of the same content completes it
+    assert newest_version(root, "d") == "v1" and load_dataset(root, "d", "v1")[0]["x_0"].tolist() == [1.0]
+
+
+def test_a_model_or_session_without_its_manifest_is_not_listed(s3):
+    from pipeline.registry import list_models
+    from pipeline.session_index import experiment_sessions
+
+    lab = lab_path("s3://lab/partial")
+    (lab / "models" / "forward-x" / "0123abcd").mkdir(parents=True, exist_ok=True)
+    (lab / "models" / "forward-x" / "0123abcd" / "weights.safetensors").write_bytes(b"half")
+    (lab / "sessions" / "sim-a").mkdir(parents=True, exist_ok=True)
+    (lab / "sessions" / "sim-a" / "sim-a_000.mcap").write_bytes(b"half")
+    assert list_models(lab / "models") == []
+    assert experiment_sessions(lab / "sessions", "all") == ([], {})  # not even named as damaged: in transit
+
+
+def test_publish_keeps_what_another_writer_published_first(s3):
+    final = lab_path("s3://lab/race") / "entry"
+
+    def fill(text):
+        return lambda folder: [(folder / "a.txt").write_text(text), (folder / "record.json").write_text("{}")]
+
+    assert publish(final, fill("first"), "record.json")
+    assert not publish(final, fill("second"), "record.json")
+    assert (final / "a.txt").read_text() == "first"
+
+
+def test_store_errors_are_one_line(s3, tmp_path):
+    line = _one_error_line(_vslab(s3, "--lab", "s3://no-such-bucket/lab", "sessions", "list"))
+    assert "the bucket 'no-such-bucket' does not exist" in line
+    down = {**s3, "AWS_ENDPOINT_URL": "http://127.0.0.1:9", "AWS_MAX_ATTEMPTS": "1"}
+    line = _one_error_line(_vslab(down, "--lab", "s3://lab/x", "models", "list", timeout=120))
+    assert "does not answer" in line and "127.0.0.1:9" in line
+    line = _one_error_line(_vslab(s3, "--lab", "nosuch://x/lab", "sessions", "list"))
+    assert "cannot open this store" in line
+    for command in (["record", "--duration", "1"], ["run", "experiment1", "--rig"], ["demo"]):
+        line = _one_error_line(_vslab(s3, "--lab", "s3://lab/x", *command))
+        assert "records into a local lab" in line and "sessions upload" in line, command
+    with pytest.raises(StoreError, match="does not exist"):
+        check_store(lab_path("s3://no-such-bucket/x"))
+
+
+def test_local_sessions_are_uploaded_whole_and_never_replaced(s3, tmp_path, campaign_dataset):
+    src, _, _ = campaign_dataset
+    session = sorted((src / "sessions").iterdir())[0]
+    url = "s3://lab/upload"
+    out = _ok(_vslab(s3, "--lab", url, "sessions", "upload", session))
+    assert f"{session.name}: uploaded" in out
+    assert "already in the lab" in _ok(_vslab(s3, "--lab", url, "sessions", "upload", session))
+    stored = lab_path(url) / "sessions" / session.name
+    assert sorted(p.name for p in stored.iterdir()) == sorted(p.name for p in session.iterdir())
+    assert json.loads((stored / "session.json").read_text()) == json.loads(
+        (session / "session.json").read_text()
+    )
+    torn = tmp_path / "sim-torn"
+    torn.mkdir()
+    (torn / "session.json").write_text(
+        json.dumps({"robot": "vsl", "experiment": "campaign", "status": "recording"})
+    )
+    (torn / "sim-torn_000.mcap").write_bytes(b"\x89MCAP0\r\n")
+    line = _one_error_line(_vslab(s3, "--lab", url, "sessions", "upload", torn))
+    assert "not complete" in line
+    assert not (lab_path(url) / "sessions" / "sim-torn").exists()
+    line = _one_error_line(_vslab(s3, "--lab", str(tmp_path / "local-lab"), "sessions", "upload", session))
+    assert "local folder" in line
+
+
+def test_a_local_lab_is_still_a_plain_path(tmp_path):
+    assert isinstance(lab_path(tmp_path), Path) and isinstance(lab_path(str(tmp_path)), Path)
+    assert lab_path(f"file://{tmp_path}") == tmp_path
+
+
+@pytest.mark.slow
+def test_a_cluster_builds_a_lab_on_s3_as_one_machine_does(s3, campaign_dataset):
+    """The workers (processes of their own, as on other machines) reach the store through the same AWS
+    environment, not through a shared file system."""
+    from pipeline.cluster import local_cluster
+
+    src, local_version, _ = campaign_dataset
+    url = "s3://lab/cluster"
+    _ok(_vslab(s3, "--lab", url, "--quiet", "sessions", "upload", *sorted((src / "sessions").iterdir())))
+    with local_cluster(2, port=0) as cluster:  # started after the fixture set the AWS variables
+        built = _ok(_vslab(s3, "--lab", url, "--quiet", "build", "--cluster", cluster.scheduler_address))
+    assert f"dataset campaign {local_version}: built" in built and "(0 cached)" in built
+    entries = list((lab_path(url) / "cache" / "session").iterdir())
+    assert len(entries) == 8 and all((e / "record.json").is_file() for e in entries)  # written by the workers
