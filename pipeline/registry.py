@@ -30,7 +30,7 @@ import safetensors.torch
 import torch
 from safetensors.torch import save_file
 
-from acquisition.storage import is_local, lab_path, publish, published
+from acquisition.storage import is_local, lab_path, publish
 from models.hybrid import HybridNet, NetConfig
 from pipeline.cache import digest, file_hash, stage_version
 from pipeline.errors import PipelineError
@@ -288,11 +288,12 @@ def tag(root: Path, name: str, version: str) -> str:
 def _version_dirs(root: Path) -> list[Path]:
     """Every ``<root>/<name>/<version>/`` folder (not the hidden ones a save is writing)."""
     root = lab_path(root)
+    if not is_local(root):  # a store: the versions whose card is there (one listing, not a request each)
+        return sorted(card.parent for card in root.glob(f"*/*/{CARD}"))
     if not root.is_dir():
         return []
     return sorted(v for n in root.iterdir() if n.is_dir() and not n.name.startswith(".")
-                  for v in n.iterdir() if v.is_dir() and not v.name.startswith(".")
-                  and published(v, CARD))  # fmt: skip
+                  for v in n.iterdir() if v.is_dir() and not v.name.startswith("."))  # fmt: skip
 
 
 def _why(exc: BaseException) -> str:
