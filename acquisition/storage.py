@@ -163,6 +163,23 @@ def local_folder(where: LabPath) -> Iterator[Path]:
         yield Path(tmp)
 
 
+@contextmanager
+def fetched(folder: LabPath) -> Iterator[Path]:
+    """``folder`` as a local folder of the same name: itself when local; for a store, a temporary copy
+    fetched whole (one request per file: a reader that opens each file several times, seeking, would make a
+    request each time), removed afterwards."""
+    if is_local(folder):
+        yield folder
+        return
+    with tempfile.TemporaryDirectory(prefix="vslab-fetch-") as tmp:
+        here = Path(tmp) / folder.name
+        here.mkdir()
+        for remote in folder.iterdir():
+            if remote.is_file():
+                folder.fs.get_file(remote.path, str(here / remote.name))
+        yield here
+
+
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from acquisition.storage import lab_path, read_parquet
+from acquisition.storage import fetched, lab_path, read_parquet
 from models.robot import RobotDescription
 from pipeline import datasets
 from pipeline.cache import StageCache, stage_key, stage_version
@@ -134,39 +134,46 @@ class BuildReport:
 
 def process_session(directory: str, parameters: dict, cache_root: str) -> dict:
     """Per-session stages of one session (a top-level function: any executor can run it). Returns a small
-    record: the cache key of its outputs, or the reason it failed."""
+    record: the cache key of its outputs, or the reason it failed. A session on a store is fetched once
+    into a temporary folder and read there."""
+    where = lab_path(directory)
+    local = where
+    try:
+        with fetched(where) as local:
+            return _session_stages(local, parameters, StageCache(lab_path(cache_root)))
+    except Exception as exc:  # one bad session must not stop the build; its reason goes in the card
+        log.debug("session %s failed", where.name, exc_info=True)  # the caller shows the reason
+        return {"session": where.name, "error": _reason(exc).replace(str(local), str(where))}
+
+
+def _session_stages(directory: Path, parameters: dict, cache: StageCache) -> dict:
+    """ingest → clean → sync → segment of the local session ``directory``, cached by its content."""
     from acquisition.schemas.session_card import readable_parts
     from pipeline.clean import clean
     from pipeline.ingest import IngestError, ingest_session, source_hash
     from pipeline.segment import Stillness, repetitions, static_points
     from pipeline.sync import sync
 
-    directory = lab_path(directory)
-    cache = StageCache(lab_path(cache_root))
-    try:
-        parts = readable_parts(directory)
-        if not parts:
-            raise IngestError(directory, "no MCAP parts (*.mcap)")
-        source = source_hash(parts)
-        session_params = {k: parameters[k] for k in ("clean", "segment")}
-        key = stage_key("session", [source], session_params)
-        if cache.has("session", key):
-            return {"session": directory.name, "key": key, "source": source, "cached": True}
-        s = ingest_session(directory)
-        s = clean(s, **parameters["clean"])
-        s, timeline = sync(s)
-        still = Stillness(**parameters["segment"])
-        points = static_points(timeline, s.events, s.t0_ns, stillness=still, report=s.report)
-        timeline = timeline.assign(repetition=repetitions(timeline, s.events, s.t0_ns))
-        trajectory = timeline[timeline["repetition"] >= 0]
-        record = {"session": directory.name, "robot": s.robot.name, "source": source,
-                  "robot_description": s.robot.model_dump_json(), "report": s.report.as_dict(),
-                  "metadata": {k: v for k, v in s.metadata.items() if k != "robot_description"}}  # fmt: skip
-        cache.store("session", key, {"static": points, "trajectory": trajectory}, record)
-        return {"session": directory.name, "key": key, "source": source, "cached": False}
-    except Exception as exc:  # one bad session must not stop the build; its reason goes in the card
-        log.debug("session %s failed", directory.name, exc_info=True)  # the caller shows the reason
-        return {"session": directory.name, "error": _reason(exc)}
+    parts = readable_parts(directory)
+    if not parts:
+        raise IngestError(directory, "no MCAP parts (*.mcap)")
+    source = source_hash(parts)
+    session_params = {k: parameters[k] for k in ("clean", "segment")}
+    key = stage_key("session", [source], session_params)
+    if cache.has("session", key):
+        return {"session": directory.name, "key": key, "source": source, "cached": True}
+    s = ingest_session(directory)
+    s = clean(s, **parameters["clean"])
+    s, timeline = sync(s)
+    still = Stillness(**parameters["segment"])
+    points = static_points(timeline, s.events, s.t0_ns, stillness=still, report=s.report)
+    timeline = timeline.assign(repetition=repetitions(timeline, s.events, s.t0_ns))
+    trajectory = timeline[timeline["repetition"] >= 0]
+    record = {"session": directory.name, "robot": s.robot.name, "source": source,
+              "robot_description": s.robot.model_dump_json(), "report": s.report.as_dict(),
+              "metadata": {k: v for k, v in s.metadata.items() if k != "robot_description"}}  # fmt: skip
+    cache.store("session", key, {"static": points, "trajectory": trajectory}, record)
+    return {"session": directory.name, "key": key, "source": source, "cached": False}
 
 
 def _reason(exc: BaseException) -> str:

@@ -239,3 +239,16 @@ def test_a_cluster_builds_a_lab_on_s3_as_one_machine_does(s3, campaign_dataset):
     assert f"dataset campaign {local_version}: built" in built and "(0 cached)" in built
     entries = list((lab_path(url) / "cache" / "session").iterdir())
     assert len(entries) == 8 and all((e / "record.json").is_file() for e in entries)  # written by the workers
+
+
+def test_a_damaged_session_on_the_store_is_named_by_its_store_path(s3, campaign_dataset):
+    from pipeline.build import process_session
+
+    src, _, _ = campaign_dataset
+    good = sorted((src / "sessions").iterdir())[0]
+    bad = lab_path("s3://lab/damaged/sessions/sim-bad")
+    (bad / "session.json").write_bytes((good / "session.json").read_bytes())
+    (bad / "sim-bad_000.mcap").write_bytes(b"not an MCAP file at all")
+    result = process_session(str(bad), {"clean": {}, "segment": {}}, "s3://lab/damaged/cache")
+    assert "s3://lab/damaged/sessions/sim-bad/sim-bad_000.mcap" in result["error"], result
+    assert "vslab-fetch" not in result["error"] and "not an MCAP file" in result["error"]
