@@ -174,9 +174,10 @@ def fetched(folder: LabPath) -> Iterator[Path]:
     with tempfile.TemporaryDirectory(prefix="vslab-fetch-") as tmp:
         here = Path(tmp) / folder.name
         here.mkdir()
-        for remote in folder.iterdir():
-            if remote.is_file():
-                folder.fs.get_file(remote.path, str(here / remote.name))
+        for entry in folder.fs.ls(folder.path, detail=True):  # one listing, then one GET per file
+            if entry["type"] == "file":
+                name = entry["name"].rstrip("/").rsplit("/", 1)[-1]
+                folder.fs.get_file(entry["name"], str(here / name))
         yield here
 
 

@@ -8,7 +8,8 @@ real store's latency or bandwidth), simulates a campaign into a local lab (not t
 - the upload of its sessions to the store (`sessions upload`: parts first, session.json last);
 - a cold build of the campaign from each lab (every per-session stage runs, 2 worker processes);
 - a grid of ``--models`` networks on each (2 worker processes, one torch thread each).
-Prints the times, the ratio store / local, the data sizes and the load average before and after.
+Prints the times, the ratio store / local, the requests the store answered (from moto's own log), the data
+sizes and the load average before and after.
 """
 
 from __future__ import annotations
@@ -47,16 +48,19 @@ def main() -> None:
     env = {"AWS_ACCESS_KEY_ID": "bench", "AWS_SECRET_ACCESS_KEY": "bench", "AWS_DEFAULT_REGION": "us-east-1",
            "AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}"}  # fmt: skip
     os.environ.update(env)  # before s3fs and the worker processes read them
+    log = tempfile.NamedTemporaryFile("w+", prefix="moto-", suffix=".log")
     server = subprocess.Popen([sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+                              stdout=subprocess.DEVNULL, stderr=log)  # fmt: skip
     try:
-        _bench(args)
+        _bench(args, lambda: Path(log.name).read_text().count(" HTTP/1.1"))  # moto logs each request
     finally:
         server.terminate()
         server.wait(10)
+        log.close()
 
 
-def _bench(args) -> None:
+def _bench(args, requests) -> None:
+    """``requests()``: how many requests the store has answered so far."""
     import s3fs
 
     from acquisition.plans.sim_runner import simulate_experiment
@@ -92,14 +96,16 @@ def _bench(args) -> None:
             "splits": ["split_random"], "seeds": list(range(max(1, args.models // len(presets)))),
             "train": {"max_epochs": args.epochs, "patience": args.epochs, "batch_size": 64},
         }))  # fmt: skip
-        times = {}
+        times, counts = {}, {}
         for name, lab, found in (("local", local, sessions), ("s3", store, remote_sessions)):
-            start = time.perf_counter()
+            start, before = time.perf_counter(), requests()
             report = build(found, lab, "campaign")
             times[name, "build"] = time.perf_counter() - start
-            start = time.perf_counter()
+            counts[name, "build"] = requests() - before
+            start, before = time.perf_counter(), requests()
             results = run_grid(lab, load_grid(grid_file), workers=2, threads=1)
             times[name, "grid"] = time.perf_counter() - start
+            counts[name, "grid"] = requests() - before
             times[name, "version"] = report.version
             times[name, "models"] = sorted(r["version"] for r in results)
         mib = _mib(p for s in sessions for p in s.iterdir())
@@ -109,10 +115,10 @@ def _bench(args) -> None:
     print(f"cores {os.cpu_count()}; load average before {load_before[0]:.1f}, after {load_after[0]:.1f}")
     print(f"{len(sessions)} sessions, {mib:.1f} MiB; upload to the store {upload_s:.1f} s "
           f"({mib / upload_s:.1f} MiB/s)")  # fmt: skip
-    print(f"{'':8}{'local':>10}{'s3':>10}{'s3/local':>10}")
+    print(f"{'':8}{'local':>10}{'s3':>10}{'s3/local':>10}{'requests':>10}")
     for step in ("build", "grid"):
         lo, s3 = times["local", step], times["s3", step]
-        print(f"{step:8}{lo:>9.1f}s{s3:>9.1f}s{s3 / lo:>9.2f}×")
+        print(f"{step:8}{lo:>9.1f}s{s3:>9.1f}s{s3 / lo:>9.2f}×{counts['s3', step]:>10}")
     print(f"dataset {times['local', 'version']} and {len(times['local', 'models'])} model versions: the same")
 
 

@@ -50,6 +50,9 @@ DEFAULTS: dict = {
 }
 
 
+LOADERS = 8  # threads reading the sessions' cached stage outputs for registration and D
+
+
 class BuildError(PipelineError, ValueError):
     """No session of the build could be read: ``failed`` maps each session to its reason."""
 
@@ -230,7 +233,8 @@ def build(
     if not good:
         raise BuildError(failed)
     cache = StageCache(cache_root)
-    loaded = [(r, *cache.load("session", r["key"])) for r in good]
+    with cf.ThreadPoolExecutor(LOADERS) as pool:  # a store answers many requests at once, not one by one
+        loaded = list(pool.map(lambda r: (r, *cache.load("session", r["key"])), good))
     tables, card_sessions, registrations = {"data": [], "trajectories": []}, {}, {}
     for robot_name in sorted({rec["robot"] for _, _, rec in loaded}):
         mine = [(r, t, rec) for r, t, rec in loaded if rec["robot"] == robot_name]
