@@ -368,3 +368,29 @@ def test_campaign_runs_to_the_end_within_the_safety_limits(tmp_path):
     assert report.simulated_s == pytest.approx(sum(p.duration_s for p in plans))
     for sid in report.sessions:
         assert not [e for _, e in _events(tmp_path / sid) if e.kind == EventKind.SAFETY_STOP]
+
+
+def test_same_seed_gives_the_same_bytes_however_fast_the_machine_ran(vsl, tmp_path, monkeypatch):
+    """A dataset's version is a hash of its sessions' bytes, so the writer's chunks must not depend on
+    wall time (under load the runs flushed at other points, and the same campaign gave another version)."""
+    from acquisition.plans import sim_runner
+
+    writers = []
+
+    class Spy(sim_runner.SessionWriter):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            writers.append(self)
+
+    monkeypatch.setattr(sim_runner, "SessionWriter", Spy)
+    plans = _short_plans(vsl)
+    simulate(plans, vsl, tmp_path / "a", seed=5)
+    end = max(p.duration_s for p in plans)
+    window_s = 1.0  # the runner's default: the clock stops at the end of the window holding the plan's end
+    clocks = [w.clock() for w in writers]
+    assert clocks and all(end - 0.02 <= c <= end + window_s for c in clocks), clocks  # simulated seconds
+    simulate(plans, vsl, tmp_path / "b", seed=5)
+    for p in plans:  # every file, the MCAP parts and session.json, byte for byte
+        a, b = (sorted((tmp_path / n / session_id(p)).iterdir()) for n in "ab")
+        assert [f.name for f in a] == [f.name for f in b] and len(a) >= 2
+        assert [f.read_bytes() for f in a] == [f.read_bytes() for f in b], session_id(p)

@@ -165,6 +165,8 @@ def simulate(
     durations = np.array([p.duration_s for p in plans])
     event_t = [np.array([t for t, _ in p.events]) for p in plans]
     writers = []
+    sim_now = [0.0]  # the writers' clock: simulated seconds, so a session's bytes (its chunks) never depend
+    # on how fast this machine ran it, and the same seed gives the same files
     for r, p in enumerate(plans):
         directory = sessions_dir / session_id(p)
         if directory.exists():  # an incomplete earlier try: start it again
@@ -173,7 +175,7 @@ def simulate(
         w = SessionWriter(directory, robot, session_id(p), experiment=p.parameters.get("experiment", p.name),
                           metadata={"plan": p.name, "runner": "simulated", "seed": str(seed),
                                     "parameters": p.parameters, TWIN_TRUTH: twin_truth(world, r)},
-                          flush_s=30.0)  # fmt: skip
+                          flush_s=30.0, clock=lambda: sim_now[0])  # fmt: skip
         w.open()
         w.event(Event(EventKind.SESSION_START, label=p.name), SIM_EPOCH_NS)
         writers.append(w)
@@ -245,7 +247,7 @@ def simulate(
                 if r in stops:
                     w.event(stops[r][1], SIM_EPOCH_NS + round(stops[r][0] * 1e9))
                     messages += 1
-            t0 = t1
+            t0 = sim_now[0] = t1
             if progress:
                 progress(min(1.0, t0 / end))
         for w, p, d in zip(writers, plans, durations, strict=True):
