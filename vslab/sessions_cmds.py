@@ -111,8 +111,9 @@ def sessions_upload(
 ) -> None:
     """Publish local sessions into the lab on a store (--lab s3://…): each one's parts first, its
     session.json last, so no reader ever sees half a session. A session the lab holds already is left as it
-    is; one that is not a complete, readable session is refused with one line and nothing of it uploaded."""
-    from acquisition.recorder.sessions import SessionError, publish_session
+    is. Every folder is checked first: one that is not a complete, readable session is refused with one
+    line, and nothing is uploaded."""
+    from acquisition.recorder.sessions import SessionError, check_publishable, publish_session
     from acquisition.storage import is_local
 
     root = Settings.lab / "sessions"
@@ -122,6 +123,10 @@ def sessions_upload(
     for folder in folders:
         if not folder.is_dir():
             _fail(escape(f"{folder}: no such session folder"))
+        try:
+            check_publishable(folder)
+        except SessionError as exc:
+            _fail(escape(str(exc)))
     for folder in folders:
         try:
             uploaded = publish_session(folder, root)

@@ -212,11 +212,9 @@ def recover_session(directory: Path) -> list[RecoveryReport]:
     return [recover(part) for part in session_info(directory).torn]
 
 
-def publish_session(directory: Path, sessions_root: LabPath) -> bool:
-    """Publish the local session ``directory`` under ``sessions_root`` (a store): its parts first, its
-    ``session.json`` last (the session exists for readers once that is there). Only a complete session is
-    published (``SessionError`` otherwise); False where the lab already holds it (a session is never
-    replaced: raw sessions are immutable)."""
+def check_publishable(directory: Path) -> None:
+    """``SessionError`` unless the local ``directory`` is a complete session whose parts are all whole MCAP
+    (an interrupted recording is recovered, or recorded again, before it is published)."""
     card = read_card(directory)
     if card.get("status") != "complete":
         raise SessionError(directory, f"not complete (status {card.get('status')!r}): not published",
@@ -224,6 +222,14 @@ def publish_session(directory: Path, sessions_root: LabPath) -> bool:
     if torn := session_info(directory).torn:  # every part is MCAP; a torn one is mended locally first
         raise SessionError(torn[0], "torn (no readable summary): not published",
                            f"run `vslab sessions recover {directory}` first")  # fmt: skip
+
+
+def publish_session(directory: Path, sessions_root: LabPath) -> bool:
+    """Publish the local session ``directory`` under ``sessions_root`` (a store): its parts first, its
+    ``session.json`` last (the session exists for readers once that is there). Only a complete session is
+    published (:func:`check_publishable`); False where the lab already holds it (a session is never
+    replaced: raw sessions are immutable)."""
+    check_publishable(directory)
     final = lab_path(sessions_root) / directory.name
     if (final / SESSION_CARD).is_file():
         return False
