@@ -34,11 +34,13 @@ from acquisition.storage import is_local, lab_path, publish
 from models.hybrid import HybridNet, NetConfig
 from pipeline.cache import digest, file_hash, stage_version
 from pipeline.errors import PipelineError
+from pipeline.exports import OnnxModel, onnx_bytes, torchscript
 
 log = logging.getLogger(__name__)
 
-WEIGHTS, CARD, EXPORT = "weights.safetensors", "card.json", "export/model.ts"
-FILES = (WEIGHTS, EXPORT)  # what a card's ``files`` hashes cover (``card_sha256`` covers the card)
+WEIGHTS, CARD, EXPORT, ONNX = "weights.safetensors", "card.json", "export/model.ts", "export/model.onnx"
+FILES = (WEIGHTS, EXPORT, ONNX)  # what a card's ``files`` hashes cover (``card_sha256`` covers the card)
+REQUIRED = (WEIGHTS, EXPORT)  # a card written before the ONNX export lists only these
 CARD_FIELDS = {"name": str, "version": str, "net": dict, "files": dict, "card_sha256": str}
 SHA256 = re.compile(r"[0-9a-f]{64}")
 VERSION = re.compile(r"[0-9A-Za-z][0-9A-Za-z_-]*")  # what `find` takes: a version id or a prefix of one
@@ -84,30 +86,9 @@ def model_version(dataset_version: str, config) -> str:
     return digest({"dataset": dataset_version, "config": cfg, "code": stage_version("model")})[:16]
 
 
-class _Exported(torch.nn.Module):
-    """What the control loop calls: float64 (n, 7) raw SI inputs in, float64 (n, 3) raw SI outputs out."""
-
-    def __init__(self, net: torch.nn.Module) -> None:
-        super().__init__()
-        self.net = net
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.net(x.to(torch.float64)).to(torch.float64)
-
-
-def export(model: HybridNet) -> torch.jit.ScriptModule:
-    """The TorchScript of ``model`` (traced and frozen: weights become constants, no Python needed)."""
-    example = torch.zeros(4, 7, dtype=torch.float64)
-    with torch.no_grad(), warnings.catch_warnings():
-        warnings.simplefilter("ignore", torch.jit.TracerWarning)  # the fitted check becomes a constant: it is
-        warnings.simplefilter("ignore", DeprecationWarning)  # TorchScript: still what a C++/RT loop can load
-        traced = torch.jit.trace(_Exported(model.eval()).eval(), example, check_inputs=[(example[:1],)])
-        return torch.jit.freeze(traced)
-
-
 def save_model(root: Path, name: str, version: str, model: HybridNet, card: dict) -> Path:
-    """Publish ``<root>/<name>/<version>/`` whole (weights, card, TorchScript); FileExistsError if it exists
-    (another worker may have written the same version first: theirs stays)."""
+    """Publish ``<root>/<name>/<version>/`` whole (weights, card, TorchScript, ONNX); FileExistsError if it
+    exists (another worker may have written the same version first: theirs stays)."""
     final = lab_path(root) / name / version
     if final.exists():
         raise FileExistsError(f"model {name}/{version} already exists at {final}")
@@ -118,7 +99,8 @@ def save_model(root: Path, name: str, version: str, model: HybridNet, card: dict
         state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
         save_file(state, folder / WEIGHTS)
         (folder / EXPORT).parent.mkdir()
-        export(model).save(str(folder / EXPORT))
+        torchscript(model).save(str(folder / EXPORT))
+        (folder / ONNX).write_bytes(onnx_bytes(model))
         full = {
             "name": name, "version": version, **jsonable(card), "net": _net_config(model, card).to_dict(),
             "code_version": stage_version("model"), "torch": torch.__version__,
@@ -186,9 +168,12 @@ def check_model(path: Path) -> dict:
     card = load_card(path)
     files = card["files"]
     hashes = files.values()
-    if sorted(files) != sorted(FILES) or not all(isinstance(h, str) and SHA256.fullmatch(h) for h in hashes):
+    listed = set(files)
+    if not set(REQUIRED) <= listed <= set(FILES) or not all(
+        isinstance(h, str) and SHA256.fullmatch(h) for h in hashes
+    ):
         raise ModelIntegrityError(path, CARD, f"'files' must hold a sha256 of each of {list(FILES)}")
-    for name in FILES:
+    for name in sorted(files):
         try:
             actual = file_hash([path / name])
         except FileNotFoundError:
@@ -233,6 +218,21 @@ def load_exported(path: Path) -> torch.jit.ScriptModule:
             return torch.jit.load(io.BytesIO((path / EXPORT).read_bytes()), map_location="cpu").eval()
         except RuntimeError as exc:
             raise ModelIntegrityError(path, EXPORT, f"not a TorchScript file ({_why(exc)})") from None
+
+
+def load_onnx(path: Path) -> OnnxModel:
+    """The ONNX export of a version directory, run by ONNX Runtime (:class:`pipeline.exports.OnnxModel`);
+    every file is checked first (:func:`check_model`). A model saved before vslab exported ONNX has none:
+    :class:`ModelIntegrityError` says so."""
+    path = lab_path(path)
+    card = check_model(path)
+    if ONNX not in card["files"]:
+        raise ModelIntegrityError(path, ONNX, "never written (a model saved before vslab exported ONNX: "
+                                              "train it again)")  # fmt: skip
+    try:
+        return OnnxModel((path / ONNX).read_bytes())
+    except Exception as exc:  # onnxruntime's own error types (a C++ exception): no common base to catch
+        raise ModelIntegrityError(path, ONNX, f"not an ONNX model ONNX Runtime runs ({_why(exc)})") from None
 
 
 def find(root: Path, version: str) -> Path:

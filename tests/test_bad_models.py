@@ -89,13 +89,15 @@ def _halve(path: Path) -> None:
     path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
 
 
-W, E, C = registry.WEIGHTS, registry.EXPORT, registry.CARD
+W, E, X, C = registry.WEIGHTS, registry.EXPORT, registry.ONNX, registry.CARD
 DAMAGE = {  # name: (what it does to the model folder, the file the error must name)
     "weights-flipped": (lambda d: _flip(d / W), W),
     "weights-truncated": (lambda d: _halve(d / W), W),
     "weights-missing": (lambda d: (d / W).unlink(), W),
     "export-flipped": (lambda d: _flip(d / E), E),
     "export-missing": (lambda d: (d / E).unlink(), E),
+    "onnx-flipped": (lambda d: _flip(d / X), X),
+    "onnx-missing": (lambda d: (d / X).unlink(), X),
     "card-net-edited": (lambda d: _edit_card(d / C, lambda c: c["net"].update(residual=False)), C),
     "card-hash-edited": (lambda d: _edit_card(d / C, _set_weights_hash), C),
     "card-truncated": (lambda d: _halve(d / C), C),
@@ -249,8 +251,9 @@ def test_loading_checks_every_file_and_names_it(good_lab, tmp_path):
     model, card = registry.load_model(path)
     assert card["version"] == INVERSE[1] and model.config.direction == "inverse"
     registry.load_exported(path)
+    registry.load_onnx(path)
     _flip(path / W)
-    for load in (registry.load_model, registry.load_exported, registry.check_model):
+    for load in (registry.load_model, registry.load_exported, registry.load_onnx, registry.check_model):
         with pytest.raises(
             registry.ModelIntegrityError, match=r"weights\.safetensors: not the bytes"
         ) as info:

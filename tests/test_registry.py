@@ -3,6 +3,7 @@ without unpickling, TorchScript exports that agree with the module, grids that n
 
 from __future__ import annotations
 
+import json
 import pickle
 
 import numpy as np
@@ -53,6 +54,7 @@ def test_round_trip_gives_identical_predictions_without_unpickling(
     card = {"dataset": {"name": "campaign", "version": dataset_version}, "train_config": config.to_dict()}
     path = registry.save_model(tmp_path, "inverse-tiny", version, result.model, card)
     assert sorted(p.name for p in path.iterdir()) == ["card.json", "export", "weights.safetensors"]
+    assert sorted(p.name for p in (path / "export").iterdir()) == ["model.onnx", "model.ts"]
     assert [p.name for p in tmp_path.joinpath("inverse-tiny").iterdir()] == [version]  # no temp dir left
 
     def refuse(*args, **kwargs):
@@ -82,6 +84,44 @@ def test_export_gives_the_module_outputs(tmp_path, campaign_dataset, trained):
     assert out.dtype == torch.float64 and out.shape == (len(x), 3)
     np.testing.assert_allclose(out.numpy(), result.model.predict(x), rtol=0, atol=1e-9)
     np.testing.assert_allclose(one.numpy(), result.model.predict(x[:1]), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("preset_name", ["paper", "small-residual"])
+def test_the_onnx_export_run_by_onnx_runtime_is_the_network(tmp_path, campaign_dataset, preset_name):
+    """ONNX Runtime (the in-loop executor) gives the torch network's outputs on the test split: max abs
+    difference ≤ 1e-5 (rad), one sample at a time as the loop calls it and as a batch."""
+    import dataclasses
+
+    from models.hybrid import preset
+
+    _, dataset_version, data = campaign_dataset
+    net = dataclasses.replace(preset("inverse", preset_name))
+    config = TrainConfig(net=net, max_epochs=2, patience=2, batch_size=64, seed=0)
+    result = train(data, config, threads=1)
+    version = registry.model_version(dataset_version, config)
+    path = registry.save_model(tmp_path, f"inverse-{preset_name}", version, result.model,
+                               {"train_config": config.to_dict()})  # fmt: skip
+    onnx = registry.load_onnx(path)
+    x = _inputs(data[data[config.split] == "test"], config)
+    assert len(x) > 50
+    reference = result.model.predict(x)
+    assert np.abs(onnx.predict(x) - reference).max() <= 1e-5
+    single = np.concatenate([onnx.predict(x[k : k + 1]) for k in range(len(x))])
+    assert np.abs(single - reference).max() <= 1e-5
+    assert onnx.predict(x).dtype == np.float64
+
+
+def test_a_model_saved_before_the_onnx_export_loads_but_has_no_onnx(tmp_path, trained):
+    config, version, result = trained
+    path = registry.save_model(tmp_path, "m", version, result.model, {"train_config": config.to_dict()})
+    card = registry.load_card(path)
+    del card["files"][registry.ONNX]
+    card["card_sha256"] = registry.card_digest(card)
+    (path / registry.CARD).write_text(json.dumps(card, indent=1))
+    (path / registry.ONNX).unlink()
+    registry.load_model(path)  # weights and TorchScript: as they were
+    with pytest.raises(registry.ModelIntegrityError, match="saved before vslab exported ONNX"):
+        registry.load_onnx(path)
 
 
 def test_an_existing_version_is_never_overwritten(tmp_path, trained):

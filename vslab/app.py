@@ -211,19 +211,20 @@ def _overrides(pairs: list[str]) -> dict:
 
 # ------------------------------------------------------------------------------------------------ models
 def load_inverse_model(version: str, lab: Path | None = None):
-    """The registered inverse network ``version`` of ``lab`` (default: the CLI's), every file checked
-    against its card; an unknown, ambiguous, damaged or forward model is one error line."""
-    from pipeline.registry import find, load_model
+    """The registered inverse network ``version`` of ``lab`` (default: the CLI's) as the control loop runs
+    it: its ONNX export on ONNX Runtime (``predict``), every file checked against its card first. An
+    unknown, ambiguous, damaged or forward model, or one saved without an ONNX export, is one error line."""
+    from pipeline.registry import find, load_card, load_onnx
 
     root = lab_path(lab or Settings.lab) / "models"
     try:
-        model, _ = load_model(find(root, version))
+        path = find(root, version)
+        direction = load_card(path)["net"].get("direction")
+        if direction == "inverse":
+            return load_onnx(path)
     except (FileNotFoundError, ValueError) as exc:  # unknown; ambiguous; damaged (ModelIntegrityError)
         _error(f"--inverse-model {version}: {exc}")
-    if model.config.direction != "inverse":
-        direction = model.config.direction
-        _error(f"--inverse-model {version}: a {direction} model; hybrid commands need an inverse one")
-    return model
+    _error(f"--inverse-model {version}: a {direction} model; hybrid commands need an inverse one")
 
 
 def inverse_compensator(version: str, robot_name: str, lab: Path | None = None):
