@@ -21,6 +21,7 @@ import sys
 import numpy as np
 import pandas as pd
 import pytest
+from conftest import cpu_stolen_s
 from scipy.spatial.transform import Rotation
 
 from acquisition.plans.popup_experiments import pressure_checks, verify_pressure_checks
@@ -56,6 +57,9 @@ SESSIONS = {
 }
 
 
+STOLEN_MS: dict[str, float] = {}  # per session: CPU time the hypervisor took while it was recorded
+
+
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     """``recorded(name)``: the session of :data:`SESSIONS` run with ``vslab run … --rig`` into the module's
@@ -79,9 +83,11 @@ def _run(lab, experiment: str, plan: int, settings: list[str], session: str):
     pressures = [f"pressures_kpa=[{', '.join(map(str, PRESSURES_KPA))}]"] if experiment in tests else []
     sets = [arg for s in (*pressures, *settings) for arg in ("--set", s)]
     command = [*cli, "run", experiment, "--plan", str(plan), *sets, "--rig", "--session", session]
+    stolen_s = cpu_stolen_s()
     done = subprocess.run(command, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     assert session_info(lab / "sessions" / session).status == "complete"
+    STOLEN_MS[session] = (cpu_stolen_s() - stolen_s) * 1e3  # said with a failure of the datasets test
     return lab / "sessions" / session
 
 
@@ -168,7 +174,9 @@ def test_real_time_popup_sessions_build_into_datasets(recorded, popup):
     deploy = pd.read_parquet(built["deploy"].path / "data.parquet")
     assert len(deploy) == 1 and deploy["p_0"].iloc[0] == pytest.approx(50e3, rel=0.03)  # the deployed arm
     reach_d = pd.read_parquet(built["reach"].path / "data.parquet")
-    assert reach_d["point"].tolist() == [0, 1] and reach_d["payload_kg"].tolist() == [2.0, 2.0]
+    # a CI run once found no settled point in the reach (its joint states at 87 Hz, stalled mid-path)
+    assert reach_d["point"].tolist() == [0, 1], f"ms stolen while recording: {STOLEN_MS}"
+    assert reach_d["payload_kg"].tolist() == [2.0, 2.0]
     q = reach_d[[f"q_{j}" for j in range(3)]].to_numpy()
     x = reach_d[[f"x_{k}" for k in range(3)]].to_numpy()
     soft = popup.chain().position(q, static_deflection(popup, q, np.full((2, 2), 60e3), 2.0)[0])
