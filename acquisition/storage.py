@@ -27,12 +27,9 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TypeAlias
 
-from acquisition.errors import AcquisitionError
+from upath import UPath
 
-try:  # pragma: no branch - a core dependency; the import is guarded only for the message below
-    from upath import UPath
-except ImportError:  # pragma: no cover
-    UPath = None  # type: ignore[assignment,misc]
+from acquisition.errors import AcquisitionError
 
 LabPath: TypeAlias = Path  # a local Path or a UPath: both join with "/", glob, open, read and write
 
@@ -42,7 +39,7 @@ class StoreError(AcquisitionError, OSError):
     bucket does not exist or the credentials are refused. The message names the URL and what to do."""
 
 
-EXTRAS = {"s3": "s3", "s3a": "s3", "gs": "gcs", "gcs": "gcs", "az": "azure", "abfs": "azure"}
+S3 = ("s3", "s3a")  # the protocols vslab's [s3] extra serves
 
 
 def is_url(text: str | os.PathLike) -> bool:
@@ -53,9 +50,7 @@ def is_url(text: str | os.PathLike) -> bool:
 def lab_path(where: str | os.PathLike) -> LabPath:
     """A local folder as a ``Path``, a store URL (or a UPath) as a ``UPath``. A store whose fsspec backend is
     not installed: :class:`StoreError` naming the package to install."""
-    if UPath is not None and isinstance(where, UPath) and not isinstance(where, Path):
-        return where
-    if isinstance(where, Path):
+    if isinstance(where, UPath | Path):  # a local UPath is a Path too
         return where
     text = os.fspath(where)
     if text.startswith("file://"):
@@ -68,12 +63,7 @@ def lab_path(where: str | os.PathLike) -> LabPath:
         return path
     except (ImportError, ValueError) as exc:  # fsspec: "Install s3fs to access S3"; an unknown protocol
         protocol = text.split("://", 1)[0]
-        extra = EXTRAS.get(protocol)
-        hint = (
-            f"pip install 'vslab[{extra}]'"
-            if extra == "s3"
-            else f"install fsspec's backend for {protocol}://"
-        )
+        hint = "pip install 'vslab[s3]'" if protocol in S3 else f"install fsspec's backend for {protocol}://"
         raise StoreError(f"{text}: cannot open this store ({_first_line(exc)}; {hint})") from None
 
 
@@ -93,7 +83,7 @@ def check_store(root: LabPath) -> None:
     (nothing to do for a local folder). One request: a listing of the bucket's top level."""
     if is_local(root):
         return
-    bucket = root.fs._strip_protocol(str(root)).split("/", 1)[0]
+    bucket = root.path.split("/", 1)[0]
     try:
         root.fs.ls(bucket, detail=False)
     except FileNotFoundError:
