@@ -41,6 +41,8 @@ log = logging.getLogger(__name__)
 
 EDS = CAN_DIR / "popup_drive.eds"
 PROFILE_402 = 0x0192  # low word of the device type 0x1000
+SDO_TIMEOUT_S = 1.0  # canopen waits 0.3 s for an SDO answer: a busy host, not reading its port for longer,
+# made a powered drive look absent while the bus was set up (seen in a CI run: "host not reading")
 HEARTBEAT_MISSES = 3  # periods without a heartbeat before a drive counts as lost
 FAULT_RESET_DONE = (
     -1
@@ -154,6 +156,7 @@ class CanDrives(Device):
 
     def _configure(self, joint: str, node_id: int) -> _Drive:
         node = canopen.BaseNode402(node_id, str(self.eds))
+        node.sdo.RESPONSE_TIMEOUT = SDO_TIMEOUT_S
         self.network.add_node(node)
         what = f"{self.kind} on {self.port}: drive {joint} (node {node_id})"
         try:
