@@ -173,9 +173,14 @@ def test_real_time_popup_sessions_build_into_datasets(recorded, popup):
     built = {s.name: build([s], lab, f"rt-{s.name}", borrowed) for s in sessions}
     deploy = pd.read_parquet(built["deploy"].path / "data.parquet")
     assert len(deploy) == 1 and deploy["p_0"].iloc[0] == pytest.approx(50e3, rel=0.03)  # the deployed arm
+    taps = pd.read_parquet(built["impact-10"].path / "trajectories.parquet")
+    assert sorted(taps["repetition"].unique()) == [0, 1]
     reach_d = pd.read_parquet(built["reach"].path / "data.parquet")
-    # a CI run once found no settled point in the reach (its joint states at 87 Hz, stalled mid-path)
-    assert reach_d["point"].tolist() == [0, 1], f"ms stolen while recording: {STOLEN_MS}"
+    if reach_d["point"].tolist() != [0, 1]:
+        # CI once found none: the runner called the arm settled when its joints were, while link 2 still
+        # bounced ±4 mm under the 2 kg (the runner now waits for the tracked tip too)
+        card = json.loads((built["reach"].path / "card.json").read_text())["sessions"]["reach"]
+        pytest.fail(f"settled windows rejected: {card['removed']}; ms stolen while recording: {STOLEN_MS}")
     assert reach_d["payload_kg"].tolist() == [2.0, 2.0]
     q = reach_d[[f"q_{j}" for j in range(3)]].to_numpy()
     x = reach_d[[f"x_{k}" for k in range(3)]].to_numpy()
@@ -188,5 +193,3 @@ def test_real_time_popup_sessions_build_into_datasets(recorded, popup):
     # the path runs from the start hold to the target hold (how far the arm still lags at the path's end
     # depends on how late the busy host sent the last set-points: 30 mm under bench/load.py)
     assert np.linalg.norm(tip[-1] - x[1]) < 0.1 * np.linalg.norm(tip[0] - x[1])
-    taps = pd.read_parquet(built["impact-10"].path / "trajectories.parquet")
-    assert sorted(taps["repetition"].unique()) == [0, 1]

@@ -49,6 +49,11 @@ log = logging.getLogger(__name__)
 # tip of an 0.3 m link by over 1 mm during a 2 s hold; 0.3 mrad in 0.4 s stops that
 SETTLE_WINDOW_S, SETTLE_DRIFT_RAD, SETTLE_SPREAD_RAD = 0.5, 3e-4, 5e-3
 SETTLE_PRESSURE_PA, SETTLE_PRESSURE_FRACTION = 2000.0, 0.03
+# still joints are not a still arm: a soft link under a payload goes on bouncing (POPUP's link 2 under 2 kg
+# at 60 kPa: ±4 mm at 1.6 Hz, 4 s after its joints stopped). Where the tracker sees the tip, its standard
+# deviation over the window (per axis) must be within SETTLE_TIP_STD_M too: 3× the tracker's noise (0.25 mm
+# SOURCE, Aurora class), a bounce of ≤ 1 mm amplitude. Frames without a pose do not count.
+SETTLE_TIP_STD_M, SETTLE_TIP_MIN_FRAMES = 0.75e-3, 8
 
 
 class RunnerError(AcquisitionError, RuntimeError):
@@ -85,7 +90,8 @@ class RealTimeRunner:
         self.on_payload, self.on_tap = on_payload, on_tap
         self.tick_s, self.check_period, self.stale_ns = tick_s, 1.0 / check_hz, int(stale_s * 1e9)
         self.settle_timeout_s = settle_timeout_s
-        self._recent: deque[tuple[float, np.ndarray, np.ndarray]] = deque()  # (monotonic, q, pressure)
+        self._recent: deque[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = deque()  # (monotonic, q,
+        # pressure, tip: the latest tracker position, NaN without one)
         self.safety = SafetyChecker(self.robot)
         self.guard = CommandGuard(self.robot)
         joints = self.robot.joints
@@ -125,7 +131,7 @@ class RealTimeRunner:
                 now = time.monotonic()
                 t = now - start - paused
                 if settles and t >= settles[0] - SETTLE_WINDOW_S:  # the window before a settle, and at it
-                    self._remember(*self._measured()[:2])
+                    self._remember(*self._measured()[:2], self._tip())
                 if settles and t >= settles[0]:  # the clock stands just before a settle until the bench is
                     settling_since = settling_since or now
                     # what the bench settles to: the commands in force up to the settle (those at its
@@ -210,7 +216,26 @@ class RealTimeRunner:
         allowance = np.maximum(SETTLE_PRESSURE_PA, SETTLE_PRESSURE_FRACTION * setpoint)
         off = np.abs(pressure - setpoint) > allowance
         return bool(_drift(q).max() <= SETTLE_DRIFT_RAD and np.ptp(q, axis=0).max() <= SETTLE_SPREAD_RAD
-                    and not off[:, regulated].any())  # fmt: skip
+                    and not off[:, regulated].any() and self._tip_still())  # fmt: skip
+
+    def _tip_spread(self) -> float:
+        """The largest per-axis standard deviation (m) of the tracked tip's distinct frames in the window;
+        NaN when the tracker saw it in fewer than SETTLE_TIP_MIN_FRAMES of them (none, or out of view)."""
+        tips = np.array([r[3] for r in self._recent])
+        tips = tips[np.isfinite(tips).all(axis=1)]
+        frames = np.unique(tips, axis=0)  # sampled every tick: the same frame many times
+        return float(frames.std(axis=0).max()) if len(frames) >= SETTLE_TIP_MIN_FRAMES else float("nan")
+
+    def _tip_still(self) -> bool:
+        spread = self._tip_spread()
+        return not spread > SETTLE_TIP_STD_M  # no view of the tip: the joints and pressures decide
+
+    def _tip(self) -> np.ndarray:
+        """The latest tracked tip position (3,), NaN without a tracker or a pose."""
+        s = self.rec.latest(T.TRACKER) if self.rec.has(T.TRACKER) else None
+        if s is None or bool(s.values["missing"]):
+            return np.full(3, np.nan)
+        return np.asarray(s.values["position"], float)
 
     def _unsettled(self, at: float) -> str:
         """What kept the bench from settling to the commands in force at plan time ``at``, in words."""
@@ -225,14 +250,16 @@ class RealTimeRunner:
             f"{p / 1e3:.1f} kPa" + (f" (set {s / 1e3:g})" if r else " (held)")
             for p, s, r in zip(pressure, setpoint, regulated, strict=True)
         )
+        tip = self._tip_spread()
         return (
             f"not settled in {self.settle_timeout_s:g} s: {joint} drifted {moved.max() * 1e3:.2f} mrad "
             f"(spread {spread.max() * 1e3:.2f} mrad) in {SETTLE_WINDOW_S:g} s; links at {links}"
+            + (f"; the tip moved {tip * 1e3:.2f} mm (std)" if tip == tip else "")
         )
 
-    def _remember(self, q: np.ndarray, pressure: np.ndarray) -> None:
+    def _remember(self, q: np.ndarray, pressure: np.ndarray, tip: np.ndarray) -> None:
         now = time.monotonic()
-        self._recent.append((now, q, pressure))
+        self._recent.append((now, q, pressure, tip))
         while now - self._recent[0][0] > SETTLE_WINDOW_S:
             self._recent.popleft()
 
