@@ -212,7 +212,7 @@ class DHChain:
         """Names of the virtual joints (link bending δ), in chain order."""
         return self._virtual
 
-    def _theta(self, q: ArrayLike, delta: ArrayLike | None) -> Array:
+    def theta(self, q: ArrayLike, delta: ArrayLike | None = None) -> Array:
         """Every row's θ (..., R) from q (..., n_actuated) and δ (..., n_virtual)."""
         q = np.asarray(q, dtype=float)
         if q.ndim == 0 or q.shape[-1] != len(self.actuated):
@@ -235,7 +235,7 @@ class DHChain:
 
     def frames(self, q: ArrayLike, delta: ArrayLike | None = None) -> Array:
         """Cumulative transforms (..., R + 1, 4, 4): index 0 is the base, i + 1 the frame after row i."""
-        local = _dh_transforms(self._a, self._alpha, self._d, self._theta(q, delta))
+        local = _dh_transforms(self._a, self._alpha, self._d, self.theta(q, delta))
         out = np.empty((*local.shape[:-3], local.shape[-3] + 1, 4, 4))
         out[..., 0, :, :] = np.eye(4)
         for i in range(local.shape[-3]):

@@ -28,6 +28,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from acquisition.storage import fetched, lab_path, read_parquet
@@ -288,22 +289,35 @@ def _register(
             "another dataset of the same setup (--set register.from_dataset=campaign)"
         )
     if "from_dataset" in parameters:
-        name, _, version = parameters["from_dataset"].partition("@")
-        card = _dataset_card(datasets_root, name, version)
-        fitted = card.get("registration") or {}
-        # an arm on the same mount (the rigid-link arm in place of the VSL arm) shares the tracker placement
-        mine = fitted.get(robot.name) or (next(iter(fitted.values())) if len(fitted) == 1 else None)
-        if not isinstance(mine, dict):
-            raise ValueError(
-                f"dataset {name}@{version} has no registration for robot {robot.name!r} (its card has "
-                f"{', '.join(fitted) or 'none'}): borrow one from a dataset of {robot.name}'s sessions"
-            )
-        try:
-            return FixedRegistration(mine["base_to_tracker"], parameters["from_dataset"]).fit(static)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ValueError(f"dataset {name}@{version}: its registration for {robot.name!r} is damaged "
-                             f"({type(exc).__name__}: {exc}); build that dataset again") from exc  # fmt: skip
+        reference = parameters["from_dataset"]
+        return FixedRegistration(borrowed_placement(datasets_root, reference, robot.name), reference).fit(
+            static
+        )
     return TrackerRegistration(robot, **parameters).fit(static)
+
+
+def borrowed_placement(datasets_root: Path, reference: str, robot: str) -> np.ndarray:
+    """The tracker placement (4×4, base → tracker) that dataset ``name[@version]`` fitted for ``robot``;
+    ``ValueError`` that says which dataset is missing, has none for this robot, or is damaged."""
+    name, _, version = reference.partition("@")
+    card = _dataset_card(datasets_root, name, version or None)
+    where = f"{name}@{card.get('version') or version}"
+    fitted = card.get("registration") or {}
+    # an arm on the same mount (the rigid-link arm in place of the VSL arm) shares the tracker placement
+    mine = fitted.get(robot) or (next(iter(fitted.values())) if len(fitted) == 1 else None)
+    if not isinstance(mine, dict):
+        raise ValueError(
+            f"dataset {where} has no registration for robot {robot!r} (its card has "
+            f"{', '.join(fitted) or 'none'}): borrow one from a dataset of {robot}'s sessions"
+        )
+    try:
+        placement = np.asarray(mine["base_to_tracker"], float)
+        if placement.shape != (4, 4) or not np.isfinite(placement).all():
+            raise ValueError(f"base_to_tracker is not a finite 4×4 matrix (shape {placement.shape})")
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"dataset {where}: its registration for {robot!r} is damaged "
+                         f"({type(exc).__name__}: {exc}); build that dataset again") from exc  # fmt: skip
+    return placement
 
 
 def _resolve(root: Path, reference: str) -> str:

@@ -52,6 +52,26 @@ def robots_show(name: Annotated[str, typer.Argument(help="Robot name or path to 
     console.print_json(robot.model_dump_json())
 
 
+@robots_app.command("urdf")
+def robots_urdf(
+    name: Annotated[str, typer.Argument(help="Robot name or path to a YAML file.")],
+    out: Annotated[Path | None, typer.Option(help="Write it to this file (default: print it).")] = None,
+) -> None:
+    """The robot's URDF, virtual joints included: what Foxglove and ROS tools draw the arm from."""
+    from models.urdf import robot_urdf
+
+    text = robot_urdf(_robot(name))
+    if out is None:
+        typer.echo(text, nl=False)
+        return
+    try:
+        out.write_text(text)
+    except OSError as exc:
+        _error(f"cannot write {out}: {exc.strerror or exc}")
+    if not Settings.quiet:
+        console.print(f"written: {out}")
+
+
 @twin_app.command("survey")
 def twin_survey(
     robot: Annotated[str, typer.Option(help="Robot description.")] = "vsl",

@@ -136,3 +136,52 @@ def sessions_upload(
             _fail(escape(f"{folder}: the upload to {root} failed ({exc}); nothing of it is visible there"))
         what = "uploaded" if uploaded else "already in the lab (left as it is)"
         console.print(f"{folder.name}: {what}", soft_wrap=True, highlight=False, markup=False)
+
+
+_FOXGLOVE_HELP = (
+    "One MCAP file that opens ready-made in Foxglove: the session plus /tf, /joint_states, the tip's "
+    "pose and the robot's URDF."
+)
+_OUT_HELP = (
+    "The file to write (default: <lab>/exports/<session>.foxglove.mcap; ./<session>.foxglove.mcap for "
+    "a lab on a store)."
+)
+_REGISTRATION_HELP = "DATASET[@VERSION] whose fitted tracker registration places the tracker in /tf_static."
+
+
+@sessions_app.command("export")
+def sessions_export(
+    session: Annotated[str, typer.Argument(help="Session id or directory.")],
+    foxglove: Annotated[bool, typer.Option("--foxglove", help=_FOXGLOVE_HELP)] = False,
+    out: Annotated[Path | None, typer.Option(help=_OUT_HELP)] = None,
+    registration: Annotated[str | None, typer.Option(help=_REGISTRATION_HELP)] = None,
+    rate_hz: Annotated[float, typer.Option(min=1.0, help="/tf and /joint_states rate (Hz).")] = 50.0,
+) -> None:
+    """Write a session as one file for a viewer; the session itself is never changed."""
+    from acquisition.recorder.foxglove_export import export_foxglove, session_robot
+    from acquisition.recorder.sessions import SessionError
+    from acquisition.schemas.cdr import SchemaError
+    from acquisition.storage import is_local
+
+    if not foxglove:
+        _fail("say what to export: --foxglove (the one format there is)")
+    info = _session_info(session)
+    placement = None
+    if registration is not None:
+        from pipeline.build import borrowed_placement
+
+        try:
+            robot = session_robot(info.parts[0]).name
+            placement = borrowed_placement(Settings.lab / "datasets", registration, robot)
+        except (SessionError, ValueError) as exc:
+            _fail(escape(str(exc)))
+    name = f"{info.id}.foxglove.mcap"  # beside the lab's sessions; here when the lab is on a store
+    target = out or (Settings.lab / "exports" / name if is_local(Settings.lab) else Path(name))
+    try:
+        n = export_foxglove(info.directory, target, placement, rate_hz)
+    except (SessionError, SchemaError) as exc:
+        _fail(escape(str(exc)))
+    except OSError as exc:
+        _fail(escape(f"{exc.filename or target}: cannot be written ({exc.strerror or exc})"))
+    if not Settings.quiet:
+        console.print(f"written: {target} ({n:,} messages)", soft_wrap=True, highlight=False, markup=False)

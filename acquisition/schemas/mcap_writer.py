@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import struct
 import zlib
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import BinaryIO
 
@@ -24,6 +25,7 @@ import numpy as np
 import zstandard
 from mcap import __version__
 from mcap.records import (
+    Attachment,
     Chunk,
     ChunkIndex,
     DataEnd,
@@ -282,3 +284,54 @@ def copy_readable(source: BinaryIO, output: BinaryIO, library: str) -> tuple[int
         writer.start(profile="", library=library)
     writer.finish()
     return messages, len(channel_ids), not walk.complete, walk.reason
+
+
+def merge_with(sources: list[BinaryIO], output: BinaryIO, library: str, batches: Iterable,
+               attachments: Iterable[tuple[str, str, bytes]] = ()) -> int:  # fmt: skip
+    """Every record of the indexed files ``sources`` (a session's parts: schemas, channels, messages,
+    metadata, attachments; one channel per topic across them) and ``batches`` (objects with ``topic``,
+    ``schema_name``, ``schema_text``, ``log_time`` and ``payloads``: ros2msg/CDR messages) written into one
+    new indexed ``output`` with ``attachments`` ((name, media type, bytes)); returns the messages written."""
+    writer = Writer(output, compression=CompressionType.ZSTD)
+    writer.start(profile="ros2", library=library)
+    schemas: dict[tuple[str, str, bytes], int] = {}
+    channels: dict[str, int] = {}
+
+    def channel(topic: str, encoding: str, schema: tuple[str, str, bytes], metadata=None) -> int:
+        if schema not in schemas:
+            schemas[schema] = writer.register_schema(*schema)
+        if topic not in channels:
+            channels[topic] = writer.register_channel(topic, encoding, schemas[schema], dict(metadata or {}))
+        return channels[topic]
+
+    messages = 0
+    for source in sources:
+        ids: dict[int, int] = {}
+        known: dict[int, Schema] = {}
+        for record in RecordWalk(source):
+            if isinstance(record, Schema):
+                known[record.id] = record
+            elif isinstance(record, Channel):
+                s = known.get(record.schema_id)
+                key = (s.name, s.encoding, s.data) if s is not None else ("", "", b"")
+                ids[record.id] = channel(record.topic, record.message_encoding, key, record.metadata)
+            elif isinstance(record, Message) and record.channel_id in ids:
+                writer.add_message(ids[record.channel_id], record.log_time, record.data, record.publish_time,
+                                   record.sequence)  # fmt: skip
+                messages += 1
+            elif isinstance(record, Metadata):
+                writer.add_metadata(record.name, record.metadata)
+            elif isinstance(record, Attachment):
+                writer.add_attachment(record.log_time, record.create_time, record.name, record.media_type,
+                                      record.data)  # fmt: skip
+    for batch in batches:
+        cid = channel(batch.topic, "cdr", (batch.schema_name, "ros2msg", batch.schema_text.encode()))
+        for seq, (t, data) in enumerate(
+            zip(np.asarray(batch.log_time).tolist(), batch.payloads, strict=True)
+        ):
+            writer.add_message(cid, t, bytes(data), t, seq)
+            messages += 1
+    for name, media_type, data in attachments:
+        writer.add_attachment(0, 0, name, media_type, data)
+    writer.finish()
+    return messages

@@ -1,0 +1,78 @@
+"""``vslab sessions export --foxglove``: one session as one MCAP file that opens ready-made in Foxglove.
+
+The file holds every record of the session's parts, unchanged, plus the standard topics of
+:mod:`acquisition.schemas.scene` made from its measured streams and the robot's URDF as an attachment. The
+session itself is not touched (its parts are its record; their hashes version the datasets built on them).
+"""
+
+from __future__ import annotations
+
+from contextlib import ExitStack
+from pathlib import Path
+
+import numpy as np
+
+from acquisition.recorder.sessions import SessionError, session_info
+from acquisition.schemas import topics as T
+from acquisition.schemas.fast_read import read_fixed_topics
+from acquisition.schemas.mcap_reader import metadata_records
+from acquisition.schemas.mcap_writer import merge_with
+from acquisition.schemas.scene import URDF_ATTACHMENT, Batch, Scene, joint_angles
+from acquisition.schemas.session_card import SESSION_METADATA
+from acquisition.storage import lab_path
+from models.robot import RobotDescription
+
+
+def session_robot(part: Path) -> RobotDescription:
+    """The robot description a part recorded (its session metadata)."""
+    with lab_path(part).open("rb") as f:
+        for name, metadata in metadata_records(f):
+            if name == SESSION_METADATA and "robot_description" in metadata:
+                return RobotDescription.model_validate_json(metadata["robot_description"])
+    raise SessionError(Path(str(part)).parent, f"{Path(str(part)).name} has no robot description")
+
+
+def scene_batches(scene: Scene, part: Path, rate_hz: float | None) -> list[Batch]:
+    """The standard topics of one part's measured streams."""
+    streams = read_fixed_topics(part)
+    t, q, velocity, effort = joint_angles(scene.robot, streams)
+    batches = scene.joints(t, q, velocity, effort, rate_hz=rate_hz) if len(t) else []
+    tracker = streams.get(T.TRACKER)
+    if tracker is not None and len(tracker):
+        batches += scene.tracker(tracker.log_time, tracker.rows)
+    return batches
+
+
+def export_foxglove(session: Path, out: Path, base_to_tracker: np.ndarray | None = None,
+                    rate_hz: float | None = 50.0) -> int:  # fmt: skip
+    """Write ``session`` with its standard topics into ``out`` (written whole, then renamed in); returns the
+    messages written. ``SessionError`` for a folder that is not a readable session or has a torn part."""
+    info = session_info(session)
+    if info.torn:
+        raise SessionError(info.directory, f"torn part {info.torn[0].name}", "run `vslab sessions recover` first")
+    robot = session_robot(info.parts[0])
+    scene = Scene(robot, base_to_tracker)
+    batches: dict[str, list[Batch]] = {}
+    for part in info.parts:
+        for b in scene_batches(scene, part, rate_hz):
+            batches.setdefault(b.topic, []).append(b)
+    merged = [_concat(bs) for bs in batches.values()]
+    start = min((int(b.log_time[0]) for b in merged if len(b)), default=0)
+    merged = scene.static(start) + merged
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    partial = out.with_name(out.name + ".partial")
+    with ExitStack() as stack:
+        sources = [stack.enter_context(lab_path(p).open("rb")) for p in info.parts]
+        with open(partial, "wb") as f:
+            n = merge_with(sources, f, "vslab sessions export", merged,
+                           [(URDF_ATTACHMENT, "application/xml", scene.urdf.encode())])  # fmt: skip
+    partial.replace(out)
+    return n
+
+
+def _concat(batches: list[Batch]) -> Batch:
+    first = batches[0]
+    payloads = [p for b in batches for p in b.payloads]
+    return Batch(first.topic, first.schema_name, first.schema_text,
+                 np.concatenate([b.log_time for b in batches]), payloads)  # fmt: skip

@@ -1,0 +1,165 @@
+"""The arm as Foxglove and ROS tools see it: standard topics made from a session's measured streams.
+
+- ``/robot_description`` (``std_msgs/String``, once) and the URDF as an attachment (``robot.urdf``);
+- ``/tf`` (``tf2_msgs/TFMessage``): every movable joint's child link in its parent, from the measured joint
+  angles (virtual joints at 0: the rigid arm the joints command; the tracked tip shows where the soft arm is);
+- ``/tf_static``: the fixed tool joint, and ``tracker → base_link`` when the registration is known;
+- ``/joint_states`` (``sensor_msgs/JointState``): the actuated joints' angles, velocities and torques;
+- ``/tracker/tip`` (``geometry_msgs/PoseStamped`` in the ``tracker`` frame): the tracked tip.
+
+The fixed-layout topics stay as they are (the pipeline's fast path); these are derived from them, decimated
+to ``rate_hz`` per topic (the tracker's frames are all kept).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from itertools import pairwise
+
+import numpy as np
+
+from acquisition.schemas import topics as T
+from acquisition.schemas.standard import (
+    STRING_SCHEMA,
+    StandardMessage,
+    fill_transforms,
+    joint_state_message,
+    pose_stamped_message,
+    string_payload,
+    transforms_message,
+)
+from models.robot import RobotDescription
+from models.urdf import BASE, TOOL, joint_origins, joint_transforms, link_name, robot_urdf
+
+TF, TF_STATIC = "/tf", "/tf_static"
+JOINT_STATES = "/joint_states"
+TIP_POSE = "/tracker/tip"
+ROBOT_DESCRIPTION = "/robot_description"
+TRACKER_FRAME = "tracker"
+URDF_ATTACHMENT = "robot.urdf"
+RATE_HZ = 50.0  # /tf and /joint_states: smooth in the 3D panel, a few % of a session's bytes
+
+
+@dataclass
+class Batch:
+    """Messages of one standard topic: log times (ns) and payloads (n, size) bytes or a list of bytes."""
+
+    topic: str
+    schema_name: str
+    schema_text: str
+    log_time: np.ndarray
+    payloads: np.ndarray | list[bytes] = field(default_factory=list)
+
+    def __len__(self) -> int:
+        return len(self.log_time)
+
+
+def _decimate(log_time: np.ndarray, rate_hz: float) -> np.ndarray:
+    """Indices of the first sample in each 1/rate_hz bucket."""
+    if len(log_time) == 0:
+        return np.zeros(0, np.int64)
+    bucket = np.asarray(log_time, np.int64) // int(1e9 / rate_hz)
+    first = np.ones(len(bucket), bool)
+    first[1:] = bucket[1:] != bucket[:-1]
+    return np.flatnonzero(first)
+
+
+class Scene:
+    """The standard topics of one robot (and its tracker registration, a 4×4 base → tracker, if known)."""
+
+    def __init__(self, robot: RobotDescription, base_to_tracker: np.ndarray | None = None) -> None:
+        self.robot = robot
+        self.urdf = robot_urdf(robot)
+        rows = robot.dh_rows()
+        frames = [BASE, *(link_name(r.joint) for r in rows)]
+        self.tf = transforms_message(list(pairwise(frames)))
+        static = [(frames[-1], TOOL)] + ([(TRACKER_FRAME, BASE)] if base_to_tracker is not None else [])
+        self.tf_static = transforms_message(static)
+        self._static = [joint_origins(robot)[-1]] + ([np.asarray(base_to_tracker, float)]
+                                                    if base_to_tracker is not None else [])  # fmt: skip
+        joints = T.joint_state_topic(robot)
+        self._effort = joints == T.JOINT_STATE  # CiA 402 drives report torque; the servos a current
+        self.joint_states = joint_state_message(robot.actuated_joints, effort=self._effort)
+        self.tip = pose_stamped_message(TRACKER_FRAME)
+
+    # ------------------------------------------------------------------------------------- batches
+    def static(self, log_time_ns: int) -> list[Batch]:
+        """What a session says once, at its start: the URDF and the fixed transforms."""
+        t = np.array([log_time_ns], np.int64)
+        rows = self.tf_static.empty(t)
+        fill_transforms(rows, np.stack(self._static)[None])
+        return [
+            Batch(ROBOT_DESCRIPTION, "std_msgs/msg/String", STRING_SCHEMA, t, [string_payload(self.urdf)]),
+            self._batch(TF_STATIC, self.tf_static, t, rows),
+        ]
+
+    def joints(self, log_time: np.ndarray, q: np.ndarray, velocity: np.ndarray | None = None,
+               effort: np.ndarray | None = None, rate_hz: float | None = RATE_HZ) -> list[Batch]:  # fmt: skip
+        """``/tf`` and ``/joint_states`` of joint angles q (n, A) in the robot's joint order at ``log_time``
+        (rows with an unknown angle are left out), decimated to ``rate_hz`` (None: every row)."""
+        log_time = np.asarray(log_time, np.int64)
+        pick = np.flatnonzero(np.isfinite(q).all(axis=1))
+        if rate_hz:
+            pick = pick[_decimate(log_time[pick], rate_hz)]
+        t, q = log_time[pick], np.asarray(q, float)[pick]
+        tf = self.tf.empty(t)
+        fill_transforms(tf, joint_transforms(self.robot, q))
+        js = self.joint_states.empty(t)
+        columns = {"position": q, "velocity": _picked(velocity, pick, q.shape)}
+        if self._effort:
+            columns["effort"] = _picked(effort, pick, q.shape)
+        for name, values in columns.items():
+            for i in range(q.shape[1]):
+                js[f"{name}{i}"] = values[:, i]
+        return [self._batch(TF, self.tf, t, tf), self._batch(JOINT_STATES, self.joint_states, t, js)]
+
+    def tracker(self, log_time: np.ndarray, rows: np.ndarray) -> list[Batch]:
+        """``/tracker/tip`` of the tracker's frames (``TrackerPose`` rows) that have a pose."""
+        seen = ~rows["missing"] & np.isfinite(rows["position"]).all(axis=1)
+        t = np.asarray(log_time, np.int64)[seen]
+        pose = self.tip.empty(t)
+        for j, axis in enumerate("xyz"):
+            pose[f"p_{axis}"] = rows["position"][seen, j]
+        for j, axis in enumerate("wxyz"):  # the tracker says w x y z, ROS x y z w
+            pose[f"q_{axis}"] = rows["quaternion"][seen, j]
+        return [self._batch(TIP_POSE, self.tip, t, pose)]
+
+    @staticmethod
+    def _batch(topic: str, message: StandardMessage, t: np.ndarray, rows: np.ndarray) -> Batch:
+        return Batch(topic, message.schema_name, message.schema_text, t, message.payloads(rows))
+
+
+def _picked(values: np.ndarray | None, pick: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    return np.full(shape, np.nan) if values is None else np.asarray(values, float)[pick]
+
+
+def joint_angles(robot: RobotDescription, streams: Mapping[str, object]) -> tuple[np.ndarray, ...]:
+    """(log_time, q, velocity, effort) at each joint-state sample of a session's fixed topics (``TopicData``
+    by topic): servo or drive columns in the robot's joint order, a stepper's angle held from its latest
+    report (NaN before the first). Velocity and effort NaN where a joint does not report them."""
+    names = robot.actuated_joints
+    topic = T.joint_state_topic(robot)
+    joints = robot.device_of("joints")
+    servo_ids = list(robot.devices[joints].ids) if joints else []
+    servos = [names.index(n) for n in servo_ids if n in names]
+    steppers = [k for k, j in enumerate(robot.joints) if j.drive == "stepper"]
+    data = streams.get(topic) if topic else None
+    stepper = streams.get(T.STEPPER) if steppers else None
+    clock = data if data is not None and len(data) else stepper
+    if clock is None or not len(clock):
+        empty = np.zeros((0, len(names)))
+        return np.zeros(0, np.int64), empty, empty, empty
+    t = np.asarray(clock.log_time, np.int64)
+    q, velocity, effort = (np.full((len(t), len(names)), np.nan) for _ in range(3))
+    if data is not None and len(data) and servos:
+        rows = data.rows
+        q[:, servos] = rows["position"][:, : len(servos)]
+        velocity[:, servos] = rows["velocity"][:, : len(servos)]
+        if "torque" in rows.dtype.names:
+            effort[:, servos] = rows["torque"][:, : len(servos)]
+    if stepper is not None and len(stepper):
+        k = np.searchsorted(np.asarray(stepper.log_time, np.int64), t, side="right") - 1
+        held = stepper.rows["position"][np.clip(k, 0, None), : len(steppers)]
+        q[:, steppers] = np.where((k >= 0)[:, None], held, np.nan)
+    return t, q, velocity, effort
