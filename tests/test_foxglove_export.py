@@ -141,8 +141,8 @@ def _check_export(session, exported, robot):
     tips = messages[S.TIP_POSE]
     assert len(tips) == seen.sum() and {m.header.frame_id for _, m in tips} == {S.TRACKER_FRAME}
     first = tracker.rows[seen][0]
-    assert [tips[0][1].pose.position.x, tips[0][1].pose.orientation.w] == [first["position"][0],
-                                                                           first["quaternion"][0]]  # fmt: skip
+    pose = tips[0][1].pose
+    assert [pose.position.x, pose.orientation.w] == [first["position"][0], first["quaternion"][0]]
     return messages
 
 
@@ -180,7 +180,7 @@ def test_a_vsl_session_exports_with_the_tracker_placed_by_a_dataset(tmp_path, ca
 
 
 def test_export_refuses_what_it_cannot_export_in_one_line(tmp_path, campaign_dataset):
-    lab, version, _ = campaign_dataset
+    lab, _, _ = campaign_dataset
     session = sorted((lab / "sessions").iterdir())[0].name
     not_a_session = tmp_path / "empty"
     not_a_session.mkdir()
@@ -197,3 +197,32 @@ def test_export_refuses_what_it_cannot_export_in_one_line(tmp_path, campaign_dat
         done = _cli(lab, *args)
         said = (done.stdout + done.stderr).strip().splitlines()
         assert done.returncode == 2 and len(said) == 1 and said[0].startswith("error:"), (args, said)
+
+
+def test_the_foxglove_layout_shows_topics_sessions_have():
+    """configs/foxglove/vslab.json: the arm from /robot_description and /tf, followed from the base; every
+    plotted path a field of a session topic or of the standard ones."""
+    from models.robot import CONFIG_DIR, load_robot
+
+    layout = json.loads((CONFIG_DIR.parent / "foxglove" / "vslab.json").read_text())
+    panels = layout["configById"]
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else [*leaves(node["first"]), *leaves(node["second"])]
+
+    assert sorted(leaves(layout["layout"])) == sorted(panels)
+    arm = panels["3D!arm"]
+    assert arm["followTf"] == BASE
+    (urdf,) = [v for v in arm["layers"].values() if v["layerId"] == "foxglove.Urdf"]
+    assert (urdf["sourceType"], urdf["topic"]) == ("topic", S.ROBOT_DESCRIPTION)
+    fields = {}
+    for name in ("vsl", "popup"):
+        for topic, t in T.session_topics(load_robot(name)).items():
+            if t.message is not None:
+                fields[topic] = {f.name for f in t.message.fields}
+    fields[S.JOINT_STATES] = {"position", "velocity", "effort"}
+    for panel in panels.values():
+        for path in panel.get("paths", []):
+            topic, _, field = path["value"].partition(".")
+            assert field.split("[")[0] in fields[topic], path["value"]
+    assert set(arm["topics"]) <= {S.TF, S.TIP_POSE}

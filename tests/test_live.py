@@ -216,3 +216,60 @@ def test_a_recording_shown_live_keeps_the_file_whole(host_factory, tmp_path, rob
         assert payload == by_time[t].tobytes()  # the file's bytes
     real_time()
     assert len(servo) > 400 * seconds  # the file is never decimated
+
+
+def test_the_live_view_shows_the_arm_from_the_joint_streams(robot):
+    """With the robot's scene: /tf from each servo batch (the stepper's angle held), composed to the tool
+    it is the FK of those joints; /robot_description and /tf_static reach a viewer that subscribed late."""
+    from mcap.records import Schema
+    from mcap_ros2.decoder import DecoderFactory
+    from scipy.spatial.transform import Rotation
+
+    from acquisition.schemas import scene as S
+    from models.urdf import BASE, TOOL, robot_urdf
+
+    topics = T.session_topics(robot)
+    with LiveServer(topics, port=0, max_rate_hz=None, scene=S.Scene(robot)) as live:
+        client = FoxgloveClient(live.port)
+        try:
+            channels = _advertised(client)
+            assert {S.TF, S.TF_STATIC, S.JOINT_STATES, S.TIP_POSE, S.ROBOT_DESCRIPTION} <= set(channels)
+            _subscribe(client, channels, {S.TF: 1, S.TF_STATIC: 2, S.ROBOT_DESCRIPTION: 3})
+            for topic in (S.TF, S.TF_STATIC, S.ROBOT_DESCRIPTION):
+                _wait_subscribed(live, topic)
+            t0 = 1_700_000_000_000_000_000
+            stepper = topics[T.STEPPER].message.pack({"position": np.array([[0.3]])})
+            live.publish(T.STEPPER, [t0], stepper)
+            n = 5
+            q23 = np.column_stack([np.linspace(0.1, 0.5, n), np.linspace(-0.4, 0.2, n)])
+            servo = topics[T.SERVO_STATE].message.pack({"seq": np.arange(n), "position": q23})
+            log_time = t0 + 1_000_000 + np.arange(n, dtype=np.int64) * 10_000_000
+            live.publish(T.SERVO_STATE, log_time, servo)
+            got = client.messages(n + 2)
+        finally:
+            client.close()
+
+    def decode(topic, payload):
+        c = channels[topic]
+        schema = Schema(id=1, name=c["schemaName"], encoding="ros2msg", data=c["schema"].encode())
+        return DecoderFactory().decoder_for("cdr", schema)(payload)
+
+    def matrix(x):
+        out = np.eye(4)
+        r = x.transform.rotation
+        out[:3, :3] = Rotation.from_quat([r.x, r.y, r.z, r.w]).as_matrix()
+        out[:3, 3] = [x.transform.translation.x, x.transform.translation.y, x.transform.translation.z]
+        return out
+
+    by_sub = {}
+    for sub, t, payload in got:
+        by_sub.setdefault(sub, []).append((t, payload))
+    assert decode(S.ROBOT_DESCRIPTION, by_sub[3][0][1]).data == robot_urdf(robot)
+    (tool,) = [x for x in decode(S.TF_STATIC, by_sub[2][0][1]).transforms if x.child_frame_id == TOOL]
+    assert [t for t, _ in by_sub[1]] == log_time.tolist()
+    for (_, payload), q in zip(by_sub[1], q23, strict=True):
+        parents = {x.child_frame_id: x for x in decode(S.TF, payload).transforms}
+        pose, frame = matrix(tool), tool.header.frame_id
+        while frame != BASE:
+            pose, frame = matrix(parents[frame]) @ pose, parents[frame].header.frame_id
+        np.testing.assert_allclose(pose, robot.chain().fk(np.array([0.3, *q])), atol=1e-9)

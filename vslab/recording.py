@@ -423,6 +423,7 @@ def _live_view(desc, host: str, port: int):
     import ipaddress
 
     from acquisition.recorder.live import LiveServer
+    from acquisition.schemas.scene import Scene
     from acquisition.schemas.topics import session_topics
 
     try:
@@ -433,7 +434,7 @@ def _live_view(desc, host: str, port: int):
         console.print(f"[yellow]warning: the live view on {host} is unauthenticated: anyone who can reach "
                       f"it sees the streams[/]")  # fmt: skip
     try:
-        server = LiveServer(session_topics(desc), host=host, port=port).start()
+        server = LiveServer(session_topics(desc), host=host, port=port, scene=Scene(desc)).start()
     except Exception as exc:  # a port in use, an address not ours
         _error(f"cannot start the live view on {host}:{port}: {exc}")
     console.print(f"live view: open {server.url} in Foxglove (Open connection → Foxglove WebSocket)")

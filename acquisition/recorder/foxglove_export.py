@@ -49,7 +49,9 @@ def export_foxglove(session: Path, out: Path, base_to_tracker: np.ndarray | None
     messages written. ``SessionError`` for a folder that is not a readable session or has a torn part."""
     info = session_info(session)
     if info.torn:
-        raise SessionError(info.directory, f"torn part {info.torn[0].name}", "run `vslab sessions recover` first")
+        raise SessionError(
+            info.directory, f"torn part {info.torn[0].name}", "run `vslab sessions recover` first"
+        )
     robot = session_robot(info.parts[0])
     scene = Scene(robot, base_to_tracker)
     batches: dict[str, list[Batch]] = {}

@@ -7,17 +7,32 @@ Each session topic becomes one channel with its ros2msg schema and CDR encoding,
 MCAP file gets (no re-encoding). The view may decimate: at most ``max_rate_hz`` messages per topic per second
 (events are never decimated); the file never is. The server speaks to anyone who can reach ``host``, without
 authentication: keep the default loopback address unless the network is the lab's own.
+
+Given the robot's ``Scene``, the view also shows the arm: ``/tf`` and ``/joint_states`` from the joint
+streams (decimated as any topic), ``/tracker/tip`` from the tracker, and every second ``/robot_description``
+and ``/tf_static`` (a viewer that connects late still gets them).
 """
 
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import foxglove
 import numpy as np
 
-from acquisition.schemas.topics import EVENTS, MESSAGE_ENCODING, SCHEMA_ENCODING, Topic
+from acquisition.schemas import scene as S
+from acquisition.schemas.topics import (
+    EVENTS,
+    MESSAGE_ENCODING,
+    SCHEMA_ENCODING,
+    STEPPER,
+    TRACKER,
+    Topic,
+    joint_state_topic,
+)
 
 log = logging.getLogger(__name__)
 
@@ -34,14 +49,28 @@ class LiveServer:
         port: int = 8765,  # Foxglove's default; 0 = any free port (see ``port`` after start)
         max_rate_hz: float | None = 100.0,  # per topic; None = forward everything
         name: str = "vslab",
+        scene: S.Scene | None = None,  # the robot's standard topics: the arm in the 3D panel
     ) -> None:
         self.topics = dict(topics)
+        self.scene = scene
+        self._scene_schemas: dict[str, tuple[str, str]] = {}
+        if scene is not None:
+            self._scene_schemas = {
+                S.ROBOT_DESCRIPTION: ("std_msgs/msg/String", S.STRING_SCHEMA),
+                **{topic: (m.schema_name, m.schema_text) for topic, m in (
+                    (S.TF_STATIC, scene.tf_static), (S.TF, scene.tf), (S.JOINT_STATES, scene.joint_states),
+                    (S.TIP_POSE, scene.tip))},
+            }  # fmt: skip
+        self._joints = joint_state_topic(scene.robot) if scene is not None else None
+        self._stepper: _Rows | None = None  # the latest stepper report: its angle holds until the next
+        self._static_at = 0.0
         self.host = host
         self.port = port
         self.max_rate_hz = max_rate_hz
         self.name = name
-        self.published: dict[str, int] = dict.fromkeys(self.topics, 0)  # forwarded to the server
-        self.decimated: dict[str, int] = dict.fromkeys(self.topics, 0)  # left out of the view
+        shown = [*self.topics, *self._scene_schemas]
+        self.published: dict[str, int] = dict.fromkeys(shown, 0)  # forwarded to the server
+        self.decimated: dict[str, int] = dict.fromkeys(shown, 0)  # left out of the view
         self._last_bucket: dict[str, int] = {}
         self._context: foxglove.Context | None = None
         self._server: foxglove.WebSocketServer | None = None
@@ -74,6 +103,11 @@ class LiveServer:
             self._channels[name] = foxglove.Channel(
                 name, schema=schema, message_encoding=MESSAGE_ENCODING, context=context
             )
+        for name, (schema_name, text) in self._scene_schemas.items():
+            schema = foxglove.Schema(name=schema_name, encoding=SCHEMA_ENCODING, data=text.encode())
+            self._channels[name] = foxglove.Channel(
+                name, schema=schema, message_encoding=MESSAGE_ENCODING, context=context
+            )
         log.info("live view at %s (%d topics)", self.url, len(self._channels))
         return self
 
@@ -96,6 +130,8 @@ class LiveServer:
         log_time = np.asarray(log_time_ns, dtype=np.int64)
         if len(log_time) != len(messages):
             raise ValueError(f"{topic}: {len(log_time)} log times for {len(messages)} messages")
+        if self.scene is not None and isinstance(messages, np.ndarray) and len(log_time):
+            self._show_arm(topic, log_time, messages)
         if not channel.has_sinks():
             return 0  # nobody is watching: no work
         keep = self._keep(topic, log_time)
@@ -127,3 +163,45 @@ class LiveServer:
             size = message.size
             return [raw[i : i + size] for i in range(0, len(raw), size)]
         return [bytes(messages[i]) for i in keep.tolist()]
+
+    # --------------------------------------------------------------------------------- the arm
+    def _show_arm(self, topic: str, log_time: np.ndarray, rows: np.ndarray) -> None:
+        """The standard topics these rows make (``scene``), forwarded as any topic is."""
+        scene = self.scene
+        batches: list[S.Batch] = []
+        if topic == STEPPER:
+            self._stepper = _Rows(log_time[-1:], rows[-1:])
+        if topic == self._joints and self._wanted(S.TF, S.JOINT_STATES):
+            keep = self._keep(S.TF, log_time) if self.max_rate_hz else np.arange(len(log_time))
+            for shown in (S.TF, S.JOINT_STATES):
+                self.decimated[shown] += len(log_time) - len(keep)
+            streams = {topic: _Rows(log_time[keep], rows[keep])}
+            if self._stepper is not None:
+                streams[STEPPER] = self._stepper
+            t, q, velocity, effort = S.joint_angles(scene.robot, streams)
+            batches += scene.joints(t, q, velocity, effort, rate_hz=None)
+        if topic == TRACKER and self._wanted(S.TIP_POSE):
+            batches += scene.tracker(log_time, rows)
+        now = time.monotonic()
+        if now - self._static_at >= 1.0 and self._wanted(S.ROBOT_DESCRIPTION, S.TF_STATIC):
+            self._static_at = now
+            batches += scene.static(int(log_time[-1]))
+        for batch in batches:
+            channel = self._channels[batch.topic]
+            for payload, t in zip(batch.payloads, batch.log_time.tolist(), strict=True):
+                channel.log(bytes(payload), log_time=t)
+            self.published[batch.topic] += len(batch)
+
+    def _wanted(self, *topics: str) -> bool:
+        return any(self._channels[t].has_sinks() for t in topics)
+
+
+@dataclass
+class _Rows:
+    """A topic's rows as ``scene.joint_angles`` reads them."""
+
+    log_time: np.ndarray
+    rows: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.rows)
