@@ -243,7 +243,7 @@ def find(root: Path, version: str) -> Path:
     if not isinstance(version, str) or not VERSION.fullmatch(version):
         raise ValueError(f"{version!r} is not a model version (letters, digits, '-' and '_'; see "
                          "`vslab models list`)")  # fmt: skip
-    hits = [p for p in _version_dirs(root) if p.name.startswith(version)]
+    hits = [p for p in version_dirs(root) if p.name.startswith(version)]
     if not hits:
         raise FileNotFoundError(f"no model version {version!r} under {root} (see `vslab models list`)")
     if len(hits) > 1:
@@ -285,7 +285,7 @@ def tag(root: Path, name: str, version: str) -> str:
     return path.name
 
 
-def _version_dirs(root: Path) -> list[Path]:
+def version_dirs(root: Path) -> list[Path]:
     """Every ``<root>/<name>/<version>/`` folder (not the hidden ones a save is writing)."""
     root = lab_path(root)
     if not is_local(root):  # a store: the versions whose card is there (one listing, not a request each)
@@ -329,7 +329,7 @@ def list_models(root: Path) -> list[dict]:
     """Every model version under ``root``, oldest first, each checked (:func:`check_model`); then the damaged
     ones, each as ``{"name", "version", "damaged": why}``: a listing shows them and goes on."""
     good, damaged = [], []
-    for path in _version_dirs(root):
+    for path in version_dirs(root):
         try:
             good.append(summary(check_model(path)))
         except ModelIntegrityError as exc:

@@ -66,7 +66,7 @@ def test_a_plain_install_runs_simulate_build_and_train(tmp_path):
     install = _run(python, "-m", "pip", "install", "--quiet", source, timeout=1800)
     assert install.returncode == 0, install.stdout[-2000:] + install.stderr[-4000:]
     installed_s = time.perf_counter() - start
-    for dev_only in ("mcap_ros2", "distributed", "s3fs"):  # a command used to import one; the others: extras
+    for dev_only in ("mcap_ros2", "distributed", "s3fs", "mlflow", "yourdfpy"):  # dev tools; the rest: extras
         absent = _run(python, "-c", f"import {dev_only}", timeout=60)
         assert absent.returncode != 0, f"{dev_only} came with a plain install: not a test of one"
 
@@ -92,6 +92,13 @@ def test_a_plain_install_runs_simulate_build_and_train(tmp_path):
     done = _run(vslab, "--lab", "s3://bucket/lab", "sessions", "list", timeout=300, cwd=tmp_path, env=env)
     assert done.returncode == 2 and "pip install 'vslab[s3]'" in done.stdout, done.stdout + done.stderr
     assert "Traceback" not in done.stdout + done.stderr
+    done = _run(vslab, "--lab", lab, "models", "export-mlflow", timeout=300, cwd=tmp_path, env=env)
+    assert done.returncode == 2 and "pip install 'vslab[mlflow]'" in done.stdout, done.stdout + done.stderr
+    assert "Traceback" not in done.stdout + done.stderr
+    session = sorted(p.name for p in (lab / "sessions").iterdir())[0]
+    done = _run(vslab, "--lab", lab, "--quiet", "sessions", "export", session, "--foxglove", timeout=300,
+                cwd=tmp_path, env=env)  # fmt: skip
+    assert done.returncode == 0 and (lab / "exports" / f"{session}.foxglove.mcap").is_file(), done.stdout
     assert list((lab / "datasets" / "campaign").glob("*/data.parquet"))
     assert list((lab / "models").glob("*/*/weights.safetensors"))
     print(f"plain install: venv + pip install {installed_s:.0f} s; "

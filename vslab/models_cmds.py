@@ -222,3 +222,52 @@ def models_compare(
         cells = [f"{v:.4g}" if isinstance(v, float) else str(v) for v in df[column]]
         table.add_row(column, *cells)
     console.print(table)
+
+
+_TRACKING_HELP = (
+    "Where MLflow tracks (default: $MLFLOW_TRACKING_URI, else sqlite:///<lab>/mlflow/mlflow.db with "
+    "artifacts beside it)."
+)
+
+
+@models_app.command("export-mlflow")
+def models_export_mlflow(
+    tracking_uri: Annotated[str | None, typer.Option(help=_TRACKING_HELP)] = None,
+    experiment: Annotated[str, typer.Option(help="The MLflow experiment the runs go in.")] = "vslab",
+) -> None:
+    """Log every model version as an MLflow run (parameters, test metrics per cell, learning curves, the
+    card, weights and ONNX file, the dataset as an input); versions exported before are skipped."""
+    import os
+
+    from acquisition.storage import is_local
+    from pipeline.mlflow_export import MlflowExportError, export_models
+
+    artifacts = None
+    uri = tracking_uri or os.environ.get("MLFLOW_TRACKING_URI")
+    if uri is None:
+        if not is_local(Settings.lab):
+            _error(
+                f"--lab {Settings.lab} is on a store: give --tracking-uri (an MLflow server or a local "
+                "sqlite:///… file)"
+            )
+        folder = Path(Settings.lab).resolve() / "mlflow"
+        folder.mkdir(parents=True, exist_ok=True)
+        uri, artifacts = f"sqlite:///{folder / 'mlflow.db'}", (folder / "artifacts").as_uri()
+    try:
+        report = export_models(Settings.lab / "models", Settings.lab / "datasets", uri, experiment, artifacts)
+    except MlflowExportError as exc:
+        _error(str(exc))
+    except OSError as exc:
+        _error(f"{exc.filename or Settings.lab}: cannot be read ({exc.strerror or exc})")
+    for line in report.damaged:
+        console.print(
+            f"warning: not exported, damaged: {line}", highlight=False, markup=False, soft_wrap=True
+        )
+    if not Settings.quiet:
+        console.print(
+            f"{len(report.logged)} run(s) logged, {len(report.skipped)} already there, in experiment "
+            f"{experiment!r} at {uri}",
+            highlight=False,
+            markup=False,
+            soft_wrap=True,
+        )

@@ -1,0 +1,109 @@
+"""``vslab models export-mlflow``: a lab's model versions as MLflow runs in a local SQLite store, read back
+through the MLflow client; exporting twice duplicates nothing."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import mlflow
+import numpy as np
+import pytest
+import yaml
+
+from pipeline import registry
+from pipeline.grid import load_grid, run_grid
+from pipeline.mlflow_export import NAME_TAG, VERSION_TAG, run_metrics
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory, campaign_dataset):
+    """A lab with two tiny model versions trained on the session's campaign dataset."""
+    src, _, _ = campaign_dataset
+    lab = tmp_path_factory.mktemp("mlflow-lab")
+    (lab / "datasets").symlink_to(src / "datasets")
+    grid = {
+        "models": [{"direction": "forward", "preset": "small-residual", "hidden": [16, 16]},
+                   {"direction": "inverse", "preset": "paper", "hidden": [16, 16]}],
+        "datasets": ["campaign"], "splits": ["split_random"], "seeds": [0],
+        "train": {"max_epochs": 3, "patience": 3, "batch_size": 128},
+    }  # fmt: skip
+    path = lab / "grid.yaml"
+    path.write_text(yaml.safe_dump(grid))
+    run_grid(lab, load_grid(path), workers=1, threads=1)
+    return lab
+
+
+def _cli(lab, *args, env=None):
+    command = [sys.executable, "-m", "vslab.cli", "--lab", str(lab), *args]
+    return subprocess.run(command, capture_output=True, text=True, timeout=300, env=env)
+
+
+def test_every_model_version_becomes_one_run_and_exporting_again_adds_none(lab, tmp_path):
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    done = _cli(lab, "models", "export-mlflow", "--tracking-uri", uri)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "2 run(s) logged, 0 already there" in done.stdout
+    again = _cli(lab, "models", "export-mlflow", "--tracking-uri", uri)
+    assert again.returncode == 0 and "0 run(s) logged, 2 already there" in again.stdout, again.stdout
+
+    client = mlflow.MlflowClient(tracking_uri=uri)
+    experiment = client.get_experiment_by_name("vslab")
+    runs = client.search_runs([experiment.experiment_id])
+    models = registry.list_models(lab / "models")
+    assert sorted(r.data.tags[VERSION_TAG] for r in runs) == sorted(m["version"] for m in models)
+    for run in runs:
+        version = run.data.tags[VERSION_TAG]
+        path = registry.find(lab / "models", version)
+        card = json.loads((path / registry.CARD).read_text())
+        assert run.info.status == "FINISHED" and run.data.tags[NAME_TAG] == card["name"]
+        # parameters: the training configuration, flattened
+        assert run.data.params["net.direction"] == card["train_config"]["net"]["direction"]
+        assert run.data.params["seed"] == str(card["train_config"]["seed"])
+        # metrics: the test summary and one per cell
+        expected = run_metrics(card)
+        assert any(k.startswith("test.cell.") for k in expected)
+        for k, v in expected.items():
+            assert run.data.metrics[k] == pytest.approx(v, rel=1e-12), k
+        assert run.data.metrics["test.tip_mean_mm"] == pytest.approx(card["metrics"]["tip_mean_mm"])
+        # learning curves as histories, one value per epoch
+        history = client.get_metric_history(run.info.run_id, "val_loss")
+        assert [m.step for m in sorted(history, key=lambda m: m.step)] == [c["epoch"] for c in card["curves"]]
+        np.testing.assert_allclose([m.value for m in sorted(history, key=lambda m: m.step)],
+                                   [c["val_loss"] for c in card["curves"]])  # fmt: skip
+        # the files, byte for byte
+        client.download_artifacts(run.info.run_id, "model", str(tmp_path / version))
+        for name in (registry.CARD, *registry.FILES):
+            assert (path / name).read_bytes() == (tmp_path / version / "model" / name).read_bytes(), name
+        # the dataset as an input, its version id as digest
+        (dataset,) = run.inputs.dataset_inputs
+        assert (dataset.dataset.name, dataset.dataset.digest) == (card["dataset"]["name"],
+                                                                  card["dataset"]["version"])  # fmt: skip
+
+
+def test_an_interrupted_export_is_replaced_not_duplicated(lab, tmp_path):
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    client = mlflow.MlflowClient(tracking_uri=uri)
+    experiment_id = client.create_experiment("vslab", artifact_location=str(tmp_path / "artifacts"))
+    version = registry.list_models(lab / "models")[0]["version"]
+    half = client.create_run(experiment_id, tags={VERSION_TAG: version})  # a run left RUNNING
+    done = _cli(lab, "models", "export-mlflow", "--tracking-uri", uri)
+    assert done.returncode == 0, done.stdout + done.stderr
+    runs = client.search_runs([experiment_id], filter_string=f"tags.`{VERSION_TAG}` = '{version}'")
+    assert len(runs) == 1 and runs[0].info.run_id != half.info.run_id and runs[0].info.status == "FINISHED"
+
+
+def test_the_default_store_lives_in_the_lab_and_errors_are_one_line(lab, tmp_path):
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    done = _cli(lab, "models", "export-mlflow", env=env)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert (lab / "mlflow" / "mlflow.db").is_file()
+    blocker = tmp_path / "a-file"
+    blocker.write_text("")
+    for args in (["--tracking-uri", f"sqlite:///{blocker}/x.db"], ["--tracking-uri", "nope://where"]):
+        bad = _cli(lab, "models", "export-mlflow", *args)
+        said = (bad.stdout + bad.stderr).strip().splitlines()
+        assert bad.returncode == 2 and len(said) == 1 and said[0].startswith("error:"), said
