@@ -3,7 +3,8 @@
 Prints the training time per epoch of the paper network (forward and inverse, batch 256, a few epochs), then
 the single-sample latency (p50/p99 over 2,000 calls after warm-up, one thread, numpy in and out) of the
 inverse models — the paper net and the small residual net — run by eager torch, by their TorchScript export
-and by their ONNX export on ONNX Runtime (the in-loop executor), against the control loop's targets:
+by their ONNX export on ONNX Runtime (the in-loop executor) and by its int8 quantisation (with its test-split
+error beside the float graph's), against the control loop's targets:
 p99 ≤ 100 µs for the paper net, ≤ 20 µs for the small residual net. The load average is printed with them.
 The dataset is simulated on the twin and built (``--source sim``, minutes) or synthesised
 from the rigid kinematics with the same columns (``--source synthetic``, the default: seconds; per-epoch
@@ -26,8 +27,9 @@ import torch
 from models import kinematics
 from models.hybrid import preset
 from models.robot import load_robot
-from pipeline.registry import load_exported, load_onnx, model_version, save_model
-from pipeline.train import TrainConfig, train
+from pipeline.exports import OnnxModel, quantized
+from pipeline.registry import ONNX, load_exported, load_onnx, model_version, save_model
+from pipeline.train import TrainConfig, metrics, train
 
 TARGET_P99_US = {"paper": 100.0, "small-residual": 20.0}  # issue 18: the control loop's latency goals
 
@@ -110,7 +112,7 @@ def main() -> None:
         n_train = int((data["split_random"] == "train").sum())
         print(f"dataset: {len(data):,} rows ({args.source}), {n_train:,} train; torch {torch.__version__}, "
               f"{args.threads} threads")  # fmt: skip
-        exported = {}
+        exported, accuracy = {}, []
         for direction, name in (("forward", "paper"), ("inverse", "paper"), ("inverse", "small-residual")):
             config = TrainConfig(
                 preset(direction, name), batch_size=256, max_epochs=args.epochs, patience=999
@@ -121,9 +123,22 @@ def main() -> None:
             if direction == "inverse":
                 path = save_model(lab / "models", f"{direction}-{name}", model_version("bench", config),
                                   result.model, {"train_config": config.to_dict()})  # fmt: skip
+                int8 = OnnxModel(quantized((path / ONNX).read_bytes()))
                 exported[name] = {"eager torch": _torch(result.model),
                                   "TorchScript": _torch(load_exported(path)),
-                                  "ONNX Runtime": load_onnx(path).predict}  # fmt: skip
+                                  "ONNX Runtime": load_onnx(path).predict,
+                                  "ORT int8": int8.predict}  # fmt: skip
+                test = data[data["split_random"] == "test"]
+                x = test[list(config.net.inputs)].to_numpy(float)
+                for label, model in (("float", load_onnx(path)), ("int8", int8)):
+                    m = metrics("inverse", model.predict(x), test)
+                    tip, joint = m["tip_mean_mm"], m["joint_mean_mrad"]
+                    accuracy.append(f"  inverse {name:<15} ORT {label:<5}: test tip mean {tip:.4f} mm, "
+                                    f"joint mean {joint:.4f} mrad ({len(test):,} rows)")  # fmt: skip
+                gap = np.abs(int8.predict(x) - load_onnx(path).predict(x)).max()
+                accuracy.append(f"  inverse {name:<15} int8 − float: max |Δq| {gap * 1e3:.4f} mrad")
+        print("accuracy of the exports on the test split (a few epochs of training: a relative measure):")
+        print("\n".join(accuracy))
         torch.set_num_threads(1)
         print(f"latency, one thread, load average {os.getloadavg()[0]:.1f} at the start:")
         for name, executors in exported.items():

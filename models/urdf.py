@@ -110,16 +110,25 @@ def robot_urdf(robot: RobotDescription) -> str:
     return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
 
 
-def joint_transforms(robot: RobotDescription, q: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
+class JointTransforms:
     """Each movable joint's child link in its parent (..., R, 4, 4), as ``/tf`` carries them: the joint's
-    origin times its rotation by q (actuated rows) or δ (virtual rows; 0 where ``delta`` is None)."""
-    chain = robot.chain()
-    rows = robot.dh_rows()
-    q = np.asarray(q, dtype=float)
-    value = chain.theta(q, delta) - np.array([r.offset_rad for r in rows])  # the offset is in the origin
-    c, s = np.cos(value), np.sin(value)
-    rz = np.zeros((*value.shape, 4, 4))
-    rz[..., 0, 0], rz[..., 0, 1], rz[..., 1, 0], rz[..., 1, 1] = c, -s, s, c
-    rz[..., 2, 2] = rz[..., 3, 3] = 1.0
-    origins = np.stack(joint_origins(robot)[:-1])
-    return origins @ rz
+    origin times its rotation by q (actuated rows) or δ (virtual rows; 0 where ``delta`` is None). The
+    robot's constant transforms are worked out once (a recording calls it at every batch)."""
+
+    def __init__(self, robot: RobotDescription) -> None:
+        self.chain = robot.chain()
+        self.offsets = np.array([r.offset_rad for r in robot.dh_rows()])
+        self.origins = np.stack(joint_origins(robot)[:-1])
+
+    def __call__(self, q: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
+        value = self.chain.theta(np.asarray(q, dtype=float), delta) - self.offsets  # offsets: in the origins
+        c, s = np.cos(value), np.sin(value)
+        rz = np.zeros((*value.shape, 4, 4))
+        rz[..., 0, 0], rz[..., 0, 1], rz[..., 1, 0], rz[..., 1, 1] = c, -s, s, c
+        rz[..., 2, 2] = rz[..., 3, 3] = 1.0
+        return self.origins @ rz
+
+
+def joint_transforms(robot: RobotDescription, q: np.ndarray, delta: np.ndarray | None = None) -> np.ndarray:
+    """:class:`JointTransforms` of ``robot`` at q (and δ)."""
+    return JointTransforms(robot)(q, delta)

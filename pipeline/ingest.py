@@ -37,6 +37,7 @@ from acquisition.schemas.mcap_reader import (
     read_summary,
 )
 from acquisition.schemas.ros2msg import parse_fixed_message
+from acquisition.schemas.scene import STANDARD_TOPICS
 from acquisition.schemas.session_card import SESSION_METADATA, as_current, readable_parts
 from acquisition.schemas.topics import EVENTS, session_topics
 from acquisition.storage import lab_path
@@ -145,7 +146,7 @@ def _read_part(path: Path, generic_topics: set[str], report: StageReport) -> _Pa
         for channel in summary.channels.values():
             schema = summary.schemas.get(channel.schema_id)
             part.topics.add(channel.topic)
-            if channel.topic == EVENTS:
+            if channel.topic == EVENTS or channel.topic in STANDARD_TOPICS:  # derived: read what was measured
                 continue
             message = _fixed_message(schema, channel.message_encoding)
             if message is not None and channel.topic not in generic_topics:
@@ -196,6 +197,8 @@ def _read_torn(path: Path, generic_topics: set[str], report: StageReport) -> _Pa
     decoders = _Decoders()
     for cid, messages in raw.items():
         channel, schema = channels[cid], schemas.get(channels[cid].schema_id)
+        if channel.topic in STANDARD_TOPICS:
+            continue
         messages.sort(key=lambda m: m.log_time)
         if channel.topic == EVENTS:
             part.events += [(m.log_time, Event.decode(m.data)) for m in messages]

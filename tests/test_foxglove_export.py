@@ -101,15 +101,21 @@ def _exported(path):
 
 
 def _check_export(session, exported, robot):
-    """The export holds the session's fixed topics unchanged, and /tf composed to the tip is the FK of the
-    recorded joints at every /tf message."""
+    """The export holds the session's fixed topics unchanged, and the arm (:func:`_check_arm`)."""
     (part,) = readable_parts(session)
     source, copy = read_fixed_topics(part), read_fixed_topics(exported)
     assert set(source) == set(copy)
     for topic, data in source.items():
         np.testing.assert_array_equal(copy[topic].log_time, data.log_time)
         assert copy[topic].rows.tobytes() == data.rows.tobytes()
-    messages, attachments = _exported(exported)
+    return _check_arm(exported, source, robot)
+
+
+def _check_arm(path, source, robot):
+    """Every message of ``path`` decodes with the reference decoder; the URDF is attached and on
+    /robot_description; /tf composed to the tool is the FK of the recorded joints (``source``: the measured
+    topics) at every /tf message; /joint_states and /tracker/tip hold the measured values."""
+    messages, attachments = _exported(path)
     assert attachments[S.URDF_ATTACHMENT].data.decode() == robot_urdf(robot)
     ((_, description),) = messages[S.ROBOT_DESCRIPTION]
     assert description.data == robot_urdf(robot)
@@ -226,3 +232,33 @@ def test_the_foxglove_layout_shows_topics_sessions_have():
             topic, _, field = path["value"].partition(".")
             assert field.split("[")[0] in fields[topic], path["value"]
     assert set(arm["topics"]) <= {S.TF, S.TIP_POSE}
+
+
+@pytest.mark.slow
+def test_recorded_sessions_carry_the_arm_themselves(tmp_path, campaign_dataset, popup, vsl):
+    """What the session writer writes beside the measured topics (the twin's sessions here, the real-time
+    recorder's through the same writer): a VSL campaign session (its stepper's angle held at each /tf as the
+    file holds it) and a POPUP reach; the pipeline reads neither's standard topics."""
+    from pipeline.ingest import ingest_session
+
+    lab, _, _ = campaign_dataset
+    vsl_session = sorted((lab / "sessions").iterdir())[0]
+    simulate_experiment("popup_reach", tmp_path / "sessions", seed=1)
+    (popup_session,) = sorted((tmp_path / "sessions").iterdir())
+    for session, robot in ((vsl_session, vsl), (popup_session, popup)):
+        (part,) = readable_parts(session)
+        messages = _check_arm(part, read_fixed_topics(part), robot)
+        assert S.TF in messages and S.TIP_POSE in messages
+        assert not set(ingest_session(session).streams) & S.STANDARD_TOPICS
+
+
+def test_quaternions_of_rotations_are_scipy_s():
+    from acquisition.schemas.standard import quaternions
+
+    rotations = Rotation.random(20000, random_state=4)
+    turns = np.stack([np.diag(d) for d in ([1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1])])  # 0°, 180°
+    for matrices in (rotations.as_matrix(), turns, rotations.as_matrix().reshape(100, 200, 3, 3)):
+        q = quaternions(matrices)
+        reference = Rotation.from_matrix(matrices.reshape(-1, 3, 3)).as_quat().reshape(q.shape)
+        same_sign = np.sign(np.sum(q * reference, axis=-1, keepdims=True))  # q and −q: the same rotation
+        np.testing.assert_allclose(q, same_sign * reference, atol=1e-14)

@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 
 from models.hybrid import NetConfig
 from pipeline import registry
+from pipeline.exports import OnnxModel, quantized
 from pipeline.grid import GridError, load_grid, run_grid
 from pipeline.train import TrainConfig, train
 
@@ -109,6 +110,14 @@ def test_the_onnx_export_run_by_onnx_runtime_is_the_network(tmp_path, campaign_d
     single = np.concatenate([onnx.predict(x[k : k + 1]) for k in range(len(x))])
     assert np.abs(single - reference).max() <= 1e-5
     assert onnx.predict(x).dtype == np.float64
+    # the int8 graph bench/train.py times: a quarter of the weights' bytes, the same interface, near the
+    # network (not within 1e-5: its error on the test split is the bench's to report)
+    data = (path / registry.ONNX).read_bytes()
+    int8 = quantized(data)
+    assert quantized(data) == int8  # deterministic: the same bytes for the same graph
+    if preset_name == "paper":
+        assert len(int8) < 0.35 * len(data)
+    assert np.abs(OnnxModel(int8).predict(x) - reference).max() < 0.1
 
 
 def test_a_model_saved_before_the_onnx_export_loads_but_has_no_onnx(tmp_path, trained):

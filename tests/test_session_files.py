@@ -26,6 +26,7 @@ from acquisition.recorder.writer import (
 from acquisition.schemas import Event, EventKind, FixedMessage
 from acquisition.schemas.cdr import PRIMITIVES, SchemaError
 from acquisition.schemas.fast_read import read_fixed_topics
+from acquisition.schemas.scene import ROBOT_DESCRIPTION, STANDARD_TOPICS, TF_STATIC
 from acquisition.schemas.topics import EVENTS, PRESSURE, SERVO_STATE, STEPPER, TRACKER, session_topics
 from models.robot import load_robot
 
@@ -181,9 +182,11 @@ def test_standard_reader_matches_fast_reader(session):
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         for schema, channel, message, decoded in reader.iter_decoded_messages(log_time_order=True):
             seen.setdefault(channel.topic, []).append((message, decoded, schema))
-    assert set(seen) == set(streams) | {EVENTS}
+    # beside the measured topics, the arm for a viewer (tests/test_foxglove_export.py checks those)
+    assert set(seen) - STANDARD_TOPICS == set(streams) | {EVENTS}
+    assert {ROBOT_DESCRIPTION, TF_STATIC} <= set(seen)
     for name, items in seen.items():
-        if name == EVENTS:
+        if name == EVENTS or name in STANDARD_TOPICS:
             continue
         td = fast[name]
         assert len(items) == len(td)
@@ -209,11 +212,12 @@ def test_summary_statistics(session):
     directory, _, streams, events = session
     summary = assert_valid_indexed(directory / "s1_000.mcap")
     stats = summary.statistics
-    by_topic = {summary.channels[cid].topic: n for cid, n in stats.channel_message_counts.items()}
+    every = {summary.channels[cid].topic: n for cid, n in stats.channel_message_counts.items()}
+    by_topic = {k: n for k, n in every.items() if k not in STANDARD_TOPICS}  # the measured ones
     expected = {name: len(s.rows) for name, s in streams.items()} | {EVENTS: len(events)}
     assert {k: v for k, v in by_topic.items() if v} == expected
     assert all(v == 0 for k, v in by_topic.items() if k not in expected)
-    assert stats.message_count == sum(expected.values())
+    assert stats.message_count == sum(expected.values()) + sum(every[k] for k in STANDARD_TOPICS)
     all_times = np.concatenate([s.log_time for s in streams.values()] + [[t for t, _ in events]])
     assert stats.message_start_time == all_times.min() and stats.message_end_time == all_times.max()
     assert stats.chunk_count == len(summary.chunk_indexes) > 1
@@ -377,7 +381,8 @@ def test_complete_file_recovers_whole(torn_source, tmp_path):
     assert not report.torn and report.reason == ""
     assert report.output == tmp_path / "out.mcap"
     assert file_messages(report.output) == original
-    assert report.channels == len(session_topics(load_robot("vsl")))  # every channel, even unused ones
+    # every channel, even unused ones: the measured topics and the arm's
+    assert report.channels == len(session_topics(load_robot("vsl"))) + len(STANDARD_TOPICS)
 
 
 def test_recover_never_overwrites_its_source(torn_source, tmp_path):

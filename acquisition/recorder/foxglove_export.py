@@ -1,7 +1,9 @@
 """``vslab sessions export --foxglove``: one session as one MCAP file that opens ready-made in Foxglove.
 
 The file holds every record of the session's parts, unchanged, plus the standard topics of
-:mod:`acquisition.schemas.scene` made from its measured streams and the robot's URDF as an attachment. The
+:mod:`acquisition.schemas.scene` made from its measured streams and the robot's URDF as an attachment.
+Sessions recorded since vslab writes those topics already carry them (without the tracker's placement, which
+a dataset fits later); the export makes them again, for older sessions and with ``--registration``. The
 session itself is not touched (its parts are its record; their hashes version the datasets built on them).
 """
 
@@ -17,7 +19,7 @@ from acquisition.schemas import topics as T
 from acquisition.schemas.fast_read import read_fixed_topics
 from acquisition.schemas.mcap_reader import metadata_records
 from acquisition.schemas.mcap_writer import merge_with
-from acquisition.schemas.scene import URDF_ATTACHMENT, Batch, Scene, joint_angles
+from acquisition.schemas.scene import STANDARD_TOPICS, URDF_ATTACHMENT, Batch, Scene, joint_angles
 from acquisition.schemas.session_card import SESSION_METADATA
 from acquisition.storage import lab_path
 from models.robot import RobotDescription
@@ -67,8 +69,9 @@ def export_foxglove(session: Path, out: Path, base_to_tracker: np.ndarray | None
     with ExitStack() as stack:
         sources = [stack.enter_context(lab_path(p).open("rb")) for p in info.parts]
         with open(partial, "wb") as f:
-            n = merge_with(sources, f, "vslab sessions export", merged,
-                           [(URDF_ATTACHMENT, "application/xml", scene.urdf.encode())])  # fmt: skip
+            urdf = [(URDF_ATTACHMENT, "application/xml", scene.urdf.encode())]
+            # the session's own standard topics (a recording writes them) are made again, the tracker placed
+            n = merge_with(sources, f, "vslab sessions export", merged, urdf, replace=STANDARD_TOPICS)
     partial.replace(out)
     return n
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 
 import foxglove
 import numpy as np
@@ -28,10 +27,7 @@ from acquisition.schemas.topics import (
     EVENTS,
     MESSAGE_ENCODING,
     SCHEMA_ENCODING,
-    STEPPER,
-    TRACKER,
     Topic,
-    joint_state_topic,
 )
 
 log = logging.getLogger(__name__)
@@ -53,16 +49,9 @@ class LiveServer:
     ) -> None:
         self.topics = dict(topics)
         self.scene = scene
-        self._scene_schemas: dict[str, tuple[str, str]] = {}
-        if scene is not None:
-            self._scene_schemas = {
-                S.ROBOT_DESCRIPTION: ("std_msgs/msg/String", S.STRING_SCHEMA),
-                **{topic: (m.schema_name, m.schema_text) for topic, m in (
-                    (S.TF_STATIC, scene.tf_static), (S.TF, scene.tf), (S.JOINT_STATES, scene.joint_states),
-                    (S.TIP_POSE, scene.tip))},
-            }  # fmt: skip
-        self._joints = joint_state_topic(scene.robot) if scene is not None else None
-        self._stepper: _Rows | None = None  # the latest stepper report: its angle holds until the next
+        self._scene_schemas = scene.schemas() if scene is not None else {}
+        # decimated as the view decimates any topic; nothing waits for the stepper (its latest angle holds)
+        self._stream = S.SceneStream(scene, max_rate_hz or 1e9, max_wait_s=0.0) if scene is not None else None
         self._static_at = 0.0
         self.host = host
         self.port = port
@@ -167,25 +156,13 @@ class LiveServer:
     # --------------------------------------------------------------------------------- the arm
     def _show_arm(self, topic: str, log_time: np.ndarray, rows: np.ndarray) -> None:
         """The standard topics these rows make (``scene``), forwarded as any topic is."""
-        scene = self.scene
-        batches: list[S.Batch] = []
-        if topic == STEPPER:
-            self._stepper = _Rows(log_time[-1:], rows[-1:])
-        if topic == self._joints and self._wanted(S.TF, S.JOINT_STATES):
-            keep = self._keep(S.TF, log_time) if self.max_rate_hz else np.arange(len(log_time))
-            for shown in (S.TF, S.JOINT_STATES):
-                self.decimated[shown] += len(log_time) - len(keep)
-            streams = {topic: _Rows(log_time[keep], rows[keep])}
-            if self._stepper is not None:
-                streams[STEPPER] = self._stepper
-            t, q, velocity, effort = S.joint_angles(scene.robot, streams)
-            batches += scene.joints(t, q, velocity, effort, rate_hz=None)
-        if topic == TRACKER and self._wanted(S.TIP_POSE):
-            batches += scene.tracker(log_time, rows)
+        if not self._wanted(*self._scene_schemas):
+            return
+        batches = self._stream.feed(topic, log_time, rows)
         now = time.monotonic()
-        if now - self._static_at >= 1.0 and self._wanted(S.ROBOT_DESCRIPTION, S.TF_STATIC):
+        if now - self._static_at >= 1.0:
             self._static_at = now
-            batches += scene.static(int(log_time[-1]))
+            batches += self.scene.static(int(log_time[-1]))
         for batch in batches:
             channel = self._channels[batch.topic]
             for payload, t in zip(batch.payloads, batch.log_time.tolist(), strict=True):
@@ -194,14 +171,3 @@ class LiveServer:
 
     def _wanted(self, *topics: str) -> bool:
         return any(self._channels[t].has_sinks() for t in topics)
-
-
-@dataclass
-class _Rows:
-    """A topic's rows as ``scene.joint_angles`` reads them."""
-
-    log_time: np.ndarray
-    rows: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.rows)

@@ -19,6 +19,7 @@ from pathlib import Path
 from acquisition.errors import AcquisitionError
 from acquisition.recorder.recover import RecoveryReport, recover
 from acquisition.schemas.mcap_reader import MAGIC, topic_spans
+from acquisition.schemas.scene import STANDARD_TOPICS
 from acquisition.schemas.session_card import (
     SESSION_CARD,
     SessionCardError,
@@ -145,6 +146,8 @@ def session_info(directory: Path) -> SessionInfo:
             info.torn.append(part)
             continue
         for topic, (messages, lo, hi) in streams.items():
+            if topic in STANDARD_TOPICS:  # derived from the measured streams (the arm for a viewer)
+                continue
             s = info.streams.setdefault(topic, StreamInfo(topic))
             s.messages += messages
             if lo is not None:

@@ -4,6 +4,10 @@ The writer is single-threaded by design (``SessionWriter``): the real-time recor
 that drains the device workers' queue, the simulated-time runner calls it directly. Each part file is
 complete on its own: schemas, channels and the session metadata are written into every part.
 
+Beside the measured topics, each part carries what Foxglove's 3D panel shows the arm from
+(``acquisition.schemas.scene``): the URDF as an attachment, ``/robot_description`` and ``/tf_static`` at the
+part's first message, ``/tf`` and ``/joint_states`` (50 Hz) and ``/tracker/tip`` as the streams come in.
+
     with SessionWriter(directory, robot, session_id="s1", experiment="experiment1") as w:
         w.write(topics.SERVO_STATE, log_time_ns, rows)      # rows: structured array of the topic's message
         w.event(Event(EventKind.NOTE, text="hello"), log_time_ns)
@@ -21,6 +25,7 @@ import numpy as np
 
 from acquisition.schemas import Event, FixedMessage
 from acquisition.schemas.mcap_writer import MCAP_LIBRARY_VERSION, BatchMcapWriter
+from acquisition.schemas.scene import ROBOT_DESCRIPTION, URDF_ATTACHMENT, Batch, Scene, SceneStream
 from acquisition.schemas.session_card import (
     COUNTERS_METADATA,
     SCHEMA_VERSION,
@@ -78,6 +83,7 @@ class _Part:
     writer: BatchMcapWriter
     channels: dict[str, int] = field(default_factory=dict)
     first_ns: int | None = None
+    static_written: bool = False  # /robot_description and /tf_static, at the part's first message
 
 
 class SessionWriter:
@@ -96,6 +102,7 @@ class SessionWriter:
         rotation: RotationPolicy | None = None,
         clock=time.monotonic,
         resume: bool = False,
+        standard_topics: bool = True,  # the arm for Foxglove (/tf, /joint_states, …; the URDF attached)
     ) -> None:
         self.directory = Path(directory)
         self.robot = robot
@@ -124,6 +131,8 @@ class SessionWriter:
         self._part: _Part | None = None
         self._last_flush = clock()
         self._sequence: dict[str, int] = dict.fromkeys(self.topics, 0)
+        self._scene = Scene(robot) if standard_topics else None
+        self._stream = SceneStream(self._scene) if self._scene is not None else None
 
     # ------------------------------------------------------------------------------------ lifecycle
     def __enter__(self) -> SessionWriter:
@@ -142,6 +151,8 @@ class SessionWriter:
     def close(self) -> None:
         """Finish the open part: summary, indexes and the final counters as metadata."""
         if self._part is not None:
+            if self._stream is not None:
+                self._write_standard(self._stream.finish())
             self._part.writer.add_metadata(
                 COUNTERS_METADATA, {k: json.dumps(c.as_dict()) for k, c in self.counters.items()}
             )
@@ -184,6 +195,11 @@ class SessionWriter:
         for name, topic in self.topics.items():
             schema_id = writer.register_schema(topic.schema_name, SCHEMA_ENCODING, topic.schema_text.encode())
             part.channels[name] = writer.register_channel(name, MESSAGE_ENCODING, schema_id)
+        if self._scene is not None:
+            for name, (schema_name, text) in self._scene.schemas().items():
+                schema_id = writer.register_schema(schema_name, SCHEMA_ENCODING, text.encode())
+                part.channels[name] = writer.register_channel(name, MESSAGE_ENCODING, schema_id)
+            writer.add_attachment(URDF_ATTACHMENT, "application/xml", self._scene.urdf.encode())
         writer.add_metadata(SESSION_METADATA, {**self.metadata, "part": str(len(self.parts))})
         writer.flush()
         self.parts.append(path)
@@ -214,10 +230,33 @@ class SessionWriter:
         seq0 = self._sequence[topic]
         sequence = np.arange(seq0, seq0 + len(rows), dtype=np.uint32)
         payload = message.canonical_bytes(rows)
+        if self._stream is not None and not self._part.static_written:
+            self._write_standard(self._scene.static(int(log_time.min())))
         self._part.writer.add_batch(self._part.channels[topic], log_time, publish, sequence, payload)
         self._sequence[topic] = seq0 + len(rows)
         self._count(topic, log_time)
+        if self._stream is not None:
+            self._write_standard(self._stream.feed(topic, log_time, rows))
         self.flush_if_due()
+
+    def _write_standard(self, batches: list[Batch]) -> None:
+        """Messages of the standard topics (derived from the measured ones: not counted as streams)."""
+        part = self._part
+        for b in batches:
+            if not len(b):
+                continue
+            if b.topic not in self._sequence:
+                self._sequence[b.topic] = 0
+            seq0 = self._sequence[b.topic]
+            if isinstance(b.payloads, np.ndarray):
+                sequence = np.arange(seq0, seq0 + len(b), dtype=np.uint32)
+                part.writer.add_batch(part.channels[b.topic], b.log_time, b.log_time, sequence, b.payloads)
+            else:
+                for i, (t, data) in enumerate(zip(b.log_time.tolist(), b.payloads, strict=True)):
+                    part.writer.add_message(part.channels[b.topic], t, bytes(data), t, seq0 + i)
+            self._sequence[b.topic] = seq0 + len(b)
+            if b.topic == ROBOT_DESCRIPTION:
+                part.static_written = True
 
     def event(self, event: Event, log_time_ns: int) -> None:
         """Write one event (plan marker, payload change, device gap, note)."""

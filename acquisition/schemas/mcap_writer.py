@@ -26,6 +26,7 @@ import zstandard
 from mcap import __version__
 from mcap.records import (
     Attachment,
+    AttachmentIndex,
     Chunk,
     ChunkIndex,
     DataEnd,
@@ -84,6 +85,7 @@ class BatchMcapWriter:
         self._channels: dict[int, Channel] = {}
         self._chunk_indexes: list[ChunkIndex] = []
         self._metadata_indexes: list[MetadataIndex] = []
+        self._attachment_indexes: list[AttachmentIndex] = []
         self._stats = Statistics(
             attachment_count=0, channel_count=0, channel_message_counts={}, chunk_count=0, message_count=0,
             message_end_time=0, message_start_time=0, metadata_count=0, schema_count=0,
@@ -128,6 +130,19 @@ class BatchMcapWriter:
             MetadataIndex(offset=offset, length=self.stream.tell() - offset, name=name)
         )
         self._stats.metadata_count += 1
+
+    def add_attachment(self, name: str, media_type: str, data: bytes, log_time: int = 0) -> None:
+        """A file carried in the MCAP (the robot's URDF), indexed in the summary."""
+        self._finalize_chunk()  # attachments live between chunks
+        record = Attachment(
+            create_time=log_time, log_time=log_time, name=name, media_type=media_type, data=data
+        )
+        offset = self._write_record(record)
+        self._attachment_indexes.append(
+            AttachmentIndex(offset=offset, length=self.stream.tell() - offset, log_time=log_time,
+                            create_time=log_time, data_size=len(data), name=name, media_type=media_type)
+        )  # fmt: skip
+        self._stats.attachment_count += 1
 
     # ------------------------------------------------------------------------------------ messages
     def add_batch(self, channel_id: int, log_time: np.ndarray, publish_time: np.ndarray,
@@ -230,6 +245,7 @@ class BatchMcapWriter:
             (Opcode.CHANNEL, list(self._channels.values())),
             (Opcode.STATISTICS, [self._stats]),
             (Opcode.CHUNK_INDEX, self._chunk_indexes),
+            (Opcode.ATTACHMENT_INDEX, self._attachment_indexes),
             (Opcode.METADATA_INDEX, self._metadata_indexes),
         ]
         for opcode, records in groups:
@@ -280,18 +296,30 @@ def copy_readable(source: BinaryIO, output: BinaryIO, library: str) -> tuple[int
             messages += 1
         elif isinstance(record, Metadata):
             writer.add_metadata(record.name, record.metadata)
+        elif isinstance(record, Attachment):
+            writer.add_attachment(record.log_time, record.create_time, record.name, record.media_type,
+                                  record.data)  # fmt: skip
     if not header_seen:
         writer.start(profile="", library=library)
     writer.finish()
     return messages, len(channel_ids), not walk.complete, walk.reason
 
 
-def merge_with(sources: list[BinaryIO], output: BinaryIO, library: str, batches: Iterable,
-               attachments: Iterable[tuple[str, str, bytes]] = ()) -> int:  # fmt: skip
+def merge_with(
+    sources: list[BinaryIO],
+    output: BinaryIO,
+    library: str,
+    batches: Iterable,
+    attachments: Iterable[tuple[str, str, bytes]] = (),
+    replace: Iterable[str] = (),
+) -> int:
     """Every record of the indexed files ``sources`` (a session's parts: schemas, channels, messages,
     metadata, attachments; one channel per topic across them) and ``batches`` (objects with ``topic``,
     ``schema_name``, ``schema_text``, ``log_time`` and ``payloads``: ros2msg/CDR messages) written into one
-    new indexed ``output`` with ``attachments`` ((name, media type, bytes)); returns the messages written."""
+    new indexed ``output`` with ``attachments`` ((name, media type, bytes)); returns the messages written. The
+    sources' topics in ``replace``, and their attachments of the names in ``attachments``, are left out."""
+    attachments = list(attachments)
+    replace, replaced_files = set(replace), {name for name, _, _ in attachments}
     writer = Writer(output, compression=CompressionType.ZSTD)
     writer.start(profile="ros2", library=library)
     schemas: dict[tuple[str, str, bytes], int] = {}
@@ -311,7 +339,7 @@ def merge_with(sources: list[BinaryIO], output: BinaryIO, library: str, batches:
         for record in RecordWalk(source):
             if isinstance(record, Schema):
                 known[record.id] = record
-            elif isinstance(record, Channel):
+            elif isinstance(record, Channel) and record.topic not in replace:
                 s = known.get(record.schema_id)
                 key = (s.name, s.encoding, s.data) if s is not None else ("", "", b"")
                 ids[record.id] = channel(record.topic, record.message_encoding, key, record.metadata)
@@ -321,7 +349,7 @@ def merge_with(sources: list[BinaryIO], output: BinaryIO, library: str, batches:
                 messages += 1
             elif isinstance(record, Metadata):
                 writer.add_metadata(record.name, record.metadata)
-            elif isinstance(record, Attachment):
+            elif isinstance(record, Attachment) and record.name not in replaced_files:
                 writer.add_attachment(record.log_time, record.create_time, record.name, record.media_type,
                                       record.data)  # fmt: skip
     for batch in batches:

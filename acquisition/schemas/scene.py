@@ -30,7 +30,7 @@ from acquisition.schemas.standard import (
     transforms_message,
 )
 from models.robot import RobotDescription
-from models.urdf import BASE, TOOL, joint_origins, joint_transforms, link_name, robot_urdf
+from models.urdf import BASE, TOOL, JointTransforms, joint_origins, link_name, robot_urdf
 
 TF, TF_STATIC = "/tf", "/tf_static"
 JOINT_STATES = "/joint_states"
@@ -39,6 +39,8 @@ ROBOT_DESCRIPTION = "/robot_description"
 TRACKER_FRAME = "tracker"
 URDF_ATTACHMENT = "robot.urdf"
 RATE_HZ = 50.0  # /tf and /joint_states: smooth in the 3D panel, a few % of a session's bytes
+# derived from the measured topics: the pipeline reads the measured ones and leaves these out
+STANDARD_TOPICS = frozenset({TF, TF_STATIC, JOINT_STATES, TIP_POSE, ROBOT_DESCRIPTION})
 
 
 @dataclass
@@ -82,6 +84,16 @@ class Scene:
         self._effort = joints == T.JOINT_STATE  # CiA 402 drives report torque; the servos a current
         self.joint_states = joint_state_message(robot.actuated_joints, effort=self._effort)
         self.tip = pose_stamped_message(TRACKER_FRAME)
+        self._transforms = JointTransforms(robot)
+
+    def schemas(self) -> dict[str, tuple[str, str]]:
+        """Each standard topic's (schema name, ros2msg text)."""
+        return {
+            ROBOT_DESCRIPTION: ("std_msgs/msg/String", STRING_SCHEMA),
+            **{topic: (m.schema_name, m.schema_text) for topic, m in (
+                (TF_STATIC, self.tf_static), (TF, self.tf), (JOINT_STATES, self.joint_states),
+                (TIP_POSE, self.tip))},
+        }  # fmt: skip
 
     # ------------------------------------------------------------------------------------- batches
     def static(self, log_time_ns: int) -> list[Batch]:
@@ -104,7 +116,7 @@ class Scene:
             pick = pick[_decimate(log_time[pick], rate_hz)]
         t, q = log_time[pick], np.asarray(q, float)[pick]
         tf = self.tf.empty(t)
-        fill_transforms(tf, joint_transforms(self.robot, q))
+        fill_transforms(tf, self._transforms(q))
         js = self.joint_states.empty(t)
         columns = {"position": q, "velocity": _picked(velocity, pick, q.shape)}
         if self._effort:
@@ -163,3 +175,94 @@ def joint_angles(robot: RobotDescription, streams: Mapping[str, object]) -> tupl
         held = stepper.rows["position"][np.clip(k, 0, None), : len(steppers)]
         q[:, steppers] = np.where((k >= 0)[:, None], held, np.nan)
     return t, q, velocity, effort
+
+
+class SceneStream:
+    """The standard topics of a recording as it is written: ``feed`` each fixed-topic batch in the order the
+    writer gets them, write what it returns; ``finish`` at the end. ``/tf`` and ``/joint_states`` are
+    decimated to ``rate_hz`` across batches. A robot with a stepper joint waits (up to ``max_wait_s``) for a
+    stepper report at or after a joint sample before it places that sample, so the angle it holds is the one
+    the file holds at that time, whatever order the batches come in."""
+
+    def __init__(self, scene: Scene, rate_hz: float = RATE_HZ, max_wait_s: float = 2.0) -> None:
+        self.scene = scene
+        self.rate_hz = rate_hz
+        self.max_wait_ns = int(max_wait_s * 1e9)
+        self.joint_topic = T.joint_state_topic(scene.robot)
+        self.has_stepper = any(j.drive == "stepper" for j in scene.robot.joints)
+        self._last_bucket: int | None = None
+        self._pending: list[_Rows] = []  # joint samples waiting for the stepper
+        self._stepper: _Rows | None = None  # its reports so far (the latest few)
+
+    def feed(self, topic: str, log_time: np.ndarray, rows: np.ndarray) -> list[Batch]:
+        log_time = np.asarray(log_time, np.int64)
+        if not len(log_time):
+            return []
+        if topic == T.TRACKER:
+            return self.scene.tracker(log_time, rows)
+        if topic == T.STEPPER:
+            self._stepper = (
+                _Rows(log_time, rows) if self._stepper is None else self._stepper.tail(log_time, rows)
+            )
+            return self._place(int(self._stepper.log_time[-1]))
+        if topic == self.joint_topic:
+            keep = self._decimate(log_time)
+            if len(keep):
+                self._pending.append(_Rows(log_time[keep], rows[keep]))
+            if not self.has_stepper:
+                return self._place(None)
+            return self._place(int(self._stepper.log_time[-1]) if self._stepper is not None else None,
+                               newest=int(log_time[-1]))  # fmt: skip
+        return []
+
+    def finish(self) -> list[Batch]:
+        """Whatever still waits for the stepper, placed with its latest report."""
+        return self._place(None)
+
+    def _decimate(self, log_time: np.ndarray) -> np.ndarray:
+        bucket = log_time // int(1e9 / self.rate_hz)
+        first = np.ones(len(bucket), bool)
+        first[1:] = bucket[1:] != bucket[:-1]
+        if self._last_bucket is not None:
+            first &= bucket > self._last_bucket
+        newest = int(bucket.max())
+        self._last_bucket = newest if self._last_bucket is None else max(self._last_bucket, newest)
+        return np.flatnonzero(first)
+
+    def _place(self, until: int | None, newest: int | None = None) -> list[Batch]:
+        """/tf and /joint_states of the pending joint samples up to ``until`` (None: all of them; also those
+        older than ``max_wait_s`` before ``newest``)."""
+        if not self._pending:
+            return []
+        pending = _Rows(np.concatenate([p.log_time for p in self._pending]),
+                        np.concatenate([p.rows for p in self._pending]))  # fmt: skip
+        if until is None and newest is None:
+            ready = np.ones(len(pending), bool)
+        else:
+            limit = max(until if until is not None else -1, (newest or 0) - self.max_wait_ns)
+            ready = pending.log_time <= limit
+        if not ready.any():
+            return []
+        self._pending = [] if ready.all() else [_Rows(pending.log_time[~ready], pending.rows[~ready])]
+        streams = {self.joint_topic: _Rows(pending.log_time[ready], pending.rows[ready])}
+        if self._stepper is not None:
+            streams[T.STEPPER] = self._stepper
+        t, q, velocity, effort = joint_angles(self.scene.robot, streams)
+        return self.scene.joints(t, q, velocity, effort, rate_hz=None)
+
+
+@dataclass
+class _Rows:
+    """Some rows of a topic, as :func:`joint_angles` reads them."""
+
+    log_time: np.ndarray
+    rows: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def tail(self, log_time: np.ndarray, rows: np.ndarray, keep: int = 1024) -> _Rows:
+        """These rows and the new ones, the latest ``keep`` (a stepper's reports: what holds its angle)."""
+        return _Rows(
+            np.concatenate([self.log_time, log_time])[-keep:], np.concatenate([self.rows, rows])[-keep:]
+        )
