@@ -50,6 +50,7 @@ def test_every_model_version_becomes_one_run_and_exporting_again_adds_none(lab, 
 
     client = mlflow.MlflowClient(tracking_uri=uri)
     experiment = client.get_experiment_by_name("vslab")
+    assert experiment.artifact_location == (tmp_path / "artifacts").as_uri()  # beside the store, not ./mlruns
     runs = client.search_runs([experiment.experiment_id])
     models = registry.list_models(lab / "models")
     assert sorted(r.data.tags[VERSION_TAG] for r in runs) == sorted(m["version"] for m in models)

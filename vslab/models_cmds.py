@@ -252,7 +252,9 @@ def models_export_mlflow(
             )
         folder = Path(Settings.lab).resolve() / "mlflow"
         folder.mkdir(parents=True, exist_ok=True)
-        uri, artifacts = f"sqlite:///{folder / 'mlflow.db'}", (folder / "artifacts").as_uri()
+        uri = f"sqlite:///{folder / 'mlflow.db'}"
+    if uri.startswith("sqlite:///"):  # a local store: its artifacts beside it (MLflow's default: ./mlruns)
+        artifacts = (Path(uri.removeprefix("sqlite:///")).resolve().parent / "artifacts").as_uri()
     try:
         report = export_models(Settings.lab / "models", Settings.lab / "datasets", uri, experiment, artifacts)
     except MlflowExportError as exc:
