@@ -51,7 +51,11 @@ class LiveServer:
         self.scene = scene
         self._scene_schemas = scene.schemas() if scene is not None else {}
         # decimated as the view decimates any topic; nothing waits for the stepper (its latest angle holds)
-        self._stream = S.SceneStream(scene, max_rate_hz or 1e9, max_wait_s=0.0) if scene is not None else None
+        self._stream = (
+            S.SceneStream(scene, max_rate_hz or 1e9, max_wait_s=0.0, batch_s=0.0)
+            if scene is not None
+            else None
+        )
         self._static_at = 0.0
         self.host = host
         self.port = port

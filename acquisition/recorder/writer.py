@@ -313,5 +313,7 @@ class SessionWriter:
             and log_time_ns - part.first_ns >= policy.max_seconds * 1e9
         )
         if too_big or too_long:
+            if self._stream is not None:  # each part whole: the arm of its own samples in it
+                self._write_standard(self._stream.finish())
             self._finish_part()
             self._start_part()

@@ -182,12 +182,18 @@ class SceneStream:
     writer gets them, write what it returns; ``finish`` at the end. ``/tf`` and ``/joint_states`` are
     decimated to ``rate_hz`` across batches. A robot with a stepper joint waits (up to ``max_wait_s``) for a
     stepper report at or after a joint sample before it places that sample, so the angle it holds is the one
-    the file holds at that time, whatever order the batches come in."""
+    the file holds at that time, whatever order the batches come in. The messages come out ``batch_s`` of
+    samples at a time (a recorder writes many small batches: each costs its numpy calls, whatever its size);
+    ``finish`` gives the rest."""
 
-    def __init__(self, scene: Scene, rate_hz: float = RATE_HZ, max_wait_s: float = 2.0) -> None:
+    def __init__(self, scene: Scene, rate_hz: float = RATE_HZ, max_wait_s: float = 2.0,
+                 batch_s: float = 0.5) -> None:  # fmt: skip
         self.scene = scene
         self.rate_hz = rate_hz
         self.max_wait_ns = int(max_wait_s * 1e9)
+        self.batch_ns = int(batch_s * 1e9)
+        self._tracker: list[_Rows] = []  # frames not yet turned into /tracker/tip
+        self._next_place_ns: int | None = None  # joint samples are placed once the stream reaches it
         self.joint_topic = T.joint_state_topic(scene.robot)
         self.has_stepper = any(j.drive == "stepper" for j in scene.robot.joints)
         self._last_bucket: int | None = None
@@ -199,25 +205,38 @@ class SceneStream:
         if not len(log_time):
             return []
         if topic == T.TRACKER:
-            return self.scene.tracker(log_time, rows)
+            self._tracker.append(_Rows(log_time, rows))
+            return self._tracker_tips() if _span(self._tracker) >= self.batch_ns else []
         if topic == T.STEPPER:
             self._stepper = (
                 _Rows(log_time, rows) if self._stepper is None else self._stepper.tail(log_time, rows)
             )
-            return self._place(int(self._stepper.log_time[-1]))
-        if topic == self.joint_topic:
+        elif topic == self.joint_topic:
             keep = self._decimate(log_time)
             if len(keep):
                 self._pending.append(_Rows(log_time[keep], rows[keep]))
-            if not self.has_stepper:
-                return self._place(None)
-            return self._place(int(self._stepper.log_time[-1]) if self._stepper is not None else None,
-                               newest=int(log_time[-1]))  # fmt: skip
-        return []
+        else:
+            return []
+        newest = int(log_time.max())
+        if self._next_place_ns is None:
+            self._next_place_ns = newest + self.batch_ns
+        if not self._pending or newest < self._next_place_ns:  # at most once per batch_s of samples
+            return []
+        self._next_place_ns = newest + self.batch_ns
+        if not self.has_stepper:
+            return self._place(None)
+        return self._place(int(self._stepper.log_time[-1]) if self._stepper is not None else None, newest)
 
     def finish(self) -> list[Batch]:
-        """Whatever still waits for the stepper, placed with its latest report."""
-        return self._place(None)
+        """Whatever is still held back: joint samples placed with the stepper's latest report, frames."""
+        return self._place(None) + self._tracker_tips()
+
+    def _tracker_tips(self) -> list[Batch]:
+        if not self._tracker:
+            return []
+        frames, self._tracker = self._tracker, []
+        return self.scene.tracker(np.concatenate([f.log_time for f in frames]),
+                                  np.concatenate([f.rows for f in frames]))  # fmt: skip
 
     def _decimate(self, log_time: np.ndarray) -> np.ndarray:
         bucket = log_time // int(1e9 / self.rate_hz)
@@ -249,6 +268,11 @@ class SceneStream:
             streams[T.STEPPER] = self._stepper
         t, q, velocity, effort = joint_angles(self.scene.robot, streams)
         return self.scene.joints(t, q, velocity, effort, rate_hz=None)
+
+
+def _span(batches: list[_Rows]) -> int:
+    """ns from the first held sample to the last (-1 when none is held)."""
+    return int(batches[-1].log_time[-1] - batches[0].log_time[0]) if batches else -1
 
 
 @dataclass
