@@ -19,7 +19,7 @@ from acquisition.schemas import topics as T
 from acquisition.schemas.fast_read import read_fixed_topics
 from acquisition.schemas.mcap_reader import metadata_records
 from acquisition.schemas.mcap_writer import merge_with
-from acquisition.schemas.scene import STANDARD_TOPICS, URDF_ATTACHMENT, Batch, Scene, joint_angles
+from acquisition.schemas.scene import RATE_HZ, STANDARD_TOPICS, URDF_ATTACHMENT, Batch, Scene, SceneStream
 from acquisition.schemas.session_card import SESSION_METADATA
 from acquisition.storage import lab_path
 from models.robot import RobotDescription
@@ -34,19 +34,8 @@ def session_robot(part: Path) -> RobotDescription:
     raise SessionError(Path(str(part)).parent, f"{Path(str(part)).name} has no robot description")
 
 
-def scene_batches(scene: Scene, part: Path, rate_hz: float | None) -> list[Batch]:
-    """The standard topics of one part's measured streams."""
-    streams = read_fixed_topics(part)
-    t, q, velocity, effort = joint_angles(scene.robot, streams)
-    batches = scene.joints(t, q, velocity, effort, rate_hz=rate_hz) if len(t) else []
-    tracker = streams.get(T.TRACKER)
-    if tracker is not None and len(tracker):
-        batches += scene.tracker(tracker.log_time, tracker.rows)
-    return batches
-
-
 def export_foxglove(session: Path, out: Path, base_to_tracker: np.ndarray | None = None,
-                    rate_hz: float | None = 50.0) -> int:  # fmt: skip
+                    rate_hz: float = RATE_HZ) -> int:  # fmt: skip
     """Write ``session`` with its standard topics into ``out`` (written whole, then renamed in); returns the
     messages written. ``SessionError`` for a folder that is not a readable session or has a torn part."""
     info = session_info(session)
@@ -54,15 +43,18 @@ def export_foxglove(session: Path, out: Path, base_to_tracker: np.ndarray | None
         raise SessionError(
             info.directory, f"torn part {info.torn[0].name}", "run `vslab sessions recover` first"
         )
-    robot = session_robot(info.parts[0])
-    scene = Scene(robot, base_to_tracker)
-    batches: dict[str, list[Batch]] = {}
+    scene = Scene(session_robot(info.parts[0]), base_to_tracker)
+    # as the session writer makes them, from whole parts: every stepper report kept to hold angles from
+    stream = SceneStream(scene, rate_hz, stepper_history=None)
+    batches: list[Batch] = []
     for part in info.parts:
-        for b in scene_batches(scene, part, rate_hz):
-            batches.setdefault(b.topic, []).append(b)
-    merged = [_concat(bs) for bs in batches.values()]
-    start = min((int(b.log_time[0]) for b in merged if len(b)), default=0)
-    merged = scene.static(start) + merged
+        streams = read_fixed_topics(part)
+        for topic in (T.STEPPER, stream.joint_topic, T.TRACKER):
+            if topic in streams:
+                batches += stream.feed(topic, streams[topic].log_time, streams[topic].rows)
+    batches += stream.finish()
+    start = min((int(b.log_time[0]) for b in batches if len(b)), default=0)
+    batches = scene.static(start) + batches
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     partial = out.with_name(out.name + ".partial")
@@ -71,13 +63,6 @@ def export_foxglove(session: Path, out: Path, base_to_tracker: np.ndarray | None
         with open(partial, "wb") as f:
             urdf = [(URDF_ATTACHMENT, "application/xml", scene.urdf.encode())]
             # the session's own standard topics (a recording writes them) are made again, the tracker placed
-            n = merge_with(sources, f, "vslab sessions export", merged, urdf, replace=STANDARD_TOPICS)
+            n = merge_with(sources, f, "vslab sessions export", batches, urdf, replace=STANDARD_TOPICS)
     partial.replace(out)
     return n
-
-
-def _concat(batches: list[Batch]) -> Batch:
-    first = batches[0]
-    payloads = [p for b in batches for p in b.payloads]
-    return Batch(first.topic, first.schema_name, first.schema_text,
-                 np.concatenate([b.log_time for b in batches]), payloads)  # fmt: skip

@@ -23,12 +23,7 @@ import foxglove
 import numpy as np
 
 from acquisition.schemas import scene as S
-from acquisition.schemas.topics import (
-    EVENTS,
-    MESSAGE_ENCODING,
-    SCHEMA_ENCODING,
-    Topic,
-)
+from acquisition.schemas.topics import EVENTS, MESSAGE_ENCODING, SCHEMA_ENCODING, Topic
 
 log = logging.getLogger(__name__)
 

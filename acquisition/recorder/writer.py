@@ -25,7 +25,7 @@ import numpy as np
 
 from acquisition.schemas import Event, FixedMessage
 from acquisition.schemas.mcap_writer import MCAP_LIBRARY_VERSION, BatchMcapWriter
-from acquisition.schemas.scene import ROBOT_DESCRIPTION, URDF_ATTACHMENT, Batch, Scene, SceneStream
+from acquisition.schemas.scene import URDF_ATTACHMENT, Batch, Scene, SceneStream
 from acquisition.schemas.session_card import (
     COUNTERS_METADATA,
     SCHEMA_VERSION,
@@ -232,6 +232,7 @@ class SessionWriter:
         payload = message.canonical_bytes(rows)
         if self._stream is not None and not self._part.static_written:
             self._write_standard(self._scene.static(int(log_time.min())))
+            self._part.static_written = True
         self._part.writer.add_batch(self._part.channels[topic], log_time, publish, sequence, payload)
         self._sequence[topic] = seq0 + len(rows)
         self._count(topic, log_time)
@@ -245,9 +246,7 @@ class SessionWriter:
         for b in batches:
             if not len(b):
                 continue
-            if b.topic not in self._sequence:
-                self._sequence[b.topic] = 0
-            seq0 = self._sequence[b.topic]
+            seq0 = self._sequence.get(b.topic, 0)
             if isinstance(b.payloads, np.ndarray):
                 sequence = np.arange(seq0, seq0 + len(b), dtype=np.uint32)
                 part.writer.add_batch(part.channels[b.topic], b.log_time, b.log_time, sequence, b.payloads)
@@ -255,8 +254,6 @@ class SessionWriter:
                 for i, (t, data) in enumerate(zip(b.log_time.tolist(), b.payloads, strict=True)):
                     part.writer.add_message(part.channels[b.topic], t, bytes(data), t, seq0 + i)
             self._sequence[b.topic] = seq0 + len(b)
-            if b.topic == ROBOT_DESCRIPTION:
-                part.static_written = True
 
     def event(self, event: Event, log_time_ns: int) -> None:
         """Write one event (plan marker, payload change, device gap, note)."""

@@ -352,11 +352,11 @@ def merge_with(
             elif isinstance(record, Attachment) and record.name not in replaced_files:
                 writer.add_attachment(record.log_time, record.create_time, record.name, record.media_type,
                                       record.data)  # fmt: skip
+    sequence: dict[str, int] = {}  # each topic's messages numbered from 0, across its batches
     for batch in batches:
         cid = channel(batch.topic, "cdr", (batch.schema_name, "ros2msg", batch.schema_text.encode()))
-        for seq, (t, data) in enumerate(
-            zip(np.asarray(batch.log_time).tolist(), batch.payloads, strict=True)
-        ):
+        for t, data in zip(np.asarray(batch.log_time).tolist(), batch.payloads, strict=True):
+            seq = sequence[batch.topic] = sequence.get(batch.topic, -1) + 1
             writer.add_message(cid, t, bytes(data), t, seq)
             messages += 1
     for name, media_type, data in attachments:

@@ -57,16 +57,6 @@ class Batch:
         return len(self.log_time)
 
 
-def _decimate(log_time: np.ndarray, rate_hz: float) -> np.ndarray:
-    """Indices of the first sample in each 1/rate_hz bucket."""
-    if len(log_time) == 0:
-        return np.zeros(0, np.int64)
-    bucket = np.asarray(log_time, np.int64) // int(1e9 / rate_hz)
-    first = np.ones(len(bucket), bool)
-    first[1:] = bucket[1:] != bucket[:-1]
-    return np.flatnonzero(first)
-
-
 class Scene:
     """The standard topics of one robot (and its tracker registration, a 4×4 base → tracker, if known)."""
 
@@ -107,13 +97,11 @@ class Scene:
         ]
 
     def joints(self, log_time: np.ndarray, q: np.ndarray, velocity: np.ndarray | None = None,
-               effort: np.ndarray | None = None, rate_hz: float | None = RATE_HZ) -> list[Batch]:  # fmt: skip
+               effort: np.ndarray | None = None) -> list[Batch]:  # fmt: skip
         """``/tf`` and ``/joint_states`` of joint angles q (n, A) in the robot's joint order at ``log_time``
-        (rows with an unknown angle are left out), decimated to ``rate_hz`` (None: every row)."""
+        (rows with an unknown angle are left out; :class:`SceneStream` decimates)."""
         log_time = np.asarray(log_time, np.int64)
         pick = np.flatnonzero(np.isfinite(q).all(axis=1))
-        if rate_hz:
-            pick = pick[_decimate(log_time[pick], rate_hz)]
         t, q = log_time[pick], np.asarray(q, float)[pick]
         tf = self.tf.empty(t)
         fill_transforms(tf, self._transforms(q))
@@ -187,11 +175,12 @@ class SceneStream:
     ``finish`` gives the rest."""
 
     def __init__(self, scene: Scene, rate_hz: float = RATE_HZ, max_wait_s: float = 2.0,
-                 batch_s: float = 0.5) -> None:  # fmt: skip
+                 batch_s: float = 0.5, stepper_history: int | None = 1024) -> None:  # fmt: skip
         self.scene = scene
         self.rate_hz = rate_hz
         self.max_wait_ns = int(max_wait_s * 1e9)
         self.batch_ns = int(batch_s * 1e9)
+        self.stepper_history = stepper_history  # reports kept to hold angles from (None: all of them)
         self._tracker: list[_Rows] = []  # frames not yet turned into /tracker/tip
         self._next_place_ns: int | None = None  # joint samples are placed once the stream reaches it
         self.joint_topic = T.joint_state_topic(scene.robot)
@@ -209,7 +198,9 @@ class SceneStream:
             return self._tracker_tips() if _span(self._tracker) >= self.batch_ns else []
         if topic == T.STEPPER:
             self._stepper = (
-                _Rows(log_time, rows) if self._stepper is None else self._stepper.tail(log_time, rows)
+                _Rows(log_time, rows)
+                if self._stepper is None
+                else self._stepper.tail(log_time, rows, self.stepper_history)
             )
         elif topic == self.joint_topic:
             keep = self._decimate(log_time)
@@ -267,7 +258,7 @@ class SceneStream:
         if self._stepper is not None:
             streams[T.STEPPER] = self._stepper
         t, q, velocity, effort = joint_angles(self.scene.robot, streams)
-        return self.scene.joints(t, q, velocity, effort, rate_hz=None)
+        return self.scene.joints(t, q, velocity, effort)
 
 
 def _span(batches: list[_Rows]) -> int:
@@ -285,8 +276,10 @@ class _Rows:
     def __len__(self) -> int:
         return len(self.rows)
 
-    def tail(self, log_time: np.ndarray, rows: np.ndarray, keep: int = 1024) -> _Rows:
-        """These rows and the new ones, the latest ``keep`` (a stepper's reports: what holds its angle)."""
+    def tail(self, log_time: np.ndarray, rows: np.ndarray, keep: int | None) -> _Rows:
+        """These rows and the new ones, the latest ``keep`` (None: all; a stepper's reports: what holds its
+        angle)."""
+        first = -keep if keep is not None else 0
         return _Rows(
-            np.concatenate([self.log_time, log_time])[-keep:], np.concatenate([self.rows, rows])[-keep:]
+            np.concatenate([self.log_time, log_time])[first:], np.concatenate([self.rows, rows])[first:]
         )
