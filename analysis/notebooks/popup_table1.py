@@ -38,7 +38,8 @@ print(stiffness.round(3).to_string())
 popup_tests.figure7(curves, lab / "figures" / "notebooks")
 
 # %% [markdown]
-# Impact test: damped frequency from the accelerometer's PSD, damping ratio by logarithmic decrement.
+# Impact test: damped frequency and damping ratio from a damped sinusoid fitted to the accelerometer's free
+# oscillation (started from its PSD peak and logarithmic decrement).
 
 # %%
 impact_parameters = popup_tests.impact_parameters(impact)
