@@ -32,6 +32,7 @@ from pipeline.cache import digest, stage_version
 from pipeline.tables import columns
 
 SPLITS = ("train", "val", "test")
+SPLIT_COLUMNS = ("split_random", "split_group")  # the two ways D is dealt into those parts
 CARD = "card.json"  # a dataset version's manifest
 FRACTIONS = (0.70, 0.15, 0.15)  # seed 000: 70 / 15 / 15
 

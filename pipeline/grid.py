@@ -22,7 +22,7 @@ from acquisition.storage import lab_path
 from models.hybrid import NetConfig, preset
 from models.yaml_files import read_yaml
 from pipeline.build import InlineExecutor
-from pipeline.datasets import newest_version
+from pipeline.datasets import SPLIT_COLUMNS, newest_version
 from pipeline.errors import PipelineError
 from pipeline.registry import CARD, check_model, jsonable, load_card, metric, model_version, save_model
 from pipeline.train import TrainConfig
@@ -84,7 +84,6 @@ def load_grid(path: Path, overrides: dict | None = None) -> dict:
 # each training field: (an integer?, its smallest value, that value itself allowed?)
 TRAIN_LIMITS = {"lr": (False, 0, False), "batch_size": (True, 1, True), "max_epochs": (True, 1, True),
                 "patience": (True, 0, True), "weight_decay": (False, 0, True)}  # fmt: skip
-SPLITS = ("split_random", "split_group")
 DATASET = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*(@[A-Za-z0-9_][A-Za-z0-9_.-]*)?")
 
 
@@ -105,8 +104,8 @@ def check_grid(grid: dict, where: dict[str, str] | None = None) -> None:
         if not isinstance(spec, str) or not DATASET.fullmatch(spec):
             fail("datasets", f"{spec!r} is not a dataset name or name@version")
     for split in grid.get("splits", []):
-        if split not in SPLITS:
-            fail("splits", f"{split!r} is not a split (known: {list(SPLITS)})")
+        if split not in SPLIT_COLUMNS:
+            fail("splits", f"{split!r} is not a split (known: {list(SPLIT_COLUMNS)})")
     for seed in grid.get("seeds", []):
         if not _integer(seed) or seed < 0:
             fail("seeds", f"{seed!r} is not a seed (an integer ≥ 0)")

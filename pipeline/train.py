@@ -22,6 +22,7 @@ from models.estimator import Estimator
 from models.hybrid import HybridNet, NetConfig
 from models.robot import AnthropomorphicKinematics, load_robot
 from pipeline import metrics as pipeline_metrics
+from pipeline.datasets import SPLIT_COLUMNS
 
 log = logging.getLogger(__name__)
 
@@ -40,10 +41,8 @@ class TrainConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        if self.split not in ("split_random", "split_group"):
-            raise ValueError(
-                f"TrainConfig.split: expected 'split_random' or 'split_group', got {self.split!r}"
-            )
+        if self.split not in SPLIT_COLUMNS:
+            raise ValueError(f"TrainConfig.split: expected one of {list(SPLIT_COLUMNS)}, got {self.split!r}")
 
     def to_dict(self) -> dict:
         return asdict(self) | {"net": self.net.to_dict()}

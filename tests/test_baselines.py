@@ -17,6 +17,7 @@ import pytest
 
 from models import kinematics
 from models.errors import NotFittedError
+from models.hybrid import FORWARD_TARGETS
 from models.robot import PressureTable, load_robot
 from pipeline import baselines as B
 
@@ -92,10 +93,14 @@ def test_fitted_stiffness_repairs_a_wrong_description(parts, forward):
     assert 60.0 < k["b_nm_per_rad_per_bar"] < 110.0  # the twin's k ≈ 80 N·m/rad per bar, not 56
 
 
+def _lengths() -> kinematics.ArmLengths:
+    kin = load_robot("vsl").kinematics
+    return kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+
+
 def test_inverse_baselines(parts):
     data, train, test = parts
-    kin = load_robot("vsl").kinematics
-    lengths = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+    lengths = _lengths()
     means = {}
     for name in ("rigid", "prbm", "knn"):
         model = B.BASELINES[name](direction="inverse").fit(train)
@@ -123,3 +128,36 @@ def test_contract_errors(parts):
     with pytest.raises(ValueError, match="direction"):
         B.RigidModel(direction="sideways").fit(test)
     assert B.RigidModel().fit(test) is not None
+
+
+def test_knn_group_split_result_was_scored_on_learned_rows(parts):
+    """Issue 19's unexplained k-NN figure (0.074 mm on split_group against 0.24 mm on split_random): the model
+    was fitted on split_random's train part and scored on split_group's test part. The splits deal the same
+    rows differently, so most of that test part was learned, and distance-weighted k-NN returns a learned
+    row's target exactly. Scoring across splits is now refused; fitted on its own split's train part, k-NN
+    does no better on whole unseen sessions than on random rows."""
+    data, train, _ = parts
+    knn = B.BASELINES["knn"]().fit(train)
+    assert knn.train_splits_ == ("split_random",)
+    seen = B.part_of(data, "split_group", "test")
+    learned = seen[seen["split_random"] == "train"]
+    assert len(learned) > 0.5 * len(
+        seen
+    )  # the leak: most of one split's test rows are the other's train rows
+    target = learned[list(FORWARD_TARGETS)].to_numpy()
+    np.testing.assert_allclose(knn.predict(learned), target, atol=1e-12)  # learned rows come back exactly
+    with pytest.raises(ValueError, match="fitted on rows outside split_group's train part"):
+        B.evaluate_forward(knn, data, "split_group")
+    with pytest.raises(ValueError, match="outside split_group's train part"):
+        B.evaluate_inverse(
+            B.BASELINES["knn"](direction="inverse").fit(train), data, _lengths(), "split_group"
+        )
+    group = B.BASELINES["knn"]().fit(B.part_of(data, "split_group", "train"))
+    assert group.train_splits_ == ("split_group",)
+    random_mm = B.evaluate_forward(knn, data)["summary"]["mean"]
+    group_mm = B.evaluate_forward(group, data, "split_group")["summary"]["mean"]
+    print(f"\nk-NN test tip error: split_random {random_mm:.3f} mm, split_group {group_mm:.3f} mm")
+    assert group_mm > 0.8 * random_mm
+    unlabelled = B.RigidModel().fit(train.drop(columns=["split_random", "split_group"]))
+    assert unlabelled.train_splits_ is None  # rows without splits: nothing to check against
+    B.evaluate_forward(unlabelled, data, "split_group")
