@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated, ClassVar, Literal, Self
+from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
+from models.description_part import NonNegFloat, Part, PositiveFloat
+from models.effects import EffectsSpec
 from models.errors import ModelError
 from models.kinematics import DHChain, DHRow
 from models.yaml_files import read_yaml
@@ -35,42 +37,13 @@ DRIVER_ROLES = {
     "popup_link_board": "link",  # a POPUP link board: IMU and flex sensors of its link, over CAN
 }
 
-PositiveFloat = Annotated[float, Field(gt=0)]
-NonNegFloat = Annotated[float, Field(ge=0)]
-
 
 class RobotDescriptionError(ModelError, ValueError):
     """A robot description file is missing, unreadable or invalid."""
 
 
-# how a limit pair may be the wrong way round, and what the error says then
-_OUT_OF_ORDER = {"<": (np.greater_equal, "must be below"), "<=": (np.greater, "exceeds")}
-
-
-def _shown(value: object) -> str:
-    return str(value) if np.ndim(value) else f"({value})"
-
-
-class _Model(BaseModel):
-    """A part of a description: unknown keys refused, values frozen. ``_limits`` lists the part's limit
-    pairs as ``(low, "<" or "<=", high)`` field names, checked on every axis of a vector."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    _limits: ClassVar[tuple[tuple[str, str, str], ...]] = ()
-
-    @model_validator(mode="after")
-    def _limits_in_order(self) -> Self:
-        for low, order, high in self._limits:
-            wrong, says = _OUT_OF_ORDER[order]
-            a, b = getattr(self, low), getattr(self, high)
-            if np.any(wrong(a, b)):
-                axes = " on every axis" if np.ndim(a) else ""
-                raise ValueError(f"{low} {_shown(a)} {says} {high} {_shown(b)}{axes}")
-        return self
-
-
 # ---------------------------------------------------------------------------------------------- kinematics
-class AnthropomorphicKinematics(_Model):
+class AnthropomorphicKinematics(Part):
     """The 3-DoF arm of seed 000, eq. (1): J1 about z, J2/J3 in the vertical plane."""
 
     type: Literal["anthropomorphic"]
@@ -79,7 +52,7 @@ class AnthropomorphicKinematics(_Model):
     l3_m: PositiveFloat
 
 
-class DHRowSpec(_Model):
+class DHRowSpec(Part):
     """One standard D-H row, T = Rz(θ) Tz(d) Tx(a) Rx(α), with θ = joint variable + offset."""
 
     a_m: float
@@ -89,7 +62,7 @@ class DHRowSpec(_Model):
     offset_rad: float = 0.0
 
 
-class DHKinematics(_Model):
+class DHKinematics(Part):
     """A general D-H chain; joints named q* are actuated, the others are virtual (link bending)."""
 
     type: Literal["dh"]
@@ -106,7 +79,7 @@ class DHKinematics(_Model):
 
 
 # ----------------------------------------------------------------------------------------------- links
-class PressureTable(_Model):
+class PressureTable(Part):
     """A link property tabulated against gauge pressure; linear interpolation in between."""
 
     pressure_pa: list[NonNegFloat] = Field(min_length=2)
@@ -134,14 +107,14 @@ class PressureTable(_Model):
         )
 
 
-class ScaledTable(_Model):
+class ScaledTable(Part):
     """A table taken from another link and scaled (e.g. by the ratio of second moments of area)."""
 
     from_link: str
     factor: PositiveFloat
 
 
-class Hysteresis(_Model):
+class Hysteresis(Part):
     """Bouc–Wen offset on the link angle: loop width ≈ 2·delta_h_rad once the driving moment's swing ≫
     tau_y_nm. On an inflatable link (``radius_m``) it is driven by the moment beyond M_w(p) only."""
 
@@ -149,7 +122,7 @@ class Hysteresis(_Model):
     tau_y_nm: PositiveFloat
 
 
-class LinkSpec(_Model):
+class LinkSpec(Part):
     """A soft (or rigid-but-compliant) link modelled as a pseudo-rigid body with virtual joints."""
 
     name: str
@@ -162,7 +135,7 @@ class LinkSpec(_Model):
     pressure_channel: int | None = Field(default=None, ge=0)
 
 
-class PointMass(_Model):
+class PointMass(Part):
     """A point mass at ``position_m`` in the output frame of the row driven by ``frame`` (or 'tip')."""
 
     name: str
@@ -172,7 +145,7 @@ class PointMass(_Model):
     inertia_kgm2: NonNegFloat = 0.0  # about its own centre, for any axis through it (a rod's mL²/12)
 
 
-class JointSpec(_Model):
+class JointSpec(Part):
     name: str
     lower_rad: float
     upper_rad: float
@@ -181,7 +154,7 @@ class JointSpec(_Model):
 
 
 # -------------------------------------------------------------------------------------------- actuators
-class ServoSpec(_Model):
+class ServoSpec(Part):
     """Position-controlled joint drive (Dynamixel-like): profile, finite P-gain, backlash, current model.
     Also used for POPUP's geared brushless motors ('motor' drive)."""
 
@@ -205,7 +178,7 @@ class ServoSpec(_Model):
         return self.p_gain * self.stiffness_per_p_gain_nm_per_rad
 
 
-class StepperSpec(_Model):
+class StepperSpec(Part):
     steps_per_rev: int = Field(gt=0)
     microsteps: int = Field(gt=0)
     gear_ratio: PositiveFloat
@@ -218,7 +191,7 @@ class StepperSpec(_Model):
         return 2 * math.pi / (self.steps_per_rev * self.microsteps * self.gear_ratio)
 
 
-class PneumaticsSpec(_Model):
+class PneumaticsSpec(Part):
     """Regulators (first-order lag + dead time), valves that hold with a slow leak, safety limits."""
 
     channels: int = Field(gt=0)
@@ -232,7 +205,7 @@ class PneumaticsSpec(_Model):
 
 
 # ---------------------------------------------------------------------------------------------- sensors
-class PressureSensorSpec(_Model):
+class PressureSensorSpec(Part):
     """The pressure transducers' calibration: gauge 0…full_scale_pa ↔ v_min…v_max V, read by a 16-bit ADC
     (``adc_lsb_v`` per count). One line, used alike by the recorder (counts → Pa), the twin (Pa → counts,
     plus noise) and the pipeline."""
@@ -256,12 +229,12 @@ class PressureSensorSpec(_Model):
         return self.v_min + p / self.full_scale_pa * (self.v_max - self.v_min)
 
 
-class ServoSensorSpec(_Model):
+class ServoSensorSpec(Part):
     current_noise_counts: NonNegFloat
     velocity_noise_counts: NonNegFloat
 
 
-class TrackerSpec(_Model):
+class TrackerSpec(Part):
     """Aurora-like tracker: placement of its field generator relative to the robot base (unknown to the
     pipeline), noise, field volume (box in tracker coordinates) and frame rate."""
 
@@ -275,7 +248,7 @@ class TrackerSpec(_Model):
     _limits = (("field_min_m", "<", "field_max_m"),)
 
 
-class AccelerometerSpec(_Model):
+class AccelerometerSpec(Part):
     """3-axis MEMS accelerometer at the end of the chain ('tip'): reads the specific force R^T (a − g) in
     its own frame (the tip frame), with white noise over its bandwidth, quantised and clipped."""
 
@@ -300,7 +273,7 @@ class AccelerometerSpec(_Model):
         return self
 
 
-class FlexSensorSpec(_Model):
+class FlexSensorSpec(Part):
     """Four resistive flex sensors around an inflatable link (at 0°, 90°, 180°, 270° about its axis), read by
     the link's board: sensor i reads the link's bend κ_i = δ_a cos φ_i + δ_b sin φ_i (its two virtual
     joints) as ADC counts about ``counts_straight``, with white noise, clipped to the ADC's range."""
@@ -311,7 +284,7 @@ class FlexSensorSpec(_Model):
     adc_max_counts: Annotated[int, Field(gt=0)] = 4095
 
 
-class SensorsSpec(_Model):
+class SensorsSpec(Part):
     servo: ServoSensorSpec | None = None
     pressure: PressureSensorSpec
     tracker: TrackerSpec
@@ -319,20 +292,20 @@ class SensorsSpec(_Model):
     flex: FlexSensorSpec | None = None
 
 
-class ClockSpecModel(_Model):
+class ClockSpecModel(Part):
     tick_s: PositiveFloat
     wrap: int | None = Field(default=None, gt=1)
     drift_ppm_sigma: NonNegFloat
     offset_max_s: NonNegFloat
 
 
-class HostLinkModel(_Model):
+class HostLinkModel(Part):
     latency_s: NonNegFloat
     jitter_s: NonNegFloat
     kind: Literal["exponential", "uniform"] = "uniform"
 
 
-class DeviceSpec(_Model):
+class DeviceSpec(Part):
     """One device: which driver speaks to it, where it is plugged in, how often it is read (``rate_hz``:
     the poll rate of a polled device, the stream rate of a streaming one, the frame rate of the tracker),
     its clock and its USB link to the host."""
@@ -348,7 +321,7 @@ class DeviceSpec(_Model):
     host_link: HostLinkModel
 
 
-class SafetySpec(_Model):
+class SafetySpec(Part):
     """Limits beyond the joints' and the pneumatics' own: the tip's allowed box (base frame) and how close to
     the wrinkling moment M_w(p) an inflatable link (one with ``radius_m``) may be loaded."""
 
@@ -361,7 +334,7 @@ class SafetySpec(_Model):
 
 
 # ------------------------------------------------------------------------------------------- the robot
-class RobotDescription(_Model):
+class RobotDescription(Part):
     """A validated robot description; use :func:`load_robot` to read one."""
 
     name: str
@@ -378,6 +351,7 @@ class RobotDescription(_Model):
     devices: dict[str, DeviceSpec]
     safety: SafetySpec | None = None
     gravity_m_s2: tuple[float, float, float] = (0.0, 0.0, -9.81)
+    effects: EffectsSpec = EffectsSpec()  # unmodelled effects the twin adds (models.effects); none by default
 
     @model_validator(mode="after")
     def _cross_checks(self) -> RobotDescription:
@@ -526,8 +500,19 @@ def robot_path(name_or_path: str | Path) -> Path:
 
 
 def load_robot(name_or_path: str | Path) -> RobotDescription:
-    """Read and validate a robot description; every problem ends in one :class:`RobotDescriptionError`."""
+    """Read and validate a robot description; every problem ends in one :class:`RobotDescriptionError`.
+    A description may start from another (``extends: NAME`` or a path beside it) and say only what differs:
+    its mappings are merged into the base's, key by key; any other value replaces the base's."""
     path = robot_path(name_or_path)
+    data = _description_data(path, ())
+    try:
+        return RobotDescription.model_validate(data)
+    except ValidationError as exc:
+        raise RobotDescriptionError(_format_errors(path, exc)) from None
+
+
+def _description_data(path: Path, extending: tuple[Path, ...]) -> dict:
+    """The fields of the description in ``path``, its ``extends`` chain merged in."""
     if not path.exists():
         known = sorted(p.stem for p in CONFIG_DIR.glob("*.yaml"))
         raise RobotDescriptionError(f"{path}: no such robot description (known robots: {known})")
@@ -535,10 +520,22 @@ def load_robot(name_or_path: str | Path) -> RobotDescription:
     if not isinstance(data, dict):
         found = "nothing (an empty file)" if data is None else f"a {type(data).__name__}"
         raise RobotDescriptionError(f"{path}: expected a mapping of fields at the top level, found {found}")
-    try:
-        return RobotDescription.model_validate(data)
-    except ValidationError as exc:
-        raise RobotDescriptionError(_format_errors(path, exc)) from None
+    base = data.pop("extends", None)
+    if base is None:
+        return data
+    if not isinstance(base, str) or not base:
+        raise RobotDescriptionError(f"{path}: extends: expected a robot name or a path, got {base!r}")
+    base_path = robot_path(base) if Path(base).suffix not in {".yaml", ".yml"} else path.parent / base
+    chain = (*extending, path.resolve())
+    if base_path.resolve() in chain:
+        raise RobotDescriptionError(f"{path}: extends: {base!r} extends this description again (a cycle)")
+    return _merged(_description_data(base_path, chain), data)
+
+
+def _merged(base: object, over: object) -> object:
+    if isinstance(base, dict) and isinstance(over, dict):
+        return {**base, **{key: _merged(base.get(key), value) for key, value in over.items()}}
+    return over
 
 
 def _format_errors(path: Path, exc: ValidationError) -> str:

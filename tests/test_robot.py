@@ -8,7 +8,7 @@ import yaml
 from models.robot import CONFIG_DIR, RobotDescriptionError, load_robot
 
 
-@pytest.mark.parametrize("name", ["vsl", "vsl_rigid", "popup"])
+@pytest.mark.parametrize("name", ["vsl", "vsl_rigid", "popup", "vsl_unmodelled"])
 def test_shipped_descriptions_load(name):
     robot = load_robot(name)
     assert robot.name == name

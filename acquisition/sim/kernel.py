@@ -4,8 +4,9 @@ One compiled loop over time steps × robots advances the joint drives (Dynamixel
 loop with a load-dependent steady-state error and backlash, or a microstepping stepper), the pneumatics
 (regulator dead time and lag, valves that hold with a slow leak) and the pseudo-rigid-body link bending
 (``models.prbm.link_step``: I δ̈ + c(p) δ̇ + k(p)(δ − w + δ_h z) = τ, an inflatable link softening above
-its wrinkling moment M_w(p) and its Bouc–Wen hysteresis driven by the moment beyond M_w), and records the true
-state of every step. Sensors, clocks and noise are applied afterwards, vectorised (``sensors``/``clocks``).
+its wrinkling moment M_w(p) and its Bouc–Wen hysteresis driven by the moment beyond M_w; with
+``effects.creep``, the creep of its polymer adding Σxᵢ to the bending), and records the true state of every
+step. Sensors, clocks and noise are applied afterwards, vectorised (``sensors``/``clocks``).
 
 The per-step physics comes from ``models.prbm`` compiled with numba, so the numbers the twin produces are
 the ones the model functions give (tests call the same functions vectorised).
@@ -73,6 +74,8 @@ class KernelParams:
     reg_alpha: float  # 1 − exp(−dt/τ_regulator)
     reg_max: float
     leak_factor: float  # exp(−dt/τ_leak)
+    creep_a: np.ndarray  # (E,) creep fractions aᵢ of the links' elastic bending (models.effects; E = 0: none)
+    creep_alpha: np.ndarray  # (E,) 1 − exp(−dt/τᵢ)
 
 
 @dataclass
@@ -91,6 +94,7 @@ class KernelState:
     delta: np.ndarray  # (B, V)
     delta_dot: np.ndarray
     hyst_z: np.ndarray
+    creep: np.ndarray  # (B, V, E) creep elements' states xᵢ (rad)
     vj_torque: np.ndarray  # (B, V) static (gravity + payload) moment on each virtual joint, last step
     reg_buf: np.ndarray  # (B, C, D) regulator set-point delay line
     buf_idx: int
@@ -147,9 +151,9 @@ def advance(params: KernelParams, state: KernelState, cmd: KernelCommands, n: in
         p.vj_tau_y, p.vj_radius, p.link_channel, p.table_n, p.table_p, p.table_k, p.table_c, p.drive_kind,
         p.drive_stiffness, p.drive_tau, p.drive_backlash_half, p.drive_quantum, p.drive_max_torque,
         p.drive_max_speed, p.reg_alpha, p.reg_max,
-        p.leak_factor,
+        p.leak_factor, p.creep_a, p.creep_alpha,
         state.ref_pos, state.ref_vel, state.loop_pos, state.loop_vel, state.loop_acc, state.out_pos,
-        state.out_vel, state.torque, state.delta, state.delta_dot, state.hyst_z, state.vj_torque,
+        state.out_vel, state.torque, state.delta, state.delta_dot, state.hyst_z, state.creep, state.vj_torque,
         state.reg_buf, state.buf_idx, state.reg_out, state.p_link,
         cmd.goal, cmd.profile_vel, cmd.profile_acc, cmd.pressure_set, cmd.valve_open, cmd.payload_kg,
         trace.q, trace.qd, trace.torque, trace.delta, trace.pressure, trace.tip_pos,
@@ -253,9 +257,9 @@ def _advance(
     table_c,
     drive_kind, drive_stiffness, drive_tau, drive_backlash_half, drive_quantum, drive_max_torque,
     drive_max_speed, reg_alpha, reg_max,
-    leak_factor,
+    leak_factor, creep_a, creep_alpha,
     ref_pos, ref_vel, loop_pos, loop_vel, loop_acc, out_pos, out_vel, torque, delta, delta_dot, hyst_z,
-    vj_torque, reg_buf, buf_idx, reg_out, p_link,
+    creep, vj_torque, reg_buf, buf_idx, reg_out, p_link,
     goal, prof_vel, prof_acc, p_set, valve_open, payload,
     tr_q, tr_qd, tr_torque, tr_delta, tr_p, tr_tip,
 ):  # fmt: skip
@@ -343,6 +347,13 @@ def _advance(
                 k = _interp(p, table_p[link, :m], table_k[link, :m])
                 c = _interp(p, table_p[link, :m], table_c[link, :m])
                 tau = loads[0] - inertia * coupling
+                # creep: each element relaxes toward its share of the elastic bending under the static load,
+                # and the link bends that much more (a torque k·Σxᵢ moves its rest angle by Σxᵢ)
+                shift = 0.0
+                for e in range(creep_a.shape[0]):
+                    creep[b, v, e] += creep_alpha[e] * (creep_a[e] * loads[0] / k - creep[b, v, e])
+                    shift += creep[b, v, e]
+                tau += k * shift
                 # the hysteresis and the wrinkling follow the static load (gravity and payload moment), not
                 # the ringing of the drives' accelerations; an inflatable link's M_w is taken per bending axis
                 m_w = _wrinkling_moment(p, vj_radius[v])

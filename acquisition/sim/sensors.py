@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from acquisition.codecs import dynamixel as dx
+from models.effects import TrackerDistortion, tracker_bias
 from models.robot import PressureSensorSpec
 
 # the XM430's register units live with the protocol; named here as the sensor model uses them
@@ -202,13 +203,15 @@ def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
 @dataclass(frozen=True)
 class TrackerSpec:
     """Where the field generator sits (4×4 base → tracker, p_t = R p_b + t), position noise per axis (m),
-    field volume (axis-aligned box in tracker coordinates, m) and the mean of the reported RMS error (mm)."""
+    field volume (axis-aligned box in tracker coordinates, m), the mean of the reported RMS error (mm) and the
+    field's distortion (``models.effects``; None: an undistorted field)."""
 
     base_to_tracker: np.ndarray
     noise_m: float
     field_min_m: np.ndarray
     field_max_m: np.ndarray
     rms_error_mm_mean: float
+    distortion: TrackerDistortion | None = None
 
     def __post_init__(self) -> None:
         for name in ("base_to_tracker", "field_min_m", "field_max_m"):
@@ -237,12 +240,14 @@ class TrackerReading:
 def tracker_measurement(
     tip_pos_base: np.ndarray, tip_rot_base: np.ndarray, spec: TrackerSpec, rng: np.random.Generator
 ) -> TrackerReading:
-    """The tip coil as the tracker reports it: pose in the tracker frame with Gaussian position noise,
-    MISSING (NaN pose, out-of-volume bit) when the true position is outside the field box.
-    Takes tip positions (..., 3) and rotations (..., 3, 3) in the robot base frame."""
+    """The tip coil as the tracker reports it: pose in the tracker frame with the field's distortion bias and
+    Gaussian position noise, MISSING (NaN pose, out-of-volume bit) when the true position is outside the field
+    box. Takes tip positions (..., 3) and rotations (..., 3, 3) in the robot base frame."""
     rot, trans = spec.base_to_tracker[:3, :3], spec.base_to_tracker[:3, 3]
     pos = np.asarray(tip_pos_base) @ rot.T + trans
     missing = np.any((pos < spec.field_min_m) | (pos > spec.field_max_m), axis=-1)
+    if spec.distortion is not None:
+        pos = pos + tracker_bias(spec.distortion, pos)
     pos = pos + rng.normal(0.0, spec.noise_m, size=pos.shape)
     quat = rotation_to_quaternion(rot @ np.asarray(tip_rot_base))
     rms = np.abs(rng.normal(spec.rms_error_mm_mean, 0.1 * spec.rms_error_mm_mean, size=missing.shape))

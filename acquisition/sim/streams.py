@@ -186,6 +186,7 @@ def tracker_spec(robot: RobotDescription) -> sensors.TrackerSpec:
     return sensors.TrackerSpec(
         base_to_tracker=transform, noise_m=tr.noise_m, field_min_m=np.asarray(tr.field_min_m),
         field_max_m=np.asarray(tr.field_max_m), rms_error_mm_mean=tr.rms_error_mm,
+        distortion=robot.effects.tracker_distortion,
     )  # fmt: skip
 
 

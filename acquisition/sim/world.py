@@ -14,6 +14,8 @@ import numpy as np
 
 from acquisition.sim import kernel, streams
 from acquisition.sim.clocks import ClockSpec, DeviceClocks
+from models.effects import creep_rest
+from models.prbm import interp_table
 from models.robot import TIP_FRAME, RobotDescription
 
 DEFAULT_DT = 1e-3  # 1 kHz
@@ -59,6 +61,7 @@ def build_params(robot: RobotDescription, dt: float = DEFAULT_DT) -> kernel.Kern
     drives = {j.name: j.drive for j in robot.joints}
     servo, stepper, pn = robot.servo, robot.stepper, robot.pneumatics
     is_stepper = np.array([drives[a] == "stepper" for a in actuated])
+    creep = robot.effects.creep
     return kernel.KernelParams(
         dt=dt,
         gravity=np.array(robot.gravity_m_s2, dtype=float),
@@ -96,6 +99,8 @@ def build_params(robot: RobotDescription, dt: float = DEFAULT_DT) -> kernel.Kern
         reg_alpha=1.0 - math.exp(-dt / pn.regulator_time_constant_s),
         reg_max=pn.regulator_max_pa,
         leak_factor=math.exp(-dt / pn.leak_time_constant_s),
+        creep_a=np.array(creep.fractions if creep else (), dtype=float),
+        creep_alpha=np.array([-math.expm1(-dt / tc) for tc in (creep.time_constants_s if creep else ())]),
     )
 
 
@@ -144,6 +149,7 @@ class World:
             delta=np.zeros((batch, v)),
             delta_dot=np.zeros((batch, v)),
             hyst_z=np.zeros((batch, v)),
+            creep=np.zeros((batch, v, len(self.params.creep_a))),
             vj_torque=np.zeros((batch, v)),
             reg_buf=np.repeat(p_init[:, :, None], depth, axis=2),
             buf_idx=0,
@@ -181,7 +187,20 @@ class World:
             st.out_pos[:, loop] = target[:, loop]
             for arr in (st.loop_vel, st.loop_acc, st.out_vel, st.delta_dot):
                 arr[:] = 0.0
+        # links that have held their load long before the session: creep at rest (its share of the bending)
+        st.creep[:] = creep_rest(self.robot.effects.creep, st.vj_torque / self._link_stiffness())
+        st.delta += st.creep.sum(axis=2)
         st.t = 0.0
+
+    def _link_stiffness(self) -> np.ndarray:
+        """(B, V) each virtual joint's stiffness k(p) at its link's pressure now."""
+        p, st = self.params, self.state
+        out = np.empty((self.batch, len(self.layout.virtual)))
+        for v, link in enumerate(p.vj_link):
+            ch, m = p.link_channel[link], p.table_n[link]
+            pressure = st.p_link[:, ch] if ch >= 0 else np.zeros(self.batch)
+            out[:, v] = interp_table(pressure, p.table_p[link, :m], p.table_k[link, :m])
+        return out
 
     # ------------------------------------------------------------------------------------ commands
     def command_joints(self, goal_rad: np.ndarray, profile_vel: np.ndarray | None = None,
