@@ -78,6 +78,7 @@ def _all_figures(lab: Path, out: Path) -> Results:
         ("experiment2", lambda: _experiment2(datasets, res, out)),
         ("popup", lambda: _popup(lab, res, out)),
         ("real-time sessions", lambda: _realtime(lab, res)),
+        ("unmodelled effects", lambda: _unmodelled(lab, res)),
     ):
         try:
             step()
@@ -85,6 +86,21 @@ def _all_figures(lab: Path, out: Path) -> Results:
             res.missing[label] = f"{type(exc).__name__}: {exc}"
             log.debug("figures %s failed", label, exc_info=True)  # the caller shows res.missing
     return res
+
+
+def _unmodelled(lab: Path, res: Results) -> None:
+    """The comparison the main job made on the twin with its unmodelled effects (``pipeline.comparison``)."""
+    from pipeline.comparison import UNMODELLED, load_comparison, wide_tables
+
+    path = lab / UNMODELLED
+    if not path.exists():
+        res.missing["unmodelled effects"] = f"no comparison at {path} (the main job makes it)"
+        return
+    table, card = load_comparison(path)
+    for direction, wide in wide_tables(table).items():
+        res.tables[f"unmodelled effects: {direction} models"] = wide.round(3)
+    for name, version in card["sources"].items():
+        res.versions[f"dataset {name}, vsl_unmodelled"] = version
 
 
 def _models(lab: Path, datasets: dict, res: Results, out: Path) -> None:
@@ -273,6 +289,8 @@ them; the twin's parameters marked ASSUMED in configs/ are ours, so agreement in
 value."""
 
 SECTIONS = [
+    ("The twin with unmodelled effects: every model beside the floor (mean tip error, mm; grouped split)", [],
+     ["unmodelled effects"]),
     ("Real-time sessions (the devices' drivers against the twin's emulators)", [], ["real-time sessions"]),
     ("Datasets and models (ours)", ["clock_fits", "registration_vsl", "error_heatmaps", "learning_curves"],
      ["forward model", "registration"]),

@@ -260,13 +260,17 @@ class SklearnBaseline(Baseline):
             return MultiOutputRegressor(hgb)
         return make_pipeline(StandardScaler(), KNeighborsRegressor(self.n_neighbors, weights="distance"))
 
+    def _features(self, df: pd.DataFrame) -> np.ndarray:
+        """What the regressor reads per row: the networks' 7 inputs (a subclass may add more after them)."""
+        return _cols(df, self.inputs)
+
     def _fit(self, df: pd.DataFrame) -> None:
-        x, y = _cols(df, self.inputs), _cols(df, self.targets) - _cols(df, self.prior)
+        x, y = self._features(df), _cols(df, self.targets) - _cols(df, self.prior)
         ok = np.isfinite(x).all(axis=1) & np.isfinite(y).all(axis=1)
         self.estimator_ = self._estimator().fit(x[ok], y[ok])
 
     def _predict(self, df: pd.DataFrame) -> np.ndarray:
-        x = _cols(df, self.inputs)
+        x = self._features(df)
         ok = np.isfinite(x).all(axis=1)
         out = np.full((len(x), 3), np.nan)
         if ok.any():
@@ -296,12 +300,6 @@ def part_of(data: pd.DataFrame, split: str = "split_random", part: str = "train"
     return data[data[split] == part]
 
 
-def _report(errors_mm: np.ndarray, rows: pd.DataFrame) -> dict[str, Any]:
-    cells = metrics.cell_records({"tip_mm": errors_mm}, metrics.cell_pressure_pa(rows),
-                                 rows["payload_kg"].to_numpy(float))  # fmt: skip
-    return {"summary": metrics.summary(errors_mm), "per_cell": cells}
-
-
 def scored_part(model: Baseline, data: pd.DataFrame, split: str, part: str) -> pd.DataFrame:
     """The rows of ``split``'s ``part`` to score ``model`` on; ValueError if the model was fitted on rows
     outside that split's train part. The two splits deal the same rows differently: ~70 % of split_group's
@@ -323,7 +321,7 @@ def evaluate_forward(model: Baseline, data: pd.DataFrame, split: str = "split_ra
     records: pressure_bin, payload_g, mean_mm, count). The model must have been fitted on ``split``'s train
     part (:func:`scored_part`)."""
     rows = scored_part(model, data, split, part)
-    return _report(metrics.tip_errors(model.predict(rows), _cols(rows, FORWARD_TARGETS)), rows)
+    return metrics.tip_report(metrics.tip_errors(model.predict(rows), _cols(rows, FORWARD_TARGETS)), rows)
 
 
 def evaluate_inverse(model: Baseline, data: pd.DataFrame, lengths: kinematics.ArmLengths,
@@ -332,4 +330,6 @@ def evaluate_inverse(model: Baseline, data: pd.DataFrame, lengths: kinematics.Ar
     and the same check of the split it was fitted on."""
     rows = scored_part(model, data, split, part)
     q_hat, q = model.predict(rows), _cols(rows, INVERSE_TARGETS)
-    return _report(metrics.tip_errors(kinematics.vsl_fk(q_hat, lengths), kinematics.vsl_fk(q, lengths)), rows)
+    return metrics.tip_report(
+        metrics.tip_errors(kinematics.vsl_fk(q_hat, lengths), kinematics.vsl_fk(q, lengths)), rows
+    )

@@ -147,3 +147,10 @@ def cell_records(
     table.insert(2, "pressure_hi_bar", [lo_hi[b][1] for b in table["pressure_bin"]])
     table["payload_g"] = table["payload_g"].astype(int)
     return table[table["n"] > 0].to_dict("records")
+
+
+def tip_report(errors_mm: ArrayLike, rows: pd.DataFrame) -> dict:
+    """A model's (or the floor's) tip errors (mm) on ``rows`` of D: ``summary`` and ``per_cell`` records (the
+    baseline reports' and the comparison table's one format)."""
+    cells = cell_records({"tip_mm": errors_mm}, cell_pressure_pa(rows), rows["payload_kg"].to_numpy(float))
+    return {"summary": summary(errors_mm), "per_cell": cells}

@@ -107,6 +107,24 @@ def campaign_dataset(tmp_path_factory):
     return lab, report.version, data
 
 
+@pytest.fixture(scope="session")
+def hard_campaigns(tmp_path_factory):
+    """The small campaign on the twin with its unmodelled effects on (vsl_unmodelled), built twice: as drawn
+    and its repeat (the same points, each bench backwards): (D, D of the repeat). ≈ 30 s once per run."""
+    from acquisition.plans.sim_runner import simulate_experiment
+    from pipeline.build import build
+    from pipeline.datasets import load_dataset
+
+    out = []
+    for order in ("drawn", "reversed"):
+        lab = tmp_path_factory.mktemp(f"hard-{order}")
+        overrides = {"points": 600, "robot": "vsl_unmodelled", "visit_order": order}
+        simulate_experiment("campaign", lab / "sessions", seed=11, benches=8, overrides=overrides)
+        report = build(sorted((lab / "sessions").iterdir()), lab, "campaign")
+        out.append(load_dataset(lab / "datasets", "campaign", report.version)[0])
+    return tuple(out)
+
+
 # The robot descriptions (frozen models): loaded once for the whole run.
 @pytest.fixture(scope="session")
 def vsl():

@@ -72,6 +72,7 @@ SIGNED = {"pose_deg", "workspace_mm", "q0_deg", "target_mm", "joints_deg"}  # ma
 POSITIVE = {"speed_m_s", "move_speed_rad_s", "return_speed_rad_s", "fill_time_constants", "tap_impulse_nms",
             "max_collapse_fraction", "v0_m_s", "a0_m_s2", "dt_s", "tolerance_mm"}  # fmt: skip
 MAY_BE_EMPTY = {"without_masses", "rigid_links"}
+CHOICES = {"visit_order": ("drawn", "reversed")}  # text parameters with a fixed set of values
 RANGES = {"campaign": ("pressure_bar", "workspace_mm"), "popup_survey": ("pressure_kpa", "joints_deg")}
 FIXED_LENGTH = {"pose_deg", "pressure_bar", "workspace_mm", "set_points_kpa", "q0_deg", "target_mm",
                 "pressure_kpa", "joints_deg"}  # fmt: skip  # as many values as the default
@@ -126,6 +127,8 @@ def _check_value(key: str, value, default, where: str) -> None:
         elif not number or (key not in SIGNED and value < 0) or (key in POSITIVE and value <= 0):
             fail("a number > 0" if key in POSITIVE else "a number" if key in SIGNED else "a number ≥ 0")
     elif isinstance(default, str):
+        if key in CHOICES and value not in CHOICES[key]:
+            fail(" or ".join(CHOICES[key]))
         if not isinstance(value, str) or not value:
             fail("a name (text)")
     elif isinstance(default, list):
@@ -240,7 +243,9 @@ def _trajectory_plan(plan_name: str, robot: RobotDescription, params: dict, cell
 def campaign(robot: RobotDescription, params: dict, benches: int = 1, seed: int = 0) -> list[Plan]:
     """The random static-point campaign, its points dealt to ``benches`` plans (parallel twin benches, or
     sessions on one robot). Points are tip targets drawn uniformly in the workspace box, turned into joint
-    positions by the rigid IK (elbow up); pressures uniform in the range, payloads from the list."""
+    positions by the rigid IK (elbow up); pressures uniform in the range, payloads from the list. With
+    ``visit_order: reversed`` each bench visits the same points backwards: a repeat of the campaign that
+    reaches every point from another history (``analysis.floor`` compares the two)."""
     rng = np.random.default_rng(seed)
     n = int(params["points"])
     lo, hi = (np.asarray(params["workspace_mm"][k], float) * MM for k in ("min", "max"))
@@ -251,6 +256,7 @@ def campaign(robot: RobotDescription, params: dict, benches: int = 1, seed: int 
     payload = rng.choice(np.asarray(params["payloads_g"], float) * GRAM, size=n)
     plans = []
     for k, idx in enumerate(np.array_split(np.arange(n), min(benches, n))):
+        idx = idx[::-1] if params["visit_order"] == "reversed" else idx
         b = _builder(
             f"campaign/bench{k:03d}", robot, {"experiment": "campaign", "seed": seed, "points": len(idx)}
         )

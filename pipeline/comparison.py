@@ -1,0 +1,136 @@
+"""Every model of the arm on the same rows, beside the floor (issue 19's table).
+
+On one split's test part (by default ``split_group``: no session in two parts), forward and inverse, overall
+and per pressure × payload cell, the mean tip error (mm) of:
+- ``rigid``: the rigid model; ``grey box``: the PRBM with k(p) fitted to the training rows;
+- ``paper net``, ``residual net``, ``small residual net``: the hybrid networks (trained here, on the same
+  split);
+- ``gbr``: gradient boosting on the 7 inputs, and ``history``: the same with the points' history
+  (``pipeline.history``) — the pair shows what the history adds;
+- ``floor``: what no static map of (q, p, i) predicts, measured from the campaign's repeat
+  (``pipeline.floor``), when a repeat is given. An inverse model is scored at the tip (the rigid FK of its
+  command against that of the command that landed the tip), against the inverse floor (the joints it does
+  not read left in).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Callable
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from acquisition.storage import LabPath
+from models import kinematics
+from models.hybrid import FORWARD_TARGETS, INVERSE_TARGETS, preset
+from pipeline import baselines, metrics
+from pipeline.floor import repeat_floor
+from pipeline.history import HistoryModel, with_history
+from pipeline.train import HybridRegressor, TrainConfig
+
+log = logging.getLogger(__name__)
+
+DIRECTIONS = ("forward", "inverse")
+NETS = {"paper net": "paper", "residual net": "residual", "small residual net": "small-residual"}
+BASELINES = {
+    "rigid": lambda d: baselines.RigidModel(direction=d),
+    "grey box": lambda d: baselines.PrbmGreyBox(direction=d),
+    "gbr": lambda d: baselines.SklearnBaseline("gbr", direction=d),
+    "history": lambda d: HistoryModel(direction=d),
+}
+ALL = "all"  # the cell label of the whole test part
+UNMODELLED = Path("comparisons") / "unmodelled.json"  # the main job's comparison, under its lab
+
+
+def _errors_mm(direction: str, pred: np.ndarray, rows: pd.DataFrame, lengths) -> np.ndarray:
+    if direction == "forward":
+        return metrics.tip_errors(pred, rows[list(FORWARD_TARGETS)].to_numpy(float))
+    target = rows[list(INVERSE_TARGETS)].to_numpy(float)
+    return metrics.tip_errors(kinematics.vsl_fk(pred, lengths), kinematics.vsl_fk(target, lengths))
+
+
+def _records(model: str, direction: str, report: dict) -> list[dict]:
+    rows = [{"direction": direction, "model": model, "cell": ALL, "n": report["summary"]["n"],
+             "tip_mm_mean": report["summary"]["mean"]}]  # fmt: skip
+    for c in report["per_cell"]:
+        cell = f"{c['pressure_bin']} / {c['payload_g']} g"
+        rows.append({"direction": direction, "model": model, "cell": cell, "n": int(c["n"]),
+                     "tip_mm_mean": float(c["tip_mm_mean"])})  # fmt: skip
+    return rows
+
+
+def compare_models(data: pd.DataFrame, lengths: kinematics.ArmLengths, repeat: pd.DataFrame | None = None,
+                   split: str = "split_group", train: dict | None = None, seed: int = 0,
+                   say: Callable[[str], None] = log.info) -> pd.DataFrame:  # fmt: skip
+    """The comparison as long records: ``direction``, ``model``, ``cell`` (``"all"`` or ``"<pressure bin> /
+    <payload> g"``), ``n`` and ``tip_mm_mean``. ``train``: TrainConfig fields for the networks (e.g.
+    ``max_epochs``); ``repeat``: the campaign's repeat, for the floor."""
+    d = with_history(data)
+    rows = baselines.part_of(d, split, "train")
+    test = baselines.part_of(d, split, "test")
+    out = []
+
+    def add(name: str, direction: str, report: dict) -> None:
+        out.extend(_records(name, direction, report))
+        say(f"{direction} {name}: {report['summary']['mean']:.3f} mm")
+
+    for direction in DIRECTIONS:
+        for name, make in BASELINES.items():
+            pred = make(direction).fit(rows).predict(test)
+            add(name, direction, metrics.tip_report(_errors_mm(direction, pred, test, lengths), test))
+        for name, preset_name in NETS.items():
+            config = TrainConfig(preset(direction, preset_name), split=split, seed=seed, **(train or {}))
+            pred = HybridRegressor(config).fit(d).predict(test)
+            add(name, direction, metrics.tip_report(_errors_mm(direction, pred, test, lengths), test))
+        if repeat is not None:
+            add("floor", direction, repeat_floor(data, repeat, lengths, split, direction=direction))
+    return pd.DataFrame(out)
+
+
+def wide_tables(table: pd.DataFrame) -> dict[str, pd.DataFrame]:
+    """Per direction, the comparison as a table: the cells as rows (the whole test part first, then each
+    pressure × payload cell), ``n`` (the cell's test points) and the models as columns (mean tip error,
+    mm)."""
+    out = {}
+    for direction, rows in table.groupby("direction", sort=False):
+        models = list(dict.fromkeys(rows["model"]))
+        cells = [ALL, *[c for c in dict.fromkeys(rows["cell"]) if c != ALL]]
+        wide = rows.pivot(index="cell", columns="model", values="tip_mm_mean").loc[cells, models]
+        wide.insert(0, "n", rows.drop_duplicates("cell").set_index("cell")["n"].loc[cells])
+        wide.columns.name = None
+        out[str(direction)] = wide
+    return out
+
+
+def comparison_markdown(table: pd.DataFrame) -> str:
+    """:func:`wide_tables` as Markdown (mm, three decimals)."""
+    parts = []
+    for direction, wide in wide_tables(table).items():
+        lines = [
+            f"| {direction} | " + " | ".join(wide.columns) + " |",
+            "|" + "---|" * (len(wide.columns) + 1),
+        ]
+        for cell, row in wide.iterrows():
+            values = [str(int(row["n"])), *("" if np.isnan(v) else f"{v:.3f}" for v in row.iloc[1:])]
+            lines.append(f"| {cell} | " + " | ".join(values) + " |")
+        parts.append("\n".join(lines))
+    return "\n\n".join(parts) + "\n"
+
+
+def save_comparison(path: LabPath, table: pd.DataFrame, sources: dict[str, str], split: str) -> None:
+    """The comparison's card: what it was made from (``sources``: dataset versions), the split, when, and
+    its records (JSON)."""
+    card = {"sources": sources, "split": split, "created": datetime.now(UTC).isoformat(timespec="seconds"),
+            "records": table.to_dict("records")}  # fmt: skip
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(card, indent=1, allow_nan=True))
+
+
+def load_comparison(path: LabPath) -> tuple[pd.DataFrame, dict]:
+    """(records as a DataFrame, the card) of :func:`save_comparison`'s file."""
+    card = json.loads(path.read_text())
+    return pd.DataFrame(card["records"]), card
