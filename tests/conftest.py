@@ -108,21 +108,30 @@ def campaign_dataset(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def hard_campaigns(tmp_path_factory):
-    """The small campaign on the twin with its unmodelled effects on (vsl_unmodelled), built twice: as drawn
-    and its repeat (the same points, each bench backwards): (D, D of the repeat). ≈ 30 s once per run."""
+def hard_labs(tmp_path_factory):
+    """The small campaign on the twin with its unmodelled effects on (vsl_unmodelled), built twice, each in a
+    lab of its own: as drawn and its repeat (the same points, each bench backwards). {order: (lab, dataset
+    version)}; ≈ 30 s once per run."""
     from acquisition.plans.sim_runner import simulate_experiment
     from pipeline.build import build
-    from pipeline.datasets import load_dataset
 
-    out = []
+    out = {}
     for order in ("drawn", "reversed"):
         lab = tmp_path_factory.mktemp(f"hard-{order}")
         overrides = {"points": 600, "robot": "vsl_unmodelled", "visit_order": order}
         simulate_experiment("campaign", lab / "sessions", seed=11, benches=8, overrides=overrides)
-        report = build(sorted((lab / "sessions").iterdir()), lab, "campaign")
-        out.append(load_dataset(lab / "datasets", "campaign", report.version)[0])
-    return tuple(out)
+        out[order] = (lab, build(sorted((lab / "sessions").iterdir()), lab, "campaign").version)
+    return out
+
+
+@pytest.fixture(scope="session")
+def hard_campaigns(hard_labs):
+    """(D, D of the repeat) of :func:`hard_labs`."""
+    from pipeline.datasets import load_dataset
+
+    return tuple(
+        load_dataset(lab / "datasets", "campaign", version)[0] for lab, version in hard_labs.values()
+    )
 
 
 # The robot descriptions (frozen models): loaded once for the whole run.

@@ -3,9 +3,12 @@ campaign of the twin with its unmodelled effects (vsl_unmodelled) and its repeat
 
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pandas as pd
 import pytest
+from typer.testing import CliRunner
 
 from models import kinematics
 from models.robot import load_robot
@@ -19,6 +22,9 @@ from pipeline.comparison import (
 )
 from pipeline.floor import matched_points, repeat_floor
 from pipeline.history import HistoryModel, history_columns, with_history
+from vslab.cli import app
+
+runner = CliRunner()
 
 
 @pytest.fixture(scope="module")
@@ -136,3 +142,43 @@ def test_every_model_beside_the_floor(hard_campaigns, lengths, tmp_path):
     again, card = load_comparison(path)
     pd.testing.assert_frame_equal(again, table)
     assert card["sources"] == {"campaign": "v1"} and card["split"] == "split_group"
+
+
+def test_compare_models_command(hard_labs, hard_campaigns, tmp_path):
+    """`vslab compare-models DATASET --repeat REPEAT` in a lab holding a campaign and its repeat: the tables,
+    the card; and one `error:` line and exit 2 for what a user may get wrong."""
+    lab = tmp_path / "lab"
+    for name, (source, version) in zip(("campaign", "repeat"), hard_labs.values(), strict=True):
+        shutil.copytree(source / "datasets" / "campaign" / version, lab / "datasets" / name / version)
+    first, repeat = hard_campaigns
+    reversed_payloads = repeat["payload_kg"].to_numpy()[::-1]
+    for name, data in (
+        ("popup", first.assign(robot="popup")),
+        ("other", repeat.assign(payload_kg=reversed_payloads)),
+    ):
+        (lab / "datasets" / name / "v1").mkdir(parents=True)
+        shutil.copy(next((lab / "datasets" / "campaign").glob("*/card.json")), lab / "datasets" / name / "v1")
+        data.to_parquet(lab / "datasets" / name / "v1" / "data.parquet")
+    cli = ["--lab", str(lab), "--quiet", "compare-models"]
+    done = runner.invoke(app, [*cli, "campaign", "--repeat", "repeat", "--epochs", "1"])
+    assert done.exit_code == 0, done.output
+    assert done.output.count("| all |") == 2 and "floor" in done.output
+    (card,) = (lab / "comparisons").glob("campaign@*.json")
+    table, meta = load_comparison(card)
+    assert meta["sources"]["repeat"].startswith("repeat@") and set(table["model"]) >= {"floor", "history"}
+    (lab / "datasets" / "broken" / "v1").mkdir(parents=True)
+    (lab / "datasets" / "broken" / "v1" / "card.json").write_text("{not json")
+    cases = {
+        ("nosuch",): "DATASET nosuch: no dataset 'nosuch'",
+        ("campaign", "--repeat", "nosuch"): "--repeat nosuch: no dataset",
+        ("campaign", "--repeat", "campaign"): "is DATASET itself",
+        ("campaign", "--repeat", "other"): "not the same campaign",
+        ("popup",): "needs one VSL-type arm's campaign",
+        ("campaign", "--split", "split_x"): "--split 'split_x': expected one of",
+        ("campaign", "--epochs", "0"): "--epochs",
+        ("broken@v1",): "DATASET broken@v1: cannot be read",
+    }
+    for args, says in cases.items():
+        failed = runner.invoke(app, [*cli, *args])
+        assert failed.exit_code == 2 and says in failed.output, (args, failed.output)
+        assert "Traceback" not in failed.output and failed.output.count("error:") == 1

@@ -273,3 +273,79 @@ def models_export_mlflow(
             markup=False,
             soft_wrap=True,
         )
+
+
+_SPLITS = ("split_group", "split_random")
+
+
+@app.command("compare-models")
+def compare_models_command(
+    dataset: Annotated[
+        str, typer.Argument(help="A campaign dataset: NAME or NAME@VERSION (newest if none).")
+    ],
+    repeat: Annotated[
+        str | None,
+        typer.Option(
+            help="The same campaign run again from other histories (visit_order=reversed): the floor."
+        ),
+    ] = None,
+    split: Annotated[str, typer.Option(help="The split to score on: split_group or split_random.")] = _SPLITS[
+        0
+    ],
+    epochs: Annotated[
+        int, typer.Option(min=1, help="Most epochs the networks train (early stopping).")
+    ] = 300,
+    seed: Annotated[int, typer.Option(help="Seed of the networks' training.")] = 0,
+) -> None:
+    """Every model of the arm on one campaign's test rows, forward and inverse, overall and per pressure ×
+    payload cell: rigid, grey box, gradient boosting, history-aware, the paper, residual and small residual
+    networks (trained here), and the floor when --repeat gives the campaign's repeat. The card goes to
+    <lab>/comparisons/NAME@VERSION.json."""
+    from models import kinematics
+    from models.robot import AnthropomorphicKinematics, RobotDescriptionError, load_robot
+    from pipeline.comparison import compare_models, comparison_markdown, save_comparison
+    from pipeline.datasets import load_dataset
+
+    if split not in _SPLITS:
+        _error(f"--split {split!r}: expected one of {', '.join(_SPLITS)}")
+    loaded = {}
+    for option, reference in (("DATASET", dataset), ("--repeat", repeat)):
+        if reference is None:
+            continue
+        name, _, version = reference.partition("@")
+        try:
+            data, card = load_dataset(Settings.lab / "datasets", name, version or None)
+        except FileNotFoundError as exc:
+            _error(f"{option} {reference}: {exc} (build it first: `vslab build --name {name}`)")
+        except (OSError, ValueError) as exc:
+            _error(f"{option} {reference}: cannot be read ({type(exc).__name__}: {exc}); build it again")
+        loaded[option] = (data, f"{name}@{card['version']}")
+    data, source = loaded["DATASET"]
+    if "--repeat" in loaded and loaded["--repeat"][1] == source:
+        _error(f"--repeat {repeat}: is DATASET itself ({source}); the repeat is the campaign run again")
+    robots = sorted(set(data["robot"].astype(str))) if "robot" in data else []
+    try:
+        robot = load_robot(robots[0]) if len(robots) == 1 else None
+    except RobotDescriptionError as exc:
+        _error(f"DATASET {source}: {exc}")
+    if robot is None or not isinstance(robot.kinematics, AnthropomorphicKinematics):
+        _error(f"DATASET {source}: robot(s) {robots}: the comparison needs one VSL-type arm's campaign")
+    kin = robot.kinematics
+    lengths = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+    repeat_data = loaded["--repeat"][0] if "--repeat" in loaded else None
+    say = (
+        (lambda _: None)
+        if Settings.quiet
+        else (lambda line: console.print(line, highlight=False, markup=False))
+    )
+    try:
+        table = compare_models(data, lengths, repeat_data, split, {"max_epochs": epochs}, seed, say)
+    except (KeyError, ValueError) as exc:  # not a campaign, a repeat of another campaign, too few rows
+        _error(f"{source}: {exc}")
+    sources = {"dataset": source} | ({"repeat": loaded["--repeat"][1]} if "--repeat" in loaded else {})
+    sources["training"] = json.dumps({"max_epochs": epochs, "seed": seed})
+    path = Settings.lab / "comparisons" / f"{source}.json"
+    save_comparison(path, table, sources, split)
+    console.print(comparison_markdown(table), highlight=False, markup=False, soft_wrap=True)
+    if not Settings.quiet:
+        console.print(f"card: {path}", highlight=False, markup=False, soft_wrap=True)
