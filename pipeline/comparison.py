@@ -78,6 +78,9 @@ def compare_models(data: pd.DataFrame, lengths: kinematics.ArmLengths, repeat: p
         out.extend(_records(name, direction, report))
         say(f"{direction} {name}: {report['summary']['mean']:.3f} mm")
 
+    floors = {}  # first: a repeat that is not one fails before any model is fitted
+    if repeat is not None:
+        floors = {d: repeat_floor(data, repeat, lengths, split, direction=d) for d in DIRECTIONS}
     for direction in DIRECTIONS:
         for name, make in BASELINES.items():
             pred = make(direction).fit(rows).predict(test)
@@ -86,8 +89,8 @@ def compare_models(data: pd.DataFrame, lengths: kinematics.ArmLengths, repeat: p
             config = TrainConfig(preset(direction, preset_name), split=split, seed=seed, **(train or {}))
             pred = HybridRegressor(config).fit(d).predict(test)
             add(name, direction, metrics.tip_report(_errors_mm(direction, pred, test, lengths), test))
-        if repeat is not None:
-            add("floor", direction, repeat_floor(data, repeat, lengths, split, direction=direction))
+        if direction in floors:
+            add("floor", direction, floors[direction])
     return pd.DataFrame(out)
 
 

@@ -47,6 +47,12 @@ def matched_points(first: pd.DataFrame, repeat: pd.DataFrame) -> pd.DataFrame:
             f"{int((~same).sum())} of {len(both)} points differ in payload or commanded joints: the repeat "
             "is not the same campaign (run it with the same seed and points, visit_order: reversed)"
         )
+    tips = [list(FORWARD_TARGETS), [f"{c}_repeat" for c in FORWARD_TARGETS]]
+    if (unchanged := int((both[tips[0]].to_numpy() == both[tips[1]].to_numpy()).all(axis=1).sum())) > 0:
+        raise ValueError(
+            f"{unchanged} of {len(both)} points were measured exactly as in the first run: not reached from "
+            "another history (a session of one point is the same backwards); give each session several points"
+        )
     return both
 
 

@@ -66,6 +66,8 @@ def test_floor_refuses_datasets_that_are_not_a_repeat(hard_campaigns, campaign_d
         matched_points(first, changed)
     with pytest.raises(ValueError, match="a point appears twice"):
         matched_points(pd.concat([first, first]), repeat)
+    with pytest.raises(ValueError, match="measured exactly as in the first run"):
+        matched_points(first, first)  # the same sessions: nothing was reached from another history
     with pytest.raises(ValueError, match="share no campaign point"):
         matched_points(first, repeat.assign(point=repeat["point"] + 10_000))
     assert len(matched_points(first, other)) > 0  # ...and the same commands: a repeat on another twin

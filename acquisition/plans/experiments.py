@@ -256,10 +256,10 @@ def campaign(robot: RobotDescription, params: dict, benches: int = 1, seed: int 
     payload = rng.choice(np.asarray(params["payloads_g"], float) * GRAM, size=n)
     plans = []
     for k, idx in enumerate(np.array_split(np.arange(n), min(benches, n))):
-        idx = idx[::-1] if params["visit_order"] == "reversed" else idx
-        b = _builder(
-            f"campaign/bench{k:03d}", robot, {"experiment": "campaign", "seed": seed, "points": len(idx)}
-        )
+        reverse = params["visit_order"] == "reversed"
+        idx = idx[::-1] if reverse else idx
+        name = f"campaign/{'reversed/' if reverse else ''}bench{k:03d}"  # the repeat's sessions named apart
+        b = _builder(name, robot, {"experiment": "campaign", "seed": seed, "points": len(idx)})
         previous = q[idx[0]]
         for point in idx:
             b.pressure(pressure[point]).payload(payload[point]).goto(q[point], params["move_speed_rad_s"])
