@@ -99,6 +99,9 @@ def _unmodelled(lab: Path, res: Results) -> None:
     table, card = load_comparison(path)
     for direction, wide in wide_tables(table).items():
         res.tables[f"unmodelled effects: {direction} models"] = wide.round(3)
+    if card.get("experiment2"):
+        paths = pd.DataFrame(card["experiment2"]).drop(columns=["session"], errors="ignore")
+        res.tables["unmodelled effects: Experiment 2, distance to the desired path (mm)"] = paths.round(3)
     for name, version in card["sources"].items():
         res.versions[f"dataset {name}, vsl_unmodelled"] = version
 

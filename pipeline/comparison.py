@@ -124,11 +124,12 @@ def comparison_markdown(table: pd.DataFrame) -> str:
     return "\n\n".join(parts) + "\n"
 
 
-def save_comparison(path: LabPath, table: pd.DataFrame, sources: dict[str, str], split: str) -> None:
-    """The comparison's card: what it was made from (``sources``: dataset versions), the split, when, and
-    its records (JSON)."""
+def save_comparison(path: LabPath, table: pd.DataFrame, sources: dict[str, str], split: str,
+                    extra: dict[str, list[dict]] | None = None) -> None:  # fmt: skip
+    """The comparison's card: what it was made from (``sources``: dataset versions), the split, when, its
+    records, and ``extra`` tables as records (the main job adds its Experiment 2 on the same twin) (JSON)."""
     card = {"sources": sources, "split": split, "created": datetime.now(UTC).isoformat(timespec="seconds"),
-            "records": table.to_dict("records")}  # fmt: skip
+            "records": table.to_dict("records"), **(extra or {})}  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(card, indent=1, allow_nan=True))
 

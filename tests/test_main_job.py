@@ -36,6 +36,7 @@ def test_quick_main_job_makes_every_figure_and_the_report(tmp_path):
         "unmodelled effects: every model beside the floor",
     }  # fmt: skip
     assert "unmodelled effects: forward models" in page and "unmodelled effects: inverse models" in page
+    assert "unmodelled effects: Experiment 2" in page  # IK, static and hybrid commands on that twin
     # the rig's real-time session is in the lab, but not in Experiment 1's dataset
     sessions = tmp_path / "lab" / "sessions"
     rig = [d for d in lab_job.sessions_of(sessions, "experiment1") if d.name.startswith("rig-")]

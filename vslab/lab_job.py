@@ -8,7 +8,8 @@
 4. `vslab train`: the forward and inverse networks of the grid (existing versions skipped);
 5. Experiment 2 with the model-based, grey-box and hybrid (trained inverse) commands, and its dataset;
 6. the twin with its unmodelled effects (``vsl_unmodelled``): a campaign and its repeat in a lab of their own
-   (``<lab>/unmodelled``), and every model beside the floor on them (``<lab>/comparisons/unmodelled.json``);
+   (``<lab>/unmodelled``), every model beside the floor on them and Experiment 2 on that twin
+   (``<lab>/comparisons/unmodelled.json``);
 7. the figures and the report.
 Every step reuses what an earlier run left (complete sessions, cached stages, existing versions), so a second
 run is quick. Each step is timed; the report page says where everything came from.
@@ -186,4 +187,34 @@ def _unmodelled(lab: Path, seed: int, points: int, train: dict) -> None:
     kin = load_robot(robot).kinematics
     lengths = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
     table = compare_models(data["drawn"], lengths, data["reversed"], train=train, seed=seed)
-    save_comparison(path, table, versions, "split_group")
+    paths = _unmodelled_experiment2(
+        lab / "unmodelled", seed, data["drawn"], versions["campaign (drawn)"], train
+    )
+    save_comparison(path, table, versions, "split_group", {"experiment2": paths.to_dict("records")})
+
+
+def _unmodelled_experiment2(study: Path, seed: int, campaign, campaign_version: str, train: dict):
+    """Experiment 2 on the twin with its unmodelled effects: model-based IK, the grey box's static
+    compensation and the hybrid (a small residual inverse net trained on that twin's campaign) on the
+    paper's two cases, two repetitions; the path errors per session (``analysis.vsl_paths``)."""
+    from acquisition.plans.sim_runner import simulate_experiment
+    from analysis.vsl_paths import path_errors
+    from models.hybrid import preset
+    from models.robot import load_robot
+    from pipeline.build import build
+    from pipeline.datasets import load_dataset
+    from pipeline.in_loop import InverseModelCompensator
+    from pipeline.train import TrainConfig
+    from pipeline.train import train as train_net
+
+    robot = "vsl_unmodelled"
+    config = TrainConfig(preset("inverse", "small-residual"), seed=seed, **train)
+    hybrid = InverseModelCompensator(train_net(campaign, config).model, load_robot(robot))
+    overrides = {"robot": robot, "rigid_arm": False, "commands": ["ik", "static", "hybrid"], "repetitions": 2}
+    sessions = study / "experiment2" / "sessions"
+    simulate_experiment(
+        "experiment2", sessions, seed=seed, overrides=overrides, inverse_model=lambda _: hybrid
+    )
+    borrowed = {"register": {"from_dataset": f"campaign@{campaign_version}"}}
+    report = build(sessions_of(sessions, "experiment2"), study / "drawn", "experiment2", borrowed)
+    return path_errors(load_dataset(study / "drawn" / "datasets", "experiment2", report.version)[0])
