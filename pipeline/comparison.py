@@ -80,7 +80,7 @@ def compare_models(data: pd.DataFrame, lengths: kinematics.ArmLengths, repeat: p
 
     floors = {}  # first: a repeat that is not one fails before any model is fitted
     if repeat is not None:
-        floors = {d: repeat_floor(data, repeat, lengths, split, direction=d) for d in DIRECTIONS}
+        floors = {way: repeat_floor(data, repeat, lengths, split, direction=way) for way in DIRECTIONS}
     for direction in DIRECTIONS:
         for name, make in BASELINES.items():
             pred = make(direction).fit(rows).predict(test)
