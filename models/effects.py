@@ -13,6 +13,9 @@ PRBM the grey box shares its equations with, and a harder twin is a description 
 - ``creep``: a pressurised polymer link keeps bending for seconds to minutes after its load changes (Prony
   series: the bending tends to δ_el (1 + Σ aᵢ) with time constants τᵢ). Equal joint angles, pressures and
   currents then give different tips, by the load history: no static map can predict that.
+- ``hoses``: the pneumatic tubes and cables crossing a joint pull it toward where they hang slack, a torque
+  that depends on the pose. The drive holds it, so the joint's current no longer measures gravity and payload
+  alone (the grey box infers the payload from it) and its droop grows. A static map of (q, i) can learn it.
 
 The functions here are the pure parts the twin's sensors (``tracker_bias``) and kernel (``creep_rest``) use.
 """
@@ -57,11 +60,26 @@ class Creep(Part):
         return self
 
 
+class JointHoses(Part):
+    """The tubes and cables crossing one actuated joint: a torque −K (q − q_slack) on it."""
+
+    stiffness_nm_per_rad: PositiveFloat
+    slack_rad: float
+
+
+class Hoses(Part):
+    """Tubes and cables crossing the actuated joints pull each toward the angle where they hang slack. The
+    joint's drive holds that torque too: its current shows it and its droop grows with it. Keyed by joint."""
+
+    joints: dict[str, JointHoses] = Field(min_length=1)
+
+
 class EffectsSpec(Part):
     """The unmodelled effects a description switches on (a missing entry is off)."""
 
     tracker_distortion: TrackerDistortion | None = None
     creep: Creep | None = None
+    hoses: Hoses | None = None
 
     @property
     def active(self) -> list[str]:

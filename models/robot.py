@@ -403,6 +403,9 @@ class RobotDescription(Part):
                 raise ValueError(f"devices.{name}.link {dev.link!r} is not one of the links {link_names}")
             if DRIVER_ROLES.get(dev.driver) == "link" and (dev.link is None or self.sensors.flex is None):
                 raise ValueError(f"devices.{name}: a link board needs its link and a sensors.flex section")
+        hoses = self.effects.hoses
+        if hoses is not None and (unknown := sorted(set(hoses.joints) - {j.name for j in self.joints})):
+            raise ValueError(f"effects.hoses.joints {unknown} are not actuated joints of this robot")
         drives = {j.drive for j in self.joints}
         if drives & {"servo", "motor"} and self.servo is None:
             raise ValueError(

@@ -12,14 +12,17 @@ import numpy as np
 import pytest
 
 from acquisition.sim import streams
+from acquisition.sim.sensors import CURRENT_A_PER_COUNT
 from acquisition.sim.world import World
-from models.effects import Creep, EffectsSpec, TrackerDistortion, tracker_bias
+from models.effects import Creep, EffectsSpec, Hoses, JointHoses, TrackerDistortion, tracker_bias
 from models.robot import RobotDescriptionError, load_robot
 
 POSES = np.array([[-0.3, 0.5, -0.8], [0.0, 0.7, -1.2], [0.3, 0.9, -1.4], [0.2, 0.4, -0.5], [-0.2, 1.0, -1.7],
                   [0.1, 0.6, -0.6]])  # fmt: skip
 DISTORTION = TrackerDistortion(rms_m=0.0007, length_scale_m=0.05, seed=0)
 CREEP = Creep(fractions=(0.03, 0.05), time_constants_s=(2.0, 60.0))
+HOSES = Hoses(joints={"q2": JointHoses(stiffness_nm_per_rad=0.05, slack_rad=0.8),
+                      "q3": JointHoses(stiffness_nm_per_rad=0.05, slack_rad=-1.2)})  # fmt: skip
 
 
 def _vsl_with(**effects):
@@ -120,10 +123,34 @@ def test_creep_makes_the_tip_depend_on_the_load_history():
     np.testing.assert_allclose(joints["creep"], joints["none"], atol=1e-5)
 
 
+def test_hoses_pull_the_joints_by_their_pose():
+    """Tubes and cables across J2 and J3 pull each joint by −K (q − q_slack). At each pose, unloaded, the
+    servos' measured currents differ from the nominal twin's by the torque that holds it, K (q − q_slack) /
+    k_t (linear in the pose, zero where they hang slack), and the encoders show the joints giving way to the
+    pull by its torque over the servo's stiffness."""
+    currents, angles = {}, {}
+    for name, robot in (("hoses", _vsl_with(hoses=HOSES)), ("none", _vsl_with())):
+        world = World(robot, batch=len(POSES), seed=5, q0=POSES, pressure_pa=100000.0)
+        trace = world.run_for(3.0)
+        servo = world.read(trace)["servo_bus"]
+        late = servo["t_true"] > trace.t[-1] - 1.0
+        counts = [servo["current"][late & (servo["robot"] == b)].mean(axis=0) for b in range(len(POSES))]
+        currents[name] = np.array(counts) * CURRENT_A_PER_COUNT
+        angles[name] = trace.q[:, -1, 1:]
+    servo = load_robot("vsl").servo
+    slack = np.array([HOSES.joints[j].slack_rad for j in ("q2", "q3")])
+    pull = -0.05 * (angles["hoses"] - slack)  # N·m on J2, J3 at each pose; the servo holds −pull
+    held = currents["hoses"] - currents["none"]
+    np.testing.assert_allclose(held, -pull / servo.torque_constant_nm_per_a, atol=2e-3)  # the noise over 1 s
+    droop = angles["hoses"] - angles["none"]
+    np.testing.assert_allclose(droop, pull / servo.stiffness_nm_per_rad, atol=2.5e-4)  # ¼ of the play
+
+
 def test_descriptions_switch_effects_on_and_extend_others(tmp_path):
     robot = load_robot("vsl_unmodelled")
-    assert robot.effects.active == ["tracker_distortion", "creep"]
+    assert robot.effects.active == ["tracker_distortion", "creep", "hoses"]
     assert robot.effects.tracker_distortion == DISTORTION and robot.effects.creep == CREEP
+    assert robot.effects.hoses == HOSES
     nominal = load_robot("vsl")
     assert nominal.effects.active == []
     same = {"name", "description", "effects"}
@@ -131,7 +158,8 @@ def test_descriptions_switch_effects_on_and_extend_others(tmp_path):
     # a description says what differs from its base; mappings merge, other values replace
     (tmp_path / "soft.yaml").write_text("extends: vsl_unmodelled\nname: soft\neffects: {creep: null}\n")
     soft = load_robot(tmp_path / "soft.yaml")
-    assert soft.effects.active == ["tracker_distortion"] and soft.servo == nominal.servo
+    assert soft.effects.active == ["tracker_distortion", "hoses"] and soft.servo == nominal.servo
+    hose = "{stiffness_nm_per_rad: 1, slack_rad: 0}"
     cases = {
         "loop.yaml": ("extends: loop.yaml\n", "a cycle"),
         "unknown.yaml": ("extends: no_such_robot\n", "no such robot description"),
@@ -142,6 +170,8 @@ def test_descriptions_switch_effects_on_and_extend_others(tmp_path):
                        "time_constants_s has 2"),
         "rms.yaml": ("extends: vsl\neffects: {tracker_distortion: {rms_m: -1}}\n", "rms_m"),
         "typo.yaml": ("extends: vsl\neffects: {creeep: {}}\n", "creeep"),
+        "hose.yaml": (f"extends: vsl\neffects: {{hoses: {{joints: {{q7: {hose}}}}}}}\n",
+                      "are not actuated joints of this robot"),
     }  # fmt: skip
     for file, (text, says) in cases.items():
         (tmp_path / file).write_text(text)

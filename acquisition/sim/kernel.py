@@ -76,6 +76,8 @@ class KernelParams:
     leak_factor: float  # exp(−dt/τ_leak)
     creep_a: np.ndarray  # (E,) creep fractions aᵢ of the links' elastic bending (models.effects; E = 0: none)
     creep_alpha: np.ndarray  # (E,) 1 − exp(−dt/τᵢ)
+    hose_k: np.ndarray  # (A,) N·m/rad the tubes and cables across each actuated joint pull with (0: none)
+    hose_slack: np.ndarray  # (A,) rad where they hang slack
 
 
 @dataclass
@@ -151,7 +153,7 @@ def advance(params: KernelParams, state: KernelState, cmd: KernelCommands, n: in
         p.vj_tau_y, p.vj_radius, p.link_channel, p.table_n, p.table_p, p.table_k, p.table_c, p.drive_kind,
         p.drive_stiffness, p.drive_tau, p.drive_backlash_half, p.drive_quantum, p.drive_max_torque,
         p.drive_max_speed, p.reg_alpha, p.reg_max,
-        p.leak_factor, p.creep_a, p.creep_alpha,
+        p.leak_factor, p.creep_a, p.creep_alpha, p.hose_k, p.hose_slack,
         state.ref_pos, state.ref_vel, state.loop_pos, state.loop_vel, state.loop_acc, state.out_pos,
         state.out_vel, state.torque, state.delta, state.delta_dot, state.hyst_z, state.creep, state.vj_torque,
         state.reg_buf, state.buf_idx, state.reg_out, state.p_link,
@@ -257,7 +259,7 @@ def _advance(
     table_c,
     drive_kind, drive_stiffness, drive_tau, drive_backlash_half, drive_quantum, drive_max_torque,
     drive_max_speed, reg_alpha, reg_max,
-    leak_factor, creep_a, creep_alpha,
+    leak_factor, creep_a, creep_alpha, hose_k, hose_slack,
     ref_pos, ref_vel, loop_pos, loop_vel, loop_acc, out_pos, out_vel, torque, delta, delta_dot, hyst_z,
     creep, vj_torque, reg_buf, buf_idx, reg_out, p_link,
     goal, prof_vel, prof_acc, p_set, valve_open, payload,
@@ -294,6 +296,8 @@ def _advance(
                 j = row_var[i]
                 _joint_loads(frames, mass_frame, world_pos, mass_kg, mass_inertia, payload[b], gravity, i,
                              loads)  # fmt: skip
+                # the tubes and cables across the joint add their torque to gravity's
+                loads[0] -= hose_k[j] * (out_pos[b, j] - hose_slack[j])
                 prev_out = out_pos[b, j]
                 prev_ref_vel = ref_vel[b, j]
                 # "unlimited" (0) profiles mean what the motor can do: its top speed, and the acceleration

@@ -62,6 +62,7 @@ def build_params(robot: RobotDescription, dt: float = DEFAULT_DT) -> kernel.Kern
     servo, stepper, pn = robot.servo, robot.stepper, robot.pneumatics
     is_stepper = np.array([drives[a] == "stepper" for a in actuated])
     creep = robot.effects.creep
+    hoses = robot.effects.hoses.joints if robot.effects.hoses else {}
     return kernel.KernelParams(
         dt=dt,
         gravity=np.array(robot.gravity_m_s2, dtype=float),
@@ -101,6 +102,8 @@ def build_params(robot: RobotDescription, dt: float = DEFAULT_DT) -> kernel.Kern
         leak_factor=math.exp(-dt / pn.leak_time_constant_s),
         creep_a=np.array(creep.fractions if creep else (), dtype=float),
         creep_alpha=np.array([-math.expm1(-dt / tc) for tc in (creep.time_constants_s if creep else ())]),
+        hose_k=np.array([hoses[a].stiffness_nm_per_rad if a in hoses else 0.0 for a in actuated]),
+        hose_slack=np.array([hoses[a].slack_rad if a in hoses else 0.0 for a in actuated]),
     )
 
 
