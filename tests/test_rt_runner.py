@@ -87,7 +87,7 @@ def test_plan_runs_on_the_rig_and_is_recorded_as_sent(host_factory, tmp_path, vs
     np.testing.assert_allclose((data[T.SERVO_GOAL].log_time - start) / 1e9, expected, atol=0.05)
 
 
-def test_watchdog_stops_the_plan_and_holds_the_arm(host_factory, tmp_path, vsl, monkeypatch):
+def test_watchdog_stops_the_plan_and_holds_the_arm(host_factory, tmp_path, vsl, monkeypatch, real_time):
     """The tip leaves a (tightened) workspace box while the plan runs: SAFETY_STOP, the servos hold where they
     are (the plan's later goals are never sent), and the session closes complete."""
     plan = _plan("test/rt-stop")
@@ -105,6 +105,7 @@ def test_watchdog_stops_the_plan_and_holds_the_arm(host_factory, tmp_path, vsl, 
     stops = [(t, e) for t, e in read_events(part) if e.kind == EventKind.SAFETY_STOP]
     assert len(stops) == 1 and stops[0][1].label == "workspace"
     assert len(data[T.SERVO_GOAL]) < len(plan.goal_t)
+    real_time()  # a runner the hypervisor stopped holds late: a fresh clone's J2 still moved 28 mrad 0.5 s on
     servo = data[T.SERVO_STATE]
     after = servo.log_time > stops[0][0] + 0.5e9
     held = servo.rows["position"][after]
