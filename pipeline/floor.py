@@ -21,8 +21,7 @@ import pandas as pd
 from models import kinematics
 from models.hybrid import FORWARD_TARGETS
 from pipeline import metrics
-
-MEASURED_Q = ("q_0", "q_1", "q_2")
+from pipeline.baselines import MEASURED_Q
 
 
 def matched_points(first: pd.DataFrame, repeat: pd.DataFrame) -> pd.DataFrame:

@@ -25,9 +25,12 @@ TIME_CONSTANTS_S = (10.0, 60.0)
 PREFIX = "hist_"
 
 
-def history_columns(lags: int = LAGS, time_constants_s: tuple[float, ...] = TIME_CONSTANTS_S) -> list[str]:
-    """The names :func:`with_history` adds, in order."""
-    sources = dict.fromkeys([*FORWARD_INPUTS, *INVERSE_INPUTS])
+SOURCES = tuple(dict.fromkeys([*FORWARD_INPUTS, *INVERSE_INPUTS]))  # every input column, forward and inverse
+
+
+def history_columns(lags: int = LAGS, time_constants_s: tuple[float, ...] = TIME_CONSTANTS_S,
+                    sources: tuple[str, ...] = SOURCES) -> list[str]:  # fmt: skip
+    """The names :func:`with_history` adds for ``sources`` (by default all it adds), in order."""
     names = [f"{PREFIX}dt_s"]
     for c in sources:
         names += [f"{PREFIX}{c}_step"]
@@ -43,7 +46,7 @@ def with_history(d: pd.DataFrame, lags: int = LAGS,
     its value ``k`` points before (k = 1 … ``lags``; the first point's own value where there is none)
     and its exponentially weighted mean over the points before (weight e^(−Δt/τ) per second of age; the first
     point's own value to start), and ``hist_dt_s``, the seconds since the previous point (0 for the first)."""
-    sources = list(dict.fromkeys([*FORWARD_INPUTS, *INVERSE_INPUTS]))
+    sources = list(SOURCES)
     sessions, times, values = d["session"].to_numpy(), d["t"].to_numpy(float), d[sources].to_numpy(float)
     out = np.empty((len(d), len(history_columns(lags, time_constants_s))))
     for session in pd.unique(sessions):
@@ -80,8 +83,7 @@ class HistoryModel(SklearnBaseline):
 
     def _features(self, df: pd.DataFrame) -> np.ndarray:
         # the history of its own direction's inputs (an inverse input, the rigid IK, is NaN out of reach)
-        names = [c for c in history_columns() if c == f"{PREFIX}dt_s" or c[len(PREFIX) :].rsplit("_", 1)[0] in
-                 self.inputs]  # fmt: skip
+        names = history_columns(sources=tuple(c for c in SOURCES if c in self.inputs))
         if missing := [c for c in names if c not in df]:
             raise ValueError(
                 f"HistoryModel needs the history columns of pipeline.history.with_history (missing "

@@ -165,8 +165,8 @@ def _unmodelled(lab: Path, seed: int, points: int, train: dict) -> None:
     """Issue 19: the campaign on the twin with its unmodelled effects on and the same campaign again from
     other histories (each bench backwards), built in ``<lab>/unmodelled/{drawn,reversed}``; the comparison
     of every model with the floor on them (grouped split) is written unless one of these datasets has it."""
+    from acquisition.plans.experiments import arm_lengths
     from acquisition.plans.sim_runner import simulate_experiment
-    from models import kinematics
     from models.robot import load_robot
     from pipeline.build import build
     from pipeline.comparison import UNMODELLED, compare_models, load_comparison, save_comparison
@@ -184,8 +184,7 @@ def _unmodelled(lab: Path, seed: int, points: int, train: dict) -> None:
     path = lab / UNMODELLED
     if path.exists() and load_comparison(path)[1]["sources"] == versions:
         return
-    kin = load_robot(robot).kinematics
-    lengths = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+    lengths = arm_lengths(load_robot(robot))
     table = compare_models(data["drawn"], lengths, data["reversed"], train=train, seed=seed)
     paths = _unmodelled_experiment2(
         lab / "unmodelled", seed, data["drawn"], versions["campaign (drawn)"], train

@@ -301,7 +301,7 @@ def compare_models_command(
     payload cell: rigid, grey box, gradient boosting, history-aware, the paper, residual and small residual
     networks (trained here), and the floor when --repeat gives the campaign's repeat. The card goes to
     <lab>/comparisons/NAME@VERSION.json."""
-    from models import kinematics
+    from acquisition.plans.experiments import arm_lengths
     from models.robot import AnthropomorphicKinematics, RobotDescriptionError, load_robot
     from pipeline.comparison import compare_models, comparison_markdown, save_comparison
     from pipeline.datasets import load_dataset
@@ -330,8 +330,7 @@ def compare_models_command(
         _error(f"DATASET {source}: {exc}")
     if robot is None or not isinstance(robot.kinematics, AnthropomorphicKinematics):
         _error(f"DATASET {source}: robot(s) {robots}: the comparison needs one VSL-type arm's campaign")
-    kin = robot.kinematics
-    lengths = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+    lengths = arm_lengths(robot)
     repeat_data = loaded["--repeat"][0] if "--repeat" in loaded else None
     say = (
         (lambda _: None)

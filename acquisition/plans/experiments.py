@@ -245,7 +245,7 @@ def campaign(robot: RobotDescription, params: dict, benches: int = 1, seed: int 
     sessions on one robot). Points are tip targets drawn uniformly in the workspace box, turned into joint
     positions by the rigid IK (elbow up); pressures uniform in the range, payloads from the list. With
     ``visit_order: reversed`` each bench visits the same points backwards: a repeat of the campaign that
-    reaches every point from another history (``analysis.floor`` compares the two)."""
+    reaches every point from another history (``pipeline.floor`` compares the two)."""
     rng = np.random.default_rng(seed)
     n = int(params["points"])
     lo, hi = (np.asarray(params["workspace_mm"][k], float) * MM for k in ("min", "max"))
