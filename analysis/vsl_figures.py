@@ -25,7 +25,8 @@ MM = 1e3
 XZ = [0, 2]
 COLORS = {"servo": "tab:blue", "rigid": "tab:red", 0.5: "tab:green", 1.0: "tab:purple", 1.5: "goldenrod",
           2.0: "tab:orange", "ik": "tab:green", "hybrid": "tab:red", "static": "tab:blue",
-          "model": "tab:green", "actual": "tab:blue", "forward": "tab:purple"}  # fmt: skip
+          "history": "tab:brown", "model": "tab:green", "actual": "tab:blue",
+          "forward": "tab:purple"}  # fmt: skip
 FIG5_LABELS = {"servo": "servo (FK of encoders)", "rigid": "rigid arm"}
 FIG6_CASES = ((25, 1.5), (75, 0.5))  # seed 000 Fig. 6: (payload g, pressure bar), left and right
 

@@ -18,7 +18,8 @@ from models.robot import AnthropomorphicKinematics, load_robot
 
 X, FK, QC = ["x_0", "x_1", "x_2"], ["fk_0", "fk_1", "fk_2"], ["qc_0", "qc_1", "qc_2"]
 N_RESAMPLE = 200
-MODE_LABELS = {"ik": "model-based IK", "hybrid": "hybrid inverse", "static": "static comp."}
+MODE_LABELS = {"ik": "model-based IK", "hybrid": "hybrid inverse", "static": "static comp.",
+               "history": "history-aware hybrid"}  # fmt: skip
 
 
 @lru_cache(maxsize=8)

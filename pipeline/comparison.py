@@ -65,10 +65,12 @@ def _records(model: str, direction: str, report: dict) -> list[dict]:
 
 def compare_models(data: pd.DataFrame, lengths: kinematics.ArmLengths, repeat: pd.DataFrame | None = None,
                    split: str = "split_group", train: dict | None = None, seed: int = 0,
-                   say: Callable[[str], None] = log.info) -> pd.DataFrame:  # fmt: skip
+                   say: Callable[[str], None] = log.info,
+                   nets: dict[tuple[str, str], HybridRegressor] | None = None) -> pd.DataFrame:  # fmt: skip
     """The comparison as long records: ``direction``, ``model``, ``cell`` (``"all"`` or ``"<pressure bin> /
     <payload> g"``), ``n`` and ``tip_mm_mean``. ``train``: TrainConfig fields for the networks (e.g.
-    ``max_epochs``); ``repeat``: the campaign's repeat, for the floor."""
+    ``max_epochs``); ``repeat``: the campaign's repeat, for the floor; ``nets``: given a dict, the trained
+    networks go in it by (direction, model) (for :func:`register_compared`)."""
     d = with_history(data)
     rows = baselines.part_of(d, split, "train")
     test = baselines.part_of(d, split, "test")
@@ -87,7 +89,10 @@ def compare_models(data: pd.DataFrame, lengths: kinematics.ArmLengths, repeat: p
             add(name, direction, metrics.tip_report(_errors_mm(direction, pred, test, lengths), test))
         for name, preset_name in NETS.items():
             config = TrainConfig(preset(direction, preset_name), split=split, seed=seed, **(train or {}))
-            pred = HybridRegressor(config).fit(d).predict(test)
+            net = HybridRegressor(config).fit(d)
+            if nets is not None:
+                nets[(direction, name)] = net
+            pred = net.predict(test)
             add(name, direction, metrics.tip_report(_errors_mm(direction, pred, test, lengths), test))
         if direction in floors:
             add("floor", direction, floors[direction])
@@ -122,6 +127,33 @@ def comparison_markdown(table: pd.DataFrame) -> str:
             lines.append(f"| {cell} | " + " | ".join(values) + " |")
         parts.append("\n".join(lines))
     return "\n\n".join(parts) + "\n"
+
+
+def register_compared(models_root: Path, data: pd.DataFrame, dataset: dict[str, str], table: pd.DataFrame,
+                      nets: dict[tuple[str, str], HybridRegressor],
+                      sources: dict[str, str]) -> list[Path]:  # fmt: skip
+    """Put the networks of a comparison (``compare_models(..., nets=…)``, trained on ``data``, the dataset
+    ``dataset`` = {name, version}) in the registry at ``models_root``, each card carrying the comparison of
+    its direction (``comparison``: the split, the ``sources``, the model's own row name and every record:
+    the other models and the floor). The version is the training's plus the comparison's sources, so the
+    same training outside a comparison stays another version; one already registered stays as it is. Returns
+    the version directories."""
+    from pipeline.registry import model_version, save_model
+    from pipeline.train import evaluate, model_card
+
+    out = []
+    for (direction, model), net in nets.items():
+        config = net.config
+        name = f"{direction}-{config.net.name}"
+        version = model_version(dataset["version"], config, comparison=json.dumps(sources, sort_keys=True))
+        records = table[table["direction"] == direction].to_dict("records")
+        card = model_card(net.history_, dataset, evaluate(net.net_, data, config.split, "test"), net.threads)
+        card["comparison"] = {"split": config.split, "sources": sources, "model": model, "records": records}
+        try:
+            out.append(save_model(models_root, name, version, net.net_, card))
+        except FileExistsError:
+            out.append(Path(models_root) / name / version)
+    return out
 
 
 def save_comparison(path: LabPath, table: pd.DataFrame, sources: dict[str, str], split: str,

@@ -222,7 +222,7 @@ def _summary(job: dict, card: dict, status: str) -> dict:
 def train_job(job: dict, lab: str, threads: int = 1) -> dict:
     """Train, evaluate (test part of the job's split) and save one job (top-level: any executor runs it)."""
     from pipeline.datasets import load_dataset
-    from pipeline.train import evaluate, train
+    from pipeline.train import evaluate, model_card, train
 
     root = lab_path(lab) / "models"
     existing = root / job["name"] / job["version"]
@@ -231,17 +231,7 @@ def train_job(job: dict, lab: str, threads: int = 1) -> dict:
     data, _ = load_dataset(lab_path(lab) / "datasets", job["dataset"]["name"], job["dataset"]["version"])
     config = TrainConfig.from_dict(job["config"])
     result = train(data, config, threads=threads, device="cpu")
-    metrics = evaluate(result.model, data, config.split, "test")
-    losses = zip(result.train_loss, result.val_loss, result.val_error_mm, strict=True)
-    curves = [
-        {"epoch": k, "train_loss": a, "val_loss": b, "val_error_mm": c} for k, (a, b, c) in enumerate(losses)
-    ]
-    card = {
-        "dataset": job["dataset"], "train_config": config.to_dict(), "seed": config.seed,
-        "metrics": metrics, "curves": curves, "best_epoch": result.best_epoch,
-        "train_time_s": result.train_time_s, "epoch_time_s": result.epoch_time_s, "threads": threads,
-        "n_train": result.n_train, "n_val": result.n_val,
-    }  # fmt: skip
+    card = model_card(result, job["dataset"], evaluate(result.model, data, config.split, "test"), threads)
     try:
         save_model(root, job["name"], job["version"], result.model, card)
     except FileExistsError:  # another worker finished the same version first: keep theirs

@@ -80,10 +80,13 @@ class ModelIntegrityError(PipelineError, ValueError):
         return f"{self.file}: {self.problem}"
 
 
-def model_version(dataset_version: str, config) -> str:
-    """The version id of a model of ``dataset_version`` trained with ``config`` (TrainConfig or its dict)."""
+def model_version(dataset_version: str, config, **context: str) -> str:
+    """The version id of a model of ``dataset_version`` trained with ``config`` (TrainConfig or its dict);
+    ``context`` (e.g. the comparison it was trained for, whose table its card carries) makes it another
+    version of the same training."""
     cfg = config if isinstance(config, dict) else config.to_dict()
-    return digest({"dataset": dataset_version, "config": cfg, "code": stage_version("model")})[:16]
+    what = {"dataset": dataset_version, "config": cfg, "code": stage_version("model")}
+    return digest(what | ({"context": context} if context else {}))[:16]
 
 
 def save_model(root: Path, name: str, version: str, model: HybridNet, card: dict) -> Path:

@@ -223,6 +223,22 @@ def train(
     return HybridRegressor(config, threads, device).fit(data).history_
 
 
+def model_card(result: TrainResult, dataset: dict, metrics: dict, threads: int | None) -> dict:
+    """What a registered net's card says of its training (``registry.save_model`` adds its name, version,
+    files and hashes): the dataset (name, version), the config, the test ``metrics``, the learning curves,
+    timings and sizes."""
+    losses = zip(result.train_loss, result.val_loss, result.val_error_mm, strict=True)
+    curves = [
+        {"epoch": k, "train_loss": a, "val_loss": b, "val_error_mm": c} for k, (a, b, c) in enumerate(losses)
+    ]
+    return {
+        "dataset": dataset, "train_config": result.config.to_dict(), "seed": result.config.seed,
+        "metrics": metrics, "curves": curves, "best_epoch": result.best_epoch,
+        "train_time_s": result.train_time_s, "epoch_time_s": result.epoch_time_s, "threads": threads,
+        "n_train": result.n_train, "n_val": result.n_val,
+    }  # fmt: skip
+
+
 def _summary(err: np.ndarray, prefix: str, unit: str) -> dict[str, float]:
     if len(err) == 0:
         return {f"{prefix}_{s}_{unit}": float("nan") for s in ("mean", "median", "p95", "max")}

@@ -337,6 +337,14 @@ def test_an_unsafe_plan_is_refused_before_anything_starts(tmp_path, inputs, wher
         (["record"], "say where the devices are"),
         (["run", "experiment1", "--plan", "99999", "--rig"], "experiment1 has no plan '99999'"),
         (["run", "experiment2", "--plan", "2", "--rig"], "hybrid commands need a trained inverse model"),
+        (
+            ["simulate", "experiment2", "--set", "commands=[ik, history]"],
+            "history commands need a history-aware",
+        ),
+        (
+            ["run", "experiment2", "--plan", "0", "--set", "commands=[history]", "--rig"],
+            "history commands need a history-aware",
+        ),
         (["simulate", "campaign", "--benches", "0"], "--benches must be ≥ 1"),
         (["simulate", "campaign", "--seed", "-1"], "--seed ≥ 0"),
         (["simulate", "campaign", "--benches", "many"], "Invalid value for '--benches'"),

@@ -98,6 +98,11 @@ def test_experiment2_static_compensation_beats_model_based_ik(vsl, tmp_path):
 def test_hybrid_commands_need_an_inverse_model(tmp_path):
     with pytest.raises(ValueError, match="inverse model"):
         simulate_experiment("experiment2", tmp_path, overrides={"repetitions": 1})
+    with pytest.raises(ValueError, match="history commands need a trained inverse model"):
+        simulate_experiment(
+            "experiment2", tmp_path, overrides={"repetitions": 1, "commands": ["ik", "history"]}
+        )
+    assert not any(tmp_path.iterdir())
 
 
 def test_unsafe_plans_do_not_run_and_the_watchdog_stops_a_bench(vsl, tmp_path, monkeypatch):

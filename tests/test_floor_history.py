@@ -21,7 +21,9 @@ from pipeline.comparison import (
     wide_tables,
 )
 from pipeline.floor import matched_points, repeat_floor
-from pipeline.history import HistoryModel, history_columns, with_history
+from pipeline.history import PATHS, HistoryModel, history_columns, set_point_ends, with_history
+from pipeline.in_loop import InverseModelCompensator
+from pipeline.registry import load_card
 from vslab.cli import app
 
 runner = CliRunner()
@@ -115,6 +117,36 @@ def test_history_model_learns_what_the_approach_leaves(hard_campaigns, lengths):
         HistoryModel().fit(B.part_of(first, "split_group", "train"))
 
 
+def test_the_loop_keeps_the_history_its_model_learned_from(hard_campaigns):
+    """In the control loop the history-aware compensator computes each set-point's history itself, call by
+    call: fed a recorded session's rows with their times, it gives what the model gives on the rows with
+    ``with_history`` (the same features, the same commands), and it needs each set-point's time."""
+    first, _ = hard_campaigns
+    model = HistoryModel("inverse", PATHS, max_iter=20).fit(with_history(first, PATHS))
+    session = first[first["session"] == first["session"].iloc[0]].sort_values("t").iloc[:40]
+    rows = session.dropna(subset=["ik_0", "ik_1", "ik_2"])
+    compensator = InverseModelCompensator(model, load_robot("vsl_unmodelled"))
+    ik, pressures = rows[["ik_0", "ik_1", "ik_2"]].to_numpy(), rows[["p_0", "p_1"]].to_numpy()
+    currents = np.c_[np.zeros(len(rows)), rows[["i_0", "i_1"]].to_numpy()]  # J1 is the stepper: no current
+    in_loop = np.vstack([
+        compensator(q, p, i, t_s=t) for q, p, i, t in zip(ik, pressures, currents, rows["t"], strict=True)
+    ])  # fmt: skip
+    np.testing.assert_allclose(in_loop, model.predict(with_history(rows, PATHS)), rtol=0, atol=1e-12)
+    assert np.abs(in_loop - ik).max() > 1e-4  # it corrects
+    assert compensator.latency_us()["calls"] == len(rows)
+    with pytest.raises(ValueError, match="needs each set-point's time"):
+        InverseModelCompensator(model, load_robot("vsl_unmodelled"))(in_loop[:1], pressures[:1], currents[:1])
+
+
+def test_a_path_is_learned_at_its_set_points_ends():
+    """Per session, the last frame under each command before the next one (in time, whatever the order)."""
+    qc = [0.1, 0.1, 0.1, 0.2, 0.2, 0.3, 0.1, 0.1, 0.2]  # the last two sessions' first commands equal
+    d = pd.DataFrame({"session": ["a"] * 6 + ["b"] * 3, "t": [0, 1, 2, 3, 4, 5, 0, 1, 2],
+                      "qc_0": qc, "qc_1": 0.0, "qc_2": 0.0, "x": range(9)})  # fmt: skip
+    ends = set_point_ends(d.sample(frac=1.0, random_state=1))
+    assert ends["x"].tolist() == [2, 4, 5, 7, 8]
+
+
 def test_every_model_beside_the_floor(hard_campaigns, lengths, tmp_path):
     """The comparison table (networks trained for two epochs only: the table's form, not its numbers): every
     model and the floor, forward and inverse, overall and per cell, saved and read back as a card."""
@@ -175,6 +207,17 @@ def test_compare_models_command(hard_labs, hard_campaigns, tmp_path):
     (card,) = (lab / "comparisons").glob("campaign@*.json")
     table, meta = load_comparison(card)
     assert meta["sources"]["repeat"].startswith("repeat@") and set(table["model"]) >= {"floor", "history"}
+    # the networks it trained are registered, each card carrying its direction's table beside the floor
+    assert len(meta["models"]) == 6  # three networks, forward and inverse
+    for model in meta["models"]:
+        compared = load_card(lab / "models" / model["name"] / model["version"])["comparison"]
+        direction = model["name"].split("-")[0]
+        assert {r["direction"] for r in compared["records"]} == {direction}
+        assert {"floor", "grey box", "history", compared["model"]} <= {
+            r["model"] for r in compared["records"]
+        }
+    shown = runner.invoke(app, ["--lab", str(lab), "models", "show", meta["models"][0]["version"]])
+    assert shown.exit_code == 0 and "compared on split_group" in shown.output and "floor" in shown.output
     (lab / "datasets" / "broken" / "v1").mkdir(parents=True)
     (lab / "datasets" / "broken" / "v1" / "card.json").write_text("{not json")
     cases = {

@@ -36,7 +36,20 @@ def test_quick_main_job_makes_every_figure_and_the_report(tmp_path):
         "unmodelled effects: every model beside the floor",
     }  # fmt: skip
     assert "unmodelled effects: forward models" in page and "unmodelled effects: inverse models" in page
-    assert "unmodelled effects: Experiment 2" in page  # IK, static and hybrid commands on that twin
+    assert "unmodelled effects: Experiment 2" in page
+    # on that twin: IK, static, the hybrid and the history-aware hybrid along the paper's two cases, and the
+    # networks of the comparison registered with the table in their cards
+    from pipeline.comparison import UNMODELLED, load_comparison
+    from pipeline.registry import load_card
+
+    _, card = load_comparison(tmp_path / "lab" / UNMODELLED)
+    paths = {(r["mode"], r["pressure_bar"]): r["mean_mm"] for r in card["experiment2"]}
+    assert set(paths) == {(m, b) for m in ("ik", "static", "hybrid", "history") for b in (0.5, 1.5)}
+    assert all(0 < e < 20 for e in paths.values()), paths
+    assert all(paths["history", b] < paths["ik", b] for b in (0.5, 1.5)), paths
+    assert len(card["models"]) == 6
+    models = tmp_path / "lab" / "unmodelled" / "drawn" / "models"
+    assert all("comparison" in load_card(models / m["name"] / m["version"]) for m in card["models"])
     # the rig's real-time session is in the lab, but not in Experiment 1's dataset
     sessions = tmp_path / "lab" / "sessions"
     rig = [d for d in lab_job.sessions_of(sessions, "experiment1") if d.name.startswith("rig-")]

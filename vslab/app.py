@@ -210,6 +210,13 @@ def _overrides(pairs: list[str]) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------ models
+HISTORY_NOT_REGISTERED = (
+    "history commands need a history-aware inverse model, which the model registry does not keep (it keeps "
+    "networks): the main job trains one in process (`vslab demo`); run without them: "
+    "--set 'commands=[ik,static,hybrid]'"
+)
+
+
 def load_inverse_model(version: str, lab: Path | None = None):
     """The registered inverse network ``version`` of ``lab`` (default: the CLI's) as the control loop runs
     it: its ONNX export on ONNX Runtime (``predict``), every file checked against its card first. An

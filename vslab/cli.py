@@ -19,6 +19,7 @@ from vslab import (
     sessions_cmds,  # noqa: F401  (registers sessions on the app)
 )
 from vslab.app import (
+    HISTORY_NOT_REGISTERED,
     Settings,
     _error,
     _fail,
@@ -188,6 +189,8 @@ def simulate(
     if benches < 1 or seed < 0:
         _error(f"--benches must be ≥ 1 and --seed ≥ 0, got --benches {benches} --seed {seed}")
     overrides = _overrides(set_ or [])
+    if "history" in str(overrides.get("commands", "")):
+        _error(HISTORY_NOT_REGISTERED)
     model = None if inverse_model is None else load_inverse_model(inverse_model)  # checked before any run
     start = time.perf_counter()
     sessions_dir = Settings.lab / "sessions"

@@ -8,8 +8,9 @@
 4. `vslab train`: the forward and inverse networks of the grid (existing versions skipped);
 5. Experiment 2 with the model-based, grey-box and hybrid (trained inverse) commands, and its dataset;
 6. the twin with its unmodelled effects (``vsl_unmodelled``): a campaign and its repeat in a lab of their own
-   (``<lab>/unmodelled``), every model beside the floor on them and Experiment 2 on that twin
-   (``<lab>/comparisons/unmodelled.json``);
+   (``<lab>/unmodelled``), every model beside the floor on them (the networks registered there, their cards
+   carrying the table), Experiment 1 on that twin (the paths the history-aware hybrid learns from) and
+   Experiment 2 on it (``<lab>/comparisons/unmodelled.json``);
 7. the figures and the report.
 Every step reuses what an earlier run left (complete sessions, cached stages, existing versions), so a second
 run is quick. Each step is timed; the report page says where everything came from.
@@ -28,10 +29,13 @@ from vslab.app import CommandLineError
 
 log = logging.getLogger(__name__)
 
+UNMODELLED_ROBOT = "vsl_unmodelled"  # the twin with its unmodelled effects (issue 19)
 QUICK = {"campaign": {"points": 4000}, "experiment1": {"repetitions": 3}}  # --quick: a smaller lab
 # the campaign on the twin with its unmodelled effects and its repeat; --quick: fewer points, shorter training
-STUDY = {"points": 3000, "train": {}}
-STUDY_QUICK = {"points": 600, "train": {"max_epochs": 30}}
+# and Experiment 1 on the same twin (the paths the history-aware hybrid learns from)
+STUDY = {"points": 3000, "train": {}, "paths": {"repetitions": 2}}
+STUDY_QUICK = {"points": 600, "train": {"max_epochs": 30},
+               "paths": {"repetitions": 1, "payloads_g": [25, 75], "pressures_bar": [0.5, 1.5]}}  # fmt: skip
 
 
 def run(lab: Path, seed: int = 0, quick: bool = False, say: Callable[[str], None] = print,
@@ -161,7 +165,7 @@ def _experiment2(lab: Path, sessions: Path, inverse_version: str, seed: int, bor
     return build(sessions_of(sessions, "experiment2"), lab, "experiment2", borrowed)
 
 
-def _unmodelled(lab: Path, seed: int, points: int, train: dict) -> None:
+def _unmodelled(lab: Path, seed: int, points: int, train: dict, paths: dict) -> None:
     """Issue 19: the campaign on the twin with its unmodelled effects on and the same campaign again from
     other histories (each bench backwards), built in ``<lab>/unmodelled/{drawn,reversed}``; the comparison
     of every model with the floor on them (grouped split) is written unless one of these datasets has it."""
@@ -169,11 +173,18 @@ def _unmodelled(lab: Path, seed: int, points: int, train: dict) -> None:
     from acquisition.plans.sim_runner import simulate_experiment
     from models.robot import load_robot
     from pipeline.build import build
-    from pipeline.comparison import UNMODELLED, compare_models, load_comparison, save_comparison
+    from pipeline.comparison import (
+        UNMODELLED,
+        compare_models,
+        load_comparison,
+        register_compared,
+        save_comparison,
+    )
     from pipeline.datasets import load_dataset
 
-    robot = "vsl_unmodelled"
-    versions, data = {"training": json.dumps(train, sort_keys=True)}, {}
+    robot = UNMODELLED_ROBOT
+    versions = {"training": json.dumps(train, sort_keys=True), "paths": json.dumps(paths, sort_keys=True)}
+    data = {}
     for order in ("drawn", "reversed"):
         study = lab / "unmodelled" / order
         overrides = {"points": points, "robot": robot, "visit_order": order}
@@ -185,35 +196,83 @@ def _unmodelled(lab: Path, seed: int, points: int, train: dict) -> None:
     if path.exists() and load_comparison(path)[1]["sources"] == versions:
         return
     lengths = arm_lengths(load_robot(robot))
-    table = compare_models(data["drawn"], lengths, data["reversed"], train=train, seed=seed)
-    paths = _unmodelled_experiment2(
-        lab / "unmodelled", seed, data["drawn"], versions["campaign (drawn)"], train
+    nets = {}
+    table = compare_models(data["drawn"], lengths, data["reversed"], train=train, seed=seed, nets=nets)
+    campaign = {"name": "campaign", "version": versions["campaign (drawn)"]}
+    models = lab / "unmodelled" / "drawn" / "models"  # their cards carry the table beside the floor
+    registered = register_compared(models, data["drawn"], campaign, table, nets, versions)
+    errors = _unmodelled_experiment2(
+        lab / "unmodelled", seed, data["drawn"], versions["campaign (drawn)"], train, paths
     )
-    save_comparison(path, table, versions, "split_group", {"experiment2": paths.to_dict("records")})
+    models = [{"name": p.parent.name, "version": p.name} for p in registered]
+    save_comparison(
+        path, table, versions, "split_group", {"experiment2": errors.to_dict("records"), "models": models}
+    )
 
 
-def _unmodelled_experiment2(study: Path, seed: int, campaign, campaign_version: str, train: dict):
+def _unmodelled_experiment2(study: Path, seed: int, campaign, campaign_version: str, train: dict,
+                            paths: dict):  # fmt: skip
     """Experiment 2 on the twin with its unmodelled effects: model-based IK, the grey box's static
-    compensation and the hybrid (a small residual inverse net trained on that twin's campaign) on the
-    paper's two cases, two repetitions; the path errors per session (``analysis.vsl_paths``)."""
+    compensation, the hybrid (a small residual inverse net trained on that twin's campaign) and the
+    history-aware hybrid (``pipeline.history.HistoryModel`` over ``PATHS``, trained on :func:`path_rows`)
+    on the paper's two cases, two repetitions; the path errors per session (``analysis.vsl_paths``)."""
+    from models.hybrid import preset
+    from pipeline.history import PATHS, HistoryModel
+    from pipeline.train import TrainConfig
+    from pipeline.train import train as train_net
+
+    rows = path_rows(study, seed, campaign_version, paths)
+    history = HistoryModel("inverse", PATHS, random_state=seed).fit(rows)
+    config = TrainConfig(preset("inverse", "small-residual"), seed=seed, **train)
+    models = {"hybrid": train_net(campaign, config).model, "history": history}
+    commands = ["ik", "static", "hybrid", "history"]
+    return experiment2_path_errors(study, "experiment2", seed, campaign_version, commands, models)
+
+
+def path_rows(study: Path, seed: int, campaign_version: str, paths: dict):
+    """What a history-aware inverse model of the twin with its unmodelled effects learns from: Experiment 1
+    run on that twin (``paths``: its overrides) into ``<study>/experiment1``, built in ``<study>/drawn``
+    (the tracker registered as the campaign ``campaign_version`` there), every cell but the ones Experiment
+    2 follows, with the ``PATHS`` history of every frame, at each set-point's end
+    (``pipeline.history.set_point_ends``)."""
+    from acquisition.plans.experiments import expand_experiment
+    from acquisition.plans.sim_runner import simulate_experiment
+    from pipeline.build import build
+    from pipeline.datasets import load_dataset
+    from pipeline.history import PATHS, set_point_ends, with_history
+
+    _, plans, _ = expand_experiment("experiment2", {"robot": UNMODELLED_ROBOT, "rigid_arm": False})
+    followed = {"experiment1/" + p.name.removeprefix("experiment2/").rsplit("/", 1)[0] for p in plans}
+    sessions = study / "experiment1" / "sessions"
+    overrides = paths | {"robot": UNMODELLED_ROBOT, "rigid_arm": False}
+    simulate_experiment("experiment1", sessions, seed=seed, overrides=overrides)
+    borrowed = {"register": {"from_dataset": f"campaign@{campaign_version}"}}
+    report = build(sessions_of(sessions, "experiment1"), study / "drawn", "experiment1", borrowed)
+    rows = load_dataset(study / "drawn" / "datasets", "experiment1", report.version)[0]
+    rows = rows[~rows["plan"].isin(followed)]  # not the cells Experiment 2 is scored on
+    return set_point_ends(with_history(rows, PATHS))
+
+
+def experiment2_path_errors(study: Path, name: str, seed: int, campaign_version: str, commands: list[str],
+                            models: dict):  # fmt: skip
+    """Experiment 2 on the twin with its unmodelled effects with ``commands``, two repetitions per case,
+    into ``<study>/<name>`` (built in ``<study>/drawn``); ``models``: the inverse model of each learned
+    command ("hybrid", "history"); the path errors per session (``analysis.vsl_paths.path_errors``)."""
     from acquisition.plans.sim_runner import simulate_experiment
     from analysis.vsl_paths import path_errors
-    from models.hybrid import preset
     from models.robot import load_robot
     from pipeline.build import build
     from pipeline.datasets import load_dataset
     from pipeline.in_loop import InverseModelCompensator
-    from pipeline.train import TrainConfig
-    from pipeline.train import train as train_net
 
-    robot = "vsl_unmodelled"
-    config = TrainConfig(preset("inverse", "small-residual"), seed=seed, **train)
-    hybrid = InverseModelCompensator(train_net(campaign, config).model, load_robot(robot))
-    overrides = {"robot": robot, "rigid_arm": False, "commands": ["ik", "static", "hybrid"], "repetitions": 2}
-    sessions = study / "experiment2" / "sessions"
-    simulate_experiment(
-        "experiment2", sessions, seed=seed, overrides=overrides, inverse_model=lambda _: hybrid
-    )
+    description = load_robot(UNMODELLED_ROBOT)
+
+    def compensator(plan):  # one per session: the history-aware one starts each with no history
+        return InverseModelCompensator(models[plan.parameters["commands"]], description)
+
+    overrides = {"robot": UNMODELLED_ROBOT, "rigid_arm": False, "commands": commands, "repetitions": 2}
+    sessions = study / name / "sessions"
+    simulate_experiment("experiment2", sessions, seed=seed, overrides=overrides, inverse_model=compensator)
     borrowed = {"register": {"from_dataset": f"campaign@{campaign_version}"}}
-    report = build(sessions_of(sessions, "experiment2"), study / "drawn", "experiment2", borrowed)
-    return path_errors(load_dataset(study / "drawn" / "datasets", "experiment2", report.version)[0])
+    report = build(sessions_of(sessions, "experiment2"), study / "drawn", name, borrowed)
+    return path_errors(load_dataset(study / "drawn" / "datasets", name, report.version)[0])

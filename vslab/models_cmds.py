@@ -202,6 +202,24 @@ def models_show(
                 *(f"{cell[c]:.3g}" if isinstance(cell[c], float) else str(cell[c]) for c in cols)
             )
         console.print(cell_table)
+    if comparison := card.get("comparison"):
+        _show_comparison(comparison)
+
+
+def _show_comparison(comparison: dict) -> None:
+    """The comparison a model was trained for: every model of its direction and the floor, per cell."""
+    import pandas as pd
+
+    from pipeline.comparison import wide_tables
+
+    for direction, wide in wide_tables(pd.DataFrame(comparison["records"])).items():
+        title = (f"{direction} models compared on {comparison['split']}'s test part (mean tip error, mm; "
+                 f"this one: {comparison['model']})")  # fmt: skip
+        table = Table("cell", *wide.columns, title=title)
+        for cell, row in wide.iterrows():
+            values = [str(int(row["n"])), *("" if v != v else f"{v:.3f}" for v in row.iloc[1:])]
+            table.add_row(str(cell), *values)
+        console.print(table)
 
 
 @models_app.command("compare")
@@ -303,7 +321,7 @@ def compare_models_command(
     <lab>/comparisons/NAME@VERSION.json."""
     from acquisition.plans.experiments import arm_lengths
     from models.robot import AnthropomorphicKinematics, RobotDescriptionError, load_robot
-    from pipeline.comparison import compare_models, comparison_markdown, save_comparison
+    from pipeline.comparison import compare_models, comparison_markdown, register_compared, save_comparison
     from pipeline.datasets import load_dataset
 
     if split not in _SPLITS:
@@ -338,13 +356,20 @@ def compare_models_command(
         else (lambda line: console.print(line, highlight=False, markup=False))
     )
     try:
-        table = compare_models(data, lengths, repeat_data, split, {"max_epochs": epochs}, seed, say)
+        nets: dict = {}
+        table = compare_models(data, lengths, repeat_data, split, {"max_epochs": epochs}, seed, say, nets)
     except (KeyError, ValueError) as exc:  # not a campaign, a repeat of another campaign, too few rows
         _error(f"{source}: {exc}")
     sources = {"dataset": source} | ({"repeat": loaded["--repeat"][1]} if "--repeat" in loaded else {})
     sources["training"] = json.dumps({"max_epochs": epochs, "seed": seed})
+    name, _, version = source.partition("@")
+    dataset = {"name": name, "version": version}
+    registered = register_compared(Settings.lab / "models", data, dataset, table, nets, sources)
     path = Settings.lab / "comparisons" / f"{source}.json"
-    save_comparison(path, table, sources, split)
+    models = [{"name": p.parent.name, "version": p.name} for p in registered]
+    save_comparison(path, table, sources, split, {"models": models})
     console.print(comparison_markdown(table), highlight=False, markup=False, soft_wrap=True)
     if not Settings.quiet:
         console.print(f"card: {path}", highlight=False, markup=False, soft_wrap=True)
+        for m in models:
+            console.print(f"registered: {m['name']} {m['version']}", highlight=False, markup=False)

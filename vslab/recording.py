@@ -20,6 +20,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from vslab.app import (
+    HISTORY_NOT_REGISTERED,
     CommandLineError,
     Settings,
     _error,
@@ -377,6 +378,8 @@ def run_plan(experiment: str, plan: str = "0", overrides: dict | None = None, *,
                 "hybrid commands need a trained inverse model: --inverse-model VERSION (`vslab models list`)"
             )
         compensator = InverseModelCompensator(model, desc)
+    elif commands == "history":
+        raise PlanRunError(HISTORY_NOT_REGISTERED)
     session_id = _session_id(session, time.strftime("%Y%m%d-%H%M%S-") + the_plan.name.replace("/", "-"))
     say(f"{the_plan.name}: {the_plan.duration_s:.1f} s on {desc.name}")
     with _devices(desc, ports, rig, session_id, the_plan) as (port_map, rig_dir):

@@ -1,8 +1,10 @@
 """The compensation hook of Experiment 2: desired joint angles in, commanded joint angles out.
 
 A plan's goals are the model-based IK of the desired path (q_ik). A runner with a compensator sends, at every
-new set-point, ``compensator(q_ik, pressure_pa, current_a)`` instead: the link pressures and joint currents
-are the latest measured ones (seed 000 IV: q̃ = L⁻¹(q, p, i)). Anything with that call signature plugs in —
+new set-point, ``compensator(q_ik, pressure_pa, current_a, t_s=t)`` instead: the link pressures and joint
+currents are the latest measured ones (seed 000 IV: q̃ = L⁻¹(q, p, i)) and ``t_s`` the set-point's time in
+seconds (any fixed origin: a compensator with memory of the path, ``pipeline.in_loop``'s history-aware one,
+needs it; the others ignore it). Anything with that call signature plugs in —
 the hybrid inverse network once one is trained (``pipeline`` builds it and hands it to the runner), or the
 grey-box :class:`StaticModelCompensator` here.
 
@@ -21,7 +23,8 @@ from models.statics import servo_droop, static_deflection
 
 
 class Compensator(Protocol):
-    def __call__(self, q_ik: np.ndarray, pressure_pa: np.ndarray, current_a: np.ndarray) -> np.ndarray: ...
+    def __call__(self, q_ik: np.ndarray, pressure_pa: np.ndarray, current_a: np.ndarray,
+                 t_s: float | None = None) -> np.ndarray: ...  # fmt: skip
 
 
 class StaticModelCompensator:
@@ -43,7 +46,8 @@ class StaticModelCompensator:
         delta, _ = static_deflection(self.robot, q_out, pressure_pa, self.payload_kg)
         return self.robot.chain().position(q_out, delta)
 
-    def __call__(self, q_ik: np.ndarray, pressure_pa: np.ndarray, current_a: np.ndarray) -> np.ndarray:
+    def __call__(self, q_ik: np.ndarray, pressure_pa: np.ndarray, current_a: np.ndarray,
+                 t_s: float | None = None) -> np.ndarray:  # fmt: skip
         q_ik = np.atleast_2d(np.asarray(q_ik, float))
         pressure_pa = np.broadcast_to(pressure_pa, (len(q_ik), self.robot.pneumatics.channels))
         q_cmd = q_ik.copy()

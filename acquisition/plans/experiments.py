@@ -189,12 +189,14 @@ def experiment1(vsl: RobotDescription, rigid: RobotDescription | None, params: d
     return plans
 
 
-COMMANDS = ("ik", "static", "hybrid")  # Experiment 2's command modes (see acquisition.plans.compensation)
+# Experiment 2's command modes (see acquisition.plans.compensation); "history": a history-aware inverse model
+COMMANDS = ("ik", "static", "hybrid", "history")
 
 
 def experiment2(vsl: RobotDescription, rigid: RobotDescription | None, params: dict) -> list[Plan]:
     """Seed 000's Experiment 2: the curve at each (payload, pressure) case, commanded by the model-based IK
-    (``ik``), the grey-box static compensation (``static``, ours) and the hybrid inverse network (``hybrid``);
+    (``ik``), the grey-box static compensation (``static``, ours), the hybrid inverse network (``hybrid``) and
+    a history-aware inverse model (``history``, issue 19);
     the rigid-link arm with the model-based IK at each case's payload. The plans' goals are always the IK of
     the desired path; ``parameters["commands"]`` says which compensator turns them into commands."""
     unknown = set(params["commands"]) - set(COMMANDS)

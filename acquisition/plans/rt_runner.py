@@ -288,8 +288,10 @@ class RealTimeRunner:
         when one is outside the limits or not a number."""
         q_cmd = np.asarray(q_goal, float)
         if self.compensator is not None:
-            _, pressure, current, _ = self._measured()
-            q_cmd = np.asarray(self.compensator(q_cmd[None], pressure[None], current[None]), float)
+            _, pressure, current, stamp_ns = self._measured()
+            q_cmd = np.asarray(
+                self.compensator(q_cmd[None], pressure[None], current[None], t_s=stamp_ns * 1e-9), float
+            )
             if q_cmd.shape != (1, len(self.robot.joints)):
                 raise CommandRefused(f"the compensator returned shape {q_cmd.shape} for one set of goals")
             q_cmd = q_cmd[0]

@@ -298,7 +298,7 @@ class _Compensation:
                     continue
                 try:
                     out = np.asarray(self.compensators[r](
-                        goal[r][None], world.state.p_link[r][None], self.current[r][None]
+                        goal[r][None], world.state.p_link[r][None], self.current[r][None], t_s=t
                     ), float)  # fmt: skip
                     if out.shape != (1, goal.shape[1]):
                         raise CommandRefused(
@@ -408,16 +408,20 @@ def simulate_experiment(
     """Expand an experiment (``configs/experiments/<name>.yaml`` + overrides) into plans and run them all on
     the twin, at most ``benches`` benches per batch. Sessions already complete on disk are skipped.
 
-    Experiment 2's ``hybrid`` plans need ``inverse_model``: it gives the compensator (a trained inverse
-    network) for a plan; the layers above ``acquisition`` (the pipeline's registry) provide it."""
+    Experiment 2's ``hybrid`` and ``history`` plans need ``inverse_model``: it gives the compensator (a
+    trained inverse model) for a plan, by its ``parameters["commands"]``; the layers above ``acquisition``
+    (the pipeline's registry, the main job) provide it. It is called once per plan, so a compensator with
+    memory starts each session afresh."""
     from acquisition.plans.experiments import expand_experiment
 
     robots, plans, params = expand_experiment(experiment, overrides, benches=benches, seed=seed)
     kind = Path(experiment).stem
-    if kind == "experiment2" and "hybrid" in params["commands"] and inverse_model is None:
+    commands = params["commands"] if kind == "experiment2" else ()
+    learned = [m for m in ("hybrid", "history") if m in commands]
+    if learned and inverse_model is None:
         raise ValueError(
-            "experiment2: hybrid commands need a trained inverse model (train one first, or run without "
-            "them: --set 'commands=[ik,static]')"
+            f"experiment2: {' and '.join(learned)} commands need a trained inverse model (train one first, "
+            "or run without them: --set 'commands=[ik,static]')"
         )
     for name, robot in robots.items():  # every plan of every robot, before any session is written
         checker = SafetyChecker(robot)
@@ -442,6 +446,6 @@ def _compensator(plan: Plan, robot: RobotDescription, inverse_model) -> Compensa
     mode = plan.parameters.get("commands", "ik")
     if mode == "static":
         return StaticModelCompensator(robot, plan.parameters["payload_kg"])
-    if mode == "hybrid":
+    if mode in ("hybrid", "history"):
         return inverse_model(plan)
     return None
