@@ -12,7 +12,13 @@ PRBM the grey box shares its equations with, and a harder twin is a description 
   cannot.
 - ``creep``: a pressurised polymer link keeps bending for seconds to minutes after its load changes (Prony
   series: the bending tends to δ_el (1 + Σ aᵢ) with time constants τᵢ). Equal joint angles, pressures and
-  currents then give different tips, by the load history: no static map can predict that.
+  currents then give different tips, by the load history: no static map can predict that. Its terms are
+  Maxwell branches beside the links' rate-independent Bouc–Wen loop, so the hysteresis under a cycled load
+  depends on the rate too (largest near a period of 2πτᵢ).
+- ``elongation``: a pressurised tube's wall stretches along its axis too (a thin closed tube: ε_z =
+  (p r / E t)(½ − ν), zero only for an incompressible wall), so each pressurised link is L₀ (1 + ε p) long.
+  At fixed joints the tip moves with the pressure, apart from the bending; a model with p among its inputs
+  can learn it, the PRBM's fixed lengths cannot.
 - ``hoses``: the pneumatic tubes and cables crossing a joint pull it toward where they hang slack, a torque
   that depends on the pose. The drive holds it, so the joint's current no longer measures gravity and payload
   alone (the grey box infers the payload from it) and its droop grows. A static map of (q, i) can learn it.
@@ -60,6 +66,17 @@ class Creep(Part):
         return self
 
 
+class Elongation(Part):
+    """Pressurised links lengthen: a link with a pressure channel is L₀ (1 + ε p) long at its gauge pressure
+    p, ε = ``strain_per_bar`` per bar (its virtual joints' rows and the row of the joint it follows)."""
+
+    strain_per_bar: PositiveFloat
+
+    @property
+    def strain_per_pa(self) -> float:
+        return self.strain_per_bar / 1e5
+
+
 class JointHoses(Part):
     """The tubes and cables crossing one actuated joint: a torque −K (q − q_slack) on it."""
 
@@ -80,6 +97,7 @@ class EffectsSpec(Part):
     tracker_distortion: TrackerDistortion | None = None
     creep: Creep | None = None
     hoses: Hoses | None = None
+    elongation: Elongation | None = None
 
     @property
     def active(self) -> list[str]:

@@ -2,8 +2,11 @@
 leaves its signature in what the twin's sensors record — the tracker's frames, read as a session reads them.
 
 - Field distortion: the tracker's error at a place repeats on every visit and changes from place to place.
-- Creep: after a load change the tracked tip keeps sinking for a minute; and two arms at the same joint
-  readings, pressures and currents hold their tips apart by the loads they carried before.
+- Creep: after a load change the tracked tip keeps sinking for a minute; two arms at the same joint
+  readings, pressures and currents hold their tips apart by the loads they carried before; and the loop
+  under a cycled load depends on the cycling's rate.
+- Hoses: the joints' currents carry a torque that depends on the pose.
+- Elongation: at the same joints the tracked tip moves out along the links in proportion to their pressure.
 """
 
 from __future__ import annotations
@@ -14,7 +17,8 @@ import pytest
 from acquisition.sim import streams
 from acquisition.sim.sensors import CURRENT_A_PER_COUNT
 from acquisition.sim.world import World
-from models.effects import Creep, EffectsSpec, Hoses, JointHoses, TrackerDistortion, tracker_bias
+from models import kinematics
+from models.effects import Creep, EffectsSpec, Elongation, Hoses, JointHoses, TrackerDistortion, tracker_bias
 from models.robot import RobotDescriptionError, load_robot
 
 POSES = np.array([[-0.3, 0.5, -0.8], [0.0, 0.7, -1.2], [0.3, 0.9, -1.4], [0.2, 0.4, -0.5], [-0.2, 1.0, -1.7],
@@ -123,6 +127,31 @@ def test_creep_makes_the_tip_depend_on_the_load_history():
     np.testing.assert_allclose(joints["creep"], joints["none"], atol=1e-5)
 
 
+def _load_loop_area(robot, period_s: float, steps: int = 100) -> float:
+    """The area (mm·kg) of the loop the true tip's height draws against a payload cycled 0 → 100 g → 0 with
+    ``period_s``, over the second of two cycles (the shoelace formula)."""
+    world = World(robot, batch=1, seed=5, q0=POSES[1], pressure_pa=50000.0)
+    world.run_for(3.0)
+    loads, heights = [], []
+    for k in range(2 * steps):
+        loads.append(0.05 * (1 - np.cos(2 * np.pi * k / steps)))
+        world.set_payload(loads[-1])
+        heights.append(world.run_for(period_s / steps).tip_pos[0, -1, 2] * 1e3)
+    m, z = np.array(loads[steps:]), np.array(heights[steps:])
+    return 0.5 * abs(m @ np.roll(z, -1) - z @ np.roll(m, -1))
+
+
+def test_creep_makes_the_hysteresis_depend_on_the_rate():
+    """Rate-dependent hysteresis: the creep's Prony terms are Maxwell branches, beside the links' rate-
+    independent Bouc–Wen loop. The loop they add to the tip's height against a cycled payload is largest near
+    a period of 2πτ (τ = 2 s: 12 s) and much smaller at 2 s, where the branch has no time to move."""
+    added = {}
+    for period in (2.0, 12.0):
+        added[period] = _load_loop_area(_vsl_with(creep=CREEP), period) - _load_loop_area(_vsl_with(), period)
+    print(f"\nloop area added by creep: {added} mm·kg")
+    assert added[12.0] > 2 * added[2.0] > 0
+
+
 def test_hoses_pull_the_joints_by_their_pose():
     """Tubes and cables across J2 and J3 pull each joint by −K (q − q_slack). At each pose, unloaded, the
     servos' measured currents differ from the nominal twin's by the torque that holds it, K (q − q_slack) /
@@ -146,11 +175,41 @@ def test_hoses_pull_the_joints_by_their_pose():
     np.testing.assert_allclose(droop, pull / servo.stiffness_nm_per_rad, atol=2.5e-4)  # ¼ of the play
 
 
+def test_pressurised_links_lengthen():
+    """Two arms at the same pose, at 0.5 and 2 bar, on twins with and without the links' elongation (0.25 %
+    per bar) and the same noise: the tracked tips differ by the links' stretch, ε p along each link — the
+    rigid arm's tip with L₂ and L₃ lengthened by ε p — four times as much at 2 bar as at 0.5. Within 0.1 mm:
+    the longer arm also bends a little more under its own weight (61 µm lower at 2 bar here)."""
+    strain, bars = 0.0025, np.array([0.5, 2.0])
+    tips = {}
+    for name, robot in (
+        ("on", _vsl_with(elongation=Elongation(strain_per_bar=strain))),
+        ("off", _vsl_with()),
+    ):
+        world = World(
+            robot, batch=2, seed=7, q0=POSES[1], pressure_pa=np.repeat(bars[:, None] * 1e5, 2, axis=1)
+        )
+        world.command_joints(POSES[1])
+        world.run_for(4.0)
+        tips[name], _ = _tracked(world, 1.0, window_s=1.0)
+    kin = load_robot("vsl").kinematics
+    stretch = []
+    for bar in bars:
+        longer = kinematics.ArmLengths(kin.l1_m, kin.l2_m * (1 + strain * bar), kin.l3_m * (1 + strain * bar))
+        nominal = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+        stretch.append(kinematics.vsl_fk(POSES[1], longer) - kinematics.vsl_fk(POSES[1], nominal))
+    moved = tips["on"] - tips["off"]
+    print(f"\nmoved {moved * 1e3} mm, expected {np.array(stretch) * 1e3} mm")
+    np.testing.assert_allclose(moved, np.array(stretch), atol=0.1e-3)
+    assert np.linalg.norm(moved[1]) > 0.5e-3  # 2 bar: most of a millimetre, above the tracker's noise
+    assert 3.5 < np.linalg.norm(moved[1]) / np.linalg.norm(moved[0]) < 4.5
+
+
 def test_descriptions_switch_effects_on_and_extend_others(tmp_path):
     robot = load_robot("vsl_unmodelled")
-    assert robot.effects.active == ["tracker_distortion", "creep", "hoses"]
+    assert robot.effects.active == ["tracker_distortion", "creep", "hoses", "elongation"]
     assert robot.effects.tracker_distortion == DISTORTION and robot.effects.creep == CREEP
-    assert robot.effects.hoses == HOSES
+    assert robot.effects.hoses == HOSES and robot.effects.elongation == Elongation(strain_per_bar=0.001)
     nominal = load_robot("vsl")
     assert nominal.effects.active == []
     same = {"name", "description", "effects"}
@@ -158,7 +217,9 @@ def test_descriptions_switch_effects_on_and_extend_others(tmp_path):
     # a description says what differs from its base; mappings merge, other values replace
     (tmp_path / "soft.yaml").write_text("extends: vsl_unmodelled\nname: soft\neffects: {creep: null}\n")
     soft = load_robot(tmp_path / "soft.yaml")
-    assert soft.effects.active == ["tracker_distortion", "hoses"] and soft.servo == nominal.servo
+    assert (
+        soft.effects.active == ["tracker_distortion", "hoses", "elongation"] and soft.servo == nominal.servo
+    )
     hose = "{stiffness_nm_per_rad: 1, slack_rad: 0}"
     cases = {
         "loop.yaml": ("extends: loop.yaml\n", "a cycle"),

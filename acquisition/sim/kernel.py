@@ -5,8 +5,9 @@ loop with a load-dependent steady-state error and backlash, or a microstepping s
 (regulator dead time and lag, valves that hold with a slow leak) and the pseudo-rigid-body link bending
 (``models.prbm.link_step``: I δ̈ + c(p) δ̇ + k(p)(δ − w + δ_h z) = τ, an inflatable link softening above
 its wrinkling moment M_w(p) and its Bouc–Wen hysteresis driven by the moment beyond M_w; with
-``effects.creep``, the creep of its polymer adding Σxᵢ to the bending), and records the true state of every
-step. Sensors, clocks and noise are applied afterwards, vectorised (``sensors``/``clocks``).
+``effects.creep``, the creep of its polymer adding Σxᵢ to the bending; with ``effects.elongation``, the
+pressurised links' rows lengthened by their pressure), and records the true state of every step. Sensors,
+clocks and noise are applied afterwards, vectorised (``sensors``/``clocks``).
 
 The per-step physics comes from ``models.prbm`` compiled with numba, so the numbers the twin produces are
 the ones the model functions give (tests call the same functions vectorised).
@@ -50,6 +51,8 @@ class KernelParams:
     row_offset: np.ndarray
     row_virtual: np.ndarray  # (R,) bool: virtual (link bending) or actuated
     row_var: np.ndarray  # (R,) int: index into q (actuated) or δ (virtual)
+    row_channel: np.ndarray  # (R,) int: pressure channel that lengthens the row (effects.elongation), −1 none
+    row_strain: np.ndarray  # (R,) 1/Pa: the row's length is a (1 + strain · p) at its channel's pressure p
     tool_offset: np.ndarray  # (3,) in the last frame
     mass_frame: np.ndarray  # (M,) int: row whose output frame carries the mass (R−1 = tip frame)
     mass_pos: np.ndarray  # (M, 3)
@@ -149,7 +152,8 @@ def advance(params: KernelParams, state: KernelState, cmd: KernelCommands, n: in
     p = params
     state.buf_idx = _advance(
         n, p.dt, p.gravity, p.row_a, p.row_alpha_cs, p.row_d, p.row_offset, p.row_virtual, p.row_var,
-        p.tool_offset, p.mass_frame, p.mass_pos, p.mass_kg, p.mass_inertia, p.vj_link, p.vj_delta_h,
+        p.row_channel, p.row_strain, p.tool_offset, p.mass_frame, p.mass_pos, p.mass_kg, p.mass_inertia,
+        p.vj_link, p.vj_delta_h,
         p.vj_tau_y, p.vj_radius, p.link_channel, p.table_n, p.table_p, p.table_k, p.table_c, p.drive_kind,
         p.drive_stiffness, p.drive_tau, p.drive_backlash_half, p.drive_quantum, p.drive_max_torque,
         p.drive_max_speed, p.reg_alpha, p.reg_max,
@@ -181,6 +185,14 @@ def _profile_step(ref, vel, goal, vmax, amax, dt):
     else:
         vel = v_des
     return ref + vel * dt, vel
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _row_lengths(row_a0, row_channel, row_strain, p, out):
+    """The rows' lengths a at the link pressures ``p``: a₀ (1 + strain · p) where a channel lengthens them."""
+    for i in range(row_a0.shape[0]):
+        ch = row_channel[i]
+        out[i] = row_a0[i] * (1.0 + row_strain[i] * p[ch]) if ch >= 0 else row_a0[i]
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -254,7 +266,8 @@ def _joint_loads(frames, mass_frame, world_pos, mass_kg, mass_inertia, payload, 
 
 @numba.njit(cache=True, parallel=True, error_model="numpy")
 def _advance(
-    n, dt, gravity, row_a, row_alpha_cs, row_d, row_offset, row_virtual, row_var, tool, mass_frame, mass_pos,
+    n, dt, gravity, row_a0, row_alpha_cs, row_d, row_offset, row_virtual, row_var, row_channel, row_strain,
+    tool, mass_frame, mass_pos,
     mass_kg, mass_inertia, vj_link, vj_delta_h, vj_tau_y, vj_radius, link_channel, table_n, table_p, table_k,
     table_c,
     drive_kind, drive_stiffness, drive_tau, drive_backlash_half, drive_quantum, drive_max_torque,
@@ -268,7 +281,7 @@ def _advance(
     nb, na = out_pos.shape
     nv = delta.shape[1]
     nc = p_link.shape[1]
-    nr = row_a.shape[0]
+    nr = row_a0.shape[0]
     depth = reg_buf.shape[2]
     drive_alpha = 1.0 - np.exp(-dt / drive_tau)
     # robots are independent: each runs all n steps (parallel over the batch, bit-identical to serial)
@@ -276,6 +289,8 @@ def _advance(
         frames = np.empty((nr + 2, 4, 4))
         loads = np.empty(2)
         world_pos = np.empty((mass_kg.shape[0] + 1, 3))
+        row_a = np.empty(nr)  # the rows' lengths at this robot's link pressures
+        _row_lengths(row_a0, row_channel, row_strain, p_link[b], row_a)
         _frames(
             out_pos[b], delta[b], row_a, row_alpha_cs, row_d, row_offset, row_virtual, row_var, tool, frames
         )
@@ -367,6 +382,7 @@ def _advance(
                 )  # fmt: skip
                 vj_torque[b, v] = loads[0]
             # --- record the true state (tip pose from this step's kinematics)
+            _row_lengths(row_a0, row_channel, row_strain, p_link[b], row_a)
             _frames(out_pos[b], delta[b], row_a, row_alpha_cs, row_d, row_offset, row_virtual, row_var, tool,
                     frames)  # fmt: skip
             for j in range(na):

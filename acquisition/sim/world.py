@@ -51,6 +51,15 @@ def build_params(robot: RobotDescription, dt: float = DEFAULT_DT) -> kernel.Kern
     ).reshape(-1, 3)
 
     links = robot.links
+    # effects.elongation: the rows of a pressurised link (its virtual joints' and the joint it follows)
+    row_channel, row_strain = np.full(len(rows), -1), np.zeros(len(rows))
+    if (elongation := robot.effects.elongation) is not None:
+        for link in links:
+            if link.pressure_channel is None:
+                continue
+            for i, name in enumerate(row_names):
+                if name in link.virtual_joints or name == link.after_joint:
+                    row_channel[i], row_strain[i] = link.pressure_channel, elongation.strain_per_pa
     tables = [robot.link_table(link.name) for link in links]
     width = max(len(t.pressure_pa) for t in tables)
 
@@ -72,6 +81,8 @@ def build_params(robot: RobotDescription, dt: float = DEFAULT_DT) -> kernel.Kern
         row_offset=np.array([r.offset_rad for r in rows]),
         row_virtual=row_virtual,
         row_var=row_var,
+        row_channel=row_channel,
+        row_strain=row_strain,
         tool_offset=tool,
         mass_frame=mass_frame,
         mass_pos=mass_pos,
@@ -237,8 +248,10 @@ class World:
         frames = np.empty((len(p.row_a) + 2, 4, 4))
         world_pos = np.empty((len(p.mass_kg) + 1, 3))
         loads = np.empty(2)
+        row_a = np.empty(len(p.row_a))
         for b in range(self.batch):
-            kernel._frames(st.out_pos[b], st.delta[b], p.row_a, p.row_alpha_cs, p.row_d, p.row_offset,
+            kernel._row_lengths(p.row_a, p.row_channel, p.row_strain, st.p_link[b], row_a)
+            kernel._frames(st.out_pos[b], st.delta[b], row_a, p.row_alpha_cs, p.row_d, p.row_offset,
                            p.row_virtual, p.row_var, p.tool_offset, frames)  # fmt: skip
             kernel._mass_positions(frames, p.mass_frame, p.mass_pos, world_pos)
             for i in rows:
