@@ -62,33 +62,34 @@ class HistoryState:
     ``update(t, x)`` gives the features of row ``x`` (n_sources values) at ``t`` seconds from the rows before
     it, in :meth:`HistoryWindow.columns` order, then remembers it. The first row is its own history (its
     values for every lag and mean, a step and a dt of 0). A mean weighs each value by how long it was held
-    (e^(−age/τ)): exact for set-points held between calls."""
+    (e^(−age/τ)): exact for set-points held between calls. A missing value (NaN: a tip out of the rigid IK's
+    reach) has no step; the history holds the last value seen, and a column seen first later starts there."""
 
     def __init__(self, window: HistoryWindow, n_sources: int) -> None:
-        self.window, self.n = window, n_sources
+        self.window = window
         self.taus = np.asarray(window.time_constants_s, float)[:, None]
         self.t: float | None = None
-        self.prev = np.zeros(n_sources)
-        self.lagged = np.zeros((window.lags, n_sources))
-        self.means = np.zeros((len(window.time_constants_s), n_sources))
+        self.prev = np.full(n_sources, np.nan)
+        self.lagged = np.full((window.lags, n_sources), np.nan)
+        self.means = np.full((len(window.time_constants_s), n_sources), np.nan)
 
     def update(self, t: float, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, float)
-        if self.t is None:
-            dt = 0.0
-            self.lagged[:], self.means[:] = x, x
-        else:
-            dt = float(t) - self.t
+        held = np.where(np.isnan(x), self.prev, x)  # what the history remembers of this row
+        dt = 0.0 if self.t is None else float(t) - self.t
+        if self.t is not None:
             w = np.exp(-max(dt, 0.0) / self.taus)
             self.means = w * self.means + (1.0 - w) * self.prev
+        self.means = np.where(np.isnan(self.means), held, self.means)  # the first value seen starts it
+        self.lagged = np.where(np.isnan(self.lagged), held, self.lagged)
         per_source = [self.means]
         if self.window.lags:
             per_source = [x - self.lagged[:1], self.lagged, self.means]
         features = np.vstack(per_source).T.ravel()  # source by source: step, lags, means
         if self.window.lags:
             features = np.r_[dt, features]
-            self.lagged = np.vstack([x, self.lagged[:-1]])
-        self.t, self.prev = float(t), x
+            self.lagged = np.vstack([held, self.lagged[:-1]])
+        self.t, self.prev = float(t), held
         return features
 
 
@@ -120,11 +121,6 @@ def set_point_ends(d: pd.DataFrame) -> pd.DataFrame:
     sessions = d["session"].to_numpy()
     changes = (qc[1:] != qc[:-1]).any(axis=1) | (sessions[1:] != sessions[:-1])
     return d[np.r_[changes, True]]
-
-
-def history_columns(window: HistoryWindow = STATIC_POINTS, sources: tuple[str, ...] = SOURCES) -> list[str]:
-    """``window.columns(sources)``."""
-    return window.columns(sources)
 
 
 class HistoryModel(SklearnBaseline):

@@ -21,7 +21,7 @@ from pipeline.comparison import (
     wide_tables,
 )
 from pipeline.floor import matched_points, repeat_floor
-from pipeline.history import PATHS, HistoryModel, history_columns, set_point_ends, with_history
+from pipeline.history import PATHS, STATIC_POINTS, HistoryModel, HistoryState, set_point_ends, with_history
 from pipeline.in_loop import InverseModelCompensator
 from pipeline.registry import load_card
 from vslab.cli import app
@@ -78,7 +78,7 @@ def test_floor_refuses_datasets_that_are_not_a_repeat(hard_campaigns, campaign_d
 def test_history_columns_follow_each_session_in_time(hard_campaigns):
     first, _ = hard_campaigns
     d = with_history(first.sample(frac=1.0, random_state=0))  # any row order: history goes by time
-    assert set(history_columns()) <= set(d)
+    assert set(STATIC_POINTS.columns()) <= set(d)
     session = d[d["session"] == d["session"].iloc[0]].sort_values("t")
     i = session["i_1"].to_numpy()
     np.testing.assert_array_equal(session["hist_i_1_lag1"].to_numpy(), np.r_[i[0], i[:-1]])
@@ -90,7 +90,9 @@ def test_history_columns_follow_each_session_in_time(hard_campaigns):
     for j in range(1, len(i)):
         ewm[j] = w[j] * ewm[j - 1] + (1 - w[j]) * i[j - 1]
     np.testing.assert_allclose(session["hist_i_1_ewm60s"], ewm)
-    np.testing.assert_array_equal(with_history(first).loc[d.index, history_columns()], d[history_columns()])
+    np.testing.assert_array_equal(
+        with_history(first).loc[d.index, STATIC_POINTS.columns()], d[STATIC_POINTS.columns()]
+    )
 
 
 def test_history_model_learns_what_the_approach_leaves(hard_campaigns, lengths):
@@ -105,7 +107,7 @@ def test_history_model_learns_what_the_approach_leaves(hard_campaigns, lengths):
     history = HistoryModel(direction="inverse").fit(train)
     e_static = B.evaluate_inverse(static, d, lengths, "split_group")["summary"]["mean"]
     e_history = B.evaluate_inverse(history, d, lengths, "split_group")["summary"]["mean"]
-    steps = [c for c in history_columns() if c.startswith("hist_ik_") and c.endswith("_step")]
+    steps = [c for c in STATIC_POINTS.columns() if c.startswith("hist_ik_") and c.endswith("_step")]
     test = d["split_group"] == "test"
     turned = d.assign(**{c: np.where(test, -d[c], d[c]) for c in steps})  # the approach reversed
     e_turned = B.evaluate_inverse(history, turned, lengths, "split_group")["summary"]["mean"]
@@ -136,6 +138,24 @@ def test_the_loop_keeps_the_history_its_model_learned_from(hard_campaigns):
     assert compensator.latency_us()["calls"] == len(rows)
     with pytest.raises(ValueError, match="needs each set-point's time"):
         InverseModelCompensator(model, load_robot("vsl_unmodelled"))(in_loop[:1], pressures[:1], currents[:1])
+
+
+def test_a_missing_value_leaves_the_history_whole():
+    """A NaN (a tip beyond the rigid IK's reach) has no step of its own; the history holds the last value
+    seen instead of carrying the NaN through the rest of the session, and a column first seen later starts
+    at its first value."""
+    state = HistoryState(STATIC_POINTS, 2)
+    rows = [(0.0, [1.0, np.nan]), (2.0, [np.nan, 5.0]), (4.0, [3.0, 5.0]), (6.0, [3.0, 7.0])]
+    out = np.array([state.update(t, x) for t, x in rows])
+    names = STATIC_POINTS.columns(("a", "b"))
+    col = {n: out[:, k] for k, n in enumerate(names)}
+    assert np.isnan(col["hist_a_step"][1]) and col["hist_a_step"][2] == 2.0  # 3 after the held 1
+    np.testing.assert_array_equal(col["hist_a_lag1"], [1.0, 1.0, 1.0, 3.0])
+    np.testing.assert_array_equal(col["hist_b_lag1"][1:], [5.0, 5.0, 5.0])
+    assert np.isfinite(out[1:]).sum() == out[1:].size - 1  # only row 1's own step is missing
+    w = np.exp(-2.0 / 10.0)
+    np.testing.assert_allclose(col["hist_a_ewm10s"][:3], [1.0, 1.0, 1.0])
+    np.testing.assert_allclose(col["hist_a_ewm10s"][3], w * 1.0 + (1 - w) * 3.0)
 
 
 def test_a_path_is_learned_at_its_set_points_ends():
