@@ -67,6 +67,12 @@ class PopupCanSource(Source):
         self.speed = np.zeros(len(self.joints))
         self.first_sync = 0
 
+    @property
+    def sampled_rates_hz(self) -> dict[str, float]:
+        """The joint states at the SYNC rate; each board stream at its own (the accelerometer at 1 kHz)."""
+        boards = {topic: 1e6 / period_us for topic, period_us in self.board_streams.values()}
+        return {T.JOINT_STATE: self.rate_hz, **boards}
+
     # ---------------------------------------------------------------------------------- lifecycle
     def open(self) -> None:
         self.drives.open()

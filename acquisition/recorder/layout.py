@@ -26,6 +26,7 @@ class DeviceEntry:
     rate_hz: float
     topics: list[str]  # every topic the device writes
     sampled: list[str]  # of which: sampled streams (counted against their sequence numbers)
+    sampled_rates_hz: dict[str, float] = field(default_factory=dict)  # each one's rate (default: rate_hz)
 
 
 @dataclass

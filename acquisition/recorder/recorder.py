@@ -54,6 +54,14 @@ if TYPE_CHECKING:  # the live view (foxglove) is imported only by those who use 
 log = logging.getLogger(__name__)
 
 RING_SECONDS = 30.0  # each ring holds this much of its stream: the writer may stall (or restart) this long
+
+
+def ring_slots(entry: DeviceEntry, topic: str) -> int:
+    """Slots of ``topic``'s ring: ``RING_SECONDS`` of a sampled stream at its own rate (at least 1024), 4096
+    for commands and other sporadic messages."""
+    if topic not in entry.sampled:
+        return 4096
+    return max(1024, int(entry.sampled_rates_hz.get(topic, entry.rate_hz) * RING_SECONDS))
 WATCH_S = 0.05  # the supervisor looks at its children this often
 HANG_S = 2.0  # a daemon whose heartbeat is older than this (while not connecting) is killed and restarted
 CONNECT_S = 30.0  # a first connection (the tracker's handshake takes seconds) may take this long
@@ -128,7 +136,7 @@ class Recorder:
             except ValueError as exc:
                 raise RecorderError(str(exc)) from None
             devices[name] = DeviceEntry(name, source.driver, port, source.rate_hz, list(source.topics),
-                                        list(source.sampled_topics))  # fmt: skip
+                                        list(source.sampled_topics), source.sampled_rates_hz)  # fmt: skip
         rotation = rotation or RotationPolicy()
         now = time.monotonic_ns()
         self.layout = Layout(
@@ -184,7 +192,7 @@ class Recorder:
             for entry in layout.devices.values():
                 for topic in entry.topics:
                     message = self._messages[topic]
-                    slots = max(1024, int(entry.rate_hz * RING_SECONDS)) if topic in entry.sampled else 4096
+                    slots = ring_slots(entry, topic)
                     self._rings[topic] = Ring.create(layout.ring(topic), slots, message.size)
                 self._statuses[entry.name] = DaemonStatus.create(layout.status(entry.name))
             for producer in layout.producers:

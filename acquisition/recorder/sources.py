@@ -78,6 +78,12 @@ class Source:
         """How often a polled source is read (default: its rate)."""
         return self.rate_hz
 
+    @property
+    def sampled_rates_hz(self) -> dict[str, float]:
+        """Each sampled stream's rate (default: the source's; a bus whose boards send on their own clocks
+        says each stream's): what its ring is sized by."""
+        return dict.fromkeys(self.sampled_topics, self.rate_hz)
+
     def row(self, topic: str, host_ns: int, number: int | None, **values: object) -> Row:
         """A row of ``topic`` with ``values`` set, counted as sample ``number`` (None: a command); its bytes
         are its own (a read may return several rows before any reaches a ring)."""
