@@ -199,8 +199,8 @@ def _unmodelled(lab: Path, seed: int, points: int, train: dict, paths: dict) -> 
     nets = {}
     table = compare_models(data["drawn"], lengths, data["reversed"], train=train, seed=seed, nets=nets)
     campaign = {"name": "campaign", "version": versions["campaign (drawn)"]}
-    models = lab / "unmodelled" / "drawn" / "models"  # their cards carry the table beside the floor
-    registered = register_compared(models, data["drawn"], campaign, table, nets, versions)
+    registry = lab / "unmodelled" / "drawn" / "models"  # their cards carry the table beside the floor
+    registered = register_compared(registry, data["drawn"], campaign, table, nets, versions)
     errors = _unmodelled_experiment2(
         lab / "unmodelled", seed, data["drawn"], versions["campaign (drawn)"], train, paths
     )
