@@ -62,6 +62,8 @@ def ring_slots(entry: DeviceEntry, topic: str) -> int:
     if topic not in entry.sampled:
         return 4096
     return max(1024, int(entry.sampled_rates_hz.get(topic, entry.rate_hz) * RING_SECONDS))
+
+
 WATCH_S = 0.05  # the supervisor looks at its children this often
 HANG_S = 2.0  # a daemon whose heartbeat is older than this (while not connecting) is killed and restarted
 CONNECT_S = 30.0  # a first connection (the tracker's handshake takes seconds) may take this long
