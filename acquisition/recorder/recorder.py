@@ -56,18 +56,18 @@ log = logging.getLogger(__name__)
 RING_SECONDS = 30.0  # each ring holds this much of its stream: the writer may stall (or restart) this long
 
 
+WATCH_S = 0.05  # the supervisor looks at its children this often
+HANG_S = 2.0  # a daemon whose heartbeat is older than this (while not connecting) is killed and restarted
+CONNECT_S = 30.0  # a first connection (the tracker's handshake takes seconds) may take this long
+WRITER_RESTARTS = 5  # a writer that keeps dying (disk full, …) is not restarted forever
+
+
 def ring_slots(entry: DeviceEntry, topic: str) -> int:
     """Slots of ``topic``'s ring: ``RING_SECONDS`` of a sampled stream at its own rate (at least 1024), 4096
     for commands and other sporadic messages."""
     if topic not in entry.sampled:
         return 4096
     return max(1024, int(entry.sampled_rates_hz.get(topic, entry.rate_hz) * RING_SECONDS))
-
-
-WATCH_S = 0.05  # the supervisor looks at its children this often
-HANG_S = 2.0  # a daemon whose heartbeat is older than this (while not connecting) is killed and restarted
-CONNECT_S = 30.0  # a first connection (the tracker's handshake takes seconds) may take this long
-WRITER_RESTARTS = 5  # a writer that keeps dying (disk full, …) is not restarted forever
 
 
 class RecorderError(AcquisitionError, RuntimeError):
