@@ -136,13 +136,6 @@ def test_a_popup_session_recorded_from_the_rig_reads_in_both_mcap_readers(tmp_pa
     assert done.returncode == 0, done.stderr[-2000:]  # frame at all (the bus daemon silent for 15 s)
     part = lab / "sessions" / "p" / "p_000.mcap"
     data = read_fixed_topics(part)
-    for topic in (T.JOINT_STATE, T.PRESSURE, T.ACCEL, "/link1/orientation", "/link2/flex", T.TRACKER):
-        events = [f"{e.kind.name} {e.text}" for _, e in read_events(part)]
-        assert len(data[topic]) > 0, f"{topic}: none recorded; {stolen_ms:.0f} ms stolen; events {events}"
-    joints = data[T.JOINT_STATE].rows
-    assert (joints["statusword"] & 0x6F == 0x27).all()
-    assert np.isfinite(joints["position"]).all()
-    assert ros2_agrees(part)[T.ACCEL] == len(data[T.ACCEL])
     counters = json.loads((part.parent / "session.json").read_text())["counters"]
     holes = {}
     for topic in (T.PRESSURE, T.ACCEL, "/link1/orientation", "/link2/flex", T.JOINT_STATE, T.TRACKER):
@@ -151,12 +144,22 @@ def test_a_popup_session_recorded_from_the_rig_reads_in_both_mcap_readers(tmp_pa
         # every sample the device sent is in the file or counted: never taken from the device (lost) or taken
         # and never written (dropped: the writer fell behind and its ring was full). Those leave holes, or a
         # shorter head or tail where the ring was full then (a CI run dropped 103 accel samples mid-file;
-        # another, whose accel ring held 3 s instead of 30, its last 497: both counted)
+        # another, whose accel ring held 3 s instead of 30, its last 497: both counted). Always true, however
+        # long the hypervisor stalled the machine.
         c = counters[topic]
         assert c["expected"] == c["written"] + c["lost"] + c["dropped"], (topic, c)
         assert c["received"] == c["written"] + c["dropped"] and c["written"] == len(data[topic]), (topic, c)
         assert holes[topic][0] <= c["lost"] + c["dropped"], (topic, c)
-    real_time()  # what the host can miss is the host's to give
+    # a CI run whose 3 s recording had 9.7 s taken by the hypervisor recorded no joint state at all: what the
+    # host can miss is the host's to give
+    real_time()
+    for topic in (T.JOINT_STATE, T.PRESSURE, T.ACCEL, "/link1/orientation", "/link2/flex", T.TRACKER):
+        events = [f"{e.kind.name} {e.text}" for _, e in read_events(part)]
+        assert len(data[topic]) > 0, f"{topic}: none recorded; {stolen_ms:.0f} ms stolen; events {events}"
+    joints = data[T.JOINT_STATE].rows
+    assert (joints["statusword"] & 0x6F == 0x27).all()
+    assert np.isfinite(joints["position"]).all()
+    assert ros2_agrees(part)[T.ACCEL] == len(data[T.ACCEL])
     for topic, (missed, got) in holes.items():
         if topic in (T.JOINT_STATE, T.TRACKER):
             # polled: a SYNC some drive left unanswered (even after the next SYNC waited a period for it),
