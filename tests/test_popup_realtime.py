@@ -26,6 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from acquisition.plans.popup_experiments import pressure_checks, verify_pressure_checks
 from acquisition.plans.sim_runner import simulate_experiment
+from acquisition.recorder.daemon import MAX_LAG_S
 from acquisition.recorder.sessions import session_info
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import EventKind
@@ -191,5 +192,10 @@ def test_real_time_popup_sessions_build_into_datasets(recorded, popup):
     assert len(path) > 30 * 9 and (path["repetition"] == 0).all()  # ≈ 11 s at the tracker's 40 Hz
     tip = path[[f"x_{k}" for k in range(3)]].to_numpy()
     # the path runs from the start hold to the target hold (how far the arm still lags at the path's end
-    # depends on how late the busy host sent the last set-points: 30 mm under bench/load.py)
+    # depends on how late the busy host sent the last set-points: 30 mm under bench/load.py; 163 mm in a CI
+    # run whose hypervisor took the CPUs: checked only when it did not)
+    if STOLEN_MS["reach"] >= MAX_LAG_S * 1e3:
+        pytest.skip(
+            f"the hypervisor took {STOLEN_MS['reach']:.0f} ms of the CPUs while the reach was recorded"
+        )
     assert np.linalg.norm(tip[-1] - x[1]) < 0.1 * np.linalg.norm(tip[0] - x[1])
