@@ -8,19 +8,17 @@ build never leaves a half-written entry that a later build would trust.
 
 from __future__ import annotations
 
-import ast
 import hashlib
 import json
 from collections.abc import Iterable
-from functools import cache
 from pathlib import Path
 
 import pandas as pd
 
+from acquisition.code_version import PACKAGES, _normalised, _tree_version  # noqa: F401 (tests clear their caches)
 from acquisition.storage import lab_path, publish, read_parquet
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("acquisition", "pipeline", "models", "analysis")  # whose code a result can depend on
 # What each stage's output is made by: its modules and, through their imports, everything they use.
 STAGE_MODULES = {
     "session": ("pipeline.build",),  # ingest → clean → sync → segment of one session
@@ -46,60 +44,6 @@ def file_hash(paths: Iterable[Path], block: int = 1 << 22) -> str:
     return h.hexdigest()
 
 
-def _without_docstrings(tree: ast.AST) -> ast.AST:
-    for node in ast.walk(tree):
-        body = getattr(node, "body", None)
-        if (
-            isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
-            and body
-            and isinstance(body[0], ast.Expr)
-            and isinstance(body[0].value, ast.Constant)
-            and isinstance(body[0].value.value, str)
-        ):
-            node.body = body[1:]
-    return tree
-
-
-def _module_file(name: str, root: Path) -> Path | None:
-    base = root.joinpath(*name.split("."))
-    for path in (base.with_suffix(".py"), base / "__init__.py"):
-        if path.is_file():
-            return path
-    return None
-
-
-def _imports(tree: ast.AST, name: str, is_package: bool) -> set[str]:
-    """The project modules a module's code imports, wherever the import stands (a function's lazy import
-    too): ``from a import b`` counts ``a`` and, where it is a module, ``a.b``."""
-    found = set()
-    package = name if is_package else name.rpartition(".")[0]
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            found.update(alias.name for alias in node.names)
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                parts = package.split(".")
-                base = ".".join(parts[: len(parts) - node.level + 1])
-                module = f"{base}.{node.module}" if node.module else base
-            else:
-                module = node.module or ""
-            found.add(module)
-            found.update(f"{module}.{alias.name}" for alias in node.names)
-    return {m for m in found if m.split(".")[0] in PACKAGES}
-
-
-@cache
-def _normalised(name: str, root: Path) -> tuple[str, frozenset[str]] | None:
-    """A module's code as its syntax tree without docstrings (comments never reach the tree) and the project
-    modules it imports; None where ``name`` is not a module of ours (an imported function's name)."""
-    path = _module_file(name, root)
-    if path is None:
-        return None
-    tree = _without_docstrings(ast.parse(path.read_text(), filename=str(path)))
-    imports = _imports(tree, name, path.name == "__init__.py")
-    return ast.dump(tree, annotate_fields=False, include_attributes=False), frozenset(imports)
-
-
 _ALL_STAGES = tuple(sorted({m for ms in STAGE_MODULES.values() for m in ms}))
 
 
@@ -109,29 +53,6 @@ def code_version(*modules: str, root: Path | None = None) -> str:
     comment edit leaves it as it was; a change of what the code does changes it. No modules: the code of
     every stage. ``root``: the checkout whose code is read (this one by default)."""
     return _tree_version(modules or _ALL_STAGES, Path(ROOT if root is None else root))
-
-
-@cache
-def _tree_version(modules: tuple[str, ...], root: Path) -> str:
-    """``code_version`` of ``modules`` under ``root``, worked out once per process."""
-    pending = list(modules)
-    seen: dict[str, str] = {}
-    while pending:
-        name = pending.pop()
-        if name in seen:
-            continue
-        module = _normalised(name, root)
-        if module is None:
-            seen[name] = ""
-            continue
-        seen[name], imports = module
-        parents = {name.rsplit(".", k)[0] for k in range(1, name.count(".") + 1)}  # their __init__ runs first
-        pending.extend((imports | parents) - seen.keys())
-    h = hashlib.sha256()
-    for name in sorted(seen):
-        if seen[name]:
-            h.update(f"{name}\n{seen[name]}\n".encode())
-    return h.hexdigest()[:16]
 
 
 def stage_version(stage: str, root: Path | None = None) -> str:

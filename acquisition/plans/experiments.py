@@ -292,21 +292,25 @@ def expand_experiment(
         )
     source = _shown(_experiment_path(experiment))
     check_experiment(kind, params, source, overridden=set(overrides or ()))
-    robots = {params["robot"]: load_robot(params["robot"])}
+    # robots by their names, as plans name them: ``robot`` may be a description's path
+    arm = load_robot(params["robot"])
+    robots = {arm.name: arm}
     if kind in ("experiment1", "experiment2"):
-        if params["rigid_arm"]:
-            robots[params["rigid_robot"]] = load_robot(params["rigid_robot"])
+        rigid = load_robot(params["rigid_robot"]) if params["rigid_arm"] else None
+        if rigid is not None and robots.setdefault(rigid.name, rigid) is not rigid:
+            raise ExperimentError(f"{source}: robot and rigid_robot are both named {rigid.name!r}: the plans "
+                                  "tell their arms apart by name")  # fmt: skip
         expand = experiment1 if kind == "experiment1" else experiment2
-        plans = expand(robots[params["robot"]], robots.get(params["rigid_robot"]), params)
+        plans = expand(arm, rigid, params)
     elif kind == "campaign":
-        plans = campaign(robots[params["robot"]], params, benches=benches, seed=seed)
+        plans = campaign(arm, params, benches=benches, seed=seed)
     elif kind in popup_experiments.EXPERIMENTS:
-        links = [link.name for link in robots[params["robot"]].links]
+        links = [link.name for link in arm.links]
         if "link" in params and params["link"] not in links:
             where = "--set link" if "link" in (overrides or {}) else f"{source}: link"
             raise ExperimentError(f"{where}: {params['link']!r}: robot {params['robot']!r} has no such link "
                                 f"(its links: {', '.join(links)})")  # fmt: skip
-        robot = popup_experiments.bench_robot(robots[params["robot"]], params)
+        robot = popup_experiments.bench_robot(arm, params)
         robots = {robot.name: robot}
         plans = popup_experiments.EXPERIMENTS[kind](robot, params)
     return robots, plans, params

@@ -21,6 +21,7 @@ import numpy as np
 from acquisition.command_guard import CommandGuard, CommandRefused
 from acquisition.plans.compensation import Compensator, StaticModelCompensator
 from acquisition.plans.plan import Plan
+from acquisition.plans.sim_identity import IDENTITY, differences, recorded_identity, refuse, session_identity
 from acquisition.plans.twin_topics import stream_rows
 from acquisition.recorder.writer import SessionWriter
 from acquisition.safety import SafetyChecker
@@ -86,18 +87,34 @@ def session_id(plan: Plan) -> str:
     return SIM_PREFIX + plan.name.replace("/", "-")
 
 
-def _complete(directory: Path) -> bool:
-    """Was this twin session written whole? Not when its session.json is missing or damaged (it is then
-    simulated again, as an interrupted one is)."""
+def _complete(directory: Path) -> dict | None:
+    """The card of this twin session if it was written whole. None when its session.json is missing or damaged
+    (it is then simulated again, as an interrupted one is)."""
     from acquisition.recorder.sessions import SessionError, read_card
 
     if not (directory / SESSION_CARD).is_file():
-        return False
+        return None
     try:
-        return read_card(directory).get("status") == "complete"
+        card = read_card(directory)
     except SessionError as exc:
         log.warning("simulated again: %s", exc)
-        return False
+        return None
+    return card if card.get("status") == "complete" else None
+
+
+def reusable(plans: list[Plan], robot: RobotDescription, sessions_dir: Path, seed: int) -> list[bool]:
+    """Which plans' sessions are on disk, complete and made as this run would make them (robot, parameters,
+    code): those are not simulated again. A complete one made otherwise: :class:`StaleSessionsError`."""
+    done, stale = [], {}
+    for p in plans:
+        card = _complete(sessions_dir / session_id(p))
+        wanted = session_identity(p, robot, seed)
+        differ = [] if card is None else differences(recorded_identity(card), wanted)
+        if differ:
+            stale[session_id(p)] = differ
+        done.append(card is not None and not differ)
+    refuse(stale, sessions_dir)
+    return done
 
 
 def _concat(traces: list[Trace]) -> Trace:
@@ -136,7 +153,7 @@ def simulate(
     compensators = list(compensators) if compensators is not None else [None] * len(plans)
     if len(compensators) != len(plans):
         raise ValueError("one compensator (or None) per plan")
-    done = [_complete(sessions_dir / session_id(p)) for p in plans]
+    done = reusable(plans, robot, sessions_dir, seed)
     skipped = [session_id(p) for p, d in zip(plans, done, strict=True) if d]
     plans, compensators = (
         [p for p, d in zip(plans, done, strict=True) if not d],
@@ -174,7 +191,8 @@ def simulate(
                 old.unlink()
         w = SessionWriter(directory, robot, session_id(p), experiment=p.parameters.get("experiment", p.name),
                           metadata={"plan": p.name, "runner": "simulated", "seed": str(seed),
-                                    "parameters": p.parameters, TWIN_TRUTH: twin_truth(world, r)},
+                                    "parameters": p.parameters, TWIN_TRUTH: twin_truth(world, r),
+                                    IDENTITY: session_identity(p, robot, seed)},
                           flush_s=30.0, clock=lambda: sim_now[0])  # fmt: skip
         w.open()
         w.event(Event(EventKind.SESSION_START, label=p.name), SIM_EPOCH_NS)
@@ -428,16 +446,20 @@ def simulate_experiment(
         for p in plans:
             if p.robot == name:
                 checker.require_safe(p)
-    reports = []
+    batches = []  # (robot, plans, first plan's index in its robot's group, label)
     for name, robot in robots.items():
         group = [p for p in plans if p.robot == name]
         for k in range(0, len(group), benches):
             batch = group[k : k + benches]
-            label = f"{kind} {name} {k + 1}–{k + len(batch)}/{len(group)}"
-            tick = (lambda f, label=label: progress(label, f)) if progress else None
-            compensators = [_compensator(p, robot, inverse_model) for p in batch]
-            run = dict(seed=seed + k, progress=tick, compensators=compensators, plans_checked=True)
-            reports.append(simulate(batch, robot, sessions_dir, **run))
+            batches.append((robot, batch, k, f"{kind} {name} {k + 1}–{k + len(batch)}/{len(group)}"))
+    for robot, batch, k, _ in batches:  # sessions of another making on disk: refused before any is written
+        reusable(batch, robot, sessions_dir, seed + k)
+    reports = []
+    for robot, batch, k, label in batches:
+        tick = (lambda f, label=label: progress(label, f)) if progress else None
+        compensators = [_compensator(p, robot, inverse_model) for p in batch]
+        run = dict(seed=seed + k, progress=tick, compensators=compensators, plans_checked=True)
+        reports.append(simulate(batch, robot, sessions_dir, **run))
     return reports
 
 
