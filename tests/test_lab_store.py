@@ -256,3 +256,17 @@ def test_a_damaged_session_on_the_store_is_named_by_its_store_path(s3, campaign_
     result = process_session(str(bad), {"clean": {}, "segment": {}}, "s3://lab/damaged/cache")
     assert "s3://lab/damaged/sessions/sim-bad/sim-bad_000.mcap" in result["error"], result
     assert "vslab-fetch" not in result["error"] and "not an MCAP file" in result["error"]
+
+
+def test_sessions_of_another_robot_on_the_store_are_refused_by_their_store_path(s3, tmp_path):
+    """A store's twin sessions are checked through copies of their cards: a rerun with another robot is one
+    line naming the store's sessions folder (not the local folder the run writes into), and nothing more."""
+    url = "s3://lab/ident"
+    small = ["simulate", "popup_impact", "--set", "pressures_kpa=[50]", "--set", "taps=1",
+             "--set", "settle_s=0.5", "--set", "record_s=0.5"]  # fmt: skip
+    assert "1 sessions written" in _ok(_vslab(s3, "--lab", url, "--quiet", *small))
+    robot = tmp_path / "popup_perturbed.yaml"
+    robot.write_text("extends: popup\nservo: {torque_constant_nm_per_a: 9.0}\n")
+    line = _one_error_line(_vslab(s3, "--lab", url, "--quiet", *small, "--set", f"robot={robot}"))
+    assert f"in {url}/sessions have this run's ids" in line and "differs: robot description" in line, line
+    assert "vslab-sessions-" not in line

@@ -208,6 +208,7 @@ def simulate(
                 tasks[label] = bar.add_task(label, total=1.0)
             bar.update(tasks[label], completed=fraction)
 
+        folder = sessions_dir
         try:
             # on a store, the sessions are written locally and uploaded once whole
             with staged_sessions(sessions_dir, f"{SIM_PREFIX}*") as folder:
@@ -217,7 +218,7 @@ def simulate(
                 )  # fmt: skip
         except (ValueError, OSError, RobotDescriptionError, SafetyError) as exc:  # ExperimentError, full disk
             bar.stop()
-            _error(str(exc))
+            _error(str(exc).replace(str(folder), str(sessions_dir)))  # a store's sessions by their own path
     wall = time.perf_counter() - start
     written = sum(len(r.sessions) for r in reports)
     skipped = sum(len(r.skipped) for r in reports)
