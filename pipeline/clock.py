@@ -8,6 +8,15 @@ through those (liblsl / NTP practice; a strict hull would follow a quantised cou
 invisible to the fit and is subtracted as a calibration constant. A counter reset (a step that host time does
 not show) splits the stamps into segments, each fitted on its own; short ones borrow the long ones' rate.
 
+A counter the host polls (Sync Read, SYNC) is read at instants on the host's clock: when the poll period is a
+whole number of ticks every sample sits at the same phase of its tick and that phase walks only ε·T/tick
+ticks in T seconds (0.6 tick in 20 s at 30 ppm). The floored counter swallows that walk: host − device time
+stays flat between phase slips (the counter stepping one tick more or less than usual), so the drift shows
+only as the spacing of slips. With fewer than two slips it is not in the data: the fit says so
+(``drift_fitted`` False) and takes the middle of what the stamps allow, |ε| < tick/T with no slip (the
+device's nominal rate), 0 < ±ε < tick/max(t*, T − t*) with one slip at t*. Either keeps every sample within
+half a tick of its sampling instant: between slips the envelope is flat and is where the samples sit.
+
 Offset convention (the twin's own): ``offset_s`` is the device clock (s, unwrapped counter × tick) at host
 time ``ref_ns``, i.e. t_dev = (1 + ε)·(t_host − ref) + offset_s, with t_host the host time of sampling.
 """
@@ -51,6 +60,7 @@ class ClockFit:
     jitter_p95_s: float
     n: int
     stamp_phase: float = 0.5
+    drift_fitted: bool = True  # False: too few phase slips to see drift; the nominal rate is used
 
     @property
     def main(self) -> ClockSegment:
@@ -88,7 +98,8 @@ class ClockFit:
         segments = [{"start": s.start, "stop": s.stop, "drift_ppm": s.drift_ppm} for s in self.segments]
         return {"offset_s": self.offset_s, "drift_ppm": self.drift_ppm, "jitter_p50_s": self.jitter_p50_s,
                 "jitter_p95_s": self.jitter_p95_s, "n": self.n, "resets": self.resets, "ref_ns": self.ref_ns,
-                "latency_s": self.latency_s, "segments": segments}  # fmt: skip
+                "latency_s": self.latency_s, "drift_fitted": self.drift_fitted,
+                "segments": segments}  # fmt: skip
 
 
 def unwrap_stamps(raw: np.ndarray, host_ns: np.ndarray, tick_s: float, wrap: int | None) -> np.ndarray:
@@ -112,10 +123,15 @@ def find_resets(ticks: np.ndarray, host_ns: np.ndarray, tick_s: float, tol_s: fl
 
 
 def window_minima(x: np.ndarray, z: np.ndarray, width: float) -> tuple[np.ndarray, np.ndarray]:
-    """The lowest point of each ``width``-long window of x: the samples that waited least."""
+    """The lowest point of each ``width``-long window of x: the samples that waited least. A window with under
+    half the usual samples (the session's ragged last one) is left out: its minimum waited longer, and on a
+    short session that lifted one end of the line by a jitter's worth (−80 ppm on 5–8 s)."""
     group = np.floor((x - x.min()) / width).astype(np.int64)
     order = np.lexsort((z, group))
-    first = order[np.flatnonzero(np.r_[True, group[order][1:] != group[order][:-1]])]
+    starts = np.flatnonzero(np.r_[True, group[order][1:] != group[order][:-1]])
+    counts = np.diff(np.r_[starts, order.size])
+    full = counts >= 0.5 * np.median(counts)
+    first = order[starts[full] if full.sum() >= 2 else starts]
     return x[first], z[first]
 
 
@@ -148,11 +164,13 @@ class ClockModel(Estimator):
     ``offset_s`` is read. ``stamp_phase``: where in its tick a sample falls on average (0.5 for a floored
     counter read at any instant, 0 when the count is the sampling event itself, as a tracker frame). Segments
     shorter than ``min_span_s`` of device time keep the rate of the longer ones and fit only their offset.
+    ``polled``: the host chooses the sampling instants (see the module docstring); a phase-locked counter
+    with fewer than ``min_slips`` phase slips in its long segments gets the nominal rate, unfitted.
     """
 
     def __init__(self, tick_s: float = 1e-3, latency_s: float = 0.0, ref_ns: int | None = None,
                  stamp_phase: float = 0.5, window_s: float = 1.0, reset_tol_s: float = 0.25,
-                 min_span_s: float = 5.0) -> None:  # fmt: skip
+                 min_span_s: float = 5.0, polled: bool = False, min_slips: int = 2) -> None:  # fmt: skip
         self.tick_s = tick_s
         self.latency_s = latency_s
         self.ref_ns = ref_ns
@@ -160,6 +178,8 @@ class ClockModel(Estimator):
         self.window_s = window_s
         self.reset_tol_s = reset_tol_s
         self.min_span_s = min_span_s
+        self.polled = polled
+        self.min_slips = min_slips
 
     def fit(self, device_ticks: np.ndarray, host_ns: np.ndarray) -> ClockModel:
         ticks = np.asarray(device_ticks, dtype=np.int64)
@@ -179,7 +199,12 @@ class ClockModel(Estimator):
         long = [p for p in parts if np.ptp(p[2]) >= self.min_span_s] or [
             max(parts, key=lambda p: np.ptp(p[2]))
         ]
-        fits = {p[0]: envelope_line(p[2], p[3], _width(p[2], window_s)) for p in long}
+        spans = [(start, stop) for start, stop, _, _ in long]
+        resolved = not (self.polled and phase_locked(ticks, spans, self.min_slips))
+        fits = {
+            a: envelope_line(x, z, _width(x, window_s), None if resolved else -slip_drift(ticks[a:b]))
+            for a, b, x, z in long
+        }
         shared = float(np.average([fits[p[0]][1] for p in long], weights=[p[1] - p[0] for p in long]))
         segments, residual = [], []
         for start, stop, x, z in parts:
@@ -190,7 +215,7 @@ class ClockModel(Estimator):
         p50, p95 = np.percentile(residual, [50, 95])
         self.clock_ = ClockFit(
             tick_s, ref, self.latency_s, tuple(segments), float(p50), float(p95), int(ticks.size),
-            self.stamp_phase,
+            self.stamp_phase, resolved,
         )  # fmt: skip
         return self
 
@@ -198,6 +223,36 @@ class ClockModel(Estimator):
         """Host time of sampling (int64 ns) of unwrapped device ``ticks`` counted in ``segment``."""
         self.check_fitted()
         return self.clock_.to_host_ns(ticks, segment)
+
+
+def phase_slips(ticks: np.ndarray) -> tuple[np.ndarray, float]:
+    """A polled counter's phase slips, as the signed steps (±1 tick) off the usual (modal) step by index, and
+    the share of steps off it (a dithered poll spreads them; a phase-locked one leaves slips and losses)."""
+    steps = np.diff(np.asarray(ticks, dtype=np.int64))
+    if steps.size == 0:
+        return np.zeros(0, np.int64), 0.0
+    values, counts = np.unique(steps, return_counts=True)
+    off = steps - values[np.argmax(counts)]
+    return np.where(np.abs(off) == 1, off, 0), float(np.mean(off != 0))
+
+
+def slip_drift(ticks: np.ndarray) -> float:
+    """The drift ε (fraction) in the middle of what a phase-locked counter with at most one slip allows: 0
+    without one, ±1/(2·max(n*, n − n*)) with one at tick n* of n (a tick more than usual: ε > 0)."""
+    slips, _ = phase_slips(ticks)
+    at = np.flatnonzero(slips)
+    if at.size != 1:
+        return 0.0
+    before, total = float(ticks[at[0]] - ticks[0]), float(ticks[-1] - ticks[0])
+    return float(slips[at[0]]) / (2.0 * max(before, total - before, 1.0))
+
+
+def phase_locked(ticks: np.ndarray, spans: list[tuple[int, int]], min_slips: int = 2,
+                 dithered: float = 0.01) -> bool:  # fmt: skip
+    """True when the drift of a polled counter is not in its stamps: every sample [start, stop) of ``spans``
+    at one phase (under ``dithered`` of the steps off the usual one) and fewer than ``min_slips`` slips."""
+    found = [phase_slips(ticks[a:b]) for a, b in spans]
+    return max(off for _, off in found) < dithered and sum(np.count_nonzero(s) for s, _ in found) < min_slips
 
 
 def _width(x: np.ndarray, window_s: float) -> float:

@@ -32,6 +32,8 @@ TIMELINE_FIELDS: dict[str, tuple[str, tuple[str, ...]]] = {
     T.PRESSURE: ("", ("pressure",)),
     T.STEPPER: ("stepper_", ("position",)),
 }
+# streams whose samples the host polls (Sync Read, SYNC): sampled on the host's clock, see pipeline.clock
+POLLED = frozenset({T.SERVO_STATE, T.JOINT_STATE})
 
 
 class SyncError(PipelineError, ValueError):
@@ -93,8 +95,9 @@ def fit_stream(
     else:
         ticks = device_ticks(df, field, spec.clock)
     phase = 0.0 if field == "frame" else 0.5  # a frame number is the sampling event; a counter is floored
+    options = {"polled": topic in POLLED, **fit_options}
     model = ClockModel(spec.clock.tick_s, spec.host_link.latency_s, ref_ns=session.t0_ns, stamp_phase=phase,
-                       **fit_options)  # fmt: skip
+                       **options)  # fmt: skip
     return device, model.fit(ticks, host), ticks
 
 
@@ -163,6 +166,13 @@ def sync(
             out.report.values[f"clock/{device}"] = fit.as_dict()
             if fit.resets:
                 out.report.warnings.append(f"{device}: {fit.resets} counter reset(s), segments fitted apart")
+            if not fit.drift_fitted:
+                span = np.ptp(ticks) * fit.tick_s
+                out.report.warnings.append(
+                    f"{device}: session too short to fit clock drift ({span:.1f} s: its polled counter "
+                    f"slipped phase under twice); drift {fit.drift_ppm:+.1f} ppm, the middle of what its "
+                    "stamps allow (0 without a slip: the device's nominal rate)"
+                )
             log.debug("%s: drift %.1f ppm, jitter p95 %.2f ms", device, fit.drift_ppm, 1e3 * fit.jitter_p95_s)
         out.streams[topic] = df
     return out, timeline(out, gap_periods)
