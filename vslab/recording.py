@@ -289,7 +289,7 @@ def record(
             with _recording(rec), Live(console=console, refresh_per_second=2, transient=True) as counters:
                 start = time.monotonic()
                 try:
-                    while duration <= 0 or time.monotonic() - start < duration:
+                    while (duration <= 0 or time.monotonic() - start < duration) and rec.write_error is None:
                         left = start + duration - time.monotonic() if duration > 0 else 0.5
                         time.sleep(min(0.5, max(0.0, left)))
                         if not Settings.quiet:

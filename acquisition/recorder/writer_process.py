@@ -34,7 +34,7 @@ from acquisition.processes import parent_alive, settle_heap
 from acquisition.recorder.layout import Layout
 from acquisition.recorder.ring import Ring
 from acquisition.recorder.status import DaemonStatus, Phase
-from acquisition.recorder.writer import RotationPolicy, SessionWriter
+from acquisition.recorder.writer import RotationPolicy, SessionWriter, WriteFailed
 from acquisition.schemas.events import Event, EventKind
 from models.robot import RobotDescription
 
@@ -42,6 +42,7 @@ log = logging.getLogger(__name__)
 
 DAEMON_GRACE_S = 1.0
 CARD_EVERY_S = 1.0
+WRITER_FAILED = 3  # exit status of a writer that could not write (a full disk): not restarted
 
 
 class WriterProcess:
@@ -73,7 +74,45 @@ class WriterProcess:
             for ring in self.rings.values():
                 ring.note_writer_lost()
 
-    def serve(self) -> None:
+    def serve(self) -> int:
+        """Write until stopped: 0, or WRITER_FAILED once a write failed (the session then ended, marked)."""
+        try:
+            self._serve()
+        except WriteFailed as exc:
+            self.failed(str(exc))
+            return WRITER_FAILED
+        return 0
+
+    def failed(self, reason: str) -> None:
+        """The session could not be written: say so to the supervisor (it stops the devices), then take
+        what the daemons still send and count it dropped, until stopped; the account adds up."""
+        log.error("the session writer failed: %s", reason)
+        if self.commands is not None:
+            try:
+                self.commands.sendall(json.dumps({"op": "failed", "reason": reason}).encode() + b"\n")
+            except OSError:
+                self.supervisor_gone = self.stopping = True
+        while not self.stopping:
+            self.discard()
+            self._wait(self.layout.batch_s)
+        deadline = time.monotonic() + DAEMON_GRACE_S
+        while time.monotonic() < deadline and not all(self._daemon_done(s) for s in self.statuses.values()):
+            self.discard()
+            time.sleep(0.02)
+        self.discard()
+        self.sync_counters()
+        self.writer.close()  # session.json: failed, its reason and this account, where the disk takes it
+        if self.supervisor_gone:
+            shutil.rmtree(self.layout.run_dir, ignore_errors=True)
+
+    def discard(self) -> None:
+        """Take every ring's records and count those never written as dropped (nothing can write them)."""
+        for ring in [*self.rings.values(), *self.event_rings.values()]:
+            ring.take()
+            ring.note_writer_lost()
+        self.pending = dict.fromkeys(self.rings, 0)
+
+    def _serve(self) -> None:
         self.writer.open()
         settle_heap()  # a full collection later would stall the drain (the rings then fill)
         last_flush = last_card = time.monotonic()
@@ -191,11 +230,10 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        process.serve()
+        return process.serve()
     except Exception:
         log.exception("the session writer failed")
         raise
-    return 0
 
 
 if __name__ == "__main__":
