@@ -209,6 +209,10 @@ class SessionWriter:
             seq = self._sequence[EVENTS]
             end = Event(EventKind.NOTE, label="writer", text=self.failure).encode()
             whole = part.writer.salvage((part.channels[EVENTS], self._last_ns, end, seq))
+            if whole:  # the note is in the file: in the account too
+                c = self.counters[EVENTS]
+                c.written += 1
+                c.received = c.expected = max(c.received, c.written + c.dropped)
             size = part.file.tell()
             part.file.close()
             if size == 0:  # nothing of it was ever whole: no empty part is left
@@ -269,9 +273,10 @@ class SessionWriter:
         writer.flush()
 
     def _finish_part(self) -> None:
-        part, self._part = self._part, None
-        part.writer.finish()
+        part = self._part
+        part.writer.finish()  # a failure here leaves it open, for _fail to cut back to its last flush
         part.file.close()
+        self._part = None
 
     # ------------------------------------------------------------------------------------- writing
     def write(self, topic: str, log_time_ns: np.ndarray, rows: np.ndarray, publish_time_ns=None) -> None:

@@ -36,6 +36,7 @@ from acquisition.recorder.ring import Ring
 from acquisition.recorder.status import DaemonStatus, Phase
 from acquisition.recorder.writer import RotationPolicy, SessionWriter, WriteFailed
 from acquisition.schemas.events import Event, EventKind
+from acquisition.schemas.topics import EVENTS
 from models.robot import RobotDescription
 
 log = logging.getLogger(__name__)
@@ -69,6 +70,7 @@ class WriterProcess:
         self.event_rings = {p: Ring.attach(layout.events(p)) for p in layout.producers}
         self.statuses = {name: DaemonStatus.attach(layout.status(name)) for name in layout.devices}
         self.pending: dict[str, int] = dict.fromkeys(self.rings, 0)
+        self.unwritten_events = 0  # events taken from their rings, not yet written
         self.stopping = False
         if restarted:
             for ring in self.rings.values():
@@ -107,10 +109,14 @@ class WriterProcess:
 
     def discard(self) -> None:
         """Take every ring's records and count those never written as dropped (nothing can write them)."""
-        for ring in [*self.rings.values(), *self.event_rings.values()]:
+        for ring in self.rings.values():
             ring.take()
             ring.note_writer_lost()
-        self.pending = dict.fromkeys(self.rings, 0)
+        events = self.unwritten_events + sum(len(ring.take()[0]) for ring in self.event_rings.values())
+        if events:
+            self.writer.note_received(EVENTS, events)
+            self.writer.note_dropped(EVENTS, events)
+        self.pending, self.unwritten_events = dict.fromkeys(self.rings, 0), 0
 
     def _serve(self) -> None:
         self.writer.open()
@@ -158,8 +164,10 @@ class WriterProcess:
             events += [
                 (int(t), bytes(payload[i, :n])) for i, (t, n) in enumerate(zip(host_ns, lengths, strict=True))
             ]
+        self.unwritten_events = len(events)
         for t, data in sorted(events, key=lambda e: e[0]):
             self.writer.event(Event.decode(data), t + offset)
+            self.unwritten_events -= 1
 
     def flush(self) -> None:
         self.writer.flush()

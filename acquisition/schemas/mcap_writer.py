@@ -255,6 +255,8 @@ class BatchMcapWriter:
         self._stats = copy.deepcopy(stats)
         self.stream.truncate(offset)
         self.stream.seek(offset)
+        if offset == 0:  # not even its header was whole: nothing to close
+            return False
         try:
             if last is not None:
                 channel, log_time, data, sequence = last
