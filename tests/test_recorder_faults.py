@@ -175,3 +175,26 @@ def test_ports_with_rig_is_refused_not_ignored(tmp_path, command):
     errors = [line for line in done.stdout.splitlines() if line.startswith("error:")]
     assert len(errors) == 1 and "--ports" in errors[0] and "--rig" in errors[0], done.stdout
     assert not (lab / "sessions" / "p").exists() and not (lab / "rig" / "p").exists()
+
+
+def test_sessions_recover_takes_a_torn_part_before_empty_trailing_ones(tmp_path):
+    """What a writer that died on a full disk used to leave: a torn part, then empty parts it opened. The
+    empty trailing parts are no part of the session: `sessions recover` mends the torn one; `info` reads it
+    all."""
+    session = tmp_path / "lab" / "sessions" / "s"
+    robot = load_robot("vsl")
+    message = T.session_topics(robot)[T.SERVO_STATE].message
+    with SessionWriter(session, robot, "s", standard_topics=False) as writer:
+        for k in range(20):
+            writer.write(T.SERVO_STATE, np.arange(k * 100, (k + 1) * 100) * 1_000_000, message.empty(100))
+            writer.flush()
+    part = session / "s_000.mcap"
+    part.write_bytes(part.read_bytes()[: part.stat().st_size * 2 // 3])  # torn in its last chunks
+    for k in (1, 2, 3):
+        (session / f"s_{k:03d}.mcap").write_bytes(b"")
+    done = _cli(tmp_path / "lab", "sessions", "recover", "s")
+    assert done.returncode == 0 and "Traceback" not in done.stdout + done.stderr, done.stdout + done.stderr
+    recovered = session / "s_000.recovered.mcap"
+    assert 0 < _messages(recovered)[T.SERVO_STATE] < 2000
+    done = _cli(tmp_path / "lab", "sessions", "info", "s")
+    assert done.returncode == 0 and "error:" not in done.stdout, done.stdout + done.stderr
