@@ -83,28 +83,21 @@ def _devices(desc, ports: Path | None, rig: bool, session_id: str, plan=None):
     operator sets it up. Every port is checked to be a serial port before anything opens it. SIGTERM
     becomes KeyboardInterrupt, so both stop a session the same way."""
     rig_proc = None
+    if rig and ports is not None:  # a rig of its own has its own ports: another's would be ignored
+        _error(f"--ports {ports} with --rig: --rig starts a rig and uses its devices; give one of them "
+               "(a running rig's run directory is --ports DIR, without --rig)")  # fmt: skip
     if rig:
         ports = Settings.lab / "rig" / session_id
         # the rig simulates this very description: an experiment's variant of the robot (a link made rigid,
         # joints fixed, the flange off) is what its plans expect, not the robot of the same name
-        ports.mkdir(parents=True, exist_ok=True)
-        described = ports / "robot.yaml"
-        described.write_text(desc.model_dump_json())  # JSON is YAML
-        start = []
-        if plan is not None:
-            first = {
-                "q_rad": plan.goal_q[:1],
-                "pressure_pa": plan.pressure_pa[:1],
-                "valve_open": plan.valve_open[:1],
-            }
-            (ports / "start.json").write_text(
-                json.dumps({k: v[0].tolist() for k, v in first.items() if len(v)})
-            )
-            start = ["--start", str(ports / "start.json")]
+        try:
+            start = _rig_files(desc, ports, plan)
+        except OSError as exc:  # a read-only lab, a full disk: before anything was started
+            _error(f"cannot write the rig's folder {ports}: {exc.strerror or exc}")
         # its own session (Ctrl-C reaches only us, who stop it in order); it dies with us, even by SIGKILL
         rig_proc = subprocess.Popen(
-            [sys.executable, "-m", "acquisition.sim.rig", "--robot", str(described), "--run-dir", str(ports),
-             "--parent-pid", str(os.getpid()), *start], start_new_session=True,
+            [sys.executable, "-m", "acquisition.sim.rig", "--robot", str(ports / "robot.yaml"),
+             "--run-dir", str(ports), "--parent-pid", str(os.getpid()), *start], start_new_session=True,
         )  # fmt: skip
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
@@ -129,6 +122,17 @@ def _devices(desc, ports: Path | None, rig: bool, session_id: str, plan=None):
             except subprocess.TimeoutExpired:
                 rig_proc.kill()
                 rig_proc.wait()
+
+
+def _rig_files(desc, run_dir: Path, plan) -> list[str]:
+    """The rig's description (and its bench's start, as ``plan`` starts) in ``run_dir``: its arguments."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "robot.yaml").write_text(desc.model_dump_json())  # JSON is YAML
+    if plan is None:
+        return []
+    first = {"q_rad": plan.goal_q[:1], "pressure_pa": plan.pressure_pa[:1], "valve_open": plan.valve_open[:1]}
+    (run_dir / "start.json").write_text(json.dumps({k: v[0].tolist() for k, v in first.items() if len(v)}))
+    return ["--start", str(run_dir / "start.json")]
 
 
 def _rig_ports(run_dir: Path, rig_proc: subprocess.Popen | None) -> dict[str, str]:
@@ -285,7 +289,7 @@ def record(
             with _recording(rec), Live(console=console, refresh_per_second=2, transient=True) as counters:
                 start = time.monotonic()
                 try:
-                    while duration <= 0 or time.monotonic() - start < duration:
+                    while (duration <= 0 or time.monotonic() - start < duration) and rec.write_error is None:
                         left = start + duration - time.monotonic() if duration > 0 else 0.5
                         time.sleep(min(0.5, max(0.0, left)))
                         if not Settings.quiet:

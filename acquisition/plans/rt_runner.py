@@ -336,6 +336,8 @@ class RealTimeRunner:
         """A reason to stop now: a safety limit on the latest measurements, or a lost or silent device."""
         # a device that drops out and reconnects within stale_s (a missed reply, a busy host) is not a stop;
         # one whose samples are older than that is
+        if getattr(self.rec, "write_error", None):  # the session cannot be written (a full disk)
+            return "recording", f"the session writer failed: {self.rec.write_error}"
         refused, why = self.rec.refusals()
         if refused > self._refused:
             return "command", f"refused by a device daemon: {why}"

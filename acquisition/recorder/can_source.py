@@ -23,7 +23,7 @@ from acquisition.codecs import popup_boards as pb
 from acquisition.devices.base import host_now_ns
 from acquisition.devices.can_drives import CanDrives
 from acquisition.devices.popup_boards import BoardFrames, BoardSample
-from acquisition.recorder.sources import SEQ_MODULO, Row, Source
+from acquisition.recorder.source_base import SEQ_MODULO, Row, Source
 from acquisition.schemas import topics as T
 
 log = logging.getLogger(__name__)

@@ -23,6 +23,7 @@ import contextlib
 import json
 import logging
 import os
+import select
 import shutil
 import signal
 import socket
@@ -43,6 +44,7 @@ from acquisition.recorder.ring import Ring
 from acquisition.recorder.sources import SOURCES, make_source
 from acquisition.recorder.status import DaemonStatus, Phase
 from acquisition.recorder.writer import RotationPolicy
+from acquisition.recorder.writer_process import WRITER_FAILED
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.session_card import as_metadata
@@ -234,6 +236,8 @@ class Recorder:
         if writer is not None:
             writer.send({"op": "stop"})
             code = _end(writer.proc, 30.0)
+            if code == WRITER_FAILED and self.write_error is None:
+                self.write_error = _failure(writer) or f"it could not write (see {self.layout.log('writer')})"
             if code != 0 and self.write_error is None:
                 self.write_error = f"the session writer exited with {code} (see {self.layout.log('writer')})"
         self.final = self.snapshot()
@@ -363,6 +367,8 @@ class Recorder:
                     return
                 code = child.proc.poll()
                 if name == "writer":
+                    if self._writer_failed(child):
+                        return
                     if code is not None:
                         self._restart_writer(code)
                     continue
@@ -391,6 +397,21 @@ class Recorder:
                 self._rings[topic].restart_sequence()
         self._children[name].close()
         self._children[name] = self._spawn_daemon(name, restarted=True)
+
+    def _writer_failed(self, writer: _Child) -> bool:
+        """True once the writer said it could not write (a full disk): the devices are then stopped (left
+        safe), the writer counts what they still send as dropped and the session is marked failed."""
+        reason = _failure(writer)
+        if reason is None:
+            return False
+        self.write_error = reason
+        log.error("the session writer failed: %s; stopping the devices", reason)
+        daemons = [c for name, c in self._children.items() if name != "writer"]
+        for child in daemons:
+            child.send({"op": "stop"})
+        for child in daemons:
+            _end(child.proc, 5.0)
+        return True
 
     def _restart_writer(self, code: int) -> None:
         self.restarts["writer"] = self.restarts.get("writer", 0) + 1
@@ -431,6 +452,22 @@ class Recorder:
             if self.live_errors == 1:
                 log.exception("live view failed on %s; recording goes on without it (counted in live_errors)",
                               topic)  # fmt: skip
+
+
+def _failure(writer: _Child) -> str | None:
+    """The reason a writer sent when it could not write (``{"op": "failed"}``), if it sent one."""
+    try:
+        if not select.select([writer.commands], [], [], 0)[0]:
+            return None
+        data = writer.commands.recv(4096)
+    except (OSError, ValueError):  # closed
+        return None
+    for line in data.splitlines():
+        with contextlib.suppress(ValueError):
+            message = json.loads(line)
+            if message.get("op") == "failed":
+                return str(message.get("reason", "it could not write"))
+    return None
 
 
 def _end(proc: subprocess.Popen, timeout_s: float) -> int:

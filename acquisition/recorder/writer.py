@@ -16,6 +16,8 @@ part's first message, ``/tf`` and ``/joint_states`` (50 Hz) and ``/tracker/tip``
 from __future__ import annotations
 
 import json
+import logging
+import os
 import platform
 import time
 from dataclasses import dataclass, field
@@ -23,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from acquisition.schemas import Event, FixedMessage
+from acquisition.errors import AcquisitionError
+from acquisition.schemas import Event, EventKind, FixedMessage
 from acquisition.schemas.mcap_writer import MCAP_LIBRARY_VERSION, BatchMcapWriter
 from acquisition.schemas.scene import URDF_ATTACHMENT, Batch, Scene, SceneStream
 from acquisition.schemas.session_card import (
@@ -37,6 +40,14 @@ from acquisition.schemas.topics import EVENTS, MESSAGE_ENCODING, SCHEMA_ENCODING
 from models.robot import RobotDescription
 
 PROFILE = "ros2"  # Foxglove and ROS 2 tools take the files as ros2 bags
+RESERVE = ".writer-reserve"  # room set aside at open, freed when the disk fills: to end the session in words
+RESERVE_BYTES = 128 * 1024
+
+log = logging.getLogger(__name__)
+
+
+class WriteFailed(AcquisitionError, OSError):
+    """The session could not be written (a full disk, an I/O error): it was ended, marked failed."""
 
 
 def vslab_version() -> str:
@@ -133,6 +144,8 @@ class SessionWriter:
         self._sequence: dict[str, int] = dict.fromkeys(self.topics, 0)
         self._scene = Scene(robot) if standard_topics else None
         self._stream = SceneStream(self._scene) if self._scene is not None else None
+        self._last_ns = 0  # the latest log time written
+        self.failure: str | None = None  # why the session stopped being written (then nothing more is)
 
     # ------------------------------------------------------------------------------------ lifecycle
     def __enter__(self) -> SessionWriter:
@@ -145,23 +158,76 @@ class SessionWriter:
     def open(self) -> None:
         if self._part is None:
             self.directory.mkdir(parents=True, exist_ok=True)
-            self._start_part()
-            self._write_card("recording")
+            self._reserve()
+            self._guarded(self._start_part)
+            self._guarded(self._write_card, "recording")
 
     def close(self) -> None:
         """Finish the open part: summary, indexes and the final counters as metadata."""
+        if self.failure is not None:
+            self._write_card("failed")  # the final account, where the disk still takes it
+            return
         if self._part is not None:
-            if self._stream is not None:
-                self._write_standard(self._stream.finish())
-            self._part.writer.add_metadata(
-                COUNTERS_METADATA, {k: json.dumps(c.as_dict()) for k, c in self.counters.items()}
-            )
-            self._finish_part()
+            self._guarded(self._close_part)
             self._write_card("complete")
+            (self.directory / RESERVE).unlink(missing_ok=True)
+
+    def _close_part(self) -> None:
+        if self._stream is not None:
+            self._write_standard(self._stream.finish())
+        self._part.writer.add_metadata(
+            COUNTERS_METADATA, {k: json.dumps(c.as_dict()) for k, c in self.counters.items()}
+        )
+        self._finish_part()
+
+    def _reserve(self) -> None:
+        """Set room aside for ending the session in words should the disk fill (see ``_fail``)."""
+        path = self.directory / RESERVE
+        if not path.exists():
+            with open(path, "wb") as f:
+                os.posix_fallocate(f.fileno(), 0, RESERVE_BYTES)
+
+    def _guarded(self, step, *args):
+        """Run one step that writes; one that fails ends the session (``_fail``) and raises WriteFailed."""
+        if self.failure is not None:
+            raise WriteFailed(self.failure)
+        try:
+            return step(*args)
+        except OSError as exc:
+            self._fail(exc)
+            raise WriteFailed(self.failure) from exc
+
+    def _fail(self, exc: OSError) -> None:
+        """A write failed: free the reserve, cut the open part back to its last flush (whole records), end it
+        with an event saying why and its summary where there is room, and mark the session failed. No new
+        part is started: a full disk costs only what could not be written."""
+        self.failure = f"writing {self.directory} failed: {exc.strerror or exc}"
+        (self.directory / RESERVE).unlink(missing_ok=True)  # first: room for the log, the summary, the card
+        log.error("%s; the session ends here", self.failure)
+        part, self._part = self._part, None
+        if part is not None:
+            seq = self._sequence[EVENTS]
+            end = Event(EventKind.NOTE, label="writer", text=self.failure).encode()
+            whole = part.writer.salvage((part.channels[EVENTS], self._last_ns, end, seq))
+            if whole:  # the note is in the file: in the account too
+                c = self.counters[EVENTS]
+                c.written += 1
+                c.received = c.expected = max(c.received, c.written + c.dropped)
+            size = part.file.tell()
+            part.file.close()
+            if size == 0:  # nothing of it was ever whole: no empty part is left
+                part.path.unlink(missing_ok=True)
+                self.parts.remove(part.path)
+            elif not whole:
+                log.error("%s: no room for its summary; `vslab sessions recover` reads it", part.path)
+        try:
+            self._write_card("failed")
+        except OSError as card_exc:
+            log.error("session.json could not be rewritten: %s", card_exc)
 
     def write_card(self, status: str = "recording") -> None:
         """Rewrite ``session.json`` now (a long recording keeps it current for whoever looks)."""
-        self._write_card(status)
+        self._guarded(self._write_card, status)
 
     def _write_card(self, status: str) -> None:
         """``session.json`` beside the parts: what the session is, and how far it got."""
@@ -169,6 +235,7 @@ class SessionWriter:
         card |= {
             "schema_version": SCHEMA_VERSION,
             "status": status,
+            **({"failure": self.failure} if self.failure is not None else {}),
             "parts": [p.name for p in self.parts],
             "counters": {k: c.as_dict() for k, c in self.counters.items()},
         }
@@ -188,10 +255,12 @@ class SessionWriter:
 
     def _start_part(self) -> None:
         path = self.directory / f"{self.session_id}_{len(self.parts):03d}.mcap"
-        f = open(path, "xb")
-        writer = BatchMcapWriter(f, chunk_size=self.chunk_size)
+        f = open(path, "xb", buffering=0)  # unbuffered: a failed write leaves nothing pending (see _fail)
+        self.parts.append(path)
+        self._part = _Part(path, f, BatchMcapWriter(f, chunk_size=self.chunk_size))
+        writer = self._part.writer
         writer.start(profile=PROFILE, library=f"vslab {self.metadata['vslab_version']}")
-        part = _Part(path, f, writer)
+        part = self._part
         for name, topic in self.topics.items():
             schema_id = writer.register_schema(topic.schema_name, SCHEMA_ENCODING, topic.schema_text.encode())
             part.channels[name] = writer.register_channel(name, MESSAGE_ENCODING, schema_id)
@@ -200,18 +269,21 @@ class SessionWriter:
                 schema_id = writer.register_schema(schema_name, SCHEMA_ENCODING, text.encode())
                 part.channels[name] = writer.register_channel(name, MESSAGE_ENCODING, schema_id)
             writer.add_attachment(URDF_ATTACHMENT, "application/xml", self._scene.urdf.encode())
-        writer.add_metadata(SESSION_METADATA, {**self.metadata, "part": str(len(self.parts))})
+        writer.add_metadata(SESSION_METADATA, {**self.metadata, "part": str(len(self.parts) - 1)})
         writer.flush()
-        self.parts.append(path)
-        self._part = part
 
     def _finish_part(self) -> None:
-        part, self._part = self._part, None
-        part.writer.finish()
+        part = self._part
+        part.writer.finish()  # a failure here leaves it open, for _fail to cut back to its last flush
         part.file.close()
+        self._part = None
 
     # ------------------------------------------------------------------------------------- writing
     def write(self, topic: str, log_time_ns: np.ndarray, rows: np.ndarray, publish_time_ns=None) -> None:
+        """Write messages of one topic (see ``_write``); a write that fails ends the session: WriteFailed."""
+        self._guarded(self._write, topic, log_time_ns, rows, publish_time_ns)
+
+    def _write(self, topic: str, log_time_ns: np.ndarray, rows: np.ndarray, publish_time_ns=None) -> None:
         """Write messages of one topic: ``rows`` a structured array of its message type (see
         ``FixedMessage.pack``), ``log_time_ns`` the host receive times, ``publish_time_ns`` the device times
         in ns when known (default: the log times)."""
@@ -257,6 +329,9 @@ class SessionWriter:
 
     def event(self, event: Event, log_time_ns: int) -> None:
         """Write one event (plan marker, payload change, device gap, note)."""
+        self._guarded(self._event, event, log_time_ns)
+
+    def _event(self, event: Event, log_time_ns: int) -> None:
         self._rotate_if_due(log_time_ns)
         seq = self._sequence[EVENTS]
         self._part.writer.add_message(
@@ -283,6 +358,7 @@ class SessionWriter:
         c.received = max(c.received, c.written + c.dropped)  # direct writers (the simulator) do not note
         c.expected = max(c.expected, c.received + c.lost)
         first, last = int(log_time.min()), int(log_time.max())
+        self._last_ns = max(self._last_ns, last)
         c.first_ns = first if c.first_ns is None else min(c.first_ns, first)
         c.last_ns = last if c.last_ns is None else max(c.last_ns, last)
         part = self._part
@@ -296,7 +372,7 @@ class SessionWriter:
     def flush(self) -> None:
         """Close the open chunk and push it to the file: what a kill can no longer take away."""
         if self._part is not None:
-            self._part.writer.flush()
+            self._guarded(self._part.writer.flush)
         self._last_flush = self.clock()
 
     def _rotate_if_due(self, log_time_ns: int) -> None:

@@ -34,14 +34,16 @@ from acquisition.processes import parent_alive, settle_heap
 from acquisition.recorder.layout import Layout
 from acquisition.recorder.ring import Ring
 from acquisition.recorder.status import DaemonStatus, Phase
-from acquisition.recorder.writer import RotationPolicy, SessionWriter
+from acquisition.recorder.writer import RotationPolicy, SessionWriter, WriteFailed
 from acquisition.schemas.events import Event, EventKind
+from acquisition.schemas.topics import EVENTS
 from models.robot import RobotDescription
 
 log = logging.getLogger(__name__)
 
 DAEMON_GRACE_S = 1.0
 CARD_EVERY_S = 1.0
+WRITER_FAILED = 3  # exit status of a writer that could not write (a full disk): not restarted
 
 
 class WriterProcess:
@@ -68,12 +70,55 @@ class WriterProcess:
         self.event_rings = {p: Ring.attach(layout.events(p)) for p in layout.producers}
         self.statuses = {name: DaemonStatus.attach(layout.status(name)) for name in layout.devices}
         self.pending: dict[str, int] = dict.fromkeys(self.rings, 0)
+        self.unwritten_events = 0  # events taken from their rings, not yet written
         self.stopping = False
         if restarted:
             for ring in self.rings.values():
                 ring.note_writer_lost()
 
-    def serve(self) -> None:
+    def serve(self) -> int:
+        """Write until stopped: 0, or WRITER_FAILED once a write failed (the session then ended, marked)."""
+        try:
+            self._serve()
+        except WriteFailed as exc:
+            self.failed(str(exc))
+            return WRITER_FAILED
+        return 0
+
+    def failed(self, reason: str) -> None:
+        """The session could not be written: say so to the supervisor (it stops the devices), then take
+        what the daemons still send and count it dropped, until stopped; the account adds up."""
+        log.error("the session writer failed: %s", reason)
+        if self.commands is not None:
+            try:
+                self.commands.sendall(json.dumps({"op": "failed", "reason": reason}).encode() + b"\n")
+            except OSError:
+                self.supervisor_gone = self.stopping = True
+        while not self.stopping:
+            self.discard()
+            self._wait(self.layout.batch_s)
+        deadline = time.monotonic() + DAEMON_GRACE_S
+        while time.monotonic() < deadline and not all(self._daemon_done(s) for s in self.statuses.values()):
+            self.discard()
+            time.sleep(0.02)
+        self.discard()
+        self.sync_counters()
+        self.writer.close()  # session.json: failed, its reason and this account, where the disk takes it
+        if self.supervisor_gone:
+            shutil.rmtree(self.layout.run_dir, ignore_errors=True)
+
+    def discard(self) -> None:
+        """Take every ring's records and count those never written as dropped (nothing can write them)."""
+        for ring in self.rings.values():
+            ring.take()
+            ring.note_writer_lost()
+        events = self.unwritten_events + sum(len(ring.take()[0]) for ring in self.event_rings.values())
+        if events:
+            self.writer.note_received(EVENTS, events)
+            self.writer.note_dropped(EVENTS, events)
+        self.pending, self.unwritten_events = dict.fromkeys(self.rings, 0), 0
+
+    def _serve(self) -> None:
         self.writer.open()
         settle_heap()  # a full collection later would stall the drain (the rings then fill)
         last_flush = last_card = time.monotonic()
@@ -119,8 +164,10 @@ class WriterProcess:
             events += [
                 (int(t), bytes(payload[i, :n])) for i, (t, n) in enumerate(zip(host_ns, lengths, strict=True))
             ]
+        self.unwritten_events = len(events)
         for t, data in sorted(events, key=lambda e: e[0]):
             self.writer.event(Event.decode(data), t + offset)
+            self.unwritten_events -= 1
 
     def flush(self) -> None:
         self.writer.flush()
@@ -191,11 +238,10 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, stop)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
-        process.serve()
+        return process.serve()
     except Exception:
         log.exception("the session writer failed")
         raise
-    return 0
 
 
 if __name__ == "__main__":

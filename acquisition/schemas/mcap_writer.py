@@ -15,6 +15,7 @@ before any chunk, so a torn file still says what its messages are.
 
 from __future__ import annotations
 
+import copy
 import struct
 import zlib
 from collections.abc import Iterable
@@ -91,6 +92,14 @@ class BatchMcapWriter:
             message_end_time=0, message_start_time=0, metadata_count=0, schema_count=0,
         )  # fmt: skip
         self._record_dtypes: dict[int, np.dtype] = {}
+        self._good: tuple[int, int, int, int, Statistics] = (0, 0, 0, 0, copy.deepcopy(self._stats))
+
+    def _put(self, data: bytes) -> None:
+        """Write all of ``data`` (an unbuffered file may take part of it: a disk that fills mid-record)."""
+        view = memoryview(data)
+        while view:
+            n = self.stream.write(view)
+            view = view[len(view) if n is None else n :]
 
     # ------------------------------------------------------------------------------- plain records
     def _write_record(self, record) -> int:
@@ -98,11 +107,11 @@ class BatchMcapWriter:
         builder = RecordBuilder()
         record.write(builder)
         offset = self.stream.tell()
-        self.stream.write(builder.end())
+        self._put(builder.end())
         return offset
 
     def start(self, profile: str, library: str) -> None:
-        self.stream.write(MAGIC)
+        self._put(MAGIC)
         self._write_record(Header(profile=profile, library=library))
 
     def register_schema(self, name: str, encoding: str, data: bytes) -> int:
@@ -213,10 +222,8 @@ class BatchMcapWriter:
             order = np.argsort(log_time, kind="stable")
             pairs = np.stack([log_time[order], offsets[order]], axis=1).astype("<u8").tobytes()
             index_offsets[channel_id] = self.stream.tell()
-            self.stream.write(
-                struct.pack("<BQHI", Opcode.MESSAGE_INDEX, 2 + 4 + len(pairs), channel_id, len(pairs))
-            )
-            self.stream.write(pairs)
+            self._put(struct.pack("<BQHI", Opcode.MESSAGE_INDEX, 2 + 4 + len(pairs), channel_id, len(pairs)))
+            self._put(pairs)
         self._chunk_indexes.append(
             ChunkIndex(
                 message_start_time=chunk.start, message_end_time=chunk.end, chunk_start_offset=chunk_offset,
@@ -229,9 +236,36 @@ class BatchMcapWriter:
         self._chunk = _OpenChunk()
 
     def flush(self) -> None:
-        """Close the open chunk and push everything to the OS (no fsync)."""
+        """Close the open chunk and push everything to the OS (no fsync): the file is whole records now."""
         self._finalize_chunk()
         self.stream.flush()
+        self._good = (
+            self.stream.tell(), len(self._chunk_indexes), len(self._metadata_indexes),
+            len(self._attachment_indexes), copy.deepcopy(self._stats),
+        )  # fmt: skip
+
+    def salvage(self, last: tuple[int, int, bytes, int] | None = None) -> bool:
+        """After a failed write: cut the file back to its last flush (whole records only), add ``last``
+        ((channel, log time, data, sequence): why it ends) and close it with its summary. False when even
+        that could not be written: the file then ends at the last flush, torn but whole up to it."""
+        offset, chunks, metadata, attachments, stats = self._good
+        self._chunk = _OpenChunk()
+        del self._chunk_indexes[chunks:], self._metadata_indexes[metadata:]
+        del self._attachment_indexes[attachments:]
+        self._stats = copy.deepcopy(stats)
+        self.stream.truncate(offset)
+        self.stream.seek(offset)
+        if offset == 0:  # not even its header was whole: nothing to close
+            return False
+        try:
+            if last is not None:
+                channel, log_time, data, sequence = last
+                self.add_message(channel, log_time, data, log_time, sequence)
+            self.finish()
+            return True
+        except OSError:
+            self.stream.truncate(offset)
+            return False
 
     def finish(self) -> None:
         """Data end, summary (schemas, channels, statistics, chunk and metadata indexes), footer."""
@@ -259,9 +293,9 @@ class BatchMcapWriter:
         summary = builder.end()
         crc = zlib.crc32(summary)
         crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc)
-        self.stream.write(summary)
+        self._put(summary)
         self._write_record(Footer(summary_start, summary_offset_start, crc))
-        self.stream.write(MAGIC)
+        self._put(MAGIC)
         self.stream.flush()
 
 

@@ -80,7 +80,17 @@ def recovered_path(part: Path) -> Path:
     return part.with_name(part.name.removesuffix(".mcap") + RECOVERED_SUFFIX)
 
 
+def _empty(part: Path) -> bool:
+    try:
+        return part.stat().st_size == 0
+    except OSError:
+        return False
+
+
 def readable_parts(directory: Path) -> list[Path]:
-    """A session's parts in order: each ``<id>_NNN.mcap``, or its recovered copy where one exists."""
+    """A session's parts in order: each ``<id>_NNN.mcap``, or its recovered copy where one exists. Empty
+    parts after the last one with data (a writer that died opening a new part) are no part of it."""
     parts = sorted(p for p in lab_path(directory).glob("*.mcap") if not p.name.endswith(RECOVERED_SUFFIX))
+    while len(parts) > 1 and _empty(parts[-1]) and not _empty(parts[0]):
+        parts.pop()
     return [recovered_path(p) if recovered_path(p).is_file() else p for p in parts]
