@@ -34,8 +34,12 @@ class TopicData:
         return len(self.rows)
 
 
-def read_fixed_topics(path: str | Path, topics: list[str] | None = None) -> dict[str, TopicData]:
-    """Every fixed-layout topic of an indexed MCAP file (a finished or recovered one), in log-time order."""
+def read_fixed_topics(
+    path: str | Path, topics: list[str] | None = None, damaged: list[mcap_reader.ChunkDamage] | None = None
+) -> dict[str, TopicData]:
+    """Every fixed-layout topic of an indexed MCAP file (a finished or recovered one), in log-time order.
+    Every chunk read is checked (CRC, message index): a damaged one raises ``DamagedChunkError`` naming the
+    file and the chunk's offset, or, given a ``damaged`` list, is added to it and its messages left out."""
     path = lab_path(path)
     with path.open("rb") as f:
         summary = mcap_reader.read_summary(f)
@@ -51,8 +55,10 @@ def read_fixed_topics(path: str | Path, topics: list[str] | None = None) -> dict
                 wanted[cid] = (channel.topic, message)
         try:
             parts = mcap_reader.fixed_size_messages(
-                f, summary, {cid: m.size for cid, (_, m) in wanted.items()}
+                f, summary, {cid: m.size for cid, (_, m) in wanted.items()}, damaged
             )
+        except mcap_reader.DamagedChunkError as exc:
+            raise mcap_reader.DamagedChunkError(exc.damage, summary, path) from exc
         except SchemaError as exc:
             raise SchemaError(f"{path}: {exc}") from exc
     out = {}

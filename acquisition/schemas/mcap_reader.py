@@ -11,7 +11,9 @@ body, a Message body is channel id (2), sequence (4), log time (8), publish time
 from __future__ import annotations
 
 import struct
+import zlib
 from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
 from typing import BinaryIO
 
 import numpy as np
@@ -24,12 +26,15 @@ from mcap.summary import Summary
 
 from acquisition.schemas.cdr import SchemaError
 
-__all__ = ["Channel", "Footer", "Header", "Message", "Metadata", "Schema", "Summary"]
+__all__ = ["Channel", "ChunkDamage", "DamagedChunkError", "Footer", "Header", "Message", "Metadata", "Schema",
+           "Summary"]  # fmt: skip
 
 MAGIC = b"\x89MCAP0\r\n"
 RECORD_PREFIX = 1 + 8  # opcode, record length
 MESSAGE_HEADER = RECORD_PREFIX + 2 + 4 + 8 + 8  # … channel id, sequence, log time, publish time
 _PUBLISH_TIME_AT = RECORD_PREFIX + 2 + 4 + 8
+_LOG_TIME_AT = RECORD_PREFIX + 2 + 4
+_CHUNK_OPCODE, _MESSAGE_OPCODE = 0x06, 0x05
 # what a damaged file raises from the mcap package, struct, zstd or the OS
 READ_ERRORS = (McapError, struct.error, zstandard.ZstdError, EOFError, ValueError, KeyError, OSError)
 
@@ -38,6 +43,40 @@ def first_line(exc: BaseException) -> str:
     """``Type: first line`` of an exception, for a one-line reason."""
     text = str(exc).strip().splitlines()
     return f"{type(exc).__name__}: {text[0][:200]}" if text else type(exc).__name__
+
+
+@dataclass(frozen=True)
+class ChunkDamage:
+    """A chunk whose records cannot be trusted: where it starts (byte offset in the file), why, and what its
+    index says it held (messages per channel id, log-time span in ns), so a reader can say what was lost."""
+
+    offset: int
+    reason: str
+    messages: dict[int, int] = field(default_factory=dict)
+    start_ns: int = 0
+    end_ns: int = 0
+
+    def describe(self, summary: Summary | None = None) -> str:
+        """One line: the chunk's offset, why it is damaged, and the messages and time span it held."""
+        topics = summary.channels if summary is not None else {}
+        names = {c: topics[c].topic if c in topics else str(c) for c in self.messages}
+        held = ", ".join(f"{names[c]} {n:,}" for c, n in sorted(self.messages.items()))
+        stats = summary.statistics if summary is not None else None
+        t0 = stats.message_start_time if stats is not None and stats.message_count else self.start_ns
+        span = f"{(self.start_ns - t0) / 1e9:.3f}–{(self.end_ns - t0) / 1e9:.3f} s into the file"
+        lost = sum(self.messages.values())
+        return (
+            f"damaged chunk at byte {self.offset} ({self.reason}): {lost:,} messages lost "
+            f"({held or 'none indexed'}), log times {span}"
+        )
+
+
+class DamagedChunkError(SchemaError):
+    """A chunk that fails its CRC, does not decompress, or whose message index does not match its records."""
+
+    def __init__(self, damage: ChunkDamage, summary: Summary | None = None, path: object = None) -> None:
+        self.damage, self.path = damage, path
+        super().__init__((f"{path}: " if path is not None else "") + damage.describe(summary))
 
 
 def read_magic(f: BinaryIO) -> bytes:
@@ -59,14 +98,14 @@ def read_summary(f: BinaryIO) -> Summary | None:
 def metadata_records(f: BinaryIO) -> Iterator[tuple[str, dict[str, str]]]:
     """(name, map) of every metadata record, through the summary's metadata index."""
     f.seek(0)
-    for m in make_reader(f).iter_metadata():
+    for m in make_reader(f, validate_crcs=True).iter_metadata():
         yield m.name, dict(m.metadata)
 
 
 def topic_messages(f: BinaryIO, topics: list[str]) -> Iterator[tuple[int, bytes]]:
     """(log time, payload) of the topics' messages in log-time order (the generic reader: few messages)."""
     f.seek(0)
-    for _, _, m in make_reader(f).iter_messages(topics=topics, log_time_order=True):
+    for _, _, m in make_reader(f, validate_crcs=True).iter_messages(topics=topics, log_time_order=True):
         yield m.log_time, m.data
 
 
@@ -83,17 +122,33 @@ def _decompress(compression: str, data: bytes, size: int) -> bytes:
 
 
 def chunk_records(f: BinaryIO, offset: int, length: int) -> bytes:
-    """The decompressed records of the Chunk record at ``offset``."""
+    """The decompressed records of the Chunk record at ``offset``, checked against the chunk's CRC32 of its
+    uncompressed records (the spec's; 0 means none was written) and its uncompressed size: a
+    ``DamagedChunkError`` otherwise (a flipped bit never becomes a value)."""
     f.seek(offset)
     raw = f.read(length)
-    pos = RECORD_PREFIX
-    _start, _end, size, _crc, clen = struct.unpack_from("<QQQIi", raw, pos)
-    pos += 8 + 8 + 8 + 4 + 4
-    compression = raw[pos : pos + clen].decode()
-    pos += clen
-    (records_len,) = struct.unpack_from("<Q", raw, pos)
-    pos += 8
-    return _decompress(compression, raw[pos : pos + records_len], size)
+    try:
+        opcode, record_len = struct.unpack_from("<BQ", raw, 0)
+        if opcode != _CHUNK_OPCODE or RECORD_PREFIX + record_len != length:
+            raise SchemaError(f"no chunk record of {length} bytes there (opcode {opcode:#04x})")
+        pos = RECORD_PREFIX
+        _start, _end, size, crc, clen = struct.unpack_from("<QQQIi", raw, pos)
+        pos += 8 + 8 + 8 + 4 + 4
+        compression = raw[pos : pos + clen].decode()
+        pos += clen
+        (records_len,) = struct.unpack_from("<Q", raw, pos)
+        pos += 8
+        if pos + records_len != length:
+            raise SchemaError(f"records length {records_len} does not fit the chunk")
+        records = _decompress(compression, raw[pos : pos + records_len], size)
+    except (SchemaError, struct.error, UnicodeDecodeError, zstandard.ZstdError, RuntimeError) as exc:
+        raise DamagedChunkError(ChunkDamage(offset, first_line(exc))) from exc
+    if len(records) != size:
+        raise DamagedChunkError(ChunkDamage(offset, f"{len(records)} bytes decompressed, {size} expected"))
+    if crc != 0 and zlib.crc32(records) != crc:
+        raise DamagedChunkError(ChunkDamage(offset, f"CRC mismatch: {zlib.crc32(records):#010x}, {crc:#010x} "
+                                                    "written"))  # fmt: skip
+    return records
 
 
 def message_index(f: BinaryIO, offset: int) -> np.ndarray:
@@ -125,16 +180,73 @@ def _chunks_holding(summary: Summary, channel_ids: Iterable[int]):
             yield ci, present
 
 
+def _index_mismatch(records: np.ndarray, cid: int, pairs: np.ndarray) -> str:
+    """Why a channel's message index (outside the chunk's CRC) does not match the chunk's records: every
+    entry must point at a Message record of that channel with that log time; "" when it does."""
+    if len(pairs) == 0:
+        return ""
+    at = pairs[:, 1].astype(np.int64)
+    if at.min() < 0 or at.max() + MESSAGE_HEADER > len(records):
+        return f"the message index of channel {cid} points outside the chunk"
+    channel = records[(at + RECORD_PREFIX)[:, None] + np.arange(2)].view("<u2").reshape(-1)
+    log_time = records[(at + _LOG_TIME_AT)[:, None] + np.arange(8)].view("<u8").reshape(-1)
+    if np.any(records[at] != _MESSAGE_OPCODE) or np.any(channel != cid) or np.any(log_time != pairs[:, 0]):
+        return f"the message index of channel {cid} does not match the chunk's records"
+    return ""
+
+
+def _damage(f: BinaryIO, ci, reason: str) -> ChunkDamage:
+    """The damage of the chunk ``ci`` with what its index says it held (counts omitted where unreadable)."""
+    try:
+        held = {cid: len(p) for cid, p in _message_indexes(f, min(ci.message_index_offsets.values()),
+                                                             ci.message_index_length).items()}  # fmt: skip
+    except (*READ_ERRORS, IndexError):
+        held = {}
+    return ChunkDamage(ci.chunk_start_offset, reason, held, ci.message_start_time, ci.message_end_time)
+
+
+def checked_chunks(f: BinaryIO, summary: Summary, channel_ids: Iterable[int],
+                   damaged: list[ChunkDamage] | None = None):  # fmt: skip
+    """(chunk index, channels present, records as uint8 array, each channel's (log time, offset) pairs) of
+    every chunk holding one of the channels, its CRC and message indexes checked. A damaged chunk raises
+    ``DamagedChunkError``, or, given a ``damaged`` list, is added to it and skipped (its messages unused)."""
+    for ci, present in _chunks_holding(summary, channel_ids):
+        try:
+            records = np.frombuffer(chunk_records(f, ci.chunk_start_offset, ci.chunk_length), dtype=np.uint8)
+            try:
+                offset = min(ci.message_index_offsets.values())
+                indexes = _message_indexes(f, offset, ci.message_index_length)
+                reasons = (_index_mismatch(records, cid, indexes[cid]) for cid in present)
+                reason = next((r for r in reasons if r), "")
+            except (*READ_ERRORS, IndexError) as exc:
+                reason = f"its message index cannot be read ({first_line(exc)})"
+            if reason:
+                raise DamagedChunkError(ChunkDamage(ci.chunk_start_offset, reason))
+        except DamagedChunkError as exc:
+            damage = _damage(f, ci, exc.damage.reason)
+            if damaged is None:
+                raise DamagedChunkError(damage, summary) from exc
+            damaged.append(damage)
+            continue
+        yield ci, present, records, indexes
+
+
+def damaged_chunks(f: BinaryIO, summary: Summary) -> list[ChunkDamage]:
+    """Every chunk of the file that fails its checks (``checked_chunks``): the one full check of a file."""
+    damaged: list[ChunkDamage] = []
+    for _ in checked_chunks(f, summary, summary.channels, damaged):
+        pass
+    return damaged
+
+
 def fixed_size_messages(
-    f: BinaryIO, summary: Summary, sizes: dict[int, int]
+    f: BinaryIO, summary: Summary, sizes: dict[int, int], damaged: list[ChunkDamage] | None = None
 ) -> dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]]:
     """Per channel whose messages all have ``sizes[channel]`` payload bytes, per chunk: (log times, publish
     times, payloads as an (n, size) uint8 array), gathered with one numpy index per chunk and channel. A
-    message of another size is a ``SchemaError``."""
+    message of another size is a ``SchemaError``; a damaged chunk as in ``checked_chunks``."""
     out: dict[int, list] = {cid: [] for cid in sizes}
-    for ci, present in _chunks_holding(summary, sizes):
-        records = np.frombuffer(chunk_records(f, ci.chunk_start_offset, ci.chunk_length), dtype=np.uint8)
-        indexes = _message_indexes(f, min(ci.message_index_offsets.values()), ci.message_index_length)
+    for _ci, present, records, indexes in checked_chunks(f, summary, sizes, damaged):
         for cid in present:
             pairs, size = indexes[cid], sizes[cid]
             at = pairs[:, 1].astype(np.int64)
@@ -148,15 +260,18 @@ def fixed_size_messages(
 
 
 def indexed_messages(
-    f: BinaryIO, summary: Summary, channel_ids: set[int]
+    f: BinaryIO, summary: Summary, channel_ids: set[int], damaged: list[ChunkDamage] | None = None
 ) -> Iterator[tuple[int, int, int, bytes]]:
     """(channel id, log time, publish time, payload) of the channels' messages of any size, found through the
-    chunks' message indexes: only chunks that hold one are decompressed, no other record is parsed."""
-    for ci, present in _chunks_holding(summary, channel_ids):
-        records = chunk_records(f, ci.chunk_start_offset, ci.chunk_length)
+    chunks' message indexes: only chunks that hold one are decompressed (and checked, as in
+    ``checked_chunks``), no other record is parsed."""
+    for ci, present, array, indexes in checked_chunks(f, summary, channel_ids, damaged):
+        records = array.tobytes()
         for cid in present:
-            for log_time, offset in message_index(f, ci.message_index_offsets[cid]).tolist():
+            for log_time, offset in indexes[cid].tolist():
                 record_len, _channel, _seq, _log, publish = struct.unpack_from("<QHIQQ", records, offset + 1)
+                if offset + RECORD_PREFIX + record_len > len(records):
+                    raise DamagedChunkError(_damage(f, ci, "a message runs past the chunk's end"), summary)
                 yield (
                     cid,
                     log_time,
