@@ -166,6 +166,8 @@ def _message_indexes(f: BinaryIO, offset: int, length: int) -> dict[int, np.ndar
     while pos < len(raw):
         record_len = struct.unpack_from("<Q", raw, pos + 1)[0]
         channel_id, pairs_len = struct.unpack_from("<HI", raw, pos + RECORD_PREFIX)
+        if record_len != 2 + 4 + pairs_len or pairs_len % 16:  # not CRC'd: its lengths must agree
+            raise SchemaError(f"message index record at byte {offset + pos} has inconsistent lengths")
         at = pos + RECORD_PREFIX + 6
         out[channel_id] = np.frombuffer(raw, dtype="<u8", count=pairs_len // 8, offset=at).reshape(-1, 2)
         pos += RECORD_PREFIX + record_len
