@@ -105,7 +105,7 @@ OUTCOMES = {
     "card-missing": BAD_FOLDER,
     "card-no-protocol": BAD_FOLDER,
     "card-future": BAD_FOLDER,  # a newer vslab's session: "update vslab"
-    # the summary is whole, a chunk fails its CRC: list/info say so, recover cannot mend it, build leaves it out
+    # a chunk fails its CRC (summary whole): list/info say so, recover cannot mend it, build leaves it out
     "part-corrupt": ("warn", "warn", "error", "warn"),
     "part-truncated": ("ok", "ok", "ok", "ok"),  # torn: listed as such, recovered, read to the tear
     "part-empty": BAD_FOLDER,
