@@ -32,8 +32,6 @@ __all__ = ["Channel", "ChunkDamage", "DamagedChunkError", "Footer", "Header", "M
 MAGIC = b"\x89MCAP0\r\n"
 RECORD_PREFIX = 1 + 8  # opcode, record length
 MESSAGE_HEADER = RECORD_PREFIX + 2 + 4 + 8 + 8  # … channel id, sequence, log time, publish time
-_PUBLISH_TIME_AT = RECORD_PREFIX + 2 + 4 + 8
-_LOG_TIME_AT = RECORD_PREFIX + 2 + 4
 _CHUNK_OPCODE, _MESSAGE_OPCODE = 0x06, 0x05
 # what a damaged file raises from the mcap package, struct, zstd or the OS
 READ_ERRORS = (McapError, struct.error, zstandard.ZstdError, EOFError, ValueError, KeyError, OSError)
@@ -182,19 +180,25 @@ def _chunks_holding(summary: Summary, channel_ids: Iterable[int]):
             yield ci, present
 
 
-def _index_mismatch(records: np.ndarray, cid: int, pairs: np.ndarray) -> str:
-    """Why a channel's message index (outside the chunk's CRC) does not match the chunk's records: every
-    entry must point at a Message record of that channel with that log time; "" when it does."""
-    if len(pairs) == 0:
-        return ""
+# a Message record's header, as it lies in a chunk's records (packed: 31 bytes)
+MESSAGE_HEAD = np.dtype([("opcode", "u1"), ("length", "<u8"), ("channel", "<u2"), ("sequence", "<u4"),
+                         ("log_time", "<u8"), ("publish_time", "<u8")])  # fmt: skip
+
+
+def _message_heads(records: np.ndarray, cid: int, pairs: np.ndarray) -> np.ndarray | str:
+    """The record headers a channel's message index (outside the chunk's CRC) points at, gathered with one
+    numpy index; or why they do not match it: each must be a Message of that channel with that log time."""
     at = pairs[:, 1].astype(np.int64)
-    if at.min() < 0 or at.max() + MESSAGE_HEADER > len(records):
+    if len(at) and (at.min() < 0 or at.max() + MESSAGE_HEADER > len(records)):
         return f"the message index of channel {cid} points outside the chunk"
-    channel = records[(at + RECORD_PREFIX)[:, None] + np.arange(2)].view("<u2").reshape(-1)
-    log_time = records[(at + _LOG_TIME_AT)[:, None] + np.arange(8)].view("<u8").reshape(-1)
-    if np.any(records[at] != _MESSAGE_OPCODE) or np.any(channel != cid) or np.any(log_time != pairs[:, 0]):
+    heads = records[at[:, None] + np.arange(MESSAGE_HEADER)].reshape(-1).view(MESSAGE_HEAD)
+    if (
+        np.any(heads["opcode"] != _MESSAGE_OPCODE)
+        or np.any(heads["channel"] != cid)
+        or np.any(heads["log_time"] != pairs[:, 0])
+    ):
         return f"the message index of channel {cid} does not match the chunk's records"
-    return ""
+    return heads
 
 
 def _damage(f: BinaryIO, ci, reason: str) -> ChunkDamage:
@@ -209,8 +213,9 @@ def _damage(f: BinaryIO, ci, reason: str) -> ChunkDamage:
 
 def checked_chunks(f: BinaryIO, summary: Summary, channel_ids: Iterable[int],
                    damaged: list[ChunkDamage] | None = None):  # fmt: skip
-    """(chunk index, channels present, records as uint8 array, each channel's (log time, offset) pairs) of
-    every chunk holding one of the channels, its CRC and message indexes checked. A damaged chunk raises
+    """(chunk index, channels present, records as uint8 array, each channel's (log time, offset) pairs and
+    record headers (``MESSAGE_HEAD``)) of every chunk holding one of the channels, its CRC and message indexes
+    checked. A damaged chunk raises
     ``DamagedChunkError``, or, given a ``damaged`` list, is added to it and skipped (its messages unused)."""
     for ci, present in _chunks_holding(summary, channel_ids):
         try:
@@ -218,8 +223,8 @@ def checked_chunks(f: BinaryIO, summary: Summary, channel_ids: Iterable[int],
             try:
                 offset = min(ci.message_index_offsets.values())
                 indexes = _message_indexes(f, offset, ci.message_index_length)
-                reasons = (_index_mismatch(records, cid, indexes[cid]) for cid in present)
-                reason = next((r for r in reasons if r), "")
+                heads = {cid: _message_heads(records, cid, indexes[cid]) for cid in present}
+                reason = next((h for h in heads.values() if isinstance(h, str)), "")
             except (*READ_ERRORS, IndexError) as exc:
                 reason = f"its message index cannot be read ({first_line(exc)})"
             if reason:
@@ -230,7 +235,7 @@ def checked_chunks(f: BinaryIO, summary: Summary, channel_ids: Iterable[int],
                 raise DamagedChunkError(damage, summary) from exc
             damaged.append(damage)
             continue
-        yield ci, present, records, indexes
+        yield ci, present, records, indexes, heads
 
 
 def damaged_chunks(f: BinaryIO, summary: Summary) -> list[ChunkDamage]:
@@ -248,16 +253,14 @@ def fixed_size_messages(
     times, payloads as an (n, size) uint8 array), gathered with one numpy index per chunk and channel. A
     message of another size is a ``SchemaError``; a damaged chunk as in ``checked_chunks``."""
     out: dict[int, list] = {cid: [] for cid in sizes}
-    for _ci, present, records, indexes in checked_chunks(f, summary, sizes, damaged):
+    for _ci, present, records, indexes, heads in checked_chunks(f, summary, sizes, damaged):
         for cid in present:
-            pairs, size = indexes[cid], sizes[cid]
-            at = pairs[:, 1].astype(np.int64)
-            lengths = records[(at + 1)[:, None] + np.arange(8)].view("<u8").reshape(-1)
-            if np.any(lengths != MESSAGE_HEADER - RECORD_PREFIX + size):
+            pairs, size, head = indexes[cid], sizes[cid], heads[cid]
+            if np.any(head["length"] != MESSAGE_HEADER - RECORD_PREFIX + size):
                 raise SchemaError(f"channel {cid} has messages that are not {size} bytes")
+            at = pairs[:, 1].astype(np.int64)
             payload = records[(at + MESSAGE_HEADER)[:, None] + np.arange(size)]
-            stamp = records[(at + _PUBLISH_TIME_AT)[:, None] + np.arange(8)].view("<u8").reshape(-1)
-            out[cid].append((pairs[:, 0].astype(np.int64), stamp.astype(np.int64), payload))
+            out[cid].append((pairs[:, 0].astype(np.int64), head["publish_time"].astype(np.int64), payload))
     return out
 
 
@@ -267,7 +270,7 @@ def indexed_messages(
     """(channel id, log time, publish time, payload) of the channels' messages of any size, found through the
     chunks' message indexes: only chunks that hold one are decompressed (and checked, as in
     ``checked_chunks``), no other record is parsed."""
-    for ci, present, array, indexes in checked_chunks(f, summary, channel_ids, damaged):
+    for ci, present, array, indexes, _heads in checked_chunks(f, summary, channel_ids, damaged):
         records = array.tobytes()
         for cid in present:
             for log_time, offset in indexes[cid].tolist():
