@@ -1,6 +1,6 @@
 """Ingest: a session directory's MCAP parts → one table per topic (see ``pipeline.tables``).
 
-Fixed-layout topics take the chunk-speed path (``read_fixed_topics``: whole chunks viewed as structured
+Fixed-layout topics take the chunk-speed path (``read_topics``: whole chunks viewed as structured
 arrays, turned into columns without a per-message loop). Any other topic is decoded message by message by
 ``acquisition.schemas.dynamic`` (correct, not fast; mcap-ros2-support is the tests' oracle for it, not a
 dependency). A torn part (killed recorder, no summary) is read in memory up to the tear, with a warning; the
@@ -21,7 +21,7 @@ from pydantic import ValidationError
 from acquisition.schemas.cdr import FixedMessage, SchemaError
 from acquisition.schemas.dynamic import DynamicMessage
 from acquisition.schemas.events import Event
-from acquisition.schemas.fast_read import read_fixed_topics
+from acquisition.schemas.fast_read import read_topics
 from acquisition.schemas.mcap_reader import (
     MAGIC,
     READ_ERRORS,
@@ -32,7 +32,6 @@ from acquisition.schemas.mcap_reader import (
     RecordWalk,
     Schema,
     first_line,
-    indexed_messages,
     metadata_records,
     read_magic,
     read_summary,
@@ -160,12 +159,13 @@ def _read_part(path: Path, generic_topics: set[str], report: StageReport) -> _Pa
             for name, metadata in metadata_records(f):
                 if name == SESSION_METADATA:
                     part.metadata = metadata
-            data = read_fixed_topics(path, sorted(fixed), damaged) if fixed else {}
+            # one pass over the chunks: fixed topics at chunk speed, the others message by message
+            data, messages = read_topics(path, sorted(fixed), generic | {EVENTS}, damaged)
             for topic, d in data.items():
                 part.fixed[topic] = [(d.message, d.log_time, d.publish_time, d.rows)]
             decoders = _Decoders()
             wanted = {cid: c for cid, c in summary.channels.items() if c.topic in generic | {EVENTS}}
-            for cid, log_time, publish_time, payload in indexed_messages(f, summary, set(wanted), damaged):
+            for cid, log_time, publish_time, payload in messages:
                 channel = wanted[cid]
                 if channel.topic == EVENTS:
                     part.events.append((log_time, Event.decode(payload)))

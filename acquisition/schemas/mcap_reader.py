@@ -181,17 +181,21 @@ def _chunks_holding(summary: Summary, channel_ids: Iterable[int]):
 
 
 # a Message record's header, as it lies in a chunk's records (packed: 31 bytes)
-MESSAGE_HEAD = np.dtype([("opcode", "u1"), ("length", "<u8"), ("channel", "<u2"), ("sequence", "<u4"),
-                         ("log_time", "<u8"), ("publish_time", "<u8")])  # fmt: skip
+_HEAD_FIELDS = [("opcode", "u1"), ("length", "<u8"), ("channel", "<u2"), ("sequence", "<u4"),
+                ("log_time", "<u8"), ("publish_time", "<u8")]  # fmt: skip
+MESSAGE_HEAD = np.dtype(_HEAD_FIELDS)
 
 
-def _message_heads(records: np.ndarray, cid: int, pairs: np.ndarray) -> np.ndarray | str:
-    """The record headers a channel's message index (outside the chunk's CRC) points at, gathered with one
-    numpy index; or why they do not match it: each must be a Message of that channel with that log time."""
+def _message_heads(records: np.ndarray, cid: int, pairs: np.ndarray, size: int = 0) -> np.ndarray | str:
+    """The records a channel's message index (outside the chunk's CRC) points at: each header and ``size``
+    payload bytes (field ``payload``) gathered with one numpy index; or why they do not match the index: each
+    must be a Message of that channel with that log time."""
     at = pairs[:, 1].astype(np.int64)
-    if len(at) and (at.min() < 0 or at.max() + MESSAGE_HEADER > len(records)):
+    width = MESSAGE_HEADER + size
+    if len(at) and (at.min() < 0 or at.max() + width > len(records)):
         return f"the message index of channel {cid} points outside the chunk"
-    heads = records[at[:, None] + np.arange(MESSAGE_HEADER)].reshape(-1).view(MESSAGE_HEAD)
+    dtype = np.dtype([*_HEAD_FIELDS, ("payload", "u1", (size,))]) if size else MESSAGE_HEAD
+    heads = records[at[:, None] + np.arange(width)].reshape(-1).view(dtype)
     if (
         np.any(heads["opcode"] != _MESSAGE_OPCODE)
         or np.any(heads["channel"] != cid)
@@ -211,19 +215,20 @@ def _damage(f: BinaryIO, ci, reason: str) -> ChunkDamage:
     return ChunkDamage(ci.chunk_start_offset, reason, held, ci.message_start_time, ci.message_end_time)
 
 
-def checked_chunks(f: BinaryIO, summary: Summary, channel_ids: Iterable[int],
+def checked_chunks(f: BinaryIO, summary: Summary, channel_ids: Iterable[int] | dict[int, int],
                    damaged: list[ChunkDamage] | None = None):  # fmt: skip
     """(chunk index, channels present, records as uint8 array, each channel's (log time, offset) pairs and
-    record headers (``MESSAGE_HEAD``)) of every chunk holding one of the channels, its CRC and message indexes
-    checked. A damaged chunk raises
+    records (``_message_heads``; with the payloads where ``channel_ids`` maps channels to payload sizes)) of
+    every chunk holding one of the channels, its CRC and message indexes checked. A damaged chunk raises
     ``DamagedChunkError``, or, given a ``damaged`` list, is added to it and skipped (its messages unused)."""
+    sizes = channel_ids if isinstance(channel_ids, dict) else {}
     for ci, present in _chunks_holding(summary, channel_ids):
         try:
             records = np.frombuffer(chunk_records(f, ci.chunk_start_offset, ci.chunk_length), dtype=np.uint8)
             try:
                 offset = min(ci.message_index_offsets.values())
                 indexes = _message_indexes(f, offset, ci.message_index_length)
-                heads = {cid: _message_heads(records, cid, indexes[cid]) for cid in present}
+                heads = {c: _message_heads(records, c, indexes[c], sizes.get(c, 0)) for c in present}
                 reason = next((h for h in heads.values() if isinstance(h, str)), "")
             except (*READ_ERRORS, IndexError) as exc:
                 reason = f"its message index cannot be read ({first_line(exc)})"
@@ -241,7 +246,7 @@ def checked_chunks(f: BinaryIO, summary: Summary, channel_ids: Iterable[int],
 def damaged_chunks(f: BinaryIO, summary: Summary) -> list[ChunkDamage]:
     """Every chunk of the file that fails its checks (``checked_chunks``): the one full check of a file."""
     damaged: list[ChunkDamage] = []
-    for _ in checked_chunks(f, summary, summary.channels, damaged):
+    for _ in checked_chunks(f, summary, set(summary.channels), damaged):
         pass
     return damaged
 
@@ -252,16 +257,42 @@ def fixed_size_messages(
     """Per channel whose messages all have ``sizes[channel]`` payload bytes, per chunk: (log times, publish
     times, payloads as an (n, size) uint8 array), gathered with one numpy index per chunk and channel. A
     message of another size is a ``SchemaError``; a damaged chunk as in ``checked_chunks``."""
+    return chunk_messages(f, summary, sizes, set(), damaged)[0]
+
+
+def chunk_messages(
+    f: BinaryIO, summary: Summary, sizes: dict[int, int], others: set[int], damaged: list[ChunkDamage] | None
+) -> tuple[dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]], list[tuple[int, int, int, bytes]]]:
+    """``fixed_size_messages`` of the ``sizes`` channels and ``indexed_messages`` of the ``others``, in one
+    pass: each chunk decompressed and checked once."""
     out: dict[int, list] = {cid: [] for cid in sizes}
-    for _ci, present, records, indexes, heads in checked_chunks(f, summary, sizes, damaged):
+    rest: list[tuple[int, int, int, bytes]] = []
+    wanted = {**dict.fromkeys(others, 0), **sizes}
+    for ci, present, records, indexes, heads in checked_chunks(f, summary, wanted, damaged):
         for cid in present:
-            pairs, size, head = indexes[cid], sizes[cid], heads[cid]
-            if np.any(head["length"] != MESSAGE_HEADER - RECORD_PREFIX + size):
-                raise SchemaError(f"channel {cid} has messages that are not {size} bytes")
-            at = pairs[:, 1].astype(np.int64)
-            payload = records[(at + MESSAGE_HEADER)[:, None] + np.arange(size)]
+            pairs, head = indexes[cid], heads[cid]
+            if cid not in sizes:
+                rest += _variable_messages(f, summary, ci, cid, records, pairs, head)
+                continue
+            if np.any(head["length"] != MESSAGE_HEADER - RECORD_PREFIX + sizes[cid]):
+                raise SchemaError(f"channel {cid} has messages that are not {sizes[cid]} bytes")
+            payload = head["payload"]  # gathered with the headers the index check read
             out[cid].append((pairs[:, 0].astype(np.int64), head["publish_time"].astype(np.int64), payload))
-    return out
+    return out, rest
+
+
+def _variable_messages(f: BinaryIO, summary: Summary, ci, cid: int, records: np.ndarray, pairs: np.ndarray,
+                       heads: np.ndarray) -> list[tuple[int, int, int, bytes]]:  # fmt: skip
+    """(channel id, log time, publish time, payload) of one channel's messages in one checked chunk."""
+    ends = (pairs[:, 1] + RECORD_PREFIX + heads["length"]).tolist()
+    if ends and max(ends) > len(records):
+        raise DamagedChunkError(_damage(f, ci, "a message runs past the chunk's end"), summary)
+    view = memoryview(records)  # the decompressed bytes, not copied
+    publish = heads["publish_time"].tolist()
+    return [
+        (cid, log_time, stamp, bytes(view[offset + MESSAGE_HEADER : end]))
+        for (log_time, offset), stamp, end in zip(pairs.tolist(), publish, ends, strict=True)
+    ]
 
 
 def indexed_messages(
@@ -270,19 +301,9 @@ def indexed_messages(
     """(channel id, log time, publish time, payload) of the channels' messages of any size, found through the
     chunks' message indexes: only chunks that hold one are decompressed (and checked, as in
     ``checked_chunks``), no other record is parsed."""
-    for ci, present, array, indexes, _heads in checked_chunks(f, summary, channel_ids, damaged):
-        records = array.tobytes()
+    for ci, present, records, indexes, heads in checked_chunks(f, summary, channel_ids, damaged):
         for cid in present:
-            for log_time, offset in indexes[cid].tolist():
-                record_len, _channel, _seq, _log, publish = struct.unpack_from("<QHIQQ", records, offset + 1)
-                if offset + RECORD_PREFIX + record_len > len(records):
-                    raise DamagedChunkError(_damage(f, ci, "a message runs past the chunk's end"), summary)
-                yield (
-                    cid,
-                    log_time,
-                    publish,
-                    records[offset + MESSAGE_HEADER : offset + RECORD_PREFIX + record_len],
-                )
+            yield from _variable_messages(f, summary, ci, cid, records, indexes[cid], heads[cid])
 
 
 def topic_spans(f: BinaryIO) -> dict[str, tuple[int, int | None, int | None]] | None:
