@@ -20,6 +20,7 @@ from __future__ import annotations
 import concurrent.futures as cf
 import dataclasses
 import inspect
+import json
 import logging
 import os
 import types
@@ -34,7 +35,7 @@ import pandas as pd
 from acquisition.storage import fetched, lab_path, read_parquet
 from models.robot import RobotDescription
 from pipeline import datasets
-from pipeline.cache import StageCache, stage_key, stage_version
+from pipeline.cache import RECORD, StageCache, stage_key, stage_version
 from pipeline.errors import PipelineError
 from pipeline.tables import columns
 
@@ -134,6 +135,7 @@ class BuildReport:
     failed: dict[str, str] = field(default_factory=dict)  # session → reason
     cached: int = 0  # sessions whose per-session stages were already cached
     rows: int = 0
+    damaged: dict[str, list[str]] = field(default_factory=dict)  # session → its damaged chunks, one line each
 
 
 def process_session(directory: str, parameters: dict, cache_root: str) -> dict:
@@ -154,7 +156,7 @@ def _session_stages(directory: Path, parameters: dict, cache: StageCache) -> dic
     """ingest → clean → sync → segment of the local session ``directory``, cached by its content."""
     from acquisition.schemas.session_card import readable_parts
     from pipeline.clean import clean
-    from pipeline.ingest import IngestError, ingest_session, source_hash
+    from pipeline.ingest import DAMAGED_CHUNKS, IngestError, ingest_session, source_hash
     from pipeline.segment import Stillness, repetitions, static_points
     from pipeline.sync import sync
 
@@ -165,7 +167,9 @@ def _session_stages(directory: Path, parameters: dict, cache: StageCache) -> dic
     session_params = {k: parameters[k] for k in ("clean", "segment")}
     key = stage_key("session", [source], session_params)
     if cache.has("session", key):
-        return {"session": directory.name, "key": key, "source": source, "cached": True}
+        record = json.loads((cache.path("session", key) / RECORD).read_text())
+        damaged = record["report"]["values"].get(DAMAGED_CHUNKS, [])
+        return {"session": directory.name, "key": key, "source": source, "cached": True, "damaged": damaged}
     s = ingest_session(directory)
     s = clean(s, **parameters["clean"])
     s, timeline = sync(s)
@@ -177,7 +181,8 @@ def _session_stages(directory: Path, parameters: dict, cache: StageCache) -> dic
               "robot_description": s.robot.model_dump_json(), "report": s.report.as_dict(),
               "metadata": {k: v for k, v in s.metadata.items() if k != "robot_description"}}  # fmt: skip
     cache.store("session", key, {"static": points, "trajectory": trajectory}, record)
-    return {"session": directory.name, "key": key, "source": source, "cached": False}
+    damaged = s.report.values.get(DAMAGED_CHUNKS, [])
+    return {"session": directory.name, "key": key, "source": source, "cached": False, "damaged": damaged}
 
 
 def _reason(exc: BaseException) -> str:
@@ -228,6 +233,7 @@ def build(
     root = lab_path(lab) / "datasets"
     report = BuildReport(name, version, root / name / version, False, sorted(sources), failed,
                          sum(bool(r.get("cached")) for r in good))  # fmt: skip
+    report.damaged = {r["session"]: r["damaged"] for r in good if r.get("damaged")}
     if (report.path / datasets.CARD).is_file():
         report.rows = int(read_parquet(report.path / "data.parquet", columns=["robot"]).shape[0])
         return report

@@ -1,6 +1,6 @@
 """Ingest: a session directory's MCAP parts → one table per topic (see ``pipeline.tables``).
 
-Fixed-layout topics take the chunk-speed path (``read_fixed_topics``: whole chunks viewed as structured
+Fixed-layout topics take the chunk-speed path (``read_topics``: whole chunks viewed as structured
 arrays, turned into columns without a per-message loop). Any other topic is decoded message by message by
 ``acquisition.schemas.dynamic`` (correct, not fast; mcap-ros2-support is the tests' oracle for it, not a
 dependency). A torn part (killed recorder, no summary) is read in memory up to the tear, with a warning; the
@@ -21,17 +21,17 @@ from pydantic import ValidationError
 from acquisition.schemas.cdr import FixedMessage, SchemaError
 from acquisition.schemas.dynamic import DynamicMessage
 from acquisition.schemas.events import Event
-from acquisition.schemas.fast_read import read_fixed_topics
+from acquisition.schemas.fast_read import read_topics
 from acquisition.schemas.mcap_reader import (
     MAGIC,
     READ_ERRORS,
     Channel,
+    ChunkDamage,
     Message,
     Metadata,
     RecordWalk,
     Schema,
     first_line,
-    indexed_messages,
     metadata_records,
     read_magic,
     read_summary,
@@ -57,6 +57,7 @@ class IngestError(PipelineError):
         super().__init__(f"{path}: {reason}")
 
 
+DAMAGED_CHUNKS = "damaged_chunks"  # StageReport.values key: one line per chunk left out as damaged
 _FixedChunk = tuple[FixedMessage, np.ndarray, np.ndarray, np.ndarray]  # message, log, publish, rows
 
 
@@ -153,16 +154,18 @@ def _read_part(path: Path, generic_topics: set[str], report: StageReport) -> _Pa
                 fixed.add(channel.topic)
             else:
                 generic.add(channel.topic)
+        damaged: list[ChunkDamage] = []  # chunks failing their CRC or index: left out, said below
         try:
             for name, metadata in metadata_records(f):
                 if name == SESSION_METADATA:
                     part.metadata = metadata
-            data = read_fixed_topics(path, sorted(fixed)) if fixed else {}
+            # one pass over the chunks: fixed topics at chunk speed, the others message by message
+            data, messages = read_topics(path, sorted(fixed), generic | {EVENTS}, damaged)
             for topic, d in data.items():
                 part.fixed[topic] = [(d.message, d.log_time, d.publish_time, d.rows)]
             decoders = _Decoders()
             wanted = {cid: c for cid, c in summary.channels.items() if c.topic in generic | {EVENTS}}
-            for cid, log_time, publish_time, payload in indexed_messages(f, summary, set(wanted)):
+            for cid, log_time, publish_time, payload in messages:
                 channel = wanted[cid]
                 if channel.topic == EVENTS:
                     part.events.append((log_time, Event.decode(payload)))
@@ -172,7 +175,22 @@ def _read_part(path: Path, generic_topics: set[str], report: StageReport) -> _Pa
                     part.generic.setdefault(channel.topic, []).append(row)
         except (SchemaError, *READ_ERRORS) as exc:
             raise IngestError(path, f"unreadable ({first_line(exc)}); truncated or corrupt?") from exc
+    _report_damage(path, summary, damaged, report)
     return part
+
+
+def _report_damage(path: Path, summary, damaged: list[ChunkDamage], report: StageReport) -> None:
+    """One warning per damaged chunk (each once: the fixed and the generic readers may both meet it), also
+    kept under ``values["damaged_chunks"]`` so that a build can say which session lost what."""
+    seen: set[int] = set()
+    for damage in damaged:
+        if damage.offset in seen:
+            continue
+        seen.add(damage.offset)
+        text = f"{path.name}: {damage.describe(summary)}"
+        report.warnings.append(text)
+        report.values.setdefault(DAMAGED_CHUNKS, []).append(text)
+        log.warning(text)
 
 
 def _read_torn(path: Path, generic_topics: set[str], report: StageReport) -> _Part:

@@ -328,6 +328,10 @@ def build(
     line = f"dataset {name} {report.version}: {what}, {report.rows:,} rows from {sources} in {wall:.1f} s"
     console.print(line, soft_wrap=True)
     console.print(f"  → {report.path}", soft_wrap=True, highlight=False, markup=False)
+    for session, lines in sorted(report.damaged.items()):  # its other chunks built; these messages are lost
+        for text in lines:
+            console.print(f"[yellow]warning:[/] {escape(session)}: {escape(text)}", soft_wrap=True,
+                          highlight=False)  # fmt: skip
     warn(bad | report.failed)
 
 

@@ -41,6 +41,8 @@ def sessions_list() -> None:
     for info in infos:
         if info.problem:
             console.print(f"[yellow]warning:[/] {escape(info.problem)}", soft_wrap=True, highlight=False)
+        for text in info.damaged:  # its other chunks are read; these messages are lost to every reader
+            console.print(f"[yellow]warning:[/] {escape(text)}", soft_wrap=True, highlight=False)
 
 
 def _session_dir(session: str) -> Path:
@@ -79,6 +81,8 @@ def sessions_info(session: Annotated[str, typer.Argument(help="Session id or dir
     console.print(table)
     for part in info.torn:
         console.print(f"[yellow]torn part[/yellow] {part.name}: run `vslab sessions recover {info.id}`")
+    for text in info.damaged:
+        console.print(f"[yellow]warning:[/] {escape(text)}", soft_wrap=True, highlight=False)
 
 
 @sessions_app.command("recover")
@@ -89,10 +93,11 @@ def sessions_recover(session: Annotated[str, typer.Argument(help="Session id or 
     from acquisition.recorder.recover import recover
     from acquisition.storage import is_local
 
-    torn = _session_info(session).torn
+    info = _session_info(session)
+    torn = info.torn
     if torn and not is_local(torn[0]):  # never reached by an upload: torn sessions are not published
         _fail(escape(f"{torn[0]}: a torn part on a store; recover the local session, then upload it"))
-    if not torn:
+    if not torn and not info.damaged:
         console.print("nothing to recover: every part is whole")
     for part in torn:
         try:
@@ -103,6 +108,9 @@ def sessions_recover(session: Annotated[str, typer.Argument(help="Session id or 
             f"{r.source.name} → {r.output.name}: {r.messages:,} messages ({r.reason or 'complete'})",
             soft_wrap=True, highlight=False, markup=False,
         )  # fmt: skip
+    if info.damaged:  # a whole part's chunk that fails its CRC: nothing can mend it; say so, never "whole"
+        more = f" (and {len(info.damaged) - 1} more damaged chunk(s))" if len(info.damaged) > 1 else ""
+        _fail(escape(f"{info.damaged[0]}{more}; recover mends torn parts only: these messages are lost"))
 
 
 @sessions_app.command("upload")
@@ -155,16 +163,20 @@ def sessions_export(
     foxglove: Annotated[bool, typer.Option("--foxglove", help=_FOXGLOVE_HELP)] = False,
     out: Annotated[Path | None, typer.Option(help=_OUT_HELP)] = None,
     registration: Annotated[str | None, typer.Option(help=_REGISTRATION_HELP)] = None,
-    rate_hz: Annotated[float, typer.Option(min=1.0, help="/tf and /joint_states rate (Hz).")] = 50.0,
+    rate_hz: Annotated[float, typer.Option(help="/tf and /joint_states rate (Hz), 0 < rate ≤ 1000.")] = 50.0,
 ) -> None:
     """Write a session as one file for a viewer; the session itself is never changed."""
-    from acquisition.recorder.foxglove_export import export_foxglove, session_robot
+    from acquisition.recorder.foxglove_export import ExportError, check_rate, export_foxglove, session_robot
     from acquisition.recorder.sessions import SessionError
     from acquisition.schemas.cdr import SchemaError
     from acquisition.storage import is_local
 
     if not foxglove:
         _fail("say what to export: --foxglove (the one format there is)")
+    try:
+        check_rate(rate_hz)
+    except ExportError as exc:
+        _fail(escape(str(exc)))
     info = _session_info(session)
     placement = None
     if registration is not None:
@@ -177,6 +189,8 @@ def sessions_export(
             _fail(escape(str(exc)))
     name = f"{info.id}.foxglove.mcap"  # beside the lab's sessions; here when the lab is on a store
     target = out or (Settings.lab / "exports" / name if is_local(Settings.lab) else Path(name))
+    if target.is_dir():
+        _fail(escape(f"--out {target}: a directory; give the file to write (e.g. {target / name})"))
     try:
         n = export_foxglove(info.directory, target, placement, rate_hz)
     except (SessionError, SchemaError) as exc:

@@ -9,11 +9,13 @@ session itself is not touched (its parts are its record; their hashes version th
 
 from __future__ import annotations
 
+import math
 from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
 
+from acquisition.errors import AcquisitionError
 from acquisition.recorder.sessions import SessionError, session_info
 from acquisition.schemas import topics as T
 from acquisition.schemas.fast_read import read_fixed_topics
@@ -23,6 +25,23 @@ from acquisition.schemas.scene import RATE_HZ, STANDARD_TOPICS, URDF_ATTACHMENT,
 from acquisition.schemas.session_card import SESSION_METADATA
 from acquisition.storage import lab_path
 from models.robot import RobotDescription
+
+# /tf and /joint_states are resampled from the measured streams, the fastest of which (servo state) runs at
+# ≈ 500 Hz: a faster rate repeats the same pose and only multiplies the file (1 kHz: 20× the default's bytes)
+MAX_RATE_HZ = 1000.0
+
+
+class ExportError(AcquisitionError, ValueError):
+    """An export asked for with values it cannot be written with (a rate that is not a finite, positive
+    number of hertz within ``MAX_RATE_HZ``)."""
+
+
+def check_rate(rate_hz: float) -> None:
+    """``ExportError`` unless ``rate_hz`` is finite, positive and at most ``MAX_RATE_HZ`` (inf would write no
+    /tf at all, 0 or less never ends)."""
+    if not (math.isfinite(rate_hz) and 0 < rate_hz <= MAX_RATE_HZ):
+        raise ExportError(f"--rate-hz {rate_hz}: give a rate in Hz above 0 and at most {MAX_RATE_HZ:g} (the "
+                          "measured streams run at ≤ 500 Hz; a faster /tf only repeats poses)")  # fmt: skip
 
 
 def session_robot(part: Path) -> RobotDescription:
@@ -37,12 +56,16 @@ def session_robot(part: Path) -> RobotDescription:
 def export_foxglove(session: Path, out: Path, base_to_tracker: np.ndarray | None = None,
                     rate_hz: float = RATE_HZ) -> int:  # fmt: skip
     """Write ``session`` with its standard topics into ``out`` (written whole, then renamed in); returns the
-    messages written. ``SessionError`` for a folder that is not a readable session or has a torn part."""
+    messages written. ``SessionError`` for a folder that is not a readable session or has a torn or damaged
+    part, ``ExportError`` for a rate out of bounds."""
     info = session_info(session)
     if info.torn:
         raise SessionError(
             info.directory, f"torn part {info.torn[0].name}", "run `vslab sessions recover` first"
         )
+    check_rate(rate_hz)
+    if info.damaged:  # every chunk is checked first: an export never leaves a damaged chunk's messages out
+        raise SessionError(info.directory, f"cannot be exported whole: {info.damaged[0]}")
     scene = Scene(session_robot(info.parts[0]), base_to_tracker)
     # as the session writer makes them, from whole parts: every stepper report kept to hold angles from
     stream = SceneStream(scene, rate_hz, stepper_history=None)
@@ -58,11 +81,14 @@ def export_foxglove(session: Path, out: Path, base_to_tracker: np.ndarray | None
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     partial = out.with_name(out.name + ".partial")
-    with ExitStack() as stack:
-        sources = [stack.enter_context(lab_path(p).open("rb")) for p in info.parts]
-        with open(partial, "wb") as f:
-            urdf = [(URDF_ATTACHMENT, "application/xml", scene.urdf.encode())]
-            # the session's own standard topics (a recording writes them) are made again, the tracker placed
-            n = merge_with(sources, f, "vslab sessions export", batches, urdf, replace=STANDARD_TOPICS)
-    partial.replace(out)
+    try:
+        with ExitStack() as stack:
+            sources = [stack.enter_context(lab_path(p).open("rb")) for p in info.parts]
+            with open(partial, "wb") as f:
+                urdf = [(URDF_ATTACHMENT, "application/xml", scene.urdf.encode())]
+                # the session's own standard topics (a recording writes them) are made again, tracker placed
+                n = merge_with(sources, f, "vslab sessions export", batches, urdf, replace=STANDARD_TOPICS)
+        partial.replace(out)
+    finally:  # whatever stopped it (a damaged part, a full disk, ^C): no half file is left behind
+        partial.unlink(missing_ok=True)
     return n

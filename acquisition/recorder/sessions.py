@@ -18,7 +18,14 @@ from pathlib import Path
 
 from acquisition.errors import AcquisitionError
 from acquisition.recorder.recover import RecoveryReport, recover
-from acquisition.schemas.mcap_reader import MAGIC, topic_spans
+from acquisition.schemas.mcap_reader import (
+    MAGIC,
+    READ_ERRORS,
+    damaged_chunks,
+    first_line,
+    read_summary,
+    topic_spans,
+)
 from acquisition.schemas.scene import STANDARD_TOPICS
 from acquisition.schemas.session_card import (
     SESSION_CARD,
@@ -110,6 +117,7 @@ class SessionInfo:
     torn: list[Path] = field(default_factory=list)  # parts without a summary and no recovered copy
     streams: dict[str, StreamInfo] = field(default_factory=dict)
     problem: str = ""  # why the folder is not a readable session (list_sessions); "" for a good one
+    damaged: list[str] = field(default_factory=list)  # "<part>: damaged chunk at byte …", one per chunk
 
     @property
     def duration_s(self) -> float:
@@ -145,6 +153,7 @@ def session_info(directory: Path) -> SessionInfo:
         if streams is None:
             info.torn.append(part)
             continue
+        info.damaged += _part_damage(part)
         for topic, (messages, lo, hi) in streams.items():
             if topic in STANDARD_TOPICS:  # derived from the measured streams (the arm for a viewer)
                 continue
@@ -178,6 +187,18 @@ def _part_streams(part: Path) -> dict[str, tuple[int, int | None, int | None]] |
             return topic_spans(f)
     except OSError:
         return None
+
+
+def _part_damage(part: Path) -> list[str]:
+    """One line per chunk of a whole part that fails its CRC or index check (``damaged_chunks``): its
+    messages are lost to every reader, so listing the session says so."""
+    try:
+        with part.open("rb") as f:
+            summary = read_summary(f)
+            damaged = [] if summary is None else damaged_chunks(f, summary)
+            return [f"{part}: {d.describe(summary)}" for d in damaged]
+    except READ_ERRORS as exc:
+        return [f"{part}: its chunks cannot be checked ({first_line(exc)})"]
 
 
 def _add_counters(info: SessionInfo, counters: object, card: Path) -> None:
@@ -222,9 +243,12 @@ def check_publishable(directory: Path) -> None:
     if card.get("status") != "complete":
         raise SessionError(directory, f"not complete (status {card.get('status')!r}): not published",
                            "recover or record it again")  # fmt: skip
-    if torn := session_info(directory).torn:  # every part is MCAP; a torn one is mended locally first
+    info = session_info(directory)
+    if torn := info.torn:  # every part is MCAP; a torn one is mended locally first
         raise SessionError(torn[0], "torn (no readable summary): not published",
                            f"run `vslab sessions recover {directory}` first")  # fmt: skip
+    if info.damaged:  # a chunk failing its CRC: the store would keep a copy that no reader trusts
+        raise SessionError(directory, f"not published: {info.damaged[0]}")
 
 
 def publish_session(directory: Path, sessions_root: LabPath) -> bool:

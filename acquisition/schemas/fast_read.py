@@ -34,8 +34,23 @@ class TopicData:
         return len(self.rows)
 
 
-def read_fixed_topics(path: str | Path, topics: list[str] | None = None) -> dict[str, TopicData]:
-    """Every fixed-layout topic of an indexed MCAP file (a finished or recovered one), in log-time order."""
+def read_fixed_topics(
+    path: str | Path, topics: list[str] | None = None, damaged: list[mcap_reader.ChunkDamage] | None = None
+) -> dict[str, TopicData]:
+    """Every fixed-layout topic of an indexed MCAP file (a finished or recovered one), in log-time order.
+    Every chunk read is checked (CRC, message index): a damaged one raises ``DamagedChunkError`` naming the
+    file and the chunk's offset, or, given a ``damaged`` list, is added to it and its messages left out."""
+    return read_topics(path, topics, set(), damaged)[0]
+
+
+def read_topics(
+    path: str | Path,
+    topics: list[str] | None,
+    others: set[str],
+    damaged: list[mcap_reader.ChunkDamage] | None = None,
+) -> tuple[dict[str, TopicData], list[tuple[int, int, int, bytes]]]:
+    """``read_fixed_topics`` and, in the same pass over the chunks, (channel id, log time, publish time,
+    payload) of every message of the ``others`` topics (any layout, e.g. events): each chunk read once."""
     path = lab_path(path)
     with path.open("rb") as f:
         summary = mcap_reader.read_summary(f)
@@ -49,10 +64,13 @@ def read_fixed_topics(path: str | Path, topics: list[str] | None = None) -> dict
             message = parse_fixed_message(schema.name, schema.data.decode())
             if message is not None and channel.message_encoding == "cdr":
                 wanted[cid] = (channel.topic, message)
+        other_ids = {cid for cid, c in summary.channels.items() if c.topic in others and cid not in wanted}
         try:
-            parts = mcap_reader.fixed_size_messages(
-                f, summary, {cid: m.size for cid, (_, m) in wanted.items()}
+            parts, rest = mcap_reader.chunk_messages(
+                f, summary, {cid: m.size for cid, (_, m) in wanted.items()}, other_ids, damaged
             )
+        except mcap_reader.DamagedChunkError as exc:
+            raise mcap_reader.DamagedChunkError(exc.damage, summary, path) from exc
         except SchemaError as exc:
             raise SchemaError(f"{path}: {exc}") from exc
     out = {}
@@ -68,7 +86,7 @@ def read_fixed_topics(path: str | Path, topics: list[str] | None = None) -> dict
         order = np.argsort(log_time, kind="stable")
         rows = payload[order].reshape(-1).view(message.dtype)
         out[topic] = TopicData(topic, message, log_time[order], publish[order], rows)
-    return out
+    return out, rest
 
 
 def read_events(path: str | Path) -> list[tuple[int, Event]]:

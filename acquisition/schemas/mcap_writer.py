@@ -41,6 +41,7 @@ from mcap.records import (
 )
 from mcap.writer import CompressionType, Writer
 
+from acquisition.schemas.cdr import SchemaError
 from acquisition.schemas.mcap_reader import MAGIC, Channel, Message, Metadata, RecordWalk, Schema
 
 MCAP_LIBRARY_VERSION = __version__  # the mcap package's, recorded in each session
@@ -370,7 +371,8 @@ def merge_with(
     for source in sources:
         ids: dict[int, int] = {}
         known: dict[int, Schema] = {}
-        for record in RecordWalk(source):
+        walk = RecordWalk(source)
+        for record in walk:
             if isinstance(record, Schema):
                 known[record.id] = record
             elif isinstance(record, Channel) and record.topic not in replace:
@@ -386,6 +388,9 @@ def merge_with(
             elif isinstance(record, Attachment) and record.name not in replaced_files:
                 writer.add_attachment(record.log_time, record.create_time, record.name, record.media_type,
                                       record.data)  # fmt: skip
+        if not walk.complete:  # a merge is of whole files: never one that silently ends early
+            where = getattr(source, "name", "a source")
+            raise SchemaError(f"{where}: unreadable from a record on ({walk.reason})")
     sequence: dict[str, int] = {}  # each topic's messages numbered from 0, across its batches
     for batch in batches:
         cid = channel(batch.topic, "cdr", (batch.schema_name, "ros2msg", batch.schema_text.encode()))
