@@ -78,19 +78,38 @@ def published(entry: LabPath, manifest: str) -> bool:
     return is_local(entry) or (entry / manifest).is_file()
 
 
+PROBE_TIMEOUT_S = 5.0  # connect and read timeouts of the store check: the store is there, or one line soon
+
+
 def check_store(root: LabPath) -> None:
     """Raise :class:`StoreError` unless the store under ``root`` answers and its bucket may be listed
-    (nothing to do for a local folder). One request: a listing of the bucket's top level."""
+    (nothing to do for a local folder). One request, one attempt, within about ``PROBE_TIMEOUT_S`` s: a
+    listing of the bucket's top level."""
     if is_local(root):
         return
     bucket = root.path.split("/", 1)[0]
     try:
-        root.fs.ls(bucket, detail=False)
+        _probe_fs(root).ls(bucket, detail=False)
     except FileNotFoundError:
         raise StoreError(f"{root}: the bucket {bucket!r} does not exist (create it first)") from None
     except Exception as exc:  # botocore's, aiohttp's and fsspec's own errors: no common base to catch
         why = _first_line(exc)
         raise StoreError(f"{root}: the store does not answer or refuses access ({why})") from None
+
+
+def _probe_fs(root: LabPath):
+    """``root``'s file system for one quick check: on S3 a client of its own without botocore's and s3fs's
+    retries and with short timeouts (a store that is not there takes minutes to say so otherwise); the
+    lab's own client, which the real work uses, keeps the libraries' retries."""
+    fs = root.fs
+    if root.protocol not in S3:
+        return fs
+    options = dict(fs.storage_options)
+    config = {**options.pop("config_kwargs", {}), "connect_timeout": PROBE_TIMEOUT_S,
+              "read_timeout": PROBE_TIMEOUT_S, "retries": {"total_max_attempts": 1}}  # fmt: skip
+    probe = type(fs)(**options, config_kwargs=config, skip_instance_cache=True)
+    probe.retries = 1  # s3fs's own retries of a timed-out read (a class attribute, not an argument)
+    return probe
 
 
 def publish(final: LabPath, fill: Callable[[Path], None], manifest: str) -> bool:

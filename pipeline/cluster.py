@@ -52,9 +52,11 @@ def cluster_executor(
     distributed = _distributed()
     client, why = None, ""
     try:
+        _handshake(distributed, address, timeout_s)
         client = distributed.Client(address, timeout=timeout_s, set_as_default=False)
     except (OSError, TimeoutError) as exc:
-        why = f"no Dask scheduler answers at {address!r} within {timeout_s:g} s ({type(exc).__name__}: {exc})"
+        said = f"{type(exc).__name__}: {exc}" if str(exc) else "connected, but no handshake came"
+        why = f"no Dask scheduler answers at {address!r} within {timeout_s:g} s ({said})"
     except (ValueError, TypeError) as exc:  # not an address
         why = f"no Dask scheduler at {address!r}: {exc} (an address is tcp://host:port)"
     if client is None:
@@ -65,6 +67,21 @@ def cluster_executor(
         yield client.get_executor(retries=retries, pure=False)
     finally:
         client.close()
+
+
+def _handshake(distributed, address: str, timeout_s: float) -> None:
+    """Connect to ``address`` and exchange Dask's handshake within ``timeout_s``, then hang up. The Client
+    bounds its connect, not the handshake after it: a port that accepts but never speaks (no scheduler
+    behind it) would hold it for ever."""
+    import asyncio
+
+    args = distributed.Security().get_connection_args("client")  # tls:// as the Client would reach it
+
+    async def shake() -> None:
+        comm = await distributed.comm.connect(address, timeout=timeout_s, **args)
+        await comm.close()
+
+    asyncio.run(asyncio.wait_for(shake(), timeout_s))
 
 
 def _collect_quietly() -> None:

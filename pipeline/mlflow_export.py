@@ -26,6 +26,7 @@ VERSION_TAG = "vslab.model_version"
 NAME_TAG = "vslab.model_name"
 DATASET_TAG = "vslab.dataset_version"
 EXPERIMENT = "vslab"
+PROBE_TIMEOUT_S = 5.0  # connect and read timeouts of the check that an MLflow server is there
 BATCH = 100  # MLflow's log_batch takes at most 100 params (and 1000 metrics) per call
 _UNSAFE = re.compile(r"[^0-9A-Za-z_.\-/ ]")  # characters MLflow refuses in a key
 
@@ -50,7 +51,30 @@ def _client(tracking_uri: str):
         raise MlflowExportError(
             "MLflow is not installed: pip install 'vslab[mlflow]' (the MLflow client and its SQLite store)"
         ) from None
+    _reachable(tracking_uri)
     return MlflowClient(tracking_uri=tracking_uri)
+
+
+def _reachable(tracking_uri: str, timeout_s: float = PROBE_TIMEOUT_S) -> None:
+    """Raise :class:`MlflowExportError` unless the server of an ``http(s)://`` tracking URI answers within
+    ``timeout_s``: MLflow's client retries a refused connection for about 4 minutes (7 retries, backoff 2 s,
+    MLFLOW_HTTP_REQUEST_MAX_RETRIES) and waits 120 s per attempt. Any HTTP reply will do (the export itself
+    then runs with MLflow's retries)."""
+    if not tracking_uri.startswith(("http://", "https://")):
+        return
+    import requests
+
+    try:  # MLflow's health route; whatever the reply, a server is there
+        requests.get(f"{tracking_uri.rstrip('/')}/health", timeout=timeout_s)
+    except requests.exceptions.SSLError:
+        return  # a TLS server answered (its certificate is the export's business, not the probe's)
+    except requests.exceptions.RequestException as exc:
+        errno = re.search(r"\[Errno -?\d+\] [^'\")]*", str(exc))  # "[Errno 111] Connection refused"
+        why = errno.group(0) if errno else type(exc).__name__
+        raise MlflowExportError(
+            f"MLflow at {tracking_uri} does not answer within {timeout_s:g} s ({why}): start the tracking "
+            "server, or give another --tracking-uri"
+        ) from None
 
 
 def flatten(tree: Mapping, prefix: str = "") -> Iterator[tuple[str, object]]:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -143,3 +144,25 @@ def test_vslab_cluster_local_serves_until_ctrl_c():
     finally:
         proc.kill()
         proc.wait()
+
+
+def test_a_scheduler_that_is_not_there_is_one_line_within_seconds(tmp_path, campaign_dataset):
+    """Nothing on the port (bound and closed), and a port that accepts but never speaks: each one `error:`
+    line naming the address, well within a minute (old code: the second hung for ever in Dask's handshake)."""
+    lab = _lab(tmp_path, campaign_dataset, "lab")
+    with socket.socket() as closed:
+        closed.bind(("127.0.0.1", 0))
+        free = closed.getsockname()[1]
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(8)  # the kernel accepts connections; nobody reads or writes them
+        for port in (free, silent.getsockname()[1]):
+            address = f"tcp://127.0.0.1:{port}"
+            command = [sys.executable, "-m", "vslab.cli", "--lab", str(lab), "build", "--cluster", address]
+            start = time.monotonic()
+            done = subprocess.run(command, capture_output=True, text=True, timeout=120)
+            elapsed = time.monotonic() - start
+            said = (done.stdout + done.stderr).strip().splitlines()
+            assert done.returncode == 2 and len(said) == 1, said
+            assert said[0].startswith(f"error: no Dask scheduler answers at '{address}' within 5 s"), said
+            assert elapsed < 30, f"{address}: {elapsed:.1f} s to say no scheduler is there"

@@ -9,8 +9,10 @@ from __future__ import annotations
 import json
 import logging
 import os
+import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -195,6 +197,25 @@ def test_store_errors_are_one_line(s3, tmp_path):
         assert "records into a local lab" in line and "sessions upload" in line, command
     with pytest.raises(StoreError, match="does not exist"):
         check_store(lab_path("s3://no-such-bucket/x"))
+
+
+def test_a_store_that_is_not_there_is_one_line_within_seconds(s3):
+    """Nothing on the port (bound and closed), and a port that accepts but never answers, with botocore's and
+    s3fs's own retries (no AWS_MAX_ATTEMPTS): one line naming the address, well within a minute (old code:
+    retried for tens of seconds, and minutes on the silent port)."""
+    with socket.socket() as closed:
+        closed.bind(("127.0.0.1", 0))
+        free = closed.getsockname()[1]
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(8)  # the kernel accepts connections; nobody reads or writes them
+        for port in (free, silent.getsockname()[1]):
+            down = {**s3, "AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}"}
+            start = time.monotonic()
+            line = _one_error_line(_vslab(down, "--lab", "s3://lab/x", "models", "list", timeout=120))
+            elapsed = time.monotonic() - start
+            assert "s3://lab/x: the store does not answer" in line and f"127.0.0.1:{port}" in line, line
+            assert elapsed < 30, f"{elapsed:.1f} s to say the store at 127.0.0.1:{port} is not there"
 
 
 def test_local_sessions_are_uploaded_whole_and_never_replaced(s3, tmp_path, campaign_dataset):

@@ -3,9 +3,16 @@ through the MLflow client; exporting twice duplicates nothing."""
 
 from __future__ import annotations
 
+import contextlib
+import http.server
 import json
+import os
+import shutil
+import socket
 import subprocess
 import sys
+import threading
+import time
 
 import mlflow
 import numpy as np
@@ -14,7 +21,7 @@ import yaml
 
 from pipeline import registry
 from pipeline.grid import load_grid, run_grid
-from pipeline.mlflow_export import NAME_TAG, VERSION_TAG, run_metrics
+from pipeline.mlflow_export import NAME_TAG, VERSION_TAG, MlflowExportError, _reachable, run_metrics
 
 
 @pytest.fixture(scope="module")
@@ -96,8 +103,6 @@ def test_an_interrupted_export_is_replaced_not_duplicated(lab, tmp_path):
 
 
 def test_the_default_store_lives_in_the_lab_and_errors_are_one_line(lab, tmp_path):
-    import os
-
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     done = _cli(lab, "models", "export-mlflow", env=env)
     assert done.returncode == 0, done.stdout + done.stderr
@@ -108,3 +113,75 @@ def test_the_default_store_lives_in_the_lab_and_errors_are_one_line(lab, tmp_pat
         bad = _cli(lab, "models", "export-mlflow", *args)
         said = (bad.stdout + bad.stderr).strip().splitlines()
         assert bad.returncode == 2 and len(said) == 1 and said[0].startswith("error:"), said
+
+
+def _free_port() -> int:
+    """A port on 127.0.0.1 that nothing listens on: bound here, then closed."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _one_error_line(done: subprocess.CompletedProcess) -> str:
+    said = (done.stdout + done.stderr).strip().splitlines()
+    assert done.returncode == 2 and len(said) == 1 and said[0].startswith("error:"), said
+    return said[0]
+
+
+def test_an_mlflow_server_that_is_not_there_is_one_line_within_seconds(lab):
+    uri = f"http://127.0.0.1:{_free_port()}"
+    start = time.monotonic()
+    # old code: MLflow's client retried the refused connection for about 4 minutes (247 s measured)
+    done = _cli(lab, "models", "export-mlflow", "--tracking-uri", uri)
+    elapsed = time.monotonic() - start
+    line = _one_error_line(done)
+    assert f"MLflow at {uri} does not answer" in line and "Connection refused" in line, line
+    assert elapsed < 30, f"{elapsed:.1f} s to say the server is not there"  # 5 s probe + start-up, busy box
+
+
+def test_any_http_reply_is_a_server_there():
+    """The check before an export passes wherever an HTTP server answers, whatever it answers (here 404)."""
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.BaseHTTPRequestHandler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        _reachable(f"http://127.0.0.1:{server.server_port}")
+    finally:
+        server.shutdown()
+        server.server_close()
+    with pytest.raises(MlflowExportError, match="does not answer within 1 s"):
+        _reachable(f"http://127.0.0.1:{_free_port()}", timeout_s=1)
+
+
+@contextlib.contextmanager
+def _read_only(folder):
+    """``folder`` read-only for this process. Root ignores permission bits, so as root the folder is made
+    immutable (``chattr +i``, which stops root too); skipped where the file system has no such attribute."""
+    if os.geteuid() != 0:
+        folder.chmod(0o555)
+        undo = ["chmod", "755", str(folder)]
+    else:
+        if shutil.which("chattr") is None or subprocess.run(["chattr", "+i", str(folder)]).returncode:
+            pytest.skip(
+                "running as root, and chattr +i does not work here: no way to make a folder read-only"
+            )
+        undo = ["chattr", "-i", str(folder)]
+    try:
+        yield folder
+    finally:
+        subprocess.run(undo, check=True)
+
+
+def test_a_read_only_lab_is_one_line_naming_the_folder(lab, tmp_path):
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    mine = tmp_path / "lab"
+    mine.mkdir()
+    (mine / "models").symlink_to(lab / "models")
+    with _read_only(mine):  # no mlflow/ yet, and none can be made
+        line = _one_error_line(_cli(mine, "models", "export-mlflow", env=env))
+    assert f"{mine / 'mlflow'}: cannot be written" in line, line
+    (mine / "mlflow").mkdir()
+    with _read_only(mine / "mlflow"):  # the store's folder is there, read-only
+        line = _one_error_line(_cli(mine, "models", "export-mlflow", env=env))
+    assert f"{mine / 'mlflow'}: cannot be written" in line, line
+    assert not (mine / "mlflow" / "mlflow.db").exists()

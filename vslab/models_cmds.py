@@ -248,6 +248,19 @@ _TRACKING_HELP = (
 )
 
 
+def _writable(folder: Path, what: str) -> None:
+    """Create ``folder`` and write a file in it, or one error line naming it: a read-only lab is said before
+    any work, not as a traceback (as root, permission bits do not stop a write; a read-only mount does)."""
+    import tempfile
+
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        _error(f"{folder}: cannot be written, {what} goes there ({exc.strerror or exc})")
+
+
 @models_app.command("export-mlflow")
 def models_export_mlflow(
     tracking_uri: Annotated[str | None, typer.Option(help=_TRACKING_HELP)] = None,
@@ -268,11 +281,11 @@ def models_export_mlflow(
                 f"--lab {Settings.lab} is on a store: give --tracking-uri (an MLflow server or a local "
                 "sqlite:///… file)"
             )
-        folder = Path(Settings.lab).resolve() / "mlflow"
-        folder.mkdir(parents=True, exist_ok=True)
-        uri = f"sqlite:///{folder / 'mlflow.db'}"
+        uri = f"sqlite:///{Path(Settings.lab).resolve() / 'mlflow' / 'mlflow.db'}"
     if uri.startswith("sqlite:///"):  # a local store: its artifacts beside it (MLflow's default: ./mlruns)
-        artifacts = (Path(uri.removeprefix("sqlite:///")).resolve().parent / "artifacts").as_uri()
+        folder = Path(uri.removeprefix("sqlite:///")).resolve().parent
+        _writable(folder, "the MLflow store")
+        artifacts = (folder / "artifacts").as_uri()
     try:
         report = export_models(Settings.lab / "models", Settings.lab / "datasets", uri, experiment, artifacts)
     except MlflowExportError as exc:
