@@ -72,7 +72,9 @@ SIGNED = {"pose_deg", "workspace_mm", "q0_deg", "target_mm", "joints_deg"}  # ma
 POSITIVE = {"speed_m_s", "move_speed_rad_s", "return_speed_rad_s", "fill_time_constants", "tap_impulse_nms",
             "max_collapse_fraction", "v0_m_s", "a0_m_s2", "dt_s", "tolerance_mm"}  # fmt: skip
 MAY_BE_EMPTY = {"without_masses", "rigid_links"}
-CHOICES = {"visit_order": ("drawn", "reversed")}  # text parameters with a fixed set of values
+CHOICES = {"visit_order": ("drawn", "shuffled", "reversed")}  # text parameters with a fixed set of values
+REPEATS = ("shuffled", "reversed")  # visit orders of a campaign's repeat: its sessions are named apart
+SHUFFLE_STREAM = 0x5EED  # the shuffled repeat's own random stream: (seed, this, bench), apart from the draw
 RANGES = {"campaign": ("pressure_bar", "workspace_mm"), "popup_survey": ("pressure_kpa", "joints_deg")}
 FIXED_LENGTH = {"pose_deg", "pressure_bar", "workspace_mm", "set_points_kpa", "q0_deg", "target_mm",
                 "pressure_kpa", "joints_deg"}  # fmt: skip  # as many values as the default
@@ -245,9 +247,10 @@ def _trajectory_plan(plan_name: str, robot: RobotDescription, params: dict, cell
 def campaign(robot: RobotDescription, params: dict, benches: int = 1, seed: int = 0) -> list[Plan]:
     """The random static-point campaign, its points dealt to ``benches`` plans (parallel twin benches, or
     sessions on one robot). Points are tip targets drawn uniformly in the workspace box, turned into joint
-    positions by the rigid IK (elbow up); pressures uniform in the range, payloads from the list. With
-    ``visit_order: reversed`` each bench visits the same points backwards: a repeat of the campaign that
-    reaches every point from another history (``pipeline.floor`` compares the two)."""
+    positions by the rigid IK (elbow up); pressures uniform in the range, payloads from the list. A repeat of
+    the campaign visits each bench's points again from another history (``pipeline.floor`` compares the two):
+    ``visit_order: shuffled`` in a random order of their own (:func:`visit_order`), ``reversed`` backwards
+    (creep then runs the other way along the bench, so the two visits' errors are anti-correlated)."""
     rng = np.random.default_rng(seed)
     n = int(params["points"])
     lo, hi = (np.asarray(params["workspace_mm"][k], float) * MM for k in ("min", "max"))
@@ -256,11 +259,11 @@ def campaign(robot: RobotDescription, params: dict, benches: int = 1, seed: int 
     p_lo, p_hi = (v * BAR for v in params["pressure_bar"])
     pressure = rng.uniform(p_lo, p_hi, size=n)
     payload = rng.choice(np.asarray(params["payloads_g"], float) * GRAM, size=n)
+    order = params["visit_order"]
     plans = []
     for k, idx in enumerate(np.array_split(np.arange(n), min(benches, n))):
-        reverse = params["visit_order"] == "reversed"
-        idx = idx[::-1] if reverse else idx
-        name = f"campaign/{'reversed/' if reverse else ''}bench{k:03d}"  # the repeat's sessions named apart
+        idx = visit_order(idx, order, seed, k)
+        name = f"campaign/{order + '/' if order in REPEATS else ''}bench{k:03d}"  # a repeat's sessions apart
         b = _builder(name, robot, {"experiment": "campaign", "seed": seed, "points": len(idx)})
         previous = q[idx[0]]
         for point in idx:
@@ -271,6 +274,20 @@ def campaign(robot: RobotDescription, params: dict, benches: int = 1, seed: int 
             previous = q[point]
         plans.append(b.build())
     return plans
+
+
+def visit_order(points: np.ndarray, order: str, seed: int, bench: int) -> np.ndarray:
+    """One bench's ``points`` in the order it visits them: as drawn, backwards, or shuffled from the
+    bench's own seed (``seed``, :data:`SHUFFLE_STREAM`, ``bench``; never the drawn order itself)."""
+    if order == "reversed":
+        return points[::-1]
+    if order != "shuffled" or len(points) < 2:
+        return points
+    rng = np.random.default_rng((seed, SHUFFLE_STREAM, bench))
+    while True:  # a permutation equal to the drawn order would repeat every history: draw again
+        shuffled = rng.permutation(points)
+        if not np.array_equal(shuffled, points):
+            return shuffled
 
 
 def expand_experiment(
