@@ -7,6 +7,7 @@ import dataclasses
 import re
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from acquisition.plans.experiments import expand_experiment, together, visit_order
@@ -103,9 +104,7 @@ def test_the_worst_move_of_the_default_campaign_completes_on_the_twin(tmp_path):
     synchronised drives: no safety stop, the tip's lowest point inside the box."""
     robot, plans = _default_campaign()
     checker = SafetyChecker(robot)
-    plan, violations = next(
-        (p, v) for p in plans if (v := checker.check_plan(_drives_in_turn(p)))
-    )
+    plan, violations = next((p, v) for p in plans if (v := checker.check_plan(_drives_in_turn(p))))
     point = int(re.search(r"point (\d+)\)", str(violations[0])).group(1))
     points = _settle_points(plan)
     k = points.index(point)
@@ -121,3 +120,18 @@ def test_the_worst_move_of_the_default_campaign_completes_on_the_twin(tmp_path):
     assert checker.check_plan(worst) == [] and checker.check_plan(_drives_in_turn(worst)) != []
     report = simulate([worst], robot, tmp_path / "sessions", seed=0)
     assert report.stopped == {} and report.sessions == [session_id(worst)]
+
+
+def test_the_report_says_what_the_inverse_models_read(tmp_path):
+    """The report's comparison section says the inverse models' currents are measured after the move has
+    landed (a payload sensor), from the comparison's card."""
+    from analysis.lab_figures import Results, _unmodelled, lab_report
+    from pipeline.comparison import UNMODELLED, save_comparison
+
+    table = pd.DataFrame([{"direction": d, "model": m, "cell": "all", "n": 10, "tip_mm_mean": 0.5}
+                          for d in ("forward", "inverse") for m in ("gbr", "floor")])  # fmt: skip
+    save_comparison(tmp_path / UNMODELLED, table, {"campaign (drawn)": "v1"}, "split_group")
+    res = Results()
+    _unmodelled(tmp_path, res)
+    page = lab_report(tmp_path, res).read_text()
+    assert "The inverse models read the tip wanted" in page and "measured after the move has landed" in page
