@@ -12,7 +12,7 @@ import pytest
 
 from acquisition.plans.experiments import expand_experiment, together, visit_order
 from acquisition.plans.plan import Plan, PlanBuilder
-from acquisition.plans.sim_runner import session_id, simulate
+from acquisition.plans.sim_runner import session_id, simulate, simulate_experiment
 from acquisition.safety import SafetyChecker, SafetyError
 from acquisition.schemas.events import EventKind
 
@@ -135,3 +135,11 @@ def test_the_report_says_what_the_inverse_models_read(tmp_path):
     _unmodelled(tmp_path, res)
     page = lab_report(tmp_path, res).read_text()
     assert "The inverse models read the tip wanted" in page and "measured after the move has landed" in page
+
+
+@pytest.mark.slow
+def test_the_default_campaign_completes_on_the_twin(tmp_path):
+    """The README's `vslab simulate campaign` in full (17,568 points on 128 benches; minutes): no bench
+    stops early."""
+    reports = simulate_experiment("campaign", tmp_path / "sessions", seed=0, benches=128)
+    assert [r.stopped for r in reports] == [{}] and sum(len(r.sessions) for r in reports) == 128
