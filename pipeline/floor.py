@@ -6,7 +6,7 @@ arm remembers of how it got there (creep, the links' hysteresis, the servos' bac
 points are visited again in another order (``visit_order: shuffled``: every point reached from another
 history, in a random order of its own) and the two tracked tips of each point compared. Not backwards
 (``reversed``): creep runs along a session, so a point early in one run and late in the other gets errors of
-opposite sign from it (r ≈ −0.15 to −0.3 between the two visits) and the floor comes out 3–8 % too high.
+opposite sign from it (r ≈ −0.15 to −0.3 between the two visits) and the floor comes out 3–11 % too high.
 For forward models, the part of their difference the measured joints explain (the rigid FK of q₁ minus that
 of q₂: a forward model reads q) is taken out; inverse models do not read the joints, so for them it stays
 (the servos' backlash is history to them). What remains, d, is two independent draws of the unpredictable
