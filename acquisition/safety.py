@@ -25,6 +25,7 @@ import numpy as np
 
 from acquisition.errors import AcquisitionError
 from acquisition.plans.plan import Plan
+from acquisition.schemas.events import EventKind
 from models.prbm import collapse_moment, wrinkling_moment
 from models.robot import RobotDescription
 from models.statics import gravity_moments, static_deflection
@@ -88,12 +89,7 @@ class SafetyChecker:
         times = np.unique(np.concatenate([plan.goal_t, plan.pressure_t, plan.payload_t, self._moves(plan)]))
         cmd = plan.at(times)
         goal_q = cmd["goal_q"]
-        # between two goals the joints sweep from one to the other: check the goal interpolated there
-        prev = np.maximum(cmd["goal_index"] - 1, 0)
-        start, end = plan.goal_t[cmd["goal_index"]], self._goal_end(plan, cmd["goal_index"])
-        frac = np.clip((times - start) / np.maximum(end - start, 1e-9), 0.0, 1.0)[:, None]
-        moving = (times > start)[:, None] & (end > start)[:, None]
-        q = np.where(moving, plan.goal_q[prev] + frac * (goal_q - plan.goal_q[prev]), goal_q)
+        q = self._swept(plan, times, cmd["goal_index"], goal_q)
         out = self._joints(plan.goal_t, plan.goal_q)  # a sweep between goals stays inside the joints' box
         pressure, valves = cmd["pressure_pa"], cmd["valve_open"]
         out += self._pressure_commands(times, pressure, valves)
@@ -104,10 +100,25 @@ class SafetyChecker:
                 Violation(float(times[k]), "stowed-motion", "a joint goal changes while a link is deflated")
             )
         delta, _ = static_deflection(self.robot, q, pressure, cmd["payload_kg"])
-        out += self._workspace(times, self.robot.chain().position(q, delta))
+        out += _at_points(plan, self._workspace(times, self.robot.chain().position(q, delta)))
         full = gravity_moments(self.robot, q, delta, cmd["payload_kg"])
         out += self._bending(times, full, pressure, stowed, bool(plan.parameters.get("allow_wrinkling")))
         return sorted(out, key=lambda v: v.t_s)
+
+    def _swept(self, plan: Plan, times: np.ndarray, index: np.ndarray, goal_q: np.ndarray) -> np.ndarray:
+        """Where the joints are at ``times`` on their way to goal ``index``: each drive at its own profile
+        speed until it arrives, so a joint with less to travel arrives first and the arm passes through
+        poses off the straight line between the goals (a corner that may dip out of the box); a goal without
+        a speed is swept linearly over its move."""
+        prev_q = plan.goal_q[np.maximum(index - 1, 0)]
+        start, end = plan.goal_t[index], self._goal_end(plan, index)
+        elapsed = np.clip(times - start, 0.0, np.maximum(end - start, 0.0))[:, None]
+        frac = elapsed / np.maximum(end - start, 1e-9)[:, None]
+        step = goal_q - prev_q
+        speed = plan.goal_speed[index]
+        travelled = np.where(speed > 0, np.minimum(speed * elapsed, np.abs(step)), frac * np.abs(step))
+        moving = (times > start)[:, None] & (end > start)[:, None]
+        return np.where(moving, prev_q + np.sign(step) * travelled, goal_q)
 
     def require_safe(self, plan: Plan) -> None:
         """Raise :class:`SafetyError` if ``plan`` breaks any limit."""
@@ -127,14 +138,18 @@ class SafetyChecker:
         return np.minimum(plan.goal_t[index] + travel, t_next)
 
     def _moves(self, plan: Plan) -> np.ndarray:
-        """Instants within each move, so a sweep through a forbidden pose is caught."""
+        """Instants within each move, so a sweep through a forbidden pose is caught: evenly spaced, and
+        when each joint arrives at its goal (the corners of a move whose drives arrive one by one)."""
         idx = np.arange(1, len(plan.goal_t))
         if not len(idx):
             return np.empty(0)
         start, end = plan.goal_t[idx], self._goal_end(plan, idx)
         frac = np.arange(1, MOVE_SUBSAMPLES + 1) / MOVE_SUBSAMPLES
         t = start[:, None] + (end - start)[:, None] * frac[None]
-        return np.clip(t.ravel(), 0.0, plan.duration_s)
+        speed = plan.goal_speed[idx]
+        travel = np.abs(plan.goal_q[idx] - plan.goal_q[idx - 1]) / np.where(speed > 0, speed, np.inf)
+        arrive = np.minimum(start[:, None] + travel, end[:, None])
+        return np.clip(np.concatenate([t.ravel(), arrive.ravel()]), 0.0, plan.duration_s)
 
     def stowed(self, plan: Plan, t: np.ndarray) -> np.ndarray:
         """(n, C): the links ``plan`` holds stowed at plan times ``t``: commanded closed below the operating
@@ -268,6 +283,21 @@ class SafetyChecker:
                     for i in idx
                 ], keep)  # fmt: skip
         return out
+
+
+def _at_points(plan: Plan, violations: list[Violation]) -> list[Violation]:
+    """``violations`` of ``plan`` naming the settled point each one is at or on the way to (a plan that
+    settles at numbered points: the campaign's), so a refused point can be found and left out."""
+    settled = [(t, e.index) for t, e in plan.events if e.kind == EventKind.SETTLED and e.index >= 0]
+    if not settled:
+        return violations
+    times = np.array([t for t, _ in settled])
+    out = []
+    for v in violations:
+        k = int(np.searchsorted(times, v.t_s - 1e-9))  # the first point settled at or after the violation
+        where = f" (on the way to or at point {settled[k][1]})" if k < len(settled) else ""
+        out.append(Violation(v.t_s, v.limit, v.detail + where, v.sample))
+    return out
 
 
 def _found(t: np.ndarray, samples: np.ndarray, limit: str, details: list[str], keep: int | None = 3):

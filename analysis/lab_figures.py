@@ -30,6 +30,7 @@ class Results:
     tables: dict[str, pd.DataFrame] = field(default_factory=dict)
     versions: dict[str, str] = field(default_factory=dict)  # what they were made from
     missing: dict[str, str] = field(default_factory=dict)  # figure → why it could not be made
+    texts: dict[str, str] = field(default_factory=dict)  # table key → what the section says about it
 
 
 def tagged_model(lab: Path, tag: str) -> tuple[str, Path] | None:
@@ -90,7 +91,7 @@ def _all_figures(lab: Path, out: Path) -> Results:
 
 def _unmodelled(lab: Path, res: Results) -> None:
     """The comparison the main job made on the twin with its unmodelled effects (``pipeline.comparison``)."""
-    from pipeline.comparison import UNMODELLED, load_comparison, wide_tables
+    from pipeline.comparison import INPUTS, UNMODELLED, load_comparison, wide_tables
 
     path = lab / UNMODELLED
     if not path.exists():
@@ -99,6 +100,8 @@ def _unmodelled(lab: Path, res: Results) -> None:
     table, card = load_comparison(path)
     for direction, wide in wide_tables(table).items():
         res.tables[f"unmodelled effects: {direction} models"] = wide.round(3)
+    inputs = card.get("inputs", INPUTS)  # a card written before it said so: the models read the same
+    res.texts["unmodelled effects"] = "\n\n".join(f"The {d} models read {inputs[d]}." for d in inputs)
     if card.get("experiment2"):
         paths = pd.DataFrame(card["experiment2"]).drop(columns=["session"], errors="ignore")
         res.tables["unmodelled effects: Experiment 2, distance to the desired path (mm)"] = paths.round(3)
@@ -280,8 +283,9 @@ def lab_report(lab: Path, res: Results, timings: dict[str, float] | None = None)
     for title, names, table_keys in SECTIONS:
         figures = [res.figures[n] for n in names if n in res.figures]
         tables = {k: v for k, v in res.tables.items() if any(k.startswith(t) for t in table_keys)}
+        text = "\n\n".join(v for k, v in res.texts.items() if k in table_keys)
         if figures or tables:
-            page.section(title, figures=figures, tables=tables)
+            page.section(title, text=text, figures=figures, tables=tables)
     return page.write(lab_path(lab) / "report" / "index.html")
 
 

@@ -7,7 +7,7 @@ and per pressure × payload cell, the mean tip error (mm) of:
   split);
 - ``gbr``: gradient boosting on the 7 inputs, and ``history``: the same with the points' history
   (``pipeline.history``) — the pair shows what the history adds;
-- ``floor``: what no static map of (q, p, i) predicts, measured from the campaign's repeat
+- ``floor``: what no static map of (q, p, i) predicts, measured from the campaign's shuffled repeat
   (``pipeline.floor``), when a repeat is given. An inverse model is scored at the tip (the rigid FK of its
   command against that of the command that landed the tip), against the inverse floor (the joints it does
   not read left in).
@@ -41,6 +41,13 @@ BASELINES = {
     "grey box": lambda d: baselines.PrbmGreyBox(direction=d),
     "gbr": lambda d: baselines.SklearnBaseline("gbr", direction=d),
     "history": lambda d: HistoryModel(direction=d),
+}
+# What each direction's models read, and when it is measured (the comparison's card and the report say it)
+INPUTS = {
+    "forward": "the joints q, pressures p and currents i measured at the point, once the move has landed",
+    "inverse": "the tip wanted, and the pressures p and currents i measured after the move has landed there: "
+    "the currents at the landed point carry the payload's load (a payload sensor a controller has only "
+    "after moving; with the previous point's currents the inverse error rises, 0.60 → 1.09 mm)",
 }
 ALL = "all"  # the cell label of the whole test part
 UNMODELLED = Path("comparisons") / "unmodelled.json"  # the main job's comparison, under its lab
@@ -115,7 +122,7 @@ def wide_tables(table: pd.DataFrame) -> dict[str, pd.DataFrame]:
 
 
 def comparison_markdown(table: pd.DataFrame) -> str:
-    """:func:`wide_tables` as Markdown (mm, three decimals)."""
+    """:func:`wide_tables` as Markdown (mm, three decimals), each followed by what its models read."""
     parts = []
     for direction, wide in wide_tables(table).items():
         lines = [
@@ -125,7 +132,7 @@ def comparison_markdown(table: pd.DataFrame) -> str:
         for cell, row in wide.iterrows():
             values = [str(int(row["n"])), *("" if np.isnan(v) else f"{v:.3f}" for v in row.iloc[1:])]
             lines.append(f"| {cell} | " + " | ".join(values) + " |")
-        parts.append("\n".join(lines))
+        parts.append("\n".join(lines) + f"\n\n{direction} models read {INPUTS[str(direction)]}.")
     return "\n\n".join(parts) + "\n"
 
 
@@ -159,9 +166,10 @@ def register_compared(models_root: Path, data: pd.DataFrame, dataset: dict[str, 
 def save_comparison(path: LabPath, table: pd.DataFrame, sources: dict[str, str], split: str,
                     extra: dict[str, list[dict]] | None = None) -> None:  # fmt: skip
     """The comparison's card: what it was made from (``sources``: dataset versions), the split, when, its
-    records, and ``extra`` tables as records (the main job adds its Experiment 2 on the same twin) (JSON)."""
+    records, what each direction's models read (``inputs``: :data:`INPUTS`), and ``extra`` tables as records
+    (the main job adds its Experiment 2 on the same twin) (JSON)."""
     card = {"sources": sources, "split": split, "created": datetime.now(UTC).isoformat(timespec="seconds"),
-            "records": table.to_dict("records"), **(extra or {})}  # fmt: skip
+            "inputs": INPUTS, "records": table.to_dict("records"), **(extra or {})}  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(card, indent=1, allow_nan=True))
 

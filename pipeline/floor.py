@@ -3,14 +3,16 @@
 A static model maps what is measured at a point — joint angles q, pressures p, currents i — to the tip. What
 it cannot predict is what changes between two visits to the same point: the tracker's noise and whatever the
 arm remembers of how it got there (creep, the links' hysteresis, the servos' backlash). So the same campaign
-points are visited again in another order (``visit_order: reversed``: every point reached from another
-history) and the two tracked tips of each point compared. For forward models, the part of their difference
-the measured joints explain (the rigid FK of q₁ minus that of q₂: a forward model reads q) is taken out;
-inverse models do not read the joints, so for them it stays (the servos' backlash is history to them). What
-remains, d, is two independent draws of the unpredictable error, so one draw's size is |d| / √2 (exact in
-distribution for isotropic Gaussian errors, and the RMS exactly for any independent, identically distributed
-pair). It is the floor of *static* models: one that reads the points before (``pipeline.history``) knows
-part of the history and may go below it.
+points are visited again in another order (``visit_order: shuffled``: every point reached from another
+history, in a random order of its own) and the two tracked tips of each point compared. Not backwards
+(``reversed``): creep runs along a session, so a point early in one run and late in the other gets errors of
+opposite sign from it (r ≈ −0.15 to −0.3 between the two visits) and the floor comes out 3–11 % too high.
+For forward models, the part of their difference the measured joints explain (the rigid FK of q₁ minus that
+of q₂: a forward model reads q) is taken out; inverse models do not read the joints, so for them it stays
+(the servos' backlash is history to them). What remains, d, is two independent draws of the unpredictable
+error, so one draw's size is |d| / √2 (exact in distribution for isotropic Gaussian errors, and the RMS
+exactly for any independent, identically distributed pair). It is the floor of *static* models: one that
+reads the points before (``pipeline.history``) knows part of the history and may go below it.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ def matched_points(first: pd.DataFrame, repeat: pd.DataFrame) -> pd.DataFrame:
     if not same.all():
         raise ValueError(
             f"{int((~same).sum())} of {len(both)} points differ in payload or commanded joints: the repeat "
-            "is not the same campaign (run it with the same seed and points, visit_order: reversed)"
+            "is not the same campaign (run it with the same seed and points, visit_order: shuffled)"
         )
     tips = [list(FORWARD_TARGETS), [f"{c}_repeat" for c in FORWARD_TARGETS]]
     if (unchanged := int((both[tips[0]].to_numpy() == both[tips[1]].to_numpy()).all(axis=1).sum())) > 0:

@@ -110,13 +110,13 @@ def campaign_dataset(tmp_path_factory):
 @pytest.fixture(scope="session")
 def hard_labs(tmp_path_factory):
     """The small campaign on the twin with its unmodelled effects on (vsl_unmodelled), built twice, each in a
-    lab of its own: as drawn and its repeat (the same points, each bench backwards). {order: (lab, dataset
+    lab of its own: as drawn and its repeat (the same points, each bench shuffled). {order: (lab, dataset
     version)}; ≈ 30 s once per run."""
     from acquisition.plans.sim_runner import simulate_experiment
     from pipeline.build import build
 
     out = {}
-    for order in ("drawn", "reversed"):
+    for order in ("drawn", "shuffled"):
         lab = tmp_path_factory.mktemp(f"hard-{order}")
         overrides = {"points": 600, "robot": "vsl_unmodelled", "visit_order": order}
         simulate_experiment("campaign", lab / "sessions", seed=11, benches=8, overrides=overrides)

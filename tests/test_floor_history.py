@@ -10,6 +10,7 @@ import pandas as pd
 import pytest
 from typer.testing import CliRunner
 
+from acquisition.plans.experiments import visit_order
 from models import kinematics
 from models.robot import load_robot
 from pipeline import baselines as B
@@ -39,10 +40,12 @@ def test_the_repeat_visits_the_same_points_in_another_order(hard_campaigns):
     first, repeat = hard_campaigns
     both = matched_points(first, repeat)
     assert len(both) > 0.95 * (first["point"] >= 0).sum()
-    # the same commands and loads, reached from other points: each bench's order is reversed
+    # the same commands and loads, reached from other points: each bench's order shuffled from its own seed
     session = first[first["session"] == first["session"].iloc[0]].sort_values("t")
     again = repeat[repeat["point"].isin(session["point"])].sort_values("t")
-    assert again["point"].tolist() == session["point"].tolist()[::-1]
+    drawn = np.asarray(session["point"].tolist())
+    assert again["point"].tolist() == visit_order(drawn, "shuffled", 11, 0).tolist()
+    assert sorted(again["point"]) == sorted(drawn) and again["point"].tolist() != drawn.tolist()
 
 
 def test_floor_is_noise_and_history_and_the_grey_box_sits_above_it(hard_campaigns, lengths):
@@ -203,6 +206,9 @@ def test_every_model_beside_the_floor(hard_campaigns, lengths, tmp_path):
     again, card = load_comparison(path)
     pd.testing.assert_frame_equal(again, table)
     assert card["sources"] == {"campaign": "v1"} and card["split"] == "split_group"
+    # the inverse table says its pressures and currents are measured after the move has landed
+    assert "measured after the move has landed" in card["inputs"]["inverse"]
+    assert "inverse models read the tip wanted" in markdown and "payload sensor" in markdown
 
 
 def test_compare_models_command(hard_labs, hard_campaigns, tmp_path):

@@ -352,7 +352,16 @@ def test_campaign_point_timing_and_values(vsl, campaign_params):
     assert np.all(np.isclose(plan.payload_kg[:, None], allowed[None]).any(axis=1))
     assert len(np.unique(plan.payload_kg)) == len(allowed)  # 200 draws hit all five masses
     assert np.all(np.isfinite(plan.goal_q))
-    np.testing.assert_allclose(plan.goal_speed, campaign_params["move_speed_rad_s"])
+    # the fastest drive at the move speed, the others slower so that every joint arrives at once (a drive no
+    # slower than SLOWEST of the move speed, which arrives early by a step that small)
+    speed = p["move_speed_rad_s"]
+    np.testing.assert_allclose(plan.goal_speed.max(axis=1), speed)
+    steps = np.abs(np.diff(plan.goal_q, axis=0, prepend=plan.goal_q[:1]))
+    arrive = steps / plan.goal_speed
+    together = steps >= experiments.SLOWEST * travel[:, None]
+    expected = np.where(together, travel[:, None] / speed, 0.0)
+    np.testing.assert_allclose(np.where(together, arrive, 0.0), expected)
+    assert np.all(plan.goal_speed >= experiments.SLOWEST * speed - 1e-12)
     # the joint targets reach tip targets inside the workspace box (rigid FK)
     tips = kinematics.vsl_fk(plan.goal_q, experiments.arm_lengths(vsl))
     lo_box = np.array(campaign_params["workspace_mm"]["min"]) * 1e-3

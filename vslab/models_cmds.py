@@ -317,7 +317,7 @@ def compare_models_command(
     repeat: Annotated[
         str | None,
         typer.Option(
-            help="The same campaign run again from other histories (visit_order=reversed): the floor."
+            help="The same campaign run again from other histories (visit_order=shuffled): the floor."
         ),
     ] = None,
     split: Annotated[str, typer.Option(help="The split to score on: split_group or split_random.")] = _SPLITS[

@@ -72,7 +72,9 @@ SIGNED = {"pose_deg", "workspace_mm", "q0_deg", "target_mm", "joints_deg"}  # ma
 POSITIVE = {"speed_m_s", "move_speed_rad_s", "return_speed_rad_s", "fill_time_constants", "tap_impulse_nms",
             "max_collapse_fraction", "v0_m_s", "a0_m_s2", "dt_s", "tolerance_mm"}  # fmt: skip
 MAY_BE_EMPTY = {"without_masses", "rigid_links"}
-CHOICES = {"visit_order": ("drawn", "reversed")}  # text parameters with a fixed set of values
+CHOICES = {"visit_order": ("drawn", "shuffled", "reversed")}  # text parameters with a fixed set of values
+REPEATS = ("shuffled", "reversed")  # visit orders of a campaign's repeat: its sessions are named apart
+SHUFFLE_STREAM = 0x5EED  # the shuffled repeat's own random stream: (seed, this, bench), apart from the draw
 RANGES = {"campaign": ("pressure_bar", "workspace_mm"), "popup_survey": ("pressure_kpa", "joints_deg")}
 FIXED_LENGTH = {"pose_deg", "pressure_bar", "workspace_mm", "set_points_kpa", "q0_deg", "target_mm",
                 "pressure_kpa", "joints_deg"}  # fmt: skip  # as many values as the default
@@ -245,9 +247,10 @@ def _trajectory_plan(plan_name: str, robot: RobotDescription, params: dict, cell
 def campaign(robot: RobotDescription, params: dict, benches: int = 1, seed: int = 0) -> list[Plan]:
     """The random static-point campaign, its points dealt to ``benches`` plans (parallel twin benches, or
     sessions on one robot). Points are tip targets drawn uniformly in the workspace box, turned into joint
-    positions by the rigid IK (elbow up); pressures uniform in the range, payloads from the list. With
-    ``visit_order: reversed`` each bench visits the same points backwards: a repeat of the campaign that
-    reaches every point from another history (``pipeline.floor`` compares the two)."""
+    positions by the rigid IK (elbow up); pressures uniform in the range, payloads from the list. A repeat of
+    the campaign visits each bench's points again from another history (``pipeline.floor`` compares the two):
+    ``visit_order: shuffled`` in a random order of their own (:func:`visit_order`), ``reversed`` backwards
+    (creep then runs the other way along the bench, so the two visits' errors are anti-correlated)."""
     rng = np.random.default_rng(seed)
     n = int(params["points"])
     lo, hi = (np.asarray(params["workspace_mm"][k], float) * MM for k in ("min", "max"))
@@ -256,21 +259,48 @@ def campaign(robot: RobotDescription, params: dict, benches: int = 1, seed: int 
     p_lo, p_hi = (v * BAR for v in params["pressure_bar"])
     pressure = rng.uniform(p_lo, p_hi, size=n)
     payload = rng.choice(np.asarray(params["payloads_g"], float) * GRAM, size=n)
+    order = params["visit_order"]
     plans = []
     for k, idx in enumerate(np.array_split(np.arange(n), min(benches, n))):
-        reverse = params["visit_order"] == "reversed"
-        idx = idx[::-1] if reverse else idx
-        name = f"campaign/{'reversed/' if reverse else ''}bench{k:03d}"  # the repeat's sessions named apart
+        idx = visit_order(idx, order, seed, k)
+        name = f"campaign/{order + '/' if order in REPEATS else ''}bench{k:03d}"  # a repeat's sessions apart
         b = _builder(name, robot, {"experiment": "campaign", "seed": seed, "points": len(idx)})
         previous = q[idx[0]]
         for point in idx:
-            b.pressure(pressure[point]).payload(payload[point]).goto(q[point], params["move_speed_rad_s"])
+            speed = together(q[point] - previous, params["move_speed_rad_s"])
+            b.pressure(pressure[point]).payload(payload[point]).goto(q[point], speed)
             # the joints travel at the move speed first; settling starts when they arrive
             b.wait(float(np.abs(q[point] - previous).max()) / params["move_speed_rad_s"])
             b.settle(params["settle_s"], index=int(point), hold_s=params["hold_s"])
             previous = q[point]
         plans.append(b.build())
     return plans
+
+
+SLOWEST = 0.05  # of the move speed: no drive slower (a Dynamixel's profile velocity has 0.024 rad/s steps)
+
+
+def together(step: np.ndarray, speed: float) -> np.ndarray:
+    """Per-joint profile speeds that bring every joint to its goal at once (the largest ``step`` at
+    ``speed``): the tip then sweeps the straight joint-space line between two points, which stays near
+    them, instead of each drive arriving in turn (a corner up to 60 mm below both, out of the safety box)."""
+    largest = float(np.abs(step).max())
+    share = np.abs(step) / largest if largest > 0 else np.ones(np.shape(step))  # no move: any speed will do
+    return speed * np.maximum(share, SLOWEST)
+
+
+def visit_order(points: np.ndarray, order: str, seed: int, bench: int) -> np.ndarray:
+    """One bench's ``points`` in the order it visits them: as drawn, backwards, or shuffled from the
+    bench's own seed (``seed``, :data:`SHUFFLE_STREAM`, ``bench``; never the drawn order itself)."""
+    if order == "reversed":
+        return points[::-1]
+    if order != "shuffled" or len(points) < 2:
+        return points
+    rng = np.random.default_rng((seed, SHUFFLE_STREAM, bench))
+    while True:  # a permutation equal to the drawn order would repeat every history: draw again
+        shuffled = rng.permutation(points)
+        if not np.array_equal(shuffled, points):
+            return shuffled
 
 
 def expand_experiment(
