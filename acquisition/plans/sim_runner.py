@@ -404,6 +404,7 @@ def simulate_experiment(
     overrides: dict | None = None,
     progress: Callable[[str, float], None] | None = None,
     inverse_model: Callable[[Plan], Compensator] | None = None,
+    prepared: tuple[dict[str, RobotDescription], list[Plan], dict] | None = None,
 ) -> list[SimReport]:
     """Expand an experiment (``configs/experiments/<name>.yaml`` + overrides) into plans and run them all on
     the twin, at most ``benches`` benches per batch. Sessions already complete on disk are skipped.
@@ -411,23 +412,10 @@ def simulate_experiment(
     Experiment 2's ``hybrid`` and ``history`` plans need ``inverse_model``: it gives the compensator (a
     trained inverse model) for a plan, by its ``parameters["commands"]``; the layers above ``acquisition``
     (the pipeline's registry, the main job) provide it. It is called once per plan, so a compensator with
-    memory starts each session afresh."""
-    from acquisition.plans.experiments import expand_experiment
-
-    robots, plans, params = expand_experiment(experiment, overrides, benches=benches, seed=seed)
+    memory starts each session afresh. ``prepared``: what :func:`prepare_experiment` gave for these
+    arguments (a caller that checks before it commits to the work)."""
     kind = Path(experiment).stem
-    commands = params["commands"] if kind == "experiment2" else ()
-    learned = [m for m in ("hybrid", "history") if m in commands]
-    if learned and inverse_model is None:
-        raise ValueError(
-            f"experiment2: {' and '.join(learned)} commands need a trained inverse model (train one first, "
-            "or run without them: --set 'commands=[ik,static]')"
-        )
-    for name, robot in robots.items():  # every plan of every robot, before any session is written
-        checker = SafetyChecker(robot)
-        for p in plans:
-            if p.robot == name:
-                checker.require_safe(p)
+    robots, plans, _ = prepared or prepare_experiment(experiment, overrides, benches, seed, inverse_model)
     reports = []
     for name, robot in robots.items():
         group = [p for p in plans if p.robot == name]
@@ -439,6 +427,29 @@ def simulate_experiment(
             run = dict(seed=seed + k, progress=tick, compensators=compensators, plans_checked=True)
             reports.append(simulate(batch, robot, sessions_dir, **run))
     return reports
+
+
+def prepare_experiment(
+    experiment: str, overrides: dict | None = None, benches: int = 128, seed: int = 0, inverse_model=None
+) -> tuple[dict[str, RobotDescription], list[Plan], dict]:
+    """An experiment's robots, plans and parameters, every one checked (parameters, size, duration, the
+    robot's limits) before any session is written or any work starts."""
+    from acquisition.plans.experiments import expand_experiment
+
+    robots, plans, params = expand_experiment(experiment, overrides, benches=benches, seed=seed)
+    commands = params["commands"] if Path(experiment).stem == "experiment2" else ()
+    learned = [m for m in ("hybrid", "history") if m in commands]
+    if learned and inverse_model is None:
+        raise ValueError(
+            f"experiment2: {' and '.join(learned)} commands need a trained inverse model (train one first, "
+            "or run without them: --set 'commands=[ik,static]')"
+        )
+    for name, robot in robots.items():  # every plan of every robot, before any session is written
+        checker = SafetyChecker(robot)
+        for p in plans:
+            if p.robot == name:
+                checker.require_safe(p)
+    return robots, plans, params
 
 
 def _compensator(plan: Plan, robot: RobotDescription, inverse_model) -> Compensator | None:
