@@ -223,7 +223,7 @@ def simulate(
                 stopped[session_id(plans[r])] = f"{event.label}: {event.text}"
             rows = stream_rows(robot, topics, world.read(trace, servo_rate_hz), valves[-1])
             for r, (p, w) in enumerate(zip(plans, writers, strict=True)):
-                if t0 >= durations[r]:
+                if t0 >= durations[r] and r not in stops:  # a stop at t = 0 still writes its events
                     continue
                 messages += _write_commands(w, topics, cmds[r], tb, last_goal, last_pressure, r, servo_joints)
                 for topic, (robot_idx, host_ns, topic_rows) in rows.items():
@@ -253,8 +253,8 @@ def simulate(
         for w, p, d in zip(writers, plans, durations, strict=True):
             w.event(Event(EventKind.SESSION_END, label=p.name), SIM_EPOCH_NS + round(d * 1e9))
     finally:
-        for w in writers:
-            w.close()
+        for w, d in zip(writers, durations, strict=True):
+            w.close("refused" if d <= 0 else "complete")  # refused at t = 0: nothing of the plan ran
     wall = time.perf_counter() - start
     return SimReport([session_id(p) for p in plans], skipped, float(durations.sum()), wall, messages, stopped)
 

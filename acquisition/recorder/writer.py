@@ -148,8 +148,9 @@ class SessionWriter:
             self._start_part()
             self._write_card("recording")
 
-    def close(self) -> None:
-        """Finish the open part: summary, indexes and the final counters as metadata."""
+    def close(self, status: str = "complete") -> None:
+        """Finish the open part: summary, indexes and the final counters as metadata; ``status``: the card's
+        (``refused``: a plan refused before anything of it ran, see ``session_card.STATUSES``)."""
         if self._part is not None:
             if self._stream is not None:
                 self._write_standard(self._stream.finish())
@@ -157,7 +158,7 @@ class SessionWriter:
                 COUNTERS_METADATA, {k: json.dumps(c.as_dict()) for k, c in self.counters.items()}
             )
             self._finish_part()
-            self._write_card("complete")
+            self._write_card(status)
 
     def write_card(self, status: str = "recording") -> None:
         """Rewrite ``session.json`` now (a long recording keeps it current for whoever looks)."""
