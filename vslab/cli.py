@@ -170,18 +170,17 @@ def simulate(
         str | None,
         typer.Option(help="Registered inverse model (version) for Experiment 2's hybrid commands."),
     ] = None,
+    dry_run: Annotated[
+        bool, typer.Option("--dry-run", help="Build and check the plans, print size and duration, stop.")
+    ] = False,
 ) -> None:
     """Run an experiment on the twin in simulated time: the same sessions as on the rig, much faster."""
     import time
 
-    from acquisition.processes import lower_priority
-
-    lower_priority()  # batch work: a recording on this computer goes first
-
     import numpy as np
     from rich.progress import Progress
 
-    from acquisition.plans.sim_runner import SIM_PREFIX, simulate_experiment
+    from acquisition.plans.sim_runner import SIM_PREFIX, prepare_experiment, simulate_experiment
     from acquisition.recorder.sessions import staged_sessions
     from acquisition.safety import SafetyError
     from pipeline.in_loop import InverseModelCompensator
@@ -192,6 +191,20 @@ def simulate(
     if "history" in str(overrides.get("commands", "")):
         _error(HISTORY_NOT_REGISTERED)
     model = None if inverse_model is None else load_inverse_model(inverse_model)  # checked before any run
+    try:  # every argument checked before the batch priority (on a busy machine a typo is refused at once)
+        prepared = prepare_experiment(experiment, overrides, benches, seed, model)
+    except (ValueError, OSError, RobotDescriptionError, SafetyError) as exc:  # ExperimentError, a bad robot
+        _error(str(exc))
+    if dry_run:
+        _, plans, _ = prepared
+        points = sum(len(p.goal_t) + len(p.pressure_t) + len(p.payload_t) for p in plans)
+        console.print(f"{experiment}: {len(plans)} plans, {points:,} set-points, "
+                      f"{sum(p.duration_s for p in plans):,.0f} bench-seconds (dry run: nothing simulated)",
+                      soft_wrap=True)  # fmt: skip
+        return
+    from acquisition.processes import lower_priority
+
+    lower_priority()  # batch work: a recording on this computer goes first
     start = time.perf_counter()
     sessions_dir = Settings.lab / "sessions"
     compensators = []
@@ -214,7 +227,7 @@ def simulate(
             with staged_sessions(sessions_dir, f"{SIM_PREFIX}*") as folder:
                 reports = simulate_experiment(
                     experiment, folder, seed=seed, benches=benches, overrides=overrides, progress=progress,
-                    inverse_model=hybrid if model is not None else None,
+                    inverse_model=hybrid if model is not None else None, prepared=prepared,
                 )  # fmt: skip
         except (ValueError, OSError, RobotDescriptionError, SafetyError) as exc:  # ExperimentError, full disk
             bar.stop()
@@ -270,10 +283,6 @@ def build(
     import time
     from concurrent.futures.process import BrokenProcessPool
 
-    from acquisition.processes import lower_priority
-
-    lower_priority()  # batch work: a recording on this computer goes first
-
     from rich.markup import escape
     from rich.progress import Progress
 
@@ -297,6 +306,9 @@ def build(
                      "(see `vslab sessions list`)"))  # fmt: skip
     if cluster is not None and workers:
         _fail("--workers and --cluster: the cluster's workers build (give one of them)")
+    from acquisition.processes import lower_priority
+
+    lower_priority()  # arguments checked; batch work: a recording on this computer goes first
     start = time.perf_counter()
     with (
         contextlib.ExitStack() as stack,

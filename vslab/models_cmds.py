@@ -51,10 +51,6 @@ def train(
     import concurrent.futures as cf
     import multiprocessing
 
-    from acquisition.processes import lower_priority
-
-    lower_priority()  # batch work (and its worker processes): a recording on this computer goes first
-
     from rich.progress import Progress
 
     from pipeline.cluster import ClusterError, cluster_executor
@@ -70,6 +66,9 @@ def train(
         _error(str(exc))
     if cluster is not None and workers:
         _error("--workers and --cluster: the cluster's workers train (give one of them)")
+    from acquisition.processes import lower_priority
+
+    lower_priority()  # arguments checked; batch work (and its workers): a recording here goes first
     start = time.perf_counter()
     with (
         contextlib.ExitStack() as stack,

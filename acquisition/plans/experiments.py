@@ -72,6 +72,30 @@ SIGNED = {"pose_deg", "workspace_mm", "q0_deg", "target_mm", "joints_deg"}  # ma
 POSITIVE = {"speed_m_s", "move_speed_rad_s", "return_speed_rad_s", "fill_time_constants", "tap_impulse_nms",
             "max_collapse_fraction", "v0_m_s", "a0_m_s2", "dt_s", "tolerance_mm"}  # fmt: skip
 MAY_BE_EMPTY = {"without_masses", "rigid_links"}
+# Physical ranges (the parameter's own unit), inclusive: past them a value is a typo, and a plan built from it
+# would wait, move or last longer than any bench runs (1e308 s of settling, a tip crawling at 1e-300 m/s).
+MAX_WAIT_S = 3600.0  # one wait of a plan (settle, hold, rest, record): an hour is past any bench's settling
+BOUNDS = {
+    "speed_m_s": (1e-3, 1.0), "v0_m_s": (1e-3, 1.0), "a0_m_s2": (1e-3, 10.0),  # tip: 1 mm/s to 1 m/s
+    "move_speed_rad_s": (1e-3, 10.0), "return_speed_rad_s": (1e-3, 10.0),  # joints: past 10 rad/s no drive
+    "dt_s": (1e-3, 1.0),  # a set-point every 1 ms (past the drives' rate) to 1 s
+    "tolerance_mm": (1e-3, 1000.0), "max_collapse_fraction": (0.0, 1.0), "fill_time_constants": (0.0, 100.0),
+    "tap_impulse_nms": (0.0, 10.0),  # a hand-held hammer: ≈ 0.02 N·m·s
+    "pressures_bar": (0.0, 10.0), "pressure_bar": (0.0, 10.0),  # the lab's supply: 6 bar; 10 bar is past it
+    "pressures_kpa": (0.0, 1000.0), "pressure_kpa": (0.0, 1000.0), "set_points_kpa": (0.0, 1000.0),
+    "payloads_g": (0.0, 10_000.0), "payload_g": (0.0, 10_000.0), "payload_kg": (0.0, 10.0),  # ≤ 10 kg
+    "workspace_mm": (-10_000.0, 10_000.0), "target_mm": (-10_000.0, 10_000.0),  # within 10 m of the base
+    "pose_deg": (-360.0, 360.0), "q0_deg": (-360.0, 360.0), "joints_deg": (-360.0, 360.0),
+    "points": (1, MAX_COUNT), "repetitions": (1, 1000), "points_per_segment": (1, 10_000), "taps": (1, 1000),
+    "load_steps": (1, 1000), "order": (0, 64),
+}  # fmt: skip
+MAX_LIST_ITEMS = 100  # values in one list parameter (payloads, pressures): the longest shipped has 9
+# What an expanded experiment may amount to, checked before any plan is built (sizes) and before any run
+# (durations): 100,000 set-points (≈ 6× the paper's campaign) build in ≈ 10 s (30 s on a busy machine); a
+# week of bench time is ≈ 10× the paper's campaign.
+MAX_SET_POINTS = 100_000
+POOLED = {"campaign": {"payloads_g"}, "popup_survey": {"payloads_g"}}  # lists drawn from, not gone through
+MAX_EXPERIMENT_S = 7 * 86400.0
 CHOICES = {"visit_order": ("drawn", "shuffled", "reversed")}  # text parameters with a fixed set of values
 REPEATS = ("shuffled", "reversed")  # visit orders of a campaign's repeat: its sessions are named apart
 SHUFFLE_STREAM = 0x5EED  # the shuffled repeat's own random stream: (seed, this, bench), apart from the draw
@@ -109,6 +133,28 @@ def check_experiment(kind: str, params: dict, source: str, overridden=()) -> Non
                             f"{len(params['set_points_kpa']) - 1})")  # fmt: skip
 
 
+def check_size(kind: str, params: dict, source: str, overridden=()) -> None:
+    """Before any plan is built: the experiment's set-points (an upper bound: the product of its counts and
+    of the lengths of the lists it goes through, × 4 segments of a path) within :data:`MAX_SET_POINTS`."""
+    factors = {k: v for k, v in params.items() if k in COUNTS and isinstance(v, int)}
+    skip = FIXED_LENGTH | POOLED.get(kind, set())
+    factors |= {k: len(v) for k, v in params.items() if isinstance(v, list) and k not in skip and v}
+    size = math.prod(factors.values()) * (4 if "points_per_segment" in factors else 1)
+    if size > MAX_SET_POINTS:
+        where = "--set" if set(factors) & set(overridden) else source
+        raise ExperimentError(f"{where}: {' × '.join(factors)} make up to {size:,} set-points (at most "
+                            f"{MAX_SET_POINTS:,}: a smaller experiment, or several)")  # fmt: skip
+
+
+def check_plans(plans: list[Plan], source: str) -> None:
+    """Once built, before any run: the plans' bench time within :data:`MAX_EXPERIMENT_S` (finite, and no
+    run that outlasts a lab's week)."""
+    total = sum(p.duration_s for p in plans)
+    if not math.isfinite(total) or total > MAX_EXPERIMENT_S:
+        raise ExperimentError(f"{source}: the plans last {total / 86400:,.3g} days of bench time (at most "
+                            f"{MAX_EXPERIMENT_S / 86400:g}: shorter waits, fewer points)")  # fmt: skip
+
+
 def _check_value(key: str, value, default, where: str) -> None:
     """``value`` of parameter ``key`` against its ``default`` (recursively into lists and mappings)."""
 
@@ -120,14 +166,15 @@ def _check_value(key: str, value, default, where: str) -> None:
             fail("true or false")
     elif isinstance(default, int | float):
         number = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-        if key in COUNTS:
-            if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= MAX_COUNT:
-                fail(f"an integer from 1 to {MAX_COUNT:,}")
-        elif key in INDICES:
-            if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-                fail("an integer ≥ 0")
+        low, high = BOUNDS.get(key, (-math.inf, MAX_WAIT_S) if key.endswith("_s") else (-math.inf, math.inf))
+        if key in COUNTS or key in INDICES:
+            low = max(low, 1 if key in COUNTS else 0)
+            if not isinstance(value, int) or isinstance(value, bool) or not low <= value <= high:
+                fail(f"an integer from {low} to {high:,}")
         elif not number or (key not in SIGNED and value < 0) or (key in POSITIVE and value <= 0):
             fail("a number > 0" if key in POSITIVE else "a number" if key in SIGNED else "a number ≥ 0")
+        elif not low <= value <= high:
+            fail(f"a number from {low:g} to {high:g}" if low > -math.inf else f"a number up to {high:g}")
     elif isinstance(default, str):
         if key in CHOICES and value not in CHOICES[key]:
             fail(" or ".join(CHOICES[key]))
@@ -140,13 +187,15 @@ def _check_value(key: str, value, default, where: str) -> None:
             fail(f"a non-empty [list] like {default}")
         if key in FIXED_LENGTH and len(value) != len(default):
             fail(f"{len(default)} values, like {default}")
+        if len(value) > MAX_LIST_ITEMS:
+            fail(f"at most {MAX_LIST_ITEMS} values")
         for item in value if default else ():
             _check_value(key, item, default[0], where)
     elif isinstance(default, dict):
         if not isinstance(value, dict) or set(value) != set(default):
             fail(f"a mapping of {', '.join(default)}")
-        for k, v in default.items():
-            _check_value(key, value[k], v, f"{where}.{k}")
+        for k, v in default.items():  # a case's own keys (payload_g) have their own range
+            _check_value(k if k in BOUNDS else key, value[k], v, f"{where}.{k}")
 
 
 def arm_lengths(robot: RobotDescription) -> kinematics.ArmLengths:
@@ -322,6 +371,7 @@ def expand_experiment(
         )
     source = _shown(_experiment_path(experiment))
     check_experiment(kind, params, source, overridden=set(overrides or ()))
+    check_size(kind, params, source, overridden=set(overrides or ()))
     # robots by their names, as plans name them: ``robot`` may be a description's path
     arm = load_robot(params["robot"])
     robots = {arm.name: arm}
@@ -343,6 +393,7 @@ def expand_experiment(
         robot = popup_experiments.bench_robot(arm, params)
         robots = {robot.name: robot}
         plans = popup_experiments.EXPERIMENTS[kind](robot, params)
+    check_plans(plans, "--set" if overrides else source)
     return robots, plans, params
 
 

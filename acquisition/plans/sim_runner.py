@@ -241,7 +241,7 @@ def simulate(
                 stopped[session_id(plans[r])] = f"{event.label}: {event.text}"
             rows = stream_rows(robot, topics, world.read(trace, servo_rate_hz), valves[-1])
             for r, (p, w) in enumerate(zip(plans, writers, strict=True)):
-                if t0 >= durations[r]:
+                if t0 >= durations[r] and r not in stops:  # a stop at t = 0 still writes its events
                     continue
                 messages += _write_commands(w, topics, cmds[r], tb, last_goal, last_pressure, r, servo_joints)
                 for topic, (robot_idx, host_ns, topic_rows) in rows.items():
@@ -271,8 +271,8 @@ def simulate(
         for w, p, d in zip(writers, plans, durations, strict=True):
             w.event(Event(EventKind.SESSION_END, label=p.name), SIM_EPOCH_NS + round(d * 1e9))
     finally:
-        for w in writers:
-            w.close()
+        for w, d in zip(writers, durations, strict=True):
+            w.close("refused" if d <= 0 else "complete")  # refused at t = 0: nothing of the plan ran
     wall = time.perf_counter() - start
     return SimReport([session_id(p) for p in plans], skipped, float(durations.sum()), wall, messages, stopped)
 
@@ -422,6 +422,7 @@ def simulate_experiment(
     overrides: dict | None = None,
     progress: Callable[[str, float], None] | None = None,
     inverse_model: Callable[[Plan], Compensator] | None = None,
+    prepared: tuple[dict[str, RobotDescription], list[Plan], dict] | None = None,
 ) -> list[SimReport]:
     """Expand an experiment (``configs/experiments/<name>.yaml`` + overrides) into plans and run them all on
     the twin, at most ``benches`` benches per batch. Sessions already complete on disk are skipped.
@@ -429,23 +430,10 @@ def simulate_experiment(
     Experiment 2's ``hybrid`` and ``history`` plans need ``inverse_model``: it gives the compensator (a
     trained inverse model) for a plan, by its ``parameters["commands"]``; the layers above ``acquisition``
     (the pipeline's registry, the main job) provide it. It is called once per plan, so a compensator with
-    memory starts each session afresh."""
-    from acquisition.plans.experiments import expand_experiment
-
-    robots, plans, params = expand_experiment(experiment, overrides, benches=benches, seed=seed)
+    memory starts each session afresh. ``prepared``: what :func:`prepare_experiment` gave for these
+    arguments (a caller that checks before it commits to the work)."""
     kind = Path(experiment).stem
-    commands = params["commands"] if kind == "experiment2" else ()
-    learned = [m for m in ("hybrid", "history") if m in commands]
-    if learned and inverse_model is None:
-        raise ValueError(
-            f"experiment2: {' and '.join(learned)} commands need a trained inverse model (train one first, "
-            "or run without them: --set 'commands=[ik,static]')"
-        )
-    for name, robot in robots.items():  # every plan of every robot, before any session is written
-        checker = SafetyChecker(robot)
-        for p in plans:
-            if p.robot == name:
-                checker.require_safe(p)
+    robots, plans, _ = prepared or prepare_experiment(experiment, overrides, benches, seed, inverse_model)
     batches = []  # (robot, plans, first plan's index in its robot's group, label)
     for name, robot in robots.items():
         group = [p for p in plans if p.robot == name]
@@ -461,6 +449,29 @@ def simulate_experiment(
         run = dict(seed=seed + k, progress=tick, compensators=compensators, plans_checked=True)
         reports.append(simulate(batch, robot, sessions_dir, **run))
     return reports
+
+
+def prepare_experiment(
+    experiment: str, overrides: dict | None = None, benches: int = 128, seed: int = 0, inverse_model=None
+) -> tuple[dict[str, RobotDescription], list[Plan], dict]:
+    """An experiment's robots, plans and parameters, every one checked (parameters, size, duration, the
+    robot's limits) before any session is written or any work starts."""
+    from acquisition.plans.experiments import expand_experiment
+
+    robots, plans, params = expand_experiment(experiment, overrides, benches=benches, seed=seed)
+    commands = params["commands"] if Path(experiment).stem == "experiment2" else ()
+    learned = [m for m in ("hybrid", "history") if m in commands]
+    if learned and inverse_model is None:
+        raise ValueError(
+            f"experiment2: {' and '.join(learned)} commands need a trained inverse model (train one first, "
+            "or run without them: --set 'commands=[ik,static]')"
+        )
+    for name, robot in robots.items():  # every plan of every robot, before any session is written
+        checker = SafetyChecker(robot)
+        for p in plans:
+            if p.robot == name:
+                checker.require_safe(p)
+    return robots, plans, params
 
 
 def _compensator(plan: Plan, robot: RobotDescription, inverse_model) -> Compensator | None:

@@ -240,7 +240,7 @@ def check_publishable(directory: Path) -> None:
     """``SessionError`` unless the local ``directory`` is a complete session whose parts are all whole MCAP
     (an interrupted recording is recovered, or recorded again, before it is published)."""
     card = read_card(directory)
-    if card.get("status") != "complete":
+    if card.get("status") not in ("complete", "refused"):  # refused: whole, its refusal in its events
         raise SessionError(directory, f"not complete (status {card.get('status')!r}): not published",
                            "recover or record it again")  # fmt: skip
     info = session_info(directory)

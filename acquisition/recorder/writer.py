@@ -162,14 +162,16 @@ class SessionWriter:
             self._guarded(self._start_part)
             self._guarded(self._write_card, "recording")
 
-    def close(self) -> None:
-        """Finish the open part: summary, indexes and the final counters as metadata."""
+    def close(self, status: str = "complete") -> None:
+        """Finish the open part: summary, indexes and the final counters as metadata; ``status``: the card's
+        (``refused``: a plan refused before anything of it ran, see ``session_card.STATUSES``). A session
+        whose writing failed stays ``failed``."""
         if self.failure is not None:
             self._write_card("failed")  # the final account, where the disk still takes it
             return
         if self._part is not None:
             self._guarded(self._close_part)
-            self._write_card("complete")
+            self._write_card(status)
             (self.directory / RESERVE).unlink(missing_ok=True)
 
     def _close_part(self) -> None:
