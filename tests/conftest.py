@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -45,6 +46,19 @@ def emulator_host(run_dir: Path, *devices: str, module: str = "acquisition.sim.s
 # gives the children the default disposition, as a terminal's foreground job has.
 if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+@contextlib.contextmanager
+def absent_service_ports():
+    """Two ports on 127.0.0.1 where a service is not there: one bound and closed (connections refused) and one
+    that listens but never reads or writes (connections accepted, then silence), as ``(closed, silent)``."""
+    with socket.socket() as closed:
+        closed.bind(("127.0.0.1", 0))
+        free = closed.getsockname()[1]
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(8)  # the kernel accepts connections; nobody reads or writes them
+        yield free, silent.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

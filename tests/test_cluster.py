@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -16,6 +15,7 @@ import time
 import pandas as pd
 import pytest
 import yaml
+from conftest import absent_service_ports
 from distributed import Client
 from safetensors.torch import load_file
 from typer.testing import CliRunner
@@ -150,13 +150,8 @@ def test_a_scheduler_that_is_not_there_is_one_line_within_seconds(tmp_path, camp
     """Nothing on the port (bound and closed), and a port that accepts but never speaks: each one `error:`
     line naming the address, well within a minute (old code: the second hung for ever in Dask's handshake)."""
     lab = _lab(tmp_path, campaign_dataset, "lab")
-    with socket.socket() as closed:
-        closed.bind(("127.0.0.1", 0))
-        free = closed.getsockname()[1]
-    with socket.socket() as silent:
-        silent.bind(("127.0.0.1", 0))
-        silent.listen(8)  # the kernel accepts connections; nobody reads or writes them
-        for port in (free, silent.getsockname()[1]):
+    with absent_service_ports() as ports:
+        for port in ports:
             address = f"tcp://127.0.0.1:{port}"
             command = [sys.executable, "-m", "vslab.cli", "--lab", str(lab), "build", "--cluster", address]
             start = time.monotonic()

@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -20,6 +19,8 @@ import yaml
 
 pytest.importorskip("s3fs", reason="the [s3] extra (dev installs it)")
 moto_server = pytest.importorskip("moto.server", reason="moto[server] (dev installs it)")
+
+from conftest import absent_service_ports  # noqa: E402
 
 from acquisition.storage import StoreError, check_store, lab_path, publish  # noqa: E402
 from pipeline.datasets import load_dataset, newest_version, write_dataset  # noqa: E402
@@ -203,13 +204,8 @@ def test_a_store_that_is_not_there_is_one_line_within_seconds(s3):
     """Nothing on the port (bound and closed), and a port that accepts but never answers, with botocore's and
     s3fs's own retries (no AWS_MAX_ATTEMPTS): one line naming the address, well within a minute (old code:
     retried for tens of seconds, and minutes on the silent port)."""
-    with socket.socket() as closed:
-        closed.bind(("127.0.0.1", 0))
-        free = closed.getsockname()[1]
-    with socket.socket() as silent:
-        silent.bind(("127.0.0.1", 0))
-        silent.listen(8)  # the kernel accepts connections; nobody reads or writes them
-        for port in (free, silent.getsockname()[1]):
+    with absent_service_ports() as ports:
+        for port in ports:
             down = {**s3, "AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}"}
             start = time.monotonic()
             line = _one_error_line(_vslab(down, "--lab", "s3://lab/x", "models", "list", timeout=120))
