@@ -50,7 +50,13 @@ def main(argv: list[str] | None = None) -> None:
         for k, (label, model) in enumerate(models.items()):
             commands = ["ik", "history"] if k == 0 else ["history"]
             table = lab_job.experiment2_path_errors(
-                study, f"experiment2-{k}", 0, campaign.version, commands, {"history": model}
+                study,
+                f"experiment2-{k}",
+                0,
+                campaign.version,
+                commands,
+                {"history": model},
+                {"history": f"{label} on the paths of campaign@{campaign.version}"},
             )
             for row in table.itertuples():
                 name = "model-based IK" if row.mode == "ik" else label

@@ -26,10 +26,11 @@ class InverseModelCompensator:
     ``robot``: currents are taken from its servo joints (the dataset's i_0, i_1 are J2 and J3). A baseline
     (``pipeline.baselines``) gets its rows as a DataFrame; a :class:`HistoryModel` gets them with their
     history, which this compensator keeps from call to call (one compensator per session: each starts with
-    no history)."""
+    no history). ``identity``: what the model is (a registered version's id, or what trained it), recorded in
+    each simulated session it drives so a session is never reused for another model."""
 
-    def __init__(self, model, robot: RobotDescription) -> None:
-        self.model = model
+    def __init__(self, model, robot: RobotDescription, identity: str | None = None) -> None:
+        self.model, self.identity = model, identity
         self.servo_joints = [k for k, j in enumerate(robot.joints) if j.drive != "stepper"]
         self.latencies_s: list[float] = []
         self.history: HistoryState | None = None

@@ -175,3 +175,39 @@ def test_run_on_the_rig_with_a_robot_path(tmp_path):
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "complete" in proc.stdout
     assert session_info(lab / "sessions" / "by-path").status == "complete"
+
+
+class _RigidInverse:
+    """The simplest inverse model there is: the rigid IK's own joints (the first three inputs), unchanged."""
+
+    def predict(self, inputs):
+        return inputs[:, :3]
+
+
+def test_a_session_is_never_reused_for_another_learned_model(tmp_path):
+    """Experiment 2's hybrid sessions record which model drove them: the same model again reuses them,
+    another model is refused, and a model that names no version is never taken for the one recorded."""
+    from acquisition.plans.sim_identity import UNKNOWN_MODEL
+    from pipeline.in_loop import InverseModelCompensator
+
+    vsl = load_robot("vsl")
+    small = {"commands": ["hybrid"], "rigid_arm": False, "repetitions": 1, "points_per_segment": 5,
+             "settle_s": 0.2, "rest_s": 0.2, "cases": [{"payload_g": 25, "pressure_bar": 1.5}]}  # fmt: skip
+
+    def run(identity):
+        def compensator(plan):
+            return InverseModelCompensator(_RigidInverse(), vsl, identity=identity)
+
+        reports = simulate_experiment("experiment2", tmp_path, overrides=small, inverse_model=compensator)
+        return sum(len(r.sessions) for r in reports), sum(len(r.skipped) for r in reports)
+
+    assert run("model-a") == (1, 0)
+    (card,) = [read_card(p.parent) for p in tmp_path.glob(f"*/{SESSION_CARD}")]
+    recorded = card[IDENTITY] if isinstance(card[IDENTITY], dict) else json.loads(card[IDENTITY])
+    assert recorded["model"] == "model-a"
+    assert run("model-a") == (0, 1)
+    with pytest.raises(StaleSessionsError, match="learned model"):
+        run("model-b")
+    with pytest.raises(StaleSessionsError, match="learned model"):
+        run(None)
+    assert UNKNOWN_MODEL not in json.dumps(recorded)

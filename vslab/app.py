@@ -239,4 +239,12 @@ def inverse_compensator(version: str, robot_name: str, lab: Path | None = None):
     ``robot_name`` (fails clearly)."""
     from pipeline.in_loop import InverseModelCompensator
 
-    return InverseModelCompensator(load_inverse_model(version, lab), _robot(robot_name))
+    model = load_inverse_model(version, lab)
+    return InverseModelCompensator(model, _robot(robot_name), identity=inverse_model_version(version, lab))
+
+
+def inverse_model_version(version: str, lab: Path | None = None) -> str:
+    """The full version id of the registered model ``version`` (a tag or a unique prefix) of ``lab``."""
+    from pipeline.registry import find
+
+    return find(lab_path(lab or Settings.lab) / "models", version).name

@@ -27,6 +27,7 @@ from vslab.app import (
     _robot,
     app,
     console,
+    inverse_model_version,
     load_inverse_model,
     local_lab,
     robots_app,
@@ -191,6 +192,7 @@ def simulate(
     if "history" in str(overrides.get("commands", "")):
         _error(HISTORY_NOT_REGISTERED)
     model = None if inverse_model is None else load_inverse_model(inverse_model)  # checked before any run
+    model_version = None if inverse_model is None else inverse_model_version(inverse_model)
     try:  # every argument checked before the batch priority (on a busy machine a typo is refused at once)
         prepared = prepare_experiment(experiment, overrides, benches, seed, model)
     except (ValueError, OSError, RobotDescriptionError, SafetyError) as exc:  # ExperimentError, a bad robot
@@ -210,7 +212,7 @@ def simulate(
     compensators = []
 
     def hybrid(plan):
-        compensators.append(InverseModelCompensator(model, _robot(plan.robot)))
+        compensators.append(InverseModelCompensator(model, _robot(plan.robot), identity=model_version))
         return compensators[-1]
 
     with Progress(console=console, disable=Settings.quiet, transient=True) as bar:

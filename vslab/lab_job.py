@@ -225,8 +225,11 @@ def _unmodelled_experiment2(study: Path, seed: int, campaign, campaign_version: 
     history = HistoryModel("inverse", PATHS, random_state=seed).fit(rows)
     config = TrainConfig(preset("inverse", "small-residual"), seed=seed, **train)
     models = {"hybrid": train_net(campaign, config).model, "history": history}
+    made = f"campaign@{campaign_version}, seed {seed}"  # the models are a function of these (and the code)
+    identities = {"hybrid": f"small-residual inverse net of {train} on {made}",
+                  "history": f"history-aware hybrid on the paths of {paths}, {made}"}  # fmt: skip
     commands = ["ik", "static", "hybrid", "history"]
-    return experiment2_path_errors(study, "experiment2", seed, campaign_version, commands, models)
+    return experiment2_path_errors(study, "experiment2", seed, campaign_version, commands, models, identities)
 
 
 def path_rows(study: Path, seed: int, campaign_version: str, paths: dict):
@@ -254,7 +257,7 @@ def path_rows(study: Path, seed: int, campaign_version: str, paths: dict):
 
 
 def experiment2_path_errors(study: Path, name: str, seed: int, campaign_version: str, commands: list[str],
-                            models: dict):  # fmt: skip
+                            models: dict, identities: dict | None = None):  # fmt: skip
     """Experiment 2 on the twin with its unmodelled effects with ``commands``, two repetitions per case,
     into ``<study>/<name>`` (built in ``<study>/drawn``); ``models``: the inverse model of each learned
     command ("hybrid", "history"); the path errors per session (``analysis.vsl_paths.path_errors``)."""
@@ -268,7 +271,8 @@ def experiment2_path_errors(study: Path, name: str, seed: int, campaign_version:
     description = load_robot(UNMODELLED_ROBOT)
 
     def compensator(plan):  # one per session: the history-aware one starts each with no history
-        return InverseModelCompensator(models[plan.parameters["commands"]], description)
+        mode = plan.parameters["commands"]
+        return InverseModelCompensator(models[mode], description, identity=(identities or {}).get(mode))
 
     overrides = {"robot": UNMODELLED_ROBOT, "rigid_arm": False, "commands": commands, "repetitions": 2}
     sessions = study / name / "sessions"

@@ -25,8 +25,10 @@ IDENTITY = "twin_identity"  # session metadata key: the identity, as JSON
 TWIN_MODULES = ("acquisition.plans.sim_runner",)  # the twin's code: these and everything they import
 PLAN_ARRAYS = ("goal_t", "goal_q", "goal_speed", "pressure_t", "pressure_pa", "valve_open", "payload_t",
                "payload_kg", "tap_t", "tap_impulse_nms")  # fmt: skip
-FIELDS = {"robot_sha256": "robot description", "plan_sha256": "parameters", "code_version": "twin code"}
+FIELDS = {"robot_sha256": "robot description", "plan_sha256": "parameters", "model": "learned model",
+          "code_version": "twin code"}  # fmt: skip
 SHOWN = 3  # session ids named in a refusal
+UNKNOWN_MODEL = "unknown"  # a learned compensator that names no model: its sessions never match another run's
 
 
 class StaleSessionsError(AcquisitionError, ValueError):
@@ -52,13 +54,23 @@ def plan_sha256(plan: Plan, seed: int) -> str:
     return h.hexdigest()
 
 
-def session_identity(plan: Plan, robot: RobotDescription, seed: int) -> dict[str, str]:
-    """The identity of the session ``plan`` makes on ``robot`` with ``seed``, by this checkout's code."""
+def session_identity(plan: Plan, robot: RobotDescription, seed: int, compensator=None) -> dict:
+    """The identity of the session ``plan`` makes on ``robot`` with ``seed``, by this checkout's code; with a
+    learned ``compensator`` in the loop, the model it runs (its ``identity``: a registered version's id)."""
     return {
         "robot_sha256": robot_sha256(robot),
         "plan_sha256": plan_sha256(plan, seed),
+        "model": model_identity(compensator),
         "code_version": code_version(*TWIN_MODULES),
     }
+
+
+def model_identity(compensator) -> str | None:
+    """What a compensator runs, as the session's identity records it: None for none or model-based ones (the
+    plan's parameters say which); a learned one names its model (``identity``), or is of unknown making."""
+    if compensator is None or not hasattr(compensator, "model"):
+        return None
+    return getattr(compensator, "identity", None) or UNKNOWN_MODEL
 
 
 def recorded_identity(card: dict) -> dict | None:
@@ -75,7 +87,10 @@ def differences(recorded: dict | None, wanted: dict[str, str]) -> list[str]:
     """What differs between a recorded identity and this run's, in words (empty: the same)."""
     if recorded is None:
         return ["unknown (no identity recorded: an older vslab)"]
-    return [what for key, what in FIELDS.items() if recorded.get(key) != wanted[key]]
+    differ = [what for key, what in FIELDS.items() if recorded.get(key) != wanted[key]]
+    if wanted["model"] == UNKNOWN_MODEL and FIELDS["model"] not in differ:  # nothing says it is the same
+        differ.append(f"{FIELDS['model']} (this run's names no registered version)")
+    return differ
 
 
 def refuse(stale: dict[str, list[str]], sessions_dir: Path) -> None:

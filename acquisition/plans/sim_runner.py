@@ -102,13 +102,15 @@ def _complete(directory: Path) -> dict | None:
     return card if card.get("status") == "complete" else None
 
 
-def reusable(plans: list[Plan], robot: RobotDescription, sessions_dir: Path, seed: int) -> list[bool]:
+def reusable(plans: list[Plan], robot: RobotDescription, sessions_dir: Path, seed: int,
+             compensators: list[Compensator | None] | None = None) -> list[bool]:  # fmt: skip
     """Which plans' sessions are on disk, complete and made as this run would make them (robot, parameters,
-    code): those are not simulated again. A complete one made otherwise: :class:`StaleSessionsError`."""
+    learned model, code): those are not simulated again. A complete one made otherwise:
+    :class:`StaleSessionsError`."""
     done, stale = [], {}
-    for p in plans:
+    for p, c in zip(plans, compensators or [None] * len(plans), strict=True):
         card = _complete(sessions_dir / session_id(p))
-        wanted = session_identity(p, robot, seed)
+        wanted = session_identity(p, robot, seed, c)
         differ = [] if card is None else differences(recorded_identity(card), wanted)
         if differ:
             stale[session_id(p)] = differ
@@ -153,7 +155,7 @@ def simulate(
     compensators = list(compensators) if compensators is not None else [None] * len(plans)
     if len(compensators) != len(plans):
         raise ValueError("one compensator (or None) per plan")
-    done = reusable(plans, robot, sessions_dir, seed)
+    done = reusable(plans, robot, sessions_dir, seed, compensators)
     skipped = [session_id(p) for p, d in zip(plans, done, strict=True) if d]
     plans, compensators = (
         [p for p, d in zip(plans, done, strict=True) if not d],
@@ -184,7 +186,7 @@ def simulate(
     writers = []
     sim_now = [0.0]  # the writers' clock: simulated seconds, so a session's bytes (its chunks) never depend
     # on how fast this machine ran it, and the same seed gives the same files
-    for r, p in enumerate(plans):
+    for r, (p, c) in enumerate(zip(plans, compensators, strict=True)):
         directory = sessions_dir / session_id(p)
         if directory.exists():  # an incomplete earlier try: start it again
             for old in directory.glob("*"):
@@ -192,7 +194,7 @@ def simulate(
         w = SessionWriter(directory, robot, session_id(p), experiment=p.parameters.get("experiment", p.name),
                           metadata={"plan": p.name, "runner": "simulated", "seed": str(seed),
                                     "parameters": p.parameters, TWIN_TRUTH: twin_truth(world, r),
-                                    IDENTITY: session_identity(p, robot, seed)},
+                                    IDENTITY: session_identity(p, robot, seed, c)},
                           flush_s=30.0, clock=lambda: sim_now[0])  # fmt: skip
         w.open()
         w.event(Event(EventKind.SESSION_START, label=p.name), SIM_EPOCH_NS)
@@ -440,13 +442,13 @@ def simulate_experiment(
         for k in range(0, len(group), benches):
             batch = group[k : k + benches]
             batches.append((robot, batch, k, f"{kind} {name} {k + 1}–{k + len(batch)}/{len(group)}"))
-    for robot, batch, k, _ in batches:  # sessions of another making on disk: refused before any is written
-        reusable(batch, robot, sessions_dir, seed + k)
+    compensators = [[_compensator(p, robot, inverse_model) for p in batch] for robot, batch, _, _ in batches]
+    for (robot, batch, k, _), c in zip(batches, compensators, strict=True):  # sessions of another making on
+        reusable(batch, robot, sessions_dir, seed + k, c)  # disk: refused before any is written
     reports = []
-    for robot, batch, k, label in batches:
+    for (robot, batch, k, label), c in zip(batches, compensators, strict=True):
         tick = (lambda f, label=label: progress(label, f)) if progress else None
-        compensators = [_compensator(p, robot, inverse_model) for p in batch]
-        run = dict(seed=seed + k, progress=tick, compensators=compensators, plans_checked=True)
+        run = dict(seed=seed + k, progress=tick, compensators=c, plans_checked=True)
         reports.append(simulate(batch, robot, sessions_dir, **run))
     return reports
 
