@@ -70,7 +70,8 @@ def _only_session(lab: Path) -> Path:
 
 def test_a_session_records_what_made_it(popup_lab):
     identity = json.loads(read_card(_only_session(popup_lab))[IDENTITY])
-    assert set(identity) == {"robot_sha256", "plan_sha256", "code_version"}
+    assert set(identity) == {"robot_sha256", "plan_sha256", "model", "code_version"}
+    assert identity["model"] is None  # no learned model drove it
     from acquisition.plans.experiments import load_experiment
     from acquisition.plans.popup_experiments import bench_robot
 
