@@ -13,7 +13,7 @@ from functools import cache
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("acquisition", "pipeline", "models", "analysis")  # whose code a result can depend on
+PACKAGES = ("acquisition", "twin", "pipeline", "models", "analysis")  # whose code a result can depend on
 
 
 def _without_docstrings(tree: ast.AST) -> ast.AST:

@@ -37,8 +37,8 @@ from acquisition.recorder.recorder import Recorder
 from acquisition.schemas import topics as T
 from acquisition.schemas.fast_read import read_fixed_topics
 from acquisition.schemas.session_card import readable_parts
-from acquisition.sim.ptyhost import wait_for_ports
 from models.robot import load_robot
+from twin.ptyhost import wait_for_ports
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -120,7 +120,7 @@ def main() -> None:
             cpu_load(stack)
         elif args.load == "train":
             train_load(stack, args.seconds)
-        rig = subprocess.Popen([sys.executable, "-m", "acquisition.sim.rig", "--robot", "vsl", "--run-dir",
+        rig = subprocess.Popen([sys.executable, "-m", "twin.rig", "--robot", "vsl", "--run-dir",
                                 str(tmp / "run"), "--parent-pid", str(os.getpid())], cwd=ROOT)  # fmt: skip
         stack.callback(lambda: (rig.terminate(), rig.wait()))
         ports = wait_for_ports(tmp / "run", timeout_s=60)

@@ -16,8 +16,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from acquisition.plans.sim_runner import simulate_experiment
 from pipeline.build import build
+from twin.runner import simulate_experiment
 
 
 def end_to_end(points: int, benches: int, workers: int) -> None:

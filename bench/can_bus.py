@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.devices.can_drives import CanDrives
-from acquisition.sim.ptyhost import send_control, wait_for_ports
 from models.robot import load_robot
+from twin.ptyhost import send_control, wait_for_ports
 
 
 def run_rate(drives: CanDrives, run_dir: Path, rate_hz: float, seconds: float) -> dict:
@@ -71,9 +71,7 @@ def main() -> None:
     print(f"machine: {os.cpu_count()} cores, load average {load1:.2f} (1 min) {load5:.2f} (5 min) at start")
     with tempfile.TemporaryDirectory() as tmp:
         run_dir = Path(tmp)
-        rig = subprocess.Popen(
-            [sys.executable, "-m", "acquisition.sim.rig", "--robot", "popup", "--run-dir", tmp]
-        )
+        rig = subprocess.Popen([sys.executable, "-m", "twin.rig", "--robot", "popup", "--run-dir", tmp])
         try:
             port = wait_for_ports(run_dir)["can_bus"]
             limits = {j.name: (j.lower_rad, j.upper_rad) for j in robot.joints}

@@ -22,10 +22,10 @@ from pathlib import Path
 
 import yaml
 
-from acquisition.plans.sim_runner import simulate_experiment
 from pipeline.build import build
 from pipeline.cluster import cluster_executor, local_cluster
 from pipeline.grid import load_grid, run_grid
+from twin.runner import simulate_experiment
 
 PRESETS = ("small-residual", "paper")
 

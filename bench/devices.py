@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.devices.servo_bus import ServoBus
-from acquisition.sim.ptyhost import wait_for_ports
 from models.robot import load_robot
+from twin.ptyhost import wait_for_ports
 
 
 def servo_rate(port: str, ids: list[int], seconds: float) -> tuple[float, np.ndarray]:
@@ -58,7 +58,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         run_dir = Path(tmp) / "rig"
         rig = subprocess.Popen(
-            [sys.executable, "-m", "acquisition.sim.rig", "--robot", "vsl", "--run-dir", str(run_dir)]
+            [sys.executable, "-m", "twin.rig", "--robot", "vsl", "--run-dir", str(run_dir)]
         )
         try:
             ports = wait_for_ports(run_dir, timeout_s=60)

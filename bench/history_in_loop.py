@@ -27,10 +27,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--points", type=int, default=600, help="campaign points (the registration's)")
     args = parser.parse_args(argv)
 
-    from acquisition.plans.sim_runner import simulate_experiment
     from pipeline.baselines import SklearnBaseline
     from pipeline.build import build
     from pipeline.history import PATHS, HistoryModel
+    from twin.runner import simulate_experiment
     from vslab import lab_job
 
     start, load_before = time.perf_counter(), os.getloadavg()

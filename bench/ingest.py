@@ -23,10 +23,10 @@ from pathlib import Path
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from acquisition.plans.sim_runner import simulate_experiment
 from acquisition.schemas.session_card import readable_parts
 from pipeline.clean import clean
 from pipeline.ingest import ingest_session
+from twin.runner import simulate_experiment
 
 TARGET_MSG_S = 1e6
 TARGET_RATIO = 10.0

@@ -63,11 +63,11 @@ def _bench(args, requests) -> None:
     """``requests()``: how many requests the store has answered so far."""
     import s3fs
 
-    from acquisition.plans.sim_runner import simulate_experiment
     from acquisition.recorder.sessions import publish_session
     from acquisition.storage import lab_path
     from pipeline.build import build
     from pipeline.grid import load_grid, run_grid
+    from twin.runner import simulate_experiment
 
     fs = s3fs.S3FileSystem()
     for _ in range(100):  # the server is up once it answers

@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.devices.servo_bus import ServoBus
-from acquisition.sim.ptyhost import wait_for_ports
 from models.robot import load_robot
+from twin.ptyhost import wait_for_ports
 
 PRESSURE_HZ, STEPPER_HZ = 250, 100
 _CLK_TCK = os.sysconf("SC_CLK_TCK")
@@ -249,7 +249,7 @@ def main() -> None:
             env = {**os.environ, "PYTHONPATH": str(cwd)}
             print(f"rig from {cwd}")
         rig = subprocess.Popen(
-            [sys.executable, "-m", "acquisition.sim.rig", "--robot", "vsl", "--run-dir", str(run_dir)],
+            [sys.executable, "-m", "twin.rig", "--robot", "vsl", "--run-dir", str(run_dir)],
             cwd=cwd,
             env=env,
         )

@@ -15,7 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from acquisition.plans.sim_runner import simulate_experiment
+from twin.runner import simulate_experiment
 
 TARGET_S = 300.0
 GROUPS = {  # what --only picks → the experiments it runs

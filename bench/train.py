@@ -61,9 +61,9 @@ def synthetic(points: int, seed: int = 0) -> pd.DataFrame:
 
 def simulated(points: int, lab: Path, benches: int) -> pd.DataFrame:
     """The campaign simulated on the twin and built into D."""
-    from acquisition.plans.sim_runner import simulate_experiment
     from pipeline.build import build
     from pipeline.datasets import load_dataset
+    from twin.runner import simulate_experiment
 
     start = time.perf_counter()
     simulate_experiment("campaign", lab / "sessions", benches=benches, overrides={"points": points})

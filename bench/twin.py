@@ -14,8 +14,8 @@ import time
 import numba
 import numpy as np
 
-from acquisition.sim.world import World
 from models.robot import load_robot
+from twin.world import World
 
 
 def speed(robot_name: str, batch: int, seconds: float, threads: int, repeats: int = 3) -> float:

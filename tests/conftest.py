@@ -17,8 +17,8 @@ from mcap_ros2.decoder import DecoderFactory
 
 from acquisition.recorder.daemon import MAX_LAG_S
 from acquisition.schemas.fast_read import read_fixed_topics
-from acquisition.sim.ptyhost import wait_for_ports
 from models.robot import load_robot
+from twin.ptyhost import wait_for_ports
 
 # The CLI's batch commands (train, simulate, build) lower their own process's priority for good; the tests
 # call them in this process, which must keep its priority for the real-time tests that follow.
@@ -26,7 +26,7 @@ os.environ.setdefault("VSLAB_BATCH_NICE", "0")
 
 
 @contextlib.contextmanager
-def emulator_host(run_dir: Path, *devices: str, module: str = "acquisition.sim.serve", extra: tuple = ()):
+def emulator_host(run_dir: Path, *devices: str, module: str = "twin.serve", extra: tuple = ()):
     """Start ``python -m module --run-dir run_dir *extra *devices`` and yield its published ports."""
     proc = subprocess.Popen([sys.executable, "-m", module, "--run-dir", str(run_dir), *extra, *devices])
     try:
@@ -65,7 +65,7 @@ def absent_service_ports():
 def popup_rig(tmp_path_factory):
     """A POPUP rig for one test module: (its run directory, the port of its CAN adapter)."""
     run_dir = tmp_path_factory.mktemp("popup-rig")
-    with emulator_host(run_dir, module="acquisition.sim.rig", extra=("--robot", "popup")) as ports:
+    with emulator_host(run_dir, module="twin.rig", extra=("--robot", "popup")) as ports:
         yield run_dir, ports["can_bus"]
 
 
@@ -73,7 +73,7 @@ def popup_rig(tmp_path_factory):
 def host_factory(tmp_path):
     """``with host_factory('name=module:factory') as ports:`` in a fresh run directory."""
 
-    def start(*devices: str, module: str = "acquisition.sim.serve", extra: tuple = ()):
+    def start(*devices: str, module: str = "twin.serve", extra: tuple = ()):
         return emulator_host(tmp_path / "run", *devices, module=module, extra=extra)
 
     return start
@@ -110,9 +110,9 @@ def ros2_agrees():
 def campaign_dataset(tmp_path_factory):
     """A small twin campaign built into a dataset: (lab directory, dataset version, D as a DataFrame).
     600 settled points on 8 benches (≈ 10 s once per test run)."""
-    from acquisition.plans.sim_runner import simulate_experiment
     from pipeline.build import build
     from pipeline.datasets import load_dataset
+    from twin.runner import simulate_experiment
 
     lab = tmp_path_factory.mktemp("campaign-lab")
     simulate_experiment("campaign", lab / "sessions", seed=11, benches=8, overrides={"points": 600})
@@ -126,8 +126,8 @@ def hard_labs(tmp_path_factory):
     """The small campaign on the twin with its unmodelled effects on (vsl_unmodelled), built twice, each in a
     lab of its own: as drawn and its repeat (the same points, each bench shuffled). {order: (lab, dataset
     version)}; ≈ 30 s once per run."""
-    from acquisition.plans.sim_runner import simulate_experiment
     from pipeline.build import build
+    from twin.runner import simulate_experiment
 
     out = {}
     for order in ("drawn", "shuffled"):

@@ -26,7 +26,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from typer.testing import CliRunner
 
-from acquisition.plans.sim_runner import simulate_experiment
+from twin.runner import simulate_experiment
 from vslab.cli import app
 
 runner = CliRunner()

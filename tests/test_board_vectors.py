@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from acquisition.codecs import board_lines as bp
-from acquisition.sim.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
-from acquisition.sim.emulators.board_hardware import SimplePressureHardware, SimpleStepperHardware
+from twin.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
+from twin.emulators.board_hardware import SimplePressureHardware, SimpleStepperHardware
 
 FIRMWARE = Path(__file__).resolve().parents[1] / "firmware"
 TABLE = json.loads((FIRMWARE / "vectors.json").read_text(encoding="utf-8"))

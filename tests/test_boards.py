@@ -15,12 +15,12 @@ import serial
 from acquisition.codecs import board_lines as bp
 from acquisition.devices.boards import BoardReplyError, PressureBoard, StepperBoard
 from acquisition.errors import DeviceError, DeviceNotFoundError, DeviceProtocolError, DeviceReplyError
-from acquisition.sim.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
-from acquisition.sim.emulators.board_hardware import SimplePressureHardware, SimpleStepperHardware
+from twin.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
+from twin.emulators.board_hardware import SimplePressureHardware, SimpleStepperHardware
 
 PROTOCOL_MD = Path(__file__).resolve().parents[1] / "firmware" / "PROTOCOL.md"
-PRESSURE = "pressure_board=acquisition.sim.emulators.board_firmware:demo_pressure_board"
-STEPPER = "stepper_board=acquisition.sim.emulators.board_firmware:demo_stepper_board"
+PRESSURE = "pressure_board=twin.emulators.board_firmware:demo_pressure_board"
+STEPPER = "stepper_board=twin.emulators.board_firmware:demo_stepper_board"
 
 
 # ------------------------------------------------------------------------------------------- codec

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from acquisition.plans.plan import PlanBuilder
-from acquisition.plans.sim_runner import simulate, simulate_experiment
 from models.robot import load_robot
 from pipeline.build import build
 from pipeline.datasets import load_dataset
+from twin.runner import simulate, simulate_experiment
 
 POINTS = 96
 

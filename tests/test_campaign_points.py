@@ -12,9 +12,9 @@ import pytest
 
 from acquisition.plans.experiments import expand_experiment, together, visit_order
 from acquisition.plans.plan import Plan, PlanBuilder
-from acquisition.plans.sim_runner import session_id, simulate, simulate_experiment
 from acquisition.safety import SafetyChecker, SafetyError
 from acquisition.schemas.events import EventKind
+from twin.runner import session_id, simulate, simulate_experiment
 
 
 def _settle_points(plan) -> list[int]:

@@ -20,7 +20,7 @@ from acquisition.devices.can_drives import CanDrives
 from acquisition.devices.popup_boards import BoardFrames, BoardLostError
 from acquisition.schemas import topics as T
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
-from acquisition.sim.ptyhost import send_control
+from twin.ptyhost import send_control
 
 IDS = {"q1": 1, "q2": 2, "q3": 3}
 BOARDS = {"main_board": 0x10, "link1_board": 0x11, "link2_board": 0x12}
@@ -191,7 +191,7 @@ def test_every_board_stream_has_thirty_seconds_of_ring(popup):
      {"op": "can", "board": "nope", "power": False}, {"op": "can", "bus_off": 1}],
 )  # fmt: skip
 def test_the_rig_refuses_a_malformed_can_fault(popup, cmd):
-    from acquisition.sim.rig import Rig
+    from twin.rig import Rig
 
     rig = Rig(popup)
     with pytest.raises(ValueError):

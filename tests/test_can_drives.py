@@ -16,7 +16,7 @@ import pytest
 
 from acquisition.devices.can_drives import CanDrives, DriveFaultError, DriveLostError
 from acquisition.errors import DeviceNotFoundError
-from acquisition.sim.ptyhost import send_control
+from twin.ptyhost import send_control
 
 IDS = {"q1": 1, "q2": 2, "q3": 3}
 PERIOD_S = 0.01

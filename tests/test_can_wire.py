@@ -13,11 +13,11 @@ from hypothesis import strategies as st
 from acquisition.codecs import slcan
 from acquisition.codecs.can import CanFrame, frame_bits, stuff_bits, unstuffed_bits
 from acquisition.errors import CodecError
-from acquisition.sim.can_bus import CanBus, CanNode
-from acquisition.sim.emulators import cia402_drive as D
-from acquisition.sim.emulators.canopen_node import ABORT_NO_OBJECT, ABORT_READ_ONLY, ABORT_STATE
-from acquisition.sim.emulators.slcan_adapter import SlcanAdapter
 from models.robot import CAN_DIR
+from twin.can_bus import CanBus, CanNode
+from twin.emulators import cia402_drive as D
+from twin.emulators.canopen_node import ABORT_NO_OBJECT, ABORT_READ_ONLY, ABORT_STATE
+from twin.emulators.slcan_adapter import SlcanAdapter
 
 EDS = CAN_DIR / "popup_drive.eds"
 frames = st.builds(

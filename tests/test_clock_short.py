@@ -12,13 +12,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from acquisition.plans.sim_runner import simulate
 from acquisition.schemas import topics as T
-from acquisition.sim.clocks import ClockSpec, DeviceClocks, HostLinkSpec, host_receive_ns
-from acquisition.sim.streams import host_poll_instants
 from pipeline.clean import STAMPS
 from pipeline.clock import ClockModel, slip_drift, unwrap_stamps
 from pipeline.sync import sync
+from twin.clocks import ClockSpec, DeviceClocks, HostLinkSpec, host_receive_ns
+from twin.runner import simulate
+from twin.streams import host_poll_instants
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_sync import _load, _plans, _true_times

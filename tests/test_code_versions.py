@@ -94,7 +94,7 @@ def test_the_root_read_is_a_parameter(tree):
 
 def test_an_edit_in_code_no_stage_runs_changes_no_version(tree):
     before = _versions()
-    (tree / "acquisition" / "sim" / "kernel.py").write_text("X = 1\n")  # the twin: not the pipeline's code
+    (tree / "twin" / "kernel.py").write_text("X = 1\n")  # the twin: not the pipeline's code
     assert _versions() == before
 
 

@@ -14,14 +14,14 @@ from hypothesis import strategies as st
 from acquisition.command_guard import CommandGuard, CommandRefused
 from acquisition.plans.plan import PlanBuilder
 from acquisition.plans.rt_runner import RealTimeRunner
-from acquisition.plans.sim_runner import simulate
 from acquisition.recorder.recorder import Recorder
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
-from acquisition.sim.ptyhost import send_control
+from twin.ptyhost import send_control
+from twin.runner import simulate
 
-RIG = {"module": "acquisition.sim.rig", "extra": ("--robot", "vsl")}
+RIG = {"module": "twin.rig", "extra": ("--robot", "vsl")}
 BAR = 1e5
 BAD_GOALS = {
     "nan": [0.2, math.nan, -1.6],

@@ -16,12 +16,12 @@ from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
-from acquisition.plans.sim_runner import simulate_experiment
 from acquisition.recorder.foxglove_export import export_foxglove
 from acquisition.schemas import mcap_reader
 from acquisition.schemas.fast_read import read_fixed_topics
 from acquisition.schemas.mcap_reader import DamagedChunkError
 from pipeline.ingest import ingest_session
+from twin.runner import simulate_experiment
 
 FLIPS = 160  # positions flipped per region, spread evenly over it (deterministic)
 

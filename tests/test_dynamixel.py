@@ -10,10 +10,10 @@ from dynamixel_sdk import COMM_SUCCESS, GroupSyncRead, GroupSyncWrite, PacketHan
 from acquisition.codecs import dynamixel as dx
 from acquisition.devices.servo_bus import ServoBus
 from acquisition.errors import DeviceDisconnectedError, DeviceNotFoundError, DeviceProtocolError
-from acquisition.sim.emulators.dynamixel import demo_bus
-from acquisition.sim.ptyhost import send_control
+from twin.emulators.dynamixel import demo_bus
+from twin.ptyhost import send_control
 
-DEMO = "servo_bus=acquisition.sim.emulators.dynamixel:demo_bus"
+DEMO = "servo_bus=twin.emulators.dynamixel:demo_bus"
 
 
 # ------------------------------------------------------------------------------------------- codec

@@ -45,9 +45,9 @@ from acquisition.devices.servo_errors import (
     status_error,
 )
 from acquisition.errors import DeviceError, DeviceReplyError
-from acquisition.sim.emulators.dynamixel import demo_bus
+from twin.emulators.dynamixel import demo_bus
 
-DEMO = "servo_bus=acquisition.sim.emulators.dynamixel:demo_bus"
+DEMO = "servo_bus=twin.emulators.dynamixel:demo_bus"
 RANGE, LENGTH, LIMIT, ACCESS, INSTRUCTION = (
     dx.ERR_DATA_RANGE,
     dx.ERR_DATA_LENGTH,

@@ -14,12 +14,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquisition.sim import streams
-from acquisition.sim.sensors import CURRENT_A_PER_COUNT
-from acquisition.sim.world import World
 from models import kinematics
 from models.effects import Creep, EffectsSpec, Elongation, Hoses, JointHoses, TrackerDistortion, tracker_bias
 from models.robot import RobotDescriptionError, load_robot
+from twin import streams
+from twin.sensors import CURRENT_A_PER_COUNT
+from twin.world import World
 
 POSES = np.array([[-0.3, 0.5, -0.8], [0.0, 0.7, -1.2], [0.3, 0.9, -1.4], [0.2, 0.4, -0.5], [-0.2, 1.0, -1.7],
                   [0.1, 0.6, -0.6]])  # fmt: skip

@@ -13,7 +13,7 @@ from acquisition.errors import AcquisitionError
 from models.errors import ModelError, VslabError
 from pipeline.errors import PipelineError
 
-PACKAGES = ("models", "acquisition", "pipeline", "analysis", "vslab")
+PACKAGES = ("models", "acquisition", "twin", "pipeline", "analysis", "vslab")
 LAYER_BASE = {"models": ModelError, "acquisition": AcquisitionError, "pipeline": PipelineError}
 
 

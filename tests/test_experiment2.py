@@ -8,13 +8,13 @@ import pytest
 from acquisition.plans import experiments
 from acquisition.plans.compensation import StaticModelCompensator
 from acquisition.plans.plan import PlanBuilder
-from acquisition.plans.sim_runner import SIM_EPOCH_NS, session_id, simulate, simulate_experiment
 from acquisition.safety import SafetyChecker, SafetyError
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
-from acquisition.sim.world import World
 from models import kinematics, trajectories
+from twin.runner import SIM_EPOCH_NS, session_id, simulate, simulate_experiment
+from twin.world import World
 
 BAR, GRAM = 1e5, 1e-3
 

@@ -14,7 +14,6 @@ from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
 
-from acquisition.plans.sim_runner import simulate_experiment
 from acquisition.schemas import scene as S
 from acquisition.schemas import topics as T
 from acquisition.schemas.fast_read import read_fixed_topics
@@ -27,6 +26,7 @@ from acquisition.schemas.standard import (
     transforms_message,
 )
 from models.urdf import BASE, TOOL, link_name, robot_urdf
+from twin.runner import simulate_experiment
 
 
 def _decode(message, payload: bytes):

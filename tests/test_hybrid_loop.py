@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from acquisition.plans import experiments
-from acquisition.plans.sim_runner import simulate_experiment
 from models import trajectories
 from models.hybrid import preset
 from models.robot import load_robot
@@ -15,6 +14,7 @@ from pipeline.build import build
 from pipeline.datasets import load_dataset
 from pipeline.in_loop import InverseModelCompensator
 from pipeline.train import TrainConfig, train
+from twin.runner import simulate_experiment
 
 CASE = {"payload_g": 75, "pressure_bar": 0.5}  # seed 000's harder case: light pressure, heavy payload
 

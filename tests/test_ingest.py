@@ -13,7 +13,6 @@ from mcap.writer import Writer
 from mcap_ros2._dynamic import serialize_dynamic
 
 from acquisition.plans.plan import PlanBuilder
-from acquisition.plans.sim_runner import session_id, simulate
 from acquisition.recorder.writer import RotationPolicy, SessionWriter
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
@@ -21,6 +20,7 @@ from acquisition.schemas.fast_read import read_events, read_fixed_topics
 from pipeline.clean import OUTLIER, clean
 from pipeline.ingest import IngestError, ingest_session, source_hash
 from pipeline.tables import EVENT_COLUMNS
+from twin.runner import session_id, simulate
 
 
 @pytest.fixture(scope="module")

@@ -194,7 +194,7 @@ def test_a_recording_shown_live_keeps_the_file_whole(host_factory, tmp_path, rob
     from acquisition.schemas.session_card import readable_parts
 
     with (
-        host_factory(module="acquisition.sim.rig", extra=("--robot", "vsl")) as ports,
+        host_factory(module="twin.rig", extra=("--robot", "vsl")) as ports,
         LiveServer(T.session_topics(robot), port=0) as live,
     ):
         client = FoxgloveClient(live.port)

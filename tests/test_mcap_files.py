@@ -17,7 +17,7 @@ from acquisition.schemas.mcap_writer import BatchMcapWriter, copy_readable
 ROOT = Path(__file__).resolve().parents[1]
 MCAP_MODULES = {"acquisition/schemas/mcap_reader.py", "acquisition/schemas/mcap_writer.py"}
 # bench/ is left out on purpose: the benchmarks time vslab against the mcap package's own reader and writer
-PACKAGES = ("acquisition", "pipeline", "analysis", "models", "vslab")
+PACKAGES = ("acquisition", "twin", "pipeline", "analysis", "models", "vslab")
 
 
 def _write(path: Path, n: int = 1000, chunk_size: int = 4096) -> None:

@@ -12,7 +12,7 @@ import pytest
 from acquisition.codecs import ndi
 from acquisition.devices.tracker import Tracker, TrackerFrame
 from acquisition.errors import DeviceNotFoundError
-from acquisition.sim.emulators import aurora
+from twin.emulators import aurora
 
 COMMAND_EXAMPLES = [
     ("INIT:E3A5", "INIT", ""),
@@ -168,7 +168,7 @@ def _check_demo_frames(frames: list[TrackerFrame]) -> None:
 
 @pytest.mark.parametrize("factory", ["demo_emulator", "demo_emulator_bx"])
 def test_tracker_reads_demo_circle(host_factory, factory):
-    with host_factory(f"tracker=acquisition.sim.emulators.aurora:{factory}") as ports:
+    with host_factory(f"tracker=twin.emulators.aurora:{factory}") as ports:
         with Tracker(ports["tracker"]) as trk:
             assert trk._mode() == ("BX" if factory.endswith("bx") else "TX")
             # start 0.8–1.5 s into the 3 s cycle so ~2.2 s of reading covers the MISSING stretch (2.5–3.0 s)

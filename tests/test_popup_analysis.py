@@ -10,10 +10,10 @@ import pytest
 import yaml
 from scipy import signal
 
-from acquisition.plans.sim_runner import simulate_experiment
 from analysis import popup_tests as pt
 from models import prbm
 from models.robot import load_robot, robot_path
+from twin.runner import simulate_experiment
 
 SEED = 7
 INERTIA = (

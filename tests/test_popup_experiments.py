@@ -10,12 +10,12 @@ from mcap.reader import make_reader
 from acquisition.plans import experiments
 from acquisition.plans import popup_experiments as pp
 from acquisition.plans.plan import Plan, PlanBuilder
-from acquisition.plans.sim_runner import SIM_EPOCH_NS, session_id, simulate_experiment
 from acquisition.safety import SafetyChecker
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.fast_read import read_fixed_topics
 from models import prbm
+from twin.runner import SIM_EPOCH_NS, session_id, simulate_experiment
 
 SEED = 3
 REDUCED = {

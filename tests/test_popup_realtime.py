@@ -25,20 +25,20 @@ from conftest import cpu_stolen_s
 from scipy.spatial.transform import Rotation
 
 from acquisition.plans.popup_experiments import pressure_checks, verify_pressure_checks
-from acquisition.plans.sim_runner import simulate_experiment
 from acquisition.recorder.daemon import MAX_LAG_S
 from acquisition.recorder.sessions import session_info
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
 from acquisition.schemas.session_card import readable_parts
-from acquisition.sim.streams import tracker_spec
 from analysis import popup_tests as pt
 from analysis.popup_reach import reach
 from models import prbm
 from models.robot import load_robot
 from models.statics import static_deflection
 from pipeline.build import build
+from twin.runner import simulate_experiment
+from twin.streams import tracker_spec
 from vslab.lab_job import sessions_of
 
 INERTIA = 0.0358  # the twin's link 2 about its virtual hinge (tests/test_popup_analysis.py)

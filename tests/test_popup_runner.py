@@ -16,9 +16,9 @@ from acquisition.recorder.sessions import session_info
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
-from acquisition.sim.ptyhost import send_control
+from twin.ptyhost import send_control
 
-RIG = {"module": "acquisition.sim.rig", "extra": ("--robot", "popup")}
+RIG = {"module": "twin.rig", "extra": ("--robot", "popup")}
 KPA = 1e3
 START = [0.0, 0.6, -0.9]  # near where the rig starts ([0, 0.52, -1.05]): reached in the first second
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from acquisition.plans.popup_experiments import bench_robot
-from acquisition.sim.world import World
 from models.robot import load_robot
+from twin.world import World
 
 SEED = 5
 HORIZONTAL = np.radians([0.0, 90.0, 90.0])  # link 1 vertical, link 2 horizontal

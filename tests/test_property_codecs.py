@@ -20,8 +20,8 @@ from mcap_ros2._dynamic import generate_dynamic, serialize_dynamic
 from acquisition.codecs import board_lines as bp
 from acquisition.codecs import ndi
 from acquisition.schemas.cdr import PRIMITIVES, Field, FixedMessage, SchemaError
-from acquisition.sim.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
-from acquisition.sim.emulators.board_hardware import SimplePressureHardware, SimpleStepperHardware
+from twin.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
+from twin.emulators.board_hardware import SimplePressureHardware, SimpleStepperHardware
 
 FAST = settings(
     max_examples=200, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow]

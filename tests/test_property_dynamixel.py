@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from acquisition.codecs import dynamixel as dx
 from acquisition.codecs import xm430
-from acquisition.sim.emulators.dynamixel import demo_bus
+from twin.emulators.dynamixel import demo_bus
 
 FAST = settings(
     max_examples=150, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow]

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import os
 
-from acquisition.sim.emulators.base import Emulator
-from acquisition.sim.ptyhost import _Port
+from twin.emulators.base import Emulator
+from twin.ptyhost import _Port
 
 
 def _read_all(fd: int) -> bytes:

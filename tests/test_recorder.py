@@ -24,9 +24,9 @@ from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
 from acquisition.schemas.session_card import readable_parts
-from acquisition.sim.ptyhost import send_control
+from twin.ptyhost import send_control
 
-RIG = {"module": "acquisition.sim.rig", "extra": ("--robot", "vsl")}
+RIG = {"module": "twin.rig", "extra": ("--robot", "vsl")}
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLED = {T.SERVO_STATE: "seq", T.PRESSURE: "seq", T.STEPPER: "seq", T.TRACKER: "frame"}
 DEVICE = {

@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 
 from acquisition.plans.experiments import expand_experiment
-from acquisition.plans.sim_runner import session_id, simulate
 from acquisition.recorder.sessions import read_card
 from acquisition.schemas.events import EventKind
 from acquisition.schemas.fast_read import read_events
 from acquisition.schemas.session_card import STATUSES
+from twin.runner import session_id, simulate
 
 
 def past_the_limits(q_ik, pressure_pa, current_a, t_s=0.0):

@@ -7,8 +7,6 @@ import pandas as pd
 import pytest
 from twin_timeline import sessions, timeline, true_base_to_tracker
 
-from acquisition.plans.sim_runner import simulate_experiment
-from acquisition.sim.sensors import rotation_from_rpy
 from pipeline.register import (
     ResidualStats,
     RigidTransform,
@@ -18,6 +16,8 @@ from pipeline.register import (
     rotation_angle,
 )
 from pipeline.segment import static_points
+from twin.runner import simulate_experiment
+from twin.sensors import rotation_from_rpy
 
 
 def _random_transform(rng: np.random.Generator, scale: float = 1.0) -> RigidTransform:

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from acquisition.devices.servo_bus import ServoBus
-from acquisition.sim.ptyhost import send_control
 from models.robot import load_robot
+from twin.ptyhost import send_control
 
-RIG = {"module": "acquisition.sim.rig", "extra": ("--robot", "vsl")}
+RIG = {"module": "twin.rig", "extra": ("--robot", "vsl")}
 
 
 def _wait_until_settled(bus, goal, seconds=4.0):
@@ -62,7 +62,7 @@ def test_bad_control_commands_get_an_error_reply(host_factory, tmp_path, command
 
 def test_pressure_board_regulates_the_twin_and_streams_on_its_own_clock(host_factory, tmp_path):
     from acquisition.devices.boards import PressureBoard
-    from acquisition.sim import streams
+    from twin import streams
 
     robot = load_robot("vsl")
     spec = streams.pressure_spec(robot)
@@ -133,7 +133,7 @@ def test_unplugged_pressure_board_is_reported_and_reconnects(host_factory, tmp_p
 
 def test_tracker_frames_follow_the_twins_tip_and_missing_is_nan(host_factory, tmp_path):
     from acquisition.devices.tracker import Tracker
-    from acquisition.sim import streams
+    from twin import streams
 
     robot = load_robot("vsl")
     transform = streams.tracker_spec(robot).base_to_tracker
@@ -178,7 +178,7 @@ def test_unplugged_tracker_is_reported_and_reconnects(host_factory, tmp_path):
 
 def test_the_bench_start_is_checked_against_the_robot():
     """``--start``: the arm's pose, link pressures and valves the rig begins with, or one clear error."""
-    from acquisition.sim.rig import Rig, bench_start
+    from twin.rig import Rig, bench_start
 
     popup = load_robot("popup")
     start = {"q_rad": [0.0, 1.5, 0.0], "pressure_pa": [0.0, 0], "valve_open": [False, False]}
@@ -204,7 +204,7 @@ def test_a_broken_start_file_is_one_line_and_exit_2(tmp_path):
 
     (tmp_path / "start.json").write_text('{"q_rad": [0, 1]}')
     done = subprocess.run(
-        [sys.executable, "-m", "acquisition.sim.rig", "--robot", "popup", "--run-dir", str(tmp_path / "run"),
+        [sys.executable, "-m", "twin.rig", "--robot", "popup", "--run-dir", str(tmp_path / "run"),
          "--start", str(tmp_path / "start.json")], capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert done.returncode == 2 and "Traceback" not in done.stderr

@@ -11,13 +11,13 @@ from conftest import emulator_host
 
 from acquisition.codecs import board_lines as bp
 from acquisition.codecs import dynamixel as dx
-from acquisition.sim import sensors, streams
-from acquisition.sim.emulators.base import LEGACY_POLL_S, Emulator
-from acquisition.sim.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
-from acquisition.sim.emulators.board_hardware import SimplePressureHardware, SimpleStepperHardware
-from acquisition.sim.emulators.dynamixel import demo_bus
-from acquisition.sim.ptyhost import PORTS_FILE, send_control
-from acquisition.sim.rig import Rig
+from twin import sensors, streams
+from twin.emulators.base import LEGACY_POLL_S, Emulator
+from twin.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
+from twin.emulators.board_hardware import SimplePressureHardware, SimpleStepperHardware
+from twin.emulators.dynamixel import demo_bus
+from twin.ptyhost import PORTS_FILE, send_control
+from twin.rig import Rig
 
 RIG = ("--robot", "vsl")
 
@@ -189,7 +189,7 @@ def _wakeups(pid: int) -> int:
 @pytest.fixture(scope="module")
 def live_rig(tmp_path_factory):
     run_dir = tmp_path_factory.mktemp("rig-events") / "run"
-    with emulator_host(run_dir, module="acquisition.sim.rig", extra=RIG) as ports:
+    with emulator_host(run_dir, module="twin.rig", extra=RIG) as ports:
         pid = json.loads((run_dir / PORTS_FILE).read_text())["pid"]
         yield run_dir, ports, pid
 

@@ -19,9 +19,9 @@ from acquisition.safety import SafetyChecker
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
-from acquisition.sim.ptyhost import send_control
+from twin.ptyhost import send_control
 
-RIG = {"module": "acquisition.sim.rig", "extra": ("--robot", "vsl")}
+RIG = {"module": "twin.rig", "extra": ("--robot", "vsl")}
 ROOT = Path(__file__).resolve().parents[1]
 BAR = 1e5
 

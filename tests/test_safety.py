@@ -8,10 +8,10 @@ import pytest
 from acquisition.plans import experiments
 from acquisition.plans.plan import PlanBuilder
 from acquisition.safety import SafetyChecker, SafetyError
-from acquisition.sim.world import World
 from models.prbm import collapse_moment, wrinkling_moment
 from models.robot import load_robot
 from models.statics import gravity_moments, static_deflection
+from twin.world import World
 
 BAR, KPA = 1e5, 1e3
 

@@ -8,10 +8,10 @@ import pytest
 from twin_timeline import sessions, timeline
 
 from acquisition.plans.experiments import expand_experiment
-from acquisition.plans.sim_runner import SIM_EPOCH_NS, session_id, simulate
 from acquisition.schemas.events import EventKind
 from pipeline.segment import Stillness, repetition_table, repetitions, static_points
 from pipeline.tables import EVENT_COLUMNS, StageReport, columns
+from twin.runner import SIM_EPOCH_NS, session_id, simulate
 
 N_POINTS, BENCHES, SEED = 120, 12, 7
 

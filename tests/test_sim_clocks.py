@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from acquisition.sim.clocks import ClockSpec, DeviceClocks, HostLinkSpec, host_receive_ns, unwrap_ticks
+from twin.clocks import ClockSpec, DeviceClocks, HostLinkSpec, host_receive_ns, unwrap_ticks
 
 TICK = ClockSpec(tick_s=1e-3, wrap=32768, drift_ppm_sigma=40.0, offset_max_s=30.0)  # Dynamixel Realtime Tick
 MICROS = ClockSpec(tick_s=1e-6, wrap=2**32, drift_ppm_sigma=2000.0, offset_max_s=0.0)  # Uno micros()

@@ -15,12 +15,12 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from acquisition.plans.sim_identity import IDENTITY, StaleSessionsError, robot_sha256
-from acquisition.plans.sim_runner import simulate_experiment
 from acquisition.recorder.sessions import list_sessions, read_card, session_info
 from acquisition.schemas.session_card import SESSION_CARD
 from models.robot import CONFIG_DIR, load_robot
 from pipeline.session_index import experiment_sessions
+from twin.identity import IDENTITY, StaleSessionsError, robot_sha256
+from twin.runner import simulate_experiment
 from vslab.cli import app
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -188,8 +188,8 @@ class _RigidInverse:
 def test_a_session_is_never_reused_for_another_learned_model(tmp_path):
     """Experiment 2's hybrid sessions record which model drove them: the same model again reuses them,
     another model is refused, and a model that names no version is never taken for the one recorded."""
-    from acquisition.plans.sim_identity import UNKNOWN_MODEL
     from pipeline.in_loop import InverseModelCompensator
+    from twin.identity import UNKNOWN_MODEL
 
     vsl = load_robot("vsl")
     small = {"commands": ["hybrid"], "rigid_arm": False, "repetitions": 1, "points_per_segment": 5,

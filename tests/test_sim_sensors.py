@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from acquisition.sim import sensors
 from models.robot import PressureSensorSpec
+from twin import sensors
 
 
 def _random_rotations(rng: np.random.Generator, n: int) -> np.ndarray:

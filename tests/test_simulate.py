@@ -11,15 +11,15 @@ import pytest
 
 from acquisition.plans import experiments
 from acquisition.plans.plan import PlanBuilder
-from acquisition.plans.sim_runner import SIM_EPOCH_NS, session_id, simulate, simulate_experiment
 from acquisition.recorder.sessions import list_sessions, session_info
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
-from acquisition.sim.streams import tracker_spec
-from acquisition.sim.world import World
 from models import trajectories
 from models.robot import load_robot
+from twin.runner import SIM_EPOCH_NS, session_id, simulate, simulate_experiment
+from twin.streams import tracker_spec
+from twin.world import World
 
 SEED = 1
 BLOCK_S = 0.01  # simulate()'s default command block
@@ -373,7 +373,7 @@ def test_campaign_runs_to_the_end_within_the_safety_limits(tmp_path):
 def test_same_seed_gives_the_same_bytes_however_fast_the_machine_ran(vsl, tmp_path, monkeypatch):
     """A dataset's version is a hash of its sessions' bytes, so the writer's chunks must not depend on
     wall time (under load the runs flushed at other points, and the same campaign gave another version)."""
-    from acquisition.plans import sim_runner
+    from twin import runner as sim_runner
 
     writers = []
 

@@ -12,14 +12,14 @@ import pytest
 from mcap.reader import make_reader
 
 from acquisition.plans.plan import PlanBuilder
-from acquisition.plans.sim_runner import TWIN_TRUTH, session_id, simulate
 from acquisition.schemas import topics as T
 from acquisition.schemas.fast_read import read_fixed_topics
-from acquisition.sim.clocks import unwrap_ticks
 from pipeline.clean import STAMPS
 from pipeline.clock import ClockModel, unwrap_stamps
 from pipeline.sync import interpolate, sync
 from pipeline.tables import EVENT_COLUMNS, SessionTables
+from twin.clocks import unwrap_ticks
+from twin.runner import TWIN_TRUTH, session_id, simulate
 
 SEED = 2  # World(vsl, batch=2, seed=2) draws pressure-board drifts of ≈ +3599 and +2288 ppm (resonators)
 SECONDS = 60.0

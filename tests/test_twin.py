@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from acquisition.sim import streams
-from acquisition.sim.survey import encoder_tip_error_mm, experiment1_survey
-from acquisition.sim.world import World
 from models import prbm
 from models.robot import Hysteresis, load_robot
+from twin import streams
+from twin.survey import encoder_tip_error_mm, experiment1_survey
+from twin.world import World
 
 # seed 001, Table 1: p (kPa), f_s (Hz)
 TABLE1_F_S = {

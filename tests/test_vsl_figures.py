@@ -10,7 +10,6 @@ import pytest
 from matplotlib.image import imread
 
 from acquisition.plans import experiments
-from acquisition.plans.sim_runner import simulate_experiment
 from analysis import vsl_figures, vsl_paths
 from models import kinematics, trajectories
 from models.hybrid import FORWARD_INPUTS, preset
@@ -18,6 +17,7 @@ from models.robot import load_robot
 from pipeline.build import build
 from pipeline.datasets import load_dataset
 from pipeline.train import TrainConfig, train
+from twin.runner import simulate_experiment
 
 N = 50  # resampled points per path: small, the check is exact
 SMALL = {"repetitions": 2, "points_per_segment": 20, "settle_s": 1.0, "rest_s": 0.5, "speed_m_s": 0.1}

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from acquisition.plans.sim_runner import TWIN_TRUTH
-from acquisition.sim.sensors import rotation_from_rpy
 from pipeline.ingest import ingest_session
 from pipeline.tables import SessionTables
+from twin.runner import TWIN_TRUTH
+from twin.sensors import rotation_from_rpy
 
 
 def timeline(s: SessionTables) -> pd.DataFrame:

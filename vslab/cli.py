@@ -83,7 +83,7 @@ def twin_survey(
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
 ) -> None:
     """Experiment 1 on the twin: mean tip error (mm) per pressure × payload."""
-    from acquisition.sim.survey import experiment1_survey
+    from twin.survey import experiment1_survey
 
     desc = _robot(robot)
     try:
@@ -105,7 +105,7 @@ def rig(
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
 ) -> None:
     """Run the twin in real time behind emulators of the robot's devices (until Ctrl-C / SIGTERM)."""
-    from acquisition.sim.rig import serve_rig
+    from twin.rig import serve_rig
 
     desc = _robot(robot)
     where = run_dir or local_lab("rig (without --run-dir)") / "rig"
@@ -181,10 +181,10 @@ def simulate(
     import numpy as np
     from rich.progress import Progress
 
-    from acquisition.plans.sim_runner import SIM_PREFIX, prepare_experiment, simulate_experiment
     from acquisition.recorder.sessions import staged_sessions
     from acquisition.safety import SafetyError
     from pipeline.in_loop import InverseModelCompensator
+    from twin.runner import SIM_PREFIX, prepare_experiment, simulate_experiment
 
     if benches < 1 or seed < 0:
         _error(f"--benches must be ≥ 1 and --seed ≥ 0, got --benches {benches} --seed {seed}")

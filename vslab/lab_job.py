@@ -43,8 +43,8 @@ def run(lab: Path, seed: int = 0, quick: bool = False, say: Callable[[str], None
     """Run every step into ``lab``; returns the report's path. ``batch_priority``: this process runs the
     steps after the real-time session at a batch priority (the CLI's choice; a caller that goes on with other
     work, a test run, keeps its own)."""
-    from acquisition.plans.sim_runner import simulate_experiment
     from pipeline.build import build
+    from twin.runner import simulate_experiment
 
     lab = Path(lab)
     timings: dict[str, float] = {}
@@ -151,8 +151,8 @@ def _train(lab: Path, dataset_version: str) -> dict[str, str]:
 
 
 def _experiment2(lab: Path, sessions: Path, inverse_version: str, seed: int, borrowed: dict):
-    from acquisition.plans.sim_runner import simulate_experiment
     from pipeline.build import build
+    from twin.runner import simulate_experiment
     from vslab.app import inverse_compensator
 
     hybrid = {}
@@ -170,7 +170,6 @@ def _unmodelled(lab: Path, seed: int, points: int, train: dict, paths: dict) -> 
     other histories (each bench shuffled), built in ``<lab>/unmodelled/{drawn,shuffled}``; the comparison
     of every model with the floor on them (grouped split) is written unless one of these datasets has it."""
     from acquisition.plans.experiments import arm_lengths
-    from acquisition.plans.sim_runner import simulate_experiment
     from models.robot import load_robot
     from pipeline.build import build
     from pipeline.comparison import (
@@ -181,6 +180,7 @@ def _unmodelled(lab: Path, seed: int, points: int, train: dict, paths: dict) -> 
         save_comparison,
     )
     from pipeline.datasets import load_dataset
+    from twin.runner import simulate_experiment
 
     robot = UNMODELLED_ROBOT
     versions = {"training": json.dumps(train, sort_keys=True), "paths": json.dumps(paths, sort_keys=True)}
@@ -239,10 +239,10 @@ def path_rows(study: Path, seed: int, campaign_version: str, paths: dict):
     2 follows, with the ``PATHS`` history of every frame, at each set-point's end
     (``pipeline.history.set_point_ends``)."""
     from acquisition.plans.experiments import expand_experiment
-    from acquisition.plans.sim_runner import simulate_experiment
     from pipeline.build import build
     from pipeline.datasets import load_dataset
     from pipeline.history import PATHS, set_point_ends, with_history
+    from twin.runner import simulate_experiment
 
     _, plans, _ = expand_experiment("experiment2", {"robot": UNMODELLED_ROBOT, "rigid_arm": False})
     followed = {"experiment1/" + p.name.removeprefix("experiment2/").rsplit("/", 1)[0] for p in plans}
@@ -261,12 +261,12 @@ def experiment2_path_errors(study: Path, name: str, seed: int, campaign_version:
     """Experiment 2 on the twin with its unmodelled effects with ``commands``, two repetitions per case,
     into ``<study>/<name>`` (built in ``<study>/drawn``); ``models``: the inverse model of each learned
     command ("hybrid", "history"); the path errors per session (``analysis.vsl_paths.path_errors``)."""
-    from acquisition.plans.sim_runner import simulate_experiment
     from analysis.vsl_paths import path_errors
     from models.robot import load_robot
     from pipeline.build import build
     from pipeline.datasets import load_dataset
     from pipeline.in_loop import InverseModelCompensator
+    from twin.runner import simulate_experiment
 
     description = load_robot(UNMODELLED_ROBOT)
 

@@ -96,7 +96,7 @@ def _devices(desc, ports: Path | None, rig: bool, session_id: str, plan=None):
             _error(f"cannot write the rig's folder {ports}: {exc.strerror or exc}")
         # its own session (Ctrl-C reaches only us, who stop it in order); it dies with us, even by SIGKILL
         rig_proc = subprocess.Popen(
-            [sys.executable, "-m", "acquisition.sim.rig", "--robot", str(ports / "robot.yaml"),
+            [sys.executable, "-m", "twin.rig", "--robot", str(ports / "robot.yaml"),
              "--run-dir", str(ports), "--parent-pid", str(os.getpid()), *start], start_new_session=True,
         )  # fmt: skip
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
@@ -137,7 +137,7 @@ def _rig_files(desc, run_dir: Path, plan) -> list[str]:
 
 def _rig_ports(run_dir: Path, rig_proc: subprocess.Popen | None) -> dict[str, str]:
     """The ports a rig published in ``run_dir`` (the one we started, or one running elsewhere)."""
-    from acquisition.sim.ptyhost import PORTS_FILE, wait_for_ports
+    from twin.ptyhost import PORTS_FILE, wait_for_ports
 
     if rig_proc is None and not (run_dir / PORTS_FILE).is_file():
         _error(f"--ports {run_dir}: no {PORTS_FILE} in this folder (a rig's run directory has one; is the "
@@ -406,7 +406,7 @@ def run_plan(experiment: str, plan: str = "0", overrides: dict | None = None, *,
 def _operator(rig_dir: Path | None):
     """Who hangs payloads and taps the link: the rig (through its control socket) or the operator (prompted;
     the plan's clock waits for Enter)."""
-    from acquisition.sim.ptyhost import send_control
+    from twin.ptyhost import send_control
 
     if rig_dir is not None:
         return (lambda kg: send_control(rig_dir, {"op": "payload", "kg": kg}),

@@ -1,4 +1,4 @@
-"""The twin's device streams (``acquisition.sim.streams``) as session topic rows, exactly as the real-time
+"""The twin's device streams (``twin.streams``) as session topic rows, exactly as the real-time
 recorder writes what the drivers return: same topics, same units, same stamps and sequence numbers."""
 
 from __future__ import annotations
@@ -7,9 +7,9 @@ import numpy as np
 
 from acquisition.codecs import dynamixel as dx
 from acquisition.schemas import topics as T
-from acquisition.sim.emulators.cia402_drive import SW_REMOTE, SW_SETPOINT_ACK, SW_VOLTAGE, State
-from acquisition.sim.streams import Stream
 from models.robot import RobotDescription
+from twin.emulators.cia402_drive import SW_REMOTE, SW_SETPOINT_ACK, SW_VOLTAGE, State
+from twin.streams import Stream
 
 # a CiA 402 drive in OPERATION ENABLED following CSP targets, as the emulated drive shows it
 DRIVE_ENABLED_STATUSWORD = int(State.OPERATION_ENABLED) | SW_VOLTAGE | SW_REMOTE | SW_SETPOINT_ACK

@@ -22,7 +22,7 @@ from acquisition.plans.plan import Plan
 from models.robot import RobotDescription
 
 IDENTITY = "twin_identity"  # session metadata key: the identity, as JSON
-TWIN_MODULES = ("acquisition.plans.sim_runner",)  # the twin's code: these and everything they import
+TWIN_MODULES = ("twin.runner",)  # the twin's code: these and everything they import
 PLAN_ARRAYS = ("goal_t", "goal_q", "goal_speed", "pressure_t", "pressure_pa", "valve_open", "payload_t",
                "payload_kg", "tap_t", "tap_impulse_nms")  # fmt: skip
 FIELDS = {"robot_sha256": "robot description", "plan_sha256": "parameters", "model": "learned model",

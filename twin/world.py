@@ -12,11 +12,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from acquisition.sim import kernel, streams
-from acquisition.sim.clocks import ClockSpec, DeviceClocks
 from models.effects import creep_rest
 from models.prbm import interp_table
 from models.robot import TIP_FRAME, RobotDescription
+from twin import kernel, streams
+from twin.clocks import ClockSpec, DeviceClocks
 
 DEFAULT_DT = 1e-3  # 1 kHz
 

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from acquisition.codecs import popup_boards as pb
 from acquisition.codecs.can import CanFrame
 from acquisition.errors import CodecError
-from acquisition.sim.can_bus import CanNode
+from twin.can_bus import CanNode
 
 
 @dataclass

@@ -21,17 +21,17 @@ import numpy as np
 from acquisition.command_guard import CommandGuard, CommandRefused
 from acquisition.plans.compensation import Compensator, StaticModelCompensator
 from acquisition.plans.plan import Plan
-from acquisition.plans.sim_identity import IDENTITY, differences, recorded_identity, refuse, session_identity
-from acquisition.plans.twin_topics import stream_rows
 from acquisition.recorder.writer import SessionWriter
 from acquisition.safety import SafetyChecker
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.session_card import SESSION_CARD
-from acquisition.sim.kernel import Trace
-from acquisition.sim.streams import servo_current_a
-from acquisition.sim.world import World
 from models.robot import RobotDescription
+from twin.identity import IDENTITY, differences, recorded_identity, refuse, session_identity
+from twin.kernel import Trace
+from twin.streams import servo_current_a
+from twin.topics import stream_rows
+from twin.world import World
 
 log = logging.getLogger(__name__)
 

@@ -15,8 +15,8 @@ import logging
 from acquisition.codecs import slcan
 from acquisition.codecs.can import CanFrame
 from acquisition.errors import CodecError
-from acquisition.sim.can_bus import CanBus, CanNode
-from acquisition.sim.emulators.base import Emulator
+from twin.can_bus import CanBus, CanNode
+from twin.emulators.base import Emulator
 
 log = logging.getLogger(__name__)
 

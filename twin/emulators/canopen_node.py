@@ -25,7 +25,7 @@ from pathlib import Path
 import canopen
 
 from acquisition.codecs.can import CanFrame
-from acquisition.sim.can_bus import CanNode
+from twin.can_bus import CanNode
 
 # NMT states as the heartbeat carries them
 BOOT_UP, STOPPED, OPERATIONAL, PRE_OPERATIONAL = 0x00, 0x04, 0x05, 0x7F

@@ -1,6 +1,6 @@
 """Serve emulators built by factories in a separate process (tests, and devices used without the twin).
 
-    python -m acquisition.sim.serve --run-dir DIR name=package.module:factory [name=...]
+    python -m twin.serve --run-dir DIR name=package.module:factory [name=...]
 
 Each factory is called with no arguments and returns an :class:`Emulator`. The rig (``vslab rig``) is the
 same host with the twin behind the emulators.
@@ -13,8 +13,8 @@ import importlib
 import logging
 from pathlib import Path
 
-from acquisition.sim.emulators.base import Emulator
-from acquisition.sim.ptyhost import PtyHost
+from twin.emulators.base import Emulator
+from twin.ptyhost import PtyHost
 
 
 def load_factory(spec: str) -> Emulator:

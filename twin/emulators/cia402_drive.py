@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Protocol
 
 from acquisition.codecs.can import CanFrame
-from acquisition.sim.emulators.canopen_node import CanopenNode
+from twin.emulators.canopen_node import CanopenNode
 
 CONTROLWORD, STATUSWORD, ERROR_CODE, ERROR_REGISTER = 0x6040, 0x6041, 0x603F, 0x1001
 MODE, MODE_DISPLAY, QUICK_STOP_OPTION = 0x6060, 0x6061, 0x605A
@@ -65,7 +65,7 @@ class State(enum.IntEnum):
 
 
 class DriveJoint(Protocol):
-    """The joint a drive moves: the twin's (``twin_devices.TwinJoint``)."""
+    """The joint a drive moves: the twin's (``twin.devices.TwinJoint``)."""
 
     def sense(self, t: float) -> tuple[float, float, float]:
         """(position rad, velocity rad/s, torque N·m) at rig time ``t``."""

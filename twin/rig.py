@@ -1,6 +1,6 @@
 """The rig: the digital twin run in real time behind emulators of the robot's devices, one pty each.
 
-    python -m acquisition.sim.rig --robot vsl --run-dir lab/rig      (or: vslab rig --robot vsl)
+    python -m twin.rig --robot vsl --run-dir lab/rig      (or: vslab rig --robot vsl)
 
 Drivers (and the recorder) find the ports in ``<run-dir>/ports.json``. The arm starts at its home pose with
 its links at their operating pressure, or as ``--start`` sets the bench up (``vslab run --rig`` passes the
@@ -29,18 +29,11 @@ from acquisition.codecs import dynamixel as dx
 from acquisition.codecs import popup_boards
 from acquisition.codecs.board_lines import MAX_SET_PA
 from acquisition.processes import RT_PRIORITY, die_with_parent, elevate, settle_heap
-from acquisition.sim import sensors
-from acquisition.sim.can_bus import CanBus
-from acquisition.sim.clocks import _TICK_EPS as TICK_EPS
-from acquisition.sim.emulators.aurora import AuroraEmulator
-from acquisition.sim.emulators.base import Emulator
-from acquisition.sim.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
-from acquisition.sim.emulators.cia402_drive import FAULTS, Cia402Drive
-from acquisition.sim.emulators.dynamixel import DynamixelBusEmulator
-from acquisition.sim.emulators.popup_boards import BoardNode, LinkBoard, MainBoard
-from acquisition.sim.emulators.slcan_adapter import SlcanAdapter
-from acquisition.sim.ptyhost import PtyHost
-from acquisition.sim.twin_devices import (
+from models.robot import CAN_DIR, RobotDescription, load_robot
+from twin import sensors
+from twin.can_bus import CanBus
+from twin.clocks import _TICK_EPS as TICK_EPS
+from twin.devices import (
     RecentSteps,
     TwinBoardTimer,
     TwinJoint,
@@ -50,8 +43,15 @@ from acquisition.sim.twin_devices import (
     TwinStepper,
     TwinTrackerSource,
 )
-from acquisition.sim.world import World
-from models.robot import CAN_DIR, RobotDescription, load_robot
+from twin.emulators.aurora import AuroraEmulator
+from twin.emulators.base import Emulator
+from twin.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
+from twin.emulators.cia402_drive import FAULTS, Cia402Drive
+from twin.emulators.dynamixel import DynamixelBusEmulator
+from twin.emulators.popup_boards import BoardNode, LinkBoard, MainBoard
+from twin.emulators.slcan_adapter import SlcanAdapter
+from twin.ptyhost import PtyHost
+from twin.world import World
 
 log = logging.getLogger(__name__)
 

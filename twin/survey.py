@@ -9,10 +9,10 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from acquisition.sim import sensors
-from acquisition.sim.world import World
 from models import kinematics, trajectories
 from models.robot import AnthropomorphicKinematics, RobotDescription
+from twin import sensors
+from twin.world import World
 
 PRESSURES_BAR = (0.5, 1.0, 1.5, 2.0)  # SEED: Experiment 1
 PAYLOADS_G = (0, 25, 50, 75, 100)  # SEED: Experiment 1

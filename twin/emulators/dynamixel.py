@@ -26,8 +26,8 @@ from typing import Protocol
 import numpy as np
 
 from acquisition.codecs import dynamixel as dx
-from acquisition.sim.emulators.base import Emulator
-from acquisition.sim.emulators.xm430_table import ControlTable
+from twin.emulators.base import Emulator
+from twin.emulators.xm430_table import ControlTable
 
 __all__ = ["ControlTable", "DynamixelBusEmulator", "ServoHardware", "SimpleServos", "demo_bus"]
 
@@ -297,7 +297,7 @@ class SimpleServos:
 
 
 def demo_bus() -> DynamixelBusEmulator:
-    """Two XM430s (IDs 1, 2) on the simple model, for ``python -m acquisition.sim.serve``."""
+    """Two XM430s (IDs 1, 2) on the simple model, for ``python -m twin.serve``."""
     bus = DynamixelBusEmulator([1, 2], SimpleServos())
     for table in bus.servos:  # the goal starts where the shaft is: torque-on does not jump
         table.set(dx.GOAL_POSITION, 2048)

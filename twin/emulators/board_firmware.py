@@ -20,8 +20,8 @@ import logging
 from typing import NamedTuple
 
 from acquisition.codecs import board_lines as bp
-from acquisition.sim.emulators.base import Emulator
-from acquisition.sim.emulators.board_hardware import (
+from twin.emulators.base import Emulator
+from twin.emulators.board_hardware import (
     PressureHardware,
     SimplePressureHardware,
     SimpleStepperHardware,
@@ -365,10 +365,10 @@ class StepperBoardEmulator(_LineBoard):
 
 
 def demo_pressure_board() -> PressureBoardEmulator:
-    """The pressure board on ``SimplePressureHardware`` (+1500 ppm clock), for ``acquisition.sim.serve``."""
+    """The pressure board on ``SimplePressureHardware`` (+1500 ppm clock), for ``twin.serve``."""
     return PressureBoardEmulator(SimplePressureHardware())
 
 
 def demo_stepper_board() -> StepperBoardEmulator:
-    """The stepper board on ``SimpleStepperHardware``, for ``acquisition.sim.serve``."""
+    """The stepper board on ``SimpleStepperHardware``, for ``twin.serve``."""
     return StepperBoardEmulator(SimpleStepperHardware())

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from acquisition.codecs import ndi
-from acquisition.sim.emulators.base import Emulator
+from twin.emulators.base import Emulator
 
 log = logging.getLogger(__name__)
 
@@ -257,7 +257,7 @@ def demo_sample(now_s: float) -> TrackerSample:
 
 
 def demo_emulator() -> AuroraEmulator:
-    """The demo Aurora (TX), for ``tracker=acquisition.sim.emulators.aurora:demo_emulator``."""
+    """The demo Aurora (TX), for ``tracker=twin.emulators.aurora:demo_emulator``."""
     return AuroraEmulator(demo_sample)
 
 

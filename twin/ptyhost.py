@@ -30,7 +30,7 @@ import tty
 from collections.abc import Callable
 from pathlib import Path
 
-from acquisition.sim.emulators.base import Emulator, Faults
+from twin.emulators.base import Emulator, Faults
 
 log = logging.getLogger(__name__)
 PORTS_FILE = "ports.json"

@@ -14,10 +14,10 @@ import canopen
 import numpy as np
 
 from acquisition.codecs import popup_boards
-from acquisition.sim import sensors
-from acquisition.sim.clocks import DeviceClocks, HostLinkSpec, host_receive_ns
-from acquisition.sim.kernel import Trace
 from models.robot import CAN_DIR, PressureSensorSpec, RobotDescription
+from twin import sensors
+from twin.clocks import DeviceClocks, HostLinkSpec, host_receive_ns
+from twin.kernel import Trace
 
 Stream = dict[str, np.ndarray]
 

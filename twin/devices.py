@@ -19,13 +19,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from acquisition.codecs import dynamixel as dx
-from acquisition.sim import sensors, streams
-from acquisition.sim.clocks import _TICK_EPS as TICK_EPS
-from acquisition.sim.emulators.aurora import TrackerSample
-from acquisition.sim.emulators.dynamixel import ControlTable
+from twin import sensors, streams
+from twin.clocks import _TICK_EPS as TICK_EPS
+from twin.emulators.aurora import TrackerSample
+from twin.emulators.dynamixel import ControlTable
 
 if TYPE_CHECKING:
-    from acquisition.sim.rig import Rig
+    from twin.rig import Rig
 
 # The present values a read refreshes, packed straight into the control table (what ControlTable.set writes).
 _TICK_MOVING = struct.Struct("<HB")  # Realtime Tick, Moving
