@@ -19,13 +19,14 @@ consecutive joint goals); ``check_state`` at measured samples (the runners call 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
 from acquisition.errors import AcquisitionError
-from acquisition.plans.plan import Plan
-from acquisition.schemas.events import EventKind
+from acquisition.schemas.events import Event, EventKind
 from models.prbm import collapse_moment, wrinkling_moment
 from models.robot import RobotDescription
 from models.statics import gravity_moments, static_deflection
@@ -57,6 +58,26 @@ class Violation:
 START_TOLERANCE_RAD = np.deg2rad(1.0)  # ASSUMED: a joint "at" a plan's start pose
 
 
+class CheckedPlan(Protocol):
+    """What the checks read of a plan (``acquisition.plans.plan.Plan`` is one): safety sits below the plans,
+    which call it, so it names the fields it needs instead of importing them."""
+
+    name: str
+    robot: str
+    duration_s: float
+    goal_t: np.ndarray
+    goal_q: np.ndarray
+    goal_speed: np.ndarray
+    pressure_t: np.ndarray
+    pressure_pa: np.ndarray
+    valve_open: np.ndarray
+    payload_t: np.ndarray
+    events: Sequence[tuple[float, Event]]
+    parameters: dict
+
+    def at(self, t: np.ndarray) -> dict[str, np.ndarray]: ...
+
+
 class SafetyChecker:
     """The limits of one robot, ready to check plans and measured samples."""
 
@@ -82,7 +103,7 @@ class SafetyChecker:
         self.collapse_fraction = spec.collapse_fraction if spec else 0.9
 
     # ------------------------------------------------------------------------------------------- plans
-    def check_plan(self, plan: Plan) -> list[Violation]:
+    def check_plan(self, plan: CheckedPlan) -> list[Violation]:
         """Every limit at every commanded instant of ``plan`` (static loads at rest in the commanded pose)."""
         if plan.robot != self.robot.name:
             raise ValueError(f"plan {plan.name} is for {plan.robot}, not {self.robot.name}")
@@ -105,7 +126,9 @@ class SafetyChecker:
         out += self._bending(times, full, pressure, stowed, bool(plan.parameters.get("allow_wrinkling")))
         return sorted(out, key=lambda v: v.t_s)
 
-    def _swept(self, plan: Plan, times: np.ndarray, index: np.ndarray, goal_q: np.ndarray) -> np.ndarray:
+    def _swept(
+        self, plan: CheckedPlan, times: np.ndarray, index: np.ndarray, goal_q: np.ndarray
+    ) -> np.ndarray:
         """Where the joints are at ``times`` on their way to goal ``index``: each drive at its own profile
         speed until it arrives, so a joint with less to travel arrives first and the arm passes through
         poses off the straight line between the goals (a corner that may dip out of the box); a goal without
@@ -120,14 +143,14 @@ class SafetyChecker:
         moving = (times > start)[:, None] & (end > start)[:, None]
         return np.where(moving, prev_q + np.sign(step) * travelled, goal_q)
 
-    def require_safe(self, plan: Plan) -> None:
+    def require_safe(self, plan: CheckedPlan) -> None:
         """Raise :class:`SafetyError` if ``plan`` breaks any limit."""
         violations = self.check_plan(plan)
         if violations:
             raise SafetyError(plan.name, violations)
 
     @staticmethod
-    def _goal_end(plan: Plan, index: np.ndarray) -> np.ndarray:
+    def _goal_end(plan: CheckedPlan, index: np.ndarray) -> np.ndarray:
         """When the move towards goal ``index`` is expected to end: at the next goal's time, or after the
         joint distance at the profile speed (a ``goto`` followed by a wait)."""
         nxt = np.minimum(index + 1, len(plan.goal_t) - 1)
@@ -137,7 +160,7 @@ class SafetyChecker:
         t_next = np.where(index + 1 < len(plan.goal_t), plan.goal_t[nxt], np.inf)
         return np.minimum(plan.goal_t[index] + travel, t_next)
 
-    def _moves(self, plan: Plan) -> np.ndarray:
+    def _moves(self, plan: CheckedPlan) -> np.ndarray:
         """Instants within each move, so a sweep through a forbidden pose is caught: evenly spaced, and
         when each joint arrives at its goal (the corners of a move whose drives arrive one by one)."""
         idx = np.arange(1, len(plan.goal_t))
@@ -151,7 +174,7 @@ class SafetyChecker:
         arrive = np.minimum(start[:, None] + travel, end[:, None])
         return np.clip(np.concatenate([t.ravel(), arrive.ravel()]), 0.0, plan.duration_s)
 
-    def stowed(self, plan: Plan, t: np.ndarray) -> np.ndarray:
+    def stowed(self, plan: CheckedPlan, t: np.ndarray) -> np.ndarray:
         """(n, C): the links ``plan`` holds stowed at plan times ``t``: commanded closed below the operating
         minimum at some instant since the joint goal in force at ``t`` was sent (the plan moves no joint
         while a link is stowed, so a link filling from stowed counts until the arm next moves)."""
@@ -183,7 +206,7 @@ class SafetyChecker:
             f"link channel {ch[c]} open at {pressure[i, ch[c]]:.0f} Pa < {least}" for i, c in low
         ])  # fmt: skip
 
-    def check_start(self, plan: Plan, q: np.ndarray, pressure: np.ndarray) -> list[Violation]:
+    def check_start(self, plan: CheckedPlan, q: np.ndarray, pressure: np.ndarray) -> list[Violation]:
         """What keeps ``plan`` from starting on the bench as measured (joints ``q`` (A,), link pressures
         (C,)): a plan that begins with a link stowed moves no joint before it is inflated, so each joint must
         already be within START_TOLERANCE_RAD of the first pose and each link stowed at the start deflated
@@ -285,7 +308,7 @@ class SafetyChecker:
         return out
 
 
-def _at_points(plan: Plan, violations: list[Violation]) -> list[Violation]:
+def _at_points(plan: CheckedPlan, violations: list[Violation]) -> list[Violation]:
     """``violations`` of ``plan`` naming the settled point each one is at or on the way to (a plan that
     settles at numbered points: the campaign's), so a refused point can be found and left out."""
     settled = [(t, e.index) for t, e in plan.events if e.kind == EventKind.SETTLED and e.index >= 0]

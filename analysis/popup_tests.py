@@ -19,12 +19,12 @@ import numpy as np
 import pandas as pd
 from scipy import optimize, signal
 
-from acquisition.schemas.events import EventKind
 from acquisition.storage import lab_path
 from analysis.figure_files import save_figure
 from models import prbm
 from models.robot import RobotDescription
 from pipeline.ingest import ingest_session
+from pipeline.tables import EventKind
 
 G = 9.81
 PAPER_L1_M, PAPER_L2_M = 0.030, 0.570  # seed 001 Sec. 4: PRBM body lengths of the 600 mm link

@@ -8,7 +8,8 @@ Stream tables (pandas, one per topic): ``log_time`` (int64 ns, host receive time
 then the message's fields in SI units, array fields flattened to one column per element named
 ``<field>_<i>`` (``position_0``, ``position_1``, …; order: the robot's servo ids / channels). Stages that put
 samples on the host timeline add ``t`` (float64 s since the session's first log time, ``t0_ns``).
-The events table: ``log_time``, ``kind`` (int, ``EventKind``), ``index``, ``value``, ``label``, ``text``.
+The events table: ``log_time``, ``kind`` (int, ``EventKind``, exported here: the table's readers need its
+codes and read sessions through the pipeline), ``index``, ``value``, ``label``, ``text``.
 """
 
 from __future__ import annotations
@@ -20,8 +21,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from acquisition.schemas.events import EventKind
 from acquisition.schemas.session_card import session_parameters
 from models.robot import RobotDescription
+
+__all__ = ["EVENT_COLUMNS", "EventKind", "SessionTables", "StageReport", "columns"]
 
 EVENT_COLUMNS = ("log_time", "kind", "index", "value", "label", "text")
 
