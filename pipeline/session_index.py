@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from acquisition.recorder.sessions import SessionError, SessionInfo, read_card, session_info
 from acquisition.schemas.session_card import SESSION_CARD
+from acquisition.schemas.session_files import SessionError, SessionInfo, read_card, session_info
 from acquisition.storage import lab_path, published
 
 __all__ = ["SessionError", "experiment_sessions", "read_session"]
