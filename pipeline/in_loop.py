@@ -11,12 +11,15 @@ its training rows' history. Every call is timed, so the per-step inference laten
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Mapping
 
 import numpy as np
 import pandas as pd
 
+from acquisition.plans.compensation import CompensationError
+from acquisition.plans.plan import Plan
 from models.hybrid import INVERSE_INPUTS
-from models.robot import RobotDescription
+from models.robot import RobotDescription, load_robot
 from pipeline.baselines import Baseline
 from pipeline.history import HistoryModel, HistoryState
 
@@ -72,3 +75,24 @@ class InverseModelCompensator:
         lat = np.asarray(self.latencies_s) * 1e6
         return {"calls": len(lat), "p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
                 "max": float(lat.max())}  # fmt: skip
+
+
+def learned_compensators(
+    models: Mapping[str, object],
+    robot: RobotDescription | None = None,
+    identities: Mapping[str, str | None] | None = None,
+) -> Callable[[Plan], InverseModelCompensator]:
+    """The learned half of the runners' choice (``acquisition.plans.compensation.compensator_for``): a plan
+    whose ``commands`` is a key of ``models`` ("hybrid", "history") gets a new
+    :class:`InverseModelCompensator` of that model for ``robot`` (default: the plan's robot by name),
+    recorded as ``identities[commands]``. One per plan: a history-aware one starts each session with no
+    history."""
+
+    def learned(plan: Plan) -> InverseModelCompensator:
+        mode = plan.parameters.get("commands", "ik")
+        if mode not in models:
+            raise CompensationError(f"{mode} commands need a trained inverse model")
+        description = robot if robot is not None else load_robot(plan.robot)
+        return InverseModelCompensator(models[mode], description, identity=(identities or {}).get(mode))
+
+    return learned

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.command_guard import CommandGuard, CommandRefused
-from acquisition.plans.compensation import Compensator, StaticModelCompensator
+from acquisition.plans.compensation import Compensator, compensator_for
 from acquisition.plans.plan import Plan
 from acquisition.recorder.writer import SessionWriter
 from acquisition.safety import SafetyChecker
@@ -442,7 +442,7 @@ def simulate_experiment(
         for k in range(0, len(group), benches):
             batch = group[k : k + benches]
             batches.append((robot, batch, k, f"{kind} {name} {k + 1}–{k + len(batch)}/{len(group)}"))
-    compensators = [[_compensator(p, robot, inverse_model) for p in batch] for robot, batch, _, _ in batches]
+    compensators = [[compensator_for(p, r, inverse_model) for p in batch] for r, batch, _, _ in batches]
     for (robot, batch, k, _), c in zip(batches, compensators, strict=True):  # sessions of another making on
         reusable(batch, robot, sessions_dir, seed + k, c)  # disk: refused before any is written
     reports = []
@@ -474,13 +474,3 @@ def prepare_experiment(
             if p.robot == name:
                 checker.require_safe(p)
     return robots, plans, params
-
-
-def _compensator(plan: Plan, robot: RobotDescription, inverse_model) -> Compensator | None:
-    """What turns a plan's goals into commands: nothing (model-based IK), the static model, or the network."""
-    mode = plan.parameters.get("commands", "ik")
-    if mode == "static":
-        return StaticModelCompensator(robot, plan.parameters["payload_kg"])
-    if mode in ("hybrid", "history"):
-        return inverse_model(plan)
-    return None

@@ -234,13 +234,13 @@ def load_inverse_model(version: str, lab: Path | None = None):
     _error(f"--inverse-model {version}: a {direction} model; hybrid commands need an inverse one")
 
 
-def inverse_compensator(version: str, robot_name: str, lab: Path | None = None):
-    """A registered inverse model of ``lab`` (default: the CLI's) as the runners' compensator for
-    ``robot_name`` (fails clearly)."""
-    from pipeline.in_loop import InverseModelCompensator
+def inverse_compensators(version: str, lab: Path | None = None):
+    """A registered inverse model of ``lab`` (default: the CLI's) as the runners' hybrid commands
+    (``pipeline.in_loop.learned_compensators``; fails clearly)."""
+    from pipeline.in_loop import learned_compensators
 
     model = load_inverse_model(version, lab)
-    return InverseModelCompensator(model, _robot(robot_name), identity=inverse_model_version(version, lab))
+    return learned_compensators({"hybrid": model}, identities={"hybrid": inverse_model_version(version, lab)})
 
 
 def inverse_model_version(version: str, lab: Path | None = None) -> str:

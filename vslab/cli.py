@@ -183,7 +183,7 @@ def simulate(
 
     from acquisition.recorder.sessions import staged_sessions
     from acquisition.safety import SafetyError
-    from pipeline.in_loop import InverseModelCompensator
+    from pipeline.in_loop import learned_compensators
     from twin.runner import SIM_PREFIX, prepare_experiment, simulate_experiment
 
     if benches < 1 or seed < 0:
@@ -210,9 +210,10 @@ def simulate(
     start = time.perf_counter()
     sessions_dir = Settings.lab / "sessions"
     compensators = []
+    learned = learned_compensators({"hybrid": model}, identities={"hybrid": model_version})
 
     def hybrid(plan):
-        compensators.append(InverseModelCompensator(model, _robot(plan.robot), identity=model_version))
+        compensators.append(learned(plan))
         return compensators[-1]
 
     with Progress(console=console, disable=Settings.quiet, transient=True) as bar:

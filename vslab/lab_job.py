@@ -153,15 +153,10 @@ def _train(lab: Path, dataset_version: str) -> dict[str, str]:
 def _experiment2(lab: Path, sessions: Path, inverse_version: str, seed: int, borrowed: dict):
     from pipeline.build import build
     from twin.runner import simulate_experiment
-    from vslab.app import inverse_compensator
+    from vslab.app import inverse_compensators
 
-    hybrid = {}
-
-    def compensator(plan):
-        hybrid.setdefault(plan.robot, inverse_compensator(inverse_version, plan.robot, lab))
-        return hybrid[plan.robot]
-
-    simulate_experiment("experiment2", sessions, seed=seed, inverse_model=compensator)
+    learned = inverse_compensators(inverse_version, lab)
+    simulate_experiment("experiment2", sessions, seed=seed, inverse_model=learned)
     return build(sessions_of(sessions, "experiment2"), lab, "experiment2", borrowed)
 
 
@@ -265,15 +260,11 @@ def experiment2_path_errors(study: Path, name: str, seed: int, campaign_version:
     from models.robot import load_robot
     from pipeline.build import build
     from pipeline.datasets import load_dataset
-    from pipeline.in_loop import InverseModelCompensator
+    from pipeline.in_loop import learned_compensators
     from twin.runner import simulate_experiment
 
-    description = load_robot(UNMODELLED_ROBOT)
-
-    def compensator(plan):  # one per session: the history-aware one starts each with no history
-        mode = plan.parameters["commands"]
-        return InverseModelCompensator(models[mode], description, identity=(identities or {}).get(mode))
-
+    # one per session: the history-aware one starts each with no history
+    compensator = learned_compensators(models, load_robot(UNMODELLED_ROBOT), identities)
     overrides = {"robot": UNMODELLED_ROBOT, "rigid_arm": False, "commands": commands, "repetitions": 2}
     sessions = study / name / "sessions"
     simulate_experiment("experiment2", sessions, seed=seed, overrides=overrides, inverse_model=compensator)

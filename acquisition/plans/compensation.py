@@ -13,10 +13,13 @@ Shapes: q_ik (n, A) rad, pressure_pa (n, C) Pa, current_a (n, A) A → (n, A) ra
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
 
+from acquisition.errors import AcquisitionError
+from acquisition.plans.plan import Plan
 from models import kinematics
 from models.robot import AnthropomorphicKinematics, RobotDescription
 from models.statics import servo_droop, static_deflection
@@ -25,6 +28,30 @@ from models.statics import servo_droop, static_deflection
 class Compensator(Protocol):
     def __call__(self, q_ik: np.ndarray, pressure_pa: np.ndarray, current_a: np.ndarray,
                  t_s: float | None = None) -> np.ndarray: ...  # fmt: skip
+
+
+LEARNED = ("hybrid", "history")  # commands a trained inverse model gives (``pipeline.in_loop`` builds them)
+
+
+class CompensationError(AcquisitionError, ValueError):
+    """A plan's commands cannot be given: a learned kind without a model to give them."""
+
+
+def compensator_for(
+    plan: Plan, robot: RobotDescription, learned: Callable[[Plan], Compensator] | None = None
+) -> Compensator | None:
+    """What turns ``plan``'s goals into commands, by its ``commands`` parameter: nothing (``ik``: model-based
+    IK), the static model (``static``), or ``learned(plan)`` (``hybrid``, ``history``). The one place the
+    choice is made, for the real-time and the simulated runner alike; the learned compensators come from
+    ``pipeline.in_loop.learned_compensators`` (the pipeline is above both runners, so it is passed in)."""
+    mode = plan.parameters.get("commands", "ik")
+    if mode == "static":
+        return StaticModelCompensator(robot, plan.parameters["payload_kg"])
+    if mode in LEARNED:
+        if learned is None:
+            raise CompensationError(f"{mode} commands need a trained inverse model")
+        return learned(plan)
+    return None
 
 
 class StaticModelCompensator:
