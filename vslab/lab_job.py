@@ -119,16 +119,22 @@ class MainJobError(CommandLineError):
 
 def _rig_session(lab: Path) -> None:
     """One Experiment 1 curve run in real time on the rig, recorded (skipped when already recorded): the
-    library call behind `vslab run experiment1 --plan … --rig`, the whole plan or a MainJobError."""
+    library calls behind `vslab run experiment1 --plan … --rig`, the whole plan or a MainJobError (a
+    ``PlanRunError``, ``RigError`` or ``SetupError`` where it cannot start)."""
     if any((lab / "sessions").glob("rig-*/session.json")):
         return
-    from vslab.app import Settings
-    from vslab.recording import run_plan
+    from acquisition.plans.plan_run import choose_plan, ready_plan, record_plan
+    from acquisition.recorder.setup import recording_failure
+    from twin.rig_process import rig_controls, session_devices
 
-    Settings.lab = lab  # the session goes into this lab
     overrides = {"repetitions": 1, "rest_s": 0.5, "settle_s": 1.0}
-    plan, report = run_plan("experiment1", "experiment1/curve/vsl-1bar/25g", overrides, rig=True,
-                            session="rig-experiment1-curve", say=lambda _: None)  # fmt: skip
+    plan, desc = choose_plan("experiment1", "experiment1/curve/vsl-1bar/25g", overrides)
+    compensator, session = ready_plan(plan, desc), "rig-experiment1-curve"
+    with session_devices(desc, rig_dir=lab / "rig" / session, plan=plan) as (port_map, rig_dir):
+        report, rec = record_plan(plan, desc, port_map, lab / "sessions", session, compensator,
+                                  rig_controls(rig_dir), "experiment1")  # fmt: skip
+    if failure := recording_failure(rec):
+        raise MainJobError(f"the rig session {plan.name}: {failure}")
     if report.status != "complete":
         raise MainJobError(f"the rig session {plan.name} stopped ({report.status}) after "
                            f"{report.elapsed_s:.1f} s: {report.reason}")  # fmt: skip
