@@ -63,9 +63,11 @@ def rig_process(
         [sys.executable, "-m", "twin.rig", "--robot", str(run_dir / "robot.yaml"),
          "--run-dir", str(run_dir), "--parent-pid", str(os.getpid()), *start], start_new_session=True,
     )  # fmt: skip
+    log.debug("rig for %s started in %s (pid %d)", desc.name, run_dir, proc.pid)
     try:
         yield proc
     finally:
+        log.debug("stopping the rig in %s", run_dir)
         proc.terminate()
         try:
             proc.wait(timeout=10)

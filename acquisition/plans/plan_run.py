@@ -12,7 +12,6 @@ the twin's (``twin.rig_process``), a prompt is the command line's.
 from __future__ import annotations
 
 import contextlib
-import logging
 from collections.abc import Callable, Mapping
 from contextlib import AbstractContextManager
 from pathlib import Path
@@ -26,11 +25,8 @@ from acquisition.recorder.setup import new_recorder, recording
 from acquisition.safety import SafetyChecker, SafetyError
 from models.robot import RobotDescription
 
-log = logging.getLogger(__name__)
-
-Controls = tuple[
-    Callable[[float], object] | None, Callable[[float], object] | None
-]  # (payload kg, tap N·m·s)
+Action = Callable[[float], object] | None
+Controls = tuple[Action, Action]  # (hang a payload of kg, tap the link with N·m·s)
 
 
 class PlanRunError(AcquisitionError, ValueError):
@@ -113,5 +109,4 @@ def record_plan(
                 report = RealTimeRunner(rec, plan, compensator, *controls).run()
             except (SafetyError, RunnerError) as exc:
                 raise PlanRunError(str(exc)) from None
-    log.info("%s: %s at %.1f s of %.1f s", session_id, report.status, report.elapsed_s, plan.duration_s)
     return report, rec
