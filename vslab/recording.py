@@ -19,10 +19,10 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
+from pipeline.lab import Lab
 from vslab.app import (
     HISTORY_NOT_REGISTERED,
     CommandLineError,
-    Settings,
     _error,
     _overrides,
     _robot,
@@ -30,6 +30,7 @@ from vslab.app import (
     console,
     load_inverse_model,
     local_lab,
+    options,
 )
 
 PORTS_HELP = "ports.json (or the rig's run directory) naming each device's port."
@@ -77,7 +78,7 @@ def _session_id(given: str | None, default: str) -> str:
 
 
 @contextlib.contextmanager
-def _devices(desc, ports: Path | None, rig: bool, session_id: str, plan=None):
+def _devices(desc, ports: Path | None, rig: bool, session_id: str, plan=None, lab: Lab | None = None):
     """(port map, rig run directory or None): the devices named by ``ports``, or a rig started for the
     session (stopped on exit), its bench set up as ``plan`` starts (first pose, pressures and valves) as an
     operator sets it up. Every port is checked to be a serial port before anything opens it. SIGTERM
@@ -87,7 +88,7 @@ def _devices(desc, ports: Path | None, rig: bool, session_id: str, plan=None):
         _error(f"--ports {ports} with --rig: --rig starts a rig and uses its devices; give one of them "
                "(a running rig's run directory is --ports DIR, without --rig)")  # fmt: skip
     if rig:
-        ports = Settings.lab / "rig" / session_id
+        ports = (lab or options().lab).rigs / session_id
         # the rig simulates this very description: an experiment's variant of the robot (a link made rigid,
         # joints fixed, the flange off) is what its plans expect, not the robot of the same name
         try:
@@ -204,11 +205,11 @@ def _not_a_serial_port(port: str) -> str | None:
 
 
 def _recorder(desc, port_map: dict, session_id: str, experiment: str, rates: dict, live: bool, host: str,
-              port: int, **meta):  # fmt: skip
+              port: int, lab: Lab | None = None, **meta):  # fmt: skip
     """The session's Recorder (not started) and its live view (or a null context)."""
     from acquisition.recorder.recorder import Recorder, RecorderError
 
-    directory = Settings.lab / "sessions" / session_id
+    directory = (lab or options().lab).sessions.path(session_id)
     if directory.exists() and any(directory.glob("*.mcap")):
         _error(f"session {session_id} exists already in {directory.parent}: choose another --session")
     try:
@@ -292,12 +293,12 @@ def record(
                     while (duration <= 0 or time.monotonic() - start < duration) and rec.write_error is None:
                         left = start + duration - time.monotonic() if duration > 0 else 0.5
                         time.sleep(min(0.5, max(0.0, left)))
-                        if not Settings.quiet:
+                        if not options().quiet:
                             counters.update(_counter_table(rec.snapshot(), time.monotonic() - start))
                 except KeyboardInterrupt:
                     pass
                 recorded_s = time.monotonic() - start
-    if not Settings.quiet and rec.final is not None:
+    if not options().quiet and rec.final is not None:
         console.print(_counter_table(rec.final, recorded_s, title=f"recorded {recorded_s:.1f} s"))
     _finish(rec)
 
@@ -344,17 +345,19 @@ class PlanRunError(CommandLineError):
 def run_plan(experiment: str, plan: str = "0", overrides: dict | None = None, *, ports: Path | None = None,
              rig: bool = False, session: str | None = None, inverse_model: str | None = None,
              rates: list[str] | None = None, live: bool = False, live_host: str = "127.0.0.1",
-             live_port: int = 8765, say=console.print):  # fmt: skip
+             live_port: int = 8765, say=console.print, lab: Lab | None = None):  # fmt: skip
     """One plan of ``experiment`` (by name or number) run in real time on the devices named by ``ports`` (or
     on a rig started for it) while recording it: ``(plan, RunReport)``. The library form of `vslab run`
-    (the main job calls it); what cannot be run is a :class:`PlanRunError`, checked before anything starts."""
+    (the main job calls it, with its ``lab``; the CLI's by default); what cannot be run is a
+    :class:`PlanRunError`, checked before anything starts."""
     from acquisition.plans.compensation import StaticModelCompensator
     from acquisition.plans.experiments import expand_experiment
     from acquisition.plans.rt_runner import RealTimeRunner, RunnerError
     from acquisition.safety import SafetyChecker, SafetyError
     from pipeline.in_loop import InverseModelCompensator
 
-    model = None if inverse_model is None else load_inverse_model(inverse_model)  # checked, whatever the plan
+    models = None if lab is None else lab.models
+    model = None if inverse_model is None else load_inverse_model(inverse_model, models)  # whatever the plan
     try:
         robots, plans, _ = expand_experiment(experiment, overrides)
     except (ValueError, OSError) as exc:  # ExperimentError, RobotDescriptionError, an unreachable path
@@ -386,11 +389,11 @@ def run_plan(experiment: str, plan: str = "0", overrides: dict | None = None, *,
         raise PlanRunError(HISTORY_NOT_REGISTERED)
     session_id = _session_id(session, time.strftime("%Y%m%d-%H%M%S-") + the_plan.name.replace("/", "-"))
     say(f"{the_plan.name}: {the_plan.duration_s:.1f} s on {desc.name}")
-    with _devices(desc, ports, rig, session_id, the_plan) as (port_map, rig_dir):
+    with _devices(desc, ports, rig, session_id, the_plan, lab) as (port_map, rig_dir):
         on_payload, on_tap = _operator(rig_dir if rig else None)
         name = the_plan.parameters.get("experiment", experiment)
         rec, view = _recorder(desc, port_map, session_id, name, device_rates, live, live_host, live_port,
-                              plan=the_plan.name, runner="real-time",
+                              lab=lab, plan=the_plan.name, runner="real-time",
                               parameters=the_plan.parameters)  # fmt: skip
         with view as live_server:
             rec.live = live_server

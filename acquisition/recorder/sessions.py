@@ -34,7 +34,7 @@ from acquisition.schemas.session_card import (
     readable_parts,
     schema_version,
 )
-from acquisition.storage import LabPath, is_local, lab_path, upload
+from acquisition.storage import LabPath, as_path, is_local, published, upload
 
 log = logging.getLogger(__name__)
 
@@ -46,7 +46,7 @@ class SessionError(AcquisitionError, ValueError):
     (what is wrong) and ``hint`` (what to do), said in one line."""
 
     def __init__(self, path: str | Path, reason: str, hint: str = "") -> None:
-        self.path, self.reason, self.hint = lab_path(path), reason, hint
+        self.path, self.reason, self.hint = as_path(path), reason, hint
         super().__init__(f"{path}: {reason}" + (f"; {hint}" if hint else ""))
 
 
@@ -54,10 +54,10 @@ def read_card(directory: Path) -> dict:
     """A session's ``session.json`` as a dict; ``SessionError`` when it is missing, empty, not JSON
     (truncated, garbled) or lacks the fields every session has (robot, experiment). A version-1 card is
     read with the current keys (``session_card.as_current``)."""
-    path = lab_path(directory) / SESSION_CARD
-    aside = f"move the folder out of {lab_path(directory).parent} (or restore session.json from a backup)"
+    path = as_path(directory) / SESSION_CARD
+    aside = f"move the folder out of {as_path(directory).parent} (or restore session.json from a backup)"
     if not path.is_file():
-        raise SessionError(lab_path(directory), f"not a recorded session: no {SESSION_CARD}", aside)
+        raise SessionError(as_path(directory), f"not a recorded session: no {SESSION_CARD}", aside)
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -138,7 +138,7 @@ def session_info(directory: Path) -> SessionInfo:
     """What a session holds, from its ``session.json`` and its parts' summaries. ``SessionError`` when the
     folder is not a readable session; a torn part (no readable summary or indexes) is not an error: it is
     listed in ``torn`` (``recover_session`` mends it)."""
-    directory = lab_path(directory)
+    directory = as_path(directory)
     if not directory.is_dir():
         raise SessionError(directory, "no such session folder")
     card = read_card(directory)
@@ -216,7 +216,7 @@ def _add_counters(info: SessionInfo, counters: object, card: Path) -> None:
 def list_sessions(sessions_dir: Path) -> list[SessionInfo]:
     """Every folder under ``sessions_dir``, by id: readable sessions, and the others with ``problem`` saying
     why they are not (a bad session never hides the rest)."""
-    sessions_dir = lab_path(sessions_dir)
+    sessions_dir = as_path(sessions_dir)
     if not sessions_dir.is_dir():
         return []
     out = []
@@ -257,7 +257,7 @@ def publish_session(directory: Path, sessions_root: LabPath) -> bool:
     published (:func:`check_publishable`); False where the lab already holds it (a session is never
     replaced: raw sessions are immutable)."""
     check_publishable(directory)
-    final = lab_path(sessions_root) / directory.name
+    final = as_path(sessions_root) / directory.name
     if (final / SESSION_CARD).is_file():
         return False
     if is_local(final):
@@ -289,3 +289,61 @@ def staged_sessions(sessions_root: LabPath, pattern: str = "*") -> Iterator[Path
                     publish_session(d, sessions_root)
                 except SessionError as exc:
                     log.warning("not published: %s", exc)
+
+
+@dataclass(frozen=True)
+class SessionStore:
+    """The sessions of one lab: ``root`` holds one folder per session, on a local folder or a store
+    (``pipeline.lab.Lab`` makes it with its ``sessions/``). The recorder and the twin write sessions through
+    it and the pipeline reads them, so none of them joins the store's name to a path. Picklable (it holds
+    its root only)."""
+
+    root: LabPath
+
+    def path(self, session_id: str) -> LabPath:
+        """The folder of session ``session_id`` (whether or not it exists)."""
+        return self.root / session_id
+
+    def list(self) -> list[SessionInfo]:
+        """Every session, readable or not (:func:`list_sessions`)."""
+        return list_sessions(self.root)
+
+    def info(self, directory: LabPath) -> SessionInfo:
+        """What one session holds (:func:`session_info`)."""
+        return session_info(directory)
+
+    def card(self, directory: LabPath) -> dict:
+        """One session's ``session.json`` (:func:`read_card`)."""
+        return read_card(directory)
+
+    def recover(self, directory: LabPath) -> list[RecoveryReport]:
+        """Mend every torn part of one session (:func:`recover_session`)."""
+        return recover_session(directory)
+
+    def publish(self, directory: Path) -> bool:
+        """Publish the local session ``directory`` into this store (:func:`publish_session`)."""
+        return publish_session(directory, self.root)
+
+    def staged(self, pattern: str = "*"):
+        """A local folder to write sessions for this store into (:func:`staged_sessions`)."""
+        return staged_sessions(self.root, pattern)
+
+    def select(
+        self, experiment: str, runner: str | None = None, pattern: str = "*"
+    ) -> tuple[list[LabPath], dict[str, str]]:
+        """The session folders matching ``pattern`` of ``experiment`` ("all": every one), of ``runner``
+        ("simulated", "real-time") if given, in name order; and the folders that are not readable sessions,
+        each with why."""
+        selected, bad = [], {}
+        for d in sorted(self.root.glob(pattern)):
+            if not d.is_dir() or d.name.startswith(".") or not published(d, SESSION_CARD):
+                continue  # not a folder; hidden; on a store, a session still being uploaded
+            try:
+                card = read_card(d)
+            except SessionError as exc:
+                bad[d.name] = str(exc)
+                continue
+            wanted = experiment == "all" or card["experiment"] == experiment
+            if wanted and runner in (None, card.get("runner")):
+                selected.append(d)
+        return selected, bad
