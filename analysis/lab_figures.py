@@ -20,7 +20,7 @@ from analysis import diagnostics
 from analysis.report import Report
 from pipeline.lab import Lab
 from pipeline.registry import FORWARD, LAB_TAGS
-from pipeline.session_index import SessionError, read_session
+from pipeline.session_index import SessionError
 
 log = logging.getLogger(__name__)
 
@@ -247,7 +247,7 @@ def realtime_sessions(lab: Lab) -> pd.DataFrame:
         log.warning("left out of the real-time sessions: %s", why)
     for directory in selected:
         try:
-            meta, info = read_session(directory)
+            meta, info = lab.sessions.card(directory), lab.sessions.info(directory)
         except SessionError as exc:
             log.warning("left out of the real-time sessions: %s", exc)
             continue

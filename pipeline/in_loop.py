@@ -11,6 +11,7 @@ its training rows' history. Every call is timed, so the per-step inference laten
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -19,6 +20,10 @@ from models.hybrid import INVERSE_INPUTS
 from models.robot import RobotDescription
 from pipeline.baselines import Baseline
 from pipeline.history import HistoryModel, HistoryState
+
+if TYPE_CHECKING:
+    from pipeline.exports import OnnxModel
+    from pipeline.lab import ModelStore
 
 
 class InverseModelCompensator:
@@ -72,3 +77,26 @@ class InverseModelCompensator:
         lat = np.asarray(self.latencies_s) * 1e6
         return {"calls": len(lat), "p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
                 "max": float(lat.max())}  # fmt: skip
+
+
+def registered_inverse(models: ModelStore, version: str) -> tuple[OnnxModel, str]:
+    """(model, full version id) of the registered inverse network ``version`` (a tag or a unique prefix) of
+    ``models`` as the control loop runs it: its ONNX export on ONNX Runtime, every file checked against its
+    card first. FileNotFoundError for an unknown version; ValueError for an ambiguous, damaged or forward
+    one, or one saved without an ONNX export."""
+    from pipeline.registry import load_card, load_onnx
+
+    path = models.find(version)
+    direction = load_card(path)["net"].get("direction")
+    if direction != "inverse":
+        raise ValueError(f"a {direction} model; hybrid commands need an inverse one")
+    return load_onnx(path), path.name
+
+
+def registered_compensator(models: ModelStore, version: str, robot_name: str) -> InverseModelCompensator:
+    """The registered inverse network ``version`` of ``models`` as the runners' compensator for the robot
+    ``robot_name``, recording the model's full version id in the sessions it drives."""
+    from models.robot import load_robot
+
+    model, identity = registered_inverse(models, version)
+    return InverseModelCompensator(model, load_robot(robot_name), identity=identity)

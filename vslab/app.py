@@ -231,26 +231,12 @@ def load_inverse_model(version: str, models: ModelStore | None = None):
     """The registered inverse network ``version`` of ``models`` (default: the CLI's lab's) as the control
     loop runs it: its ONNX export on ONNX Runtime (``predict``), every file checked against its card first. An
     unknown, ambiguous, damaged or forward model, or one saved without an ONNX export, is one error line."""
-    from pipeline.registry import load_card, load_onnx
+    from pipeline.in_loop import registered_inverse
 
     try:
-        path = (models or options().lab.models).find(version)
-        direction = load_card(path)["net"].get("direction")
-        if direction == "inverse":
-            return load_onnx(path)
-    except (FileNotFoundError, ValueError) as exc:  # unknown; ambiguous; damaged (ModelIntegrityError)
+        return registered_inverse(models or options().lab.models, version)[0]
+    except (FileNotFoundError, ValueError) as exc:  # unknown, ambiguous, damaged, forward
         _error(f"--inverse-model {version}: {exc}")
-    _error(f"--inverse-model {version}: a {direction} model; hybrid commands need an inverse one")
-
-
-def inverse_compensator(version: str, robot_name: str, models: ModelStore | None = None):
-    """A registered inverse model of ``models`` (default: the CLI's lab's) as the runners' compensator for
-    ``robot_name`` (fails clearly)."""
-    from pipeline.in_loop import InverseModelCompensator
-
-    model = load_inverse_model(version, models)
-    identity = inverse_model_version(version, models)
-    return InverseModelCompensator(model, _robot(robot_name), identity=identity)
 
 
 def inverse_model_version(version: str, models: ModelStore | None = None) -> str:

@@ -24,12 +24,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pipeline.lab import Lab
-from pipeline.registry import INVERSE
+from pipeline.registry import INVERSE, LAB_TAGS
 from pipeline.session_index import sessions_of
 from pipeline.unmodelled import STUDY, STUDY_QUICK
 from vslab.app import CommandLineError
 
 QUICK = {"campaign": {"points": 4000}, "experiment1": {"repetitions": 3}}  # --quick: a smaller lab
+LAB_GRID = Path(__file__).resolve().parents[1] / "configs" / "train" / "lab.yaml"  # the networks it trains
 
 
 def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None] = print,
@@ -37,7 +38,12 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     """Run every step into ``lab``; returns the report's path. ``batch_priority``: this process runs the
     steps after the real-time session at a batch priority (the CLI's choice; a caller that goes on with other
     work, a test run, keeps its own)."""
+    from analysis.lab_figures import all_figures, lab_report
+    from analysis.vsl_paths import path_errors
     from pipeline.build import build
+    from pipeline.grid import load_grid, run_grid
+    from pipeline.in_loop import registered_compensator
+    from pipeline.unmodelled import unmodelled_study
     from twin.runner import simulate_experiment
 
     timings: dict[str, float] = {}
@@ -70,24 +76,30 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     build(sessions_of(lab.sessions, "experiment1", runner="simulated"), lab, "experiment1", borrowed)
     done("datasets")
 
-    step("training")
-    models = _train(lab, campaign.version)
+    step("training")  # the grid's forward and inverse networks on the campaign (existing versions skipped)
+    grid = load_grid(LAB_GRID, {"datasets": [f"campaign@{campaign.version}"]})
+    trained = {r["name"]: r["version"] for r in run_grid(lab, grid)}
+    for tag, model in LAB_TAGS.items():  # the figures and Experiment 2 find them by these tags
+        lab.models.tag(tag, trained[model])
     done("training")
 
     step("Experiment 2 with the trained inverse model")
-    _experiment2(lab, models[INVERSE], seed, borrowed)
+    hybrid = {}  # one compensator per robot, made when its first plan asks
+
+    def compensator(plan):
+        if plan.robot not in hybrid:
+            hybrid[plan.robot] = registered_compensator(lab.models, trained[LAB_TAGS[INVERSE]], plan.robot)
+        return hybrid[plan.robot]
+
+    simulate_experiment("experiment2", lab.sessions, seed=seed, inverse_model=compensator)
+    build(sessions_of(lab.sessions, "experiment2"), lab, "experiment2", borrowed)
     done("Experiment 2 with the trained inverse model")
 
     step("unmodelled effects: every model beside the floor")
-    from analysis.vsl_paths import path_errors
-    from pipeline.unmodelled import unmodelled_study
-
     unmodelled_study(lab, seed, **(STUDY_QUICK if quick else STUDY), score=path_errors)
     done("unmodelled effects: every model beside the floor")
 
     step("figures and report")
-    from analysis.lab_figures import all_figures, lab_report
-
     results = all_figures(lab)
     done("figures and report")
     report = lab_report(lab, results, timings)
@@ -115,34 +127,3 @@ def _rig_session(lab: Lab) -> None:
     if report.status != "complete":
         raise MainJobError(f"the rig session {plan.name} stopped ({report.status}) after "
                            f"{report.elapsed_s:.1f} s: {report.reason}")  # fmt: skip
-
-
-def _train(lab: Lab, dataset_version: str) -> dict[str, str]:
-    """The grid's forward and inverse networks on the campaign; returns the versions the figures use."""
-    from pipeline import registry
-    from pipeline.grid import load_grid, run_grid
-
-    grid = load_grid(
-        Path(__file__).resolve().parents[1] / "configs" / "train" / "lab.yaml",
-        {"datasets": [f"campaign@{dataset_version}"]},
-    )
-    results = run_grid(lab, grid)
-    by_name = {r["name"]: r["version"] for r in results}
-    for name, model in registry.LAB_TAGS.items():  # the figures and Experiment 2 find them by these tags
-        lab.models.tag(name, by_name[model])
-    return {name: by_name[model] for name, model in registry.LAB_TAGS.items()}
-
-
-def _experiment2(lab: Lab, inverse_version: str, seed: int, borrowed: dict):
-    from pipeline.build import build
-    from twin.runner import simulate_experiment
-    from vslab.app import inverse_compensator
-
-    hybrid = {}
-
-    def compensator(plan):
-        hybrid.setdefault(plan.robot, inverse_compensator(inverse_version, plan.robot, lab.models))
-        return hybrid[plan.robot]
-
-    simulate_experiment("experiment2", lab.sessions, seed=seed, inverse_model=compensator)
-    return build(sessions_of(lab.sessions, "experiment2"), lab, "experiment2", borrowed)

@@ -50,14 +50,14 @@ class SessionError(AcquisitionError, ValueError):
         super().__init__(f"{path}: {reason}" + (f"; {hint}" if hint else ""))
 
 
-def read_card(directory: Path) -> dict:
+def read_card(directory: LabPath) -> dict:
     """A session's ``session.json`` as a dict; ``SessionError`` when it is missing, empty, not JSON
     (truncated, garbled) or lacks the fields every session has (robot, experiment). A version-1 card is
     read with the current keys (``session_card.as_current``)."""
-    path = as_path(directory) / SESSION_CARD
-    aside = f"move the folder out of {as_path(directory).parent} (or restore session.json from a backup)"
+    path = directory / SESSION_CARD
+    aside = f"move the folder out of {directory.parent} (or restore session.json from a backup)"
     if not path.is_file():
-        raise SessionError(as_path(directory), f"not a recorded session: no {SESSION_CARD}", aside)
+        raise SessionError(directory, f"not a recorded session: no {SESSION_CARD}", aside)
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -134,11 +134,10 @@ class SessionInfo:
         return sum(s.lost for s in self.streams.values())
 
 
-def session_info(directory: Path) -> SessionInfo:
+def session_info(directory: LabPath) -> SessionInfo:
     """What a session holds, from its ``session.json`` and its parts' summaries. ``SessionError`` when the
     folder is not a readable session; a torn part (no readable summary or indexes) is not an error: it is
     listed in ``torn`` (``recover_session`` mends it)."""
-    directory = as_path(directory)
     if not directory.is_dir():
         raise SessionError(directory, "no such session folder")
     card = read_card(directory)
@@ -213,10 +212,9 @@ def _add_counters(info: SessionInfo, counters: object, card: Path) -> None:
         raise SessionError(card, f"bad 'counters' ({exc})", "restore session.json from a backup") from exc
 
 
-def list_sessions(sessions_dir: Path) -> list[SessionInfo]:
+def list_sessions(sessions_dir: LabPath) -> list[SessionInfo]:
     """Every folder under ``sessions_dir``, by id: readable sessions, and the others with ``problem`` saying
     why they are not (a bad session never hides the rest)."""
-    sessions_dir = as_path(sessions_dir)
     if not sessions_dir.is_dir():
         return []
     out = []
@@ -257,7 +255,7 @@ def publish_session(directory: Path, sessions_root: LabPath) -> bool:
     published (:func:`check_publishable`); False where the lab already holds it (a session is never
     replaced: raw sessions are immutable)."""
     check_publishable(directory)
-    final = as_path(sessions_root) / directory.name
+    final = sessions_root / directory.name
     if (final / SESSION_CARD).is_file():
         return False
     if is_local(final):
