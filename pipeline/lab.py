@@ -18,16 +18,17 @@ import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
-from acquisition.recorder.sessions import SessionStore
 from acquisition.storage import LabPath, StoreError, check_store, is_local, lab_path
 
-if TYPE_CHECKING:  # imported where used: opening a lab (every command does) needs neither torch nor pandas
+if TYPE_CHECKING:  # imported where used: opening a lab (every command does) needs neither torch, pandas
+    # nor the sessions' readers
     import numpy as np
     import pandas as pd
 
+    from acquisition.recorder.sessions import SessionStore
     from pipeline.cache import StageCache
 
-__all__ = ["ComparisonStore", "DatasetStore", "Lab", "ModelStore", "SessionStore", "StoreError"]
+__all__ = ["ComparisonStore", "DatasetStore", "Lab", "ModelStore", "StoreError"]
 
 
 def _datasets():
@@ -170,6 +171,8 @@ class Lab:
 
     @property
     def sessions(self) -> SessionStore:
+        from acquisition.recorder.sessions import SessionStore
+
         return SessionStore(self.root / "sessions")
 
     @property
