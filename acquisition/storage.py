@@ -67,6 +67,12 @@ def lab_path(where: str | os.PathLike) -> LabPath:
         raise StoreError(f"{text}: cannot open this store ({_first_line(exc)}; {hint})") from None
 
 
+def as_path(path: str | os.PathLike) -> LabPath:
+    """A file or folder a reader was given: a ``Path`` or ``UPath`` as it is, text as a local ``Path``. (A
+    lab's root and its stores come from ``pipeline.lab.Lab``, which opens URLs; a reader never does.)"""
+    return path if isinstance(path, UPath | Path) else Path(os.fspath(path))
+
+
 def is_local(path: LabPath) -> bool:
     """Is ``path`` on this computer's file system (rename is atomic there)?"""
     return isinstance(path, Path)

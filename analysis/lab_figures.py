@@ -1,8 +1,9 @@
 """Every figure and table of a lab directory, from its newest datasets and models (or named versions), and the
 report page that gathers them. Each figure records which versions it used (``<figure>.json`` beside it).
 
-    results = all_figures(Path("lab"))      # writes lab/figures/
-    page = lab_report(Path("lab"), results)  # writes lab/report/index.html
+    lab = Lab.open("lab")
+    results = all_figures(lab)      # writes lab.figures
+    page = lab_report(lab, results)  # writes lab.report / "index.html"
 """
 
 from __future__ import annotations
@@ -14,12 +15,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from acquisition.storage import lab_path, local_folder, upload
 from analysis import diagnostics
 from analysis.report import Report
-from pipeline.datasets import load_dataset
+from pipeline.lab import Lab, LabPath, local_folder, upload
 from pipeline.registry import FORWARD, LAB_TAGS
-from pipeline.session_index import SessionError, experiment_sessions, read_session
+from pipeline.session_index import SessionError
 
 log = logging.getLogger(__name__)
 
@@ -33,23 +33,19 @@ class Results:
     texts: dict[str, str] = field(default_factory=dict)  # table key → what the section says about it
 
 
-def tagged_model(lab: Path, tag: str) -> tuple[str, Path] | None:
+def tagged_model(lab: Lab, tag: str) -> tuple[str, LabPath] | None:
     """(version, directory) of the model the registry's ``tag`` names (``pipeline.registry.LAB_TAGS``: the
     main job's), or None where no such tag is set."""
-    from pipeline.registry import find, tags
-
-    root = lab_path(lab) / "models"
-    if tag not in tags(root):
+    if tag not in lab.models.tags():
         return None
-    path = find(root, tag)
+    path = lab.models.find(tag)
     return path.name, path
 
 
-def all_figures(lab: Path, out: Path | None = None) -> Results:
+def all_figures(lab: Lab, out: LabPath | None = None) -> Results:
     """Make every figure that the lab's data allow; what cannot be made is listed with its reason. On a
     store the figures are drawn into a local folder, then uploaded (each figure's record after its files)."""
-    lab = lab_path(lab)
-    out = lab_path(out or lab / "figures")
+    out = out or lab.figures
     with local_folder(out) as folder:
         res = _all_figures(lab, folder)
         if folder != out:
@@ -58,14 +54,14 @@ def all_figures(lab: Path, out: Path | None = None) -> Results:
     return res
 
 
-def _all_figures(lab: Path, out: Path) -> Results:
+def _all_figures(lab: Lab, out: Path) -> Results:
     res = Results()
     datasets = {}
     for name in ("campaign", "experiment1", "experiment2"):
         try:
-            data, card = load_dataset(lab / "datasets", name)
+            data, card = lab.datasets.load(name)
             trajectories = (
-                load_dataset(lab / "datasets", name, card["version"], table="trajectories")[0]
+                lab.datasets.load(name, card["version"], table="trajectories")[0]
                 if card["counts"].get("rows_trajectories") else None
             )  # fmt: skip
             datasets[name] = (data, trajectories, card)
@@ -89,11 +85,11 @@ def _all_figures(lab: Path, out: Path) -> Results:
     return res
 
 
-def _unmodelled(lab: Path, res: Results) -> None:
+def _unmodelled(lab: Lab, res: Results) -> None:
     """The comparison the main job made on the twin with its unmodelled effects (``pipeline.comparison``)."""
     from pipeline.comparison import INPUTS, UNMODELLED, load_comparison, wide_tables
 
-    path = lab / UNMODELLED
+    path = lab.comparisons.path(UNMODELLED)
     if not path.exists():
         res.missing["unmodelled effects"] = f"no comparison at {path} (the main job makes it)"
         return
@@ -109,7 +105,7 @@ def _unmodelled(lab: Path, res: Results) -> None:
         res.versions[f"dataset {name}, vsl_unmodelled"] = version
 
 
-def _models(lab: Path, datasets: dict, res: Results, out: Path) -> None:
+def _models(lab: Lab, datasets: dict, res: Results, out: Path) -> None:
     from pipeline import baselines
     from pipeline.registry import load_card
     from pipeline.train import evaluate_rigid
@@ -207,11 +203,11 @@ def _experiment2(datasets: dict, res: Results, out: Path) -> None:
     res.tables["Experiment 2: distance to the desired path (mm)"] = vsl_paths.path_errors(data)
 
 
-def _popup(lab: Path, res: Results, out: Path) -> None:
+def _popup(lab: Lab, res: Results, out: Path) -> None:
     from analysis import popup_tests
 
-    static, _ = experiment_sessions(lab / "sessions", "popup_static", runner="simulated")
-    impact, _ = experiment_sessions(lab / "sessions", "popup_impact", runner="simulated")
+    static, _ = lab.sessions.select("popup_static", runner="simulated")
+    impact, _ = lab.sessions.select("popup_impact", runner="simulated")
     curves = popup_tests.link_static_curves(static)
     fig = popup_tests.figure7(curves, out)
     assert fig, "no static curves to plot"
@@ -241,16 +237,16 @@ def _popup(lab: Path, res: Results, out: Path) -> None:
     )  # fmt: skip
 
 
-def realtime_sessions(lab: Path) -> pd.DataFrame:
+def realtime_sessions(lab: Lab) -> pd.DataFrame:
     """The sessions recorded in real time (through the devices' drivers: the rig or hardware), one row per
     stream: messages, rate and drops, read from the MCAP summaries; empty when there are none."""
     rows = []
-    selected, bad = experiment_sessions(lab_path(lab) / "sessions", "all", runner="real-time")
+    selected, bad = lab.sessions.select("all", runner="real-time")
     for why in bad.values():  # a damaged session is left out of the table, and named
         log.warning("left out of the real-time sessions: %s", why)
     for directory in selected:
         try:
-            meta, info = read_session(directory)
+            meta, info = lab.sessions.card(directory), lab.sessions.info(directory)
         except SessionError as exc:
             log.warning("left out of the real-time sessions: %s", exc)
             continue
@@ -264,14 +260,14 @@ def realtime_sessions(lab: Path) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=columns).set_index(["session", "topic"])
 
 
-def _realtime(lab: Path, res: Results) -> None:
+def _realtime(lab: Lab, res: Results) -> None:
     table = realtime_sessions(lab)
     if len(table):
         res.tables["real-time sessions"] = table
 
 
-def lab_report(lab: Path, res: Results, timings: dict[str, float] | None = None) -> Path:
-    """``<lab>/report/index.html`` from the figures and tables of :func:`all_figures`."""
+def lab_report(lab: Lab, res: Results, timings: dict[str, float] | None = None) -> LabPath:
+    """``lab.report / "index.html"`` from the figures and tables of :func:`all_figures`."""
     page = Report("vslab: the lab on its digital twin")
     overview = pd.DataFrame({"version": res.versions}) if res.versions else pd.DataFrame()
     tables = {"what the figures were made from": overview}
@@ -286,7 +282,7 @@ def lab_report(lab: Path, res: Results, timings: dict[str, float] | None = None)
         text = "\n\n".join(v for k, v in res.texts.items() if k in table_keys)
         if figures or tables:
             page.section(title, text=text, figures=figures, tables=tables)
-    return page.write(lab_path(lab) / "report" / "index.html")
+    return page.write(lab.report / "index.html")
 
 
 OVERVIEW = """Everything on this page was produced on the digital twin by vslab's main job: sessions recorded

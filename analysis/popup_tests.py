@@ -19,7 +19,6 @@ import numpy as np
 import pandas as pd
 from scipy import optimize, signal
 
-from acquisition.storage import lab_path
 from analysis.figure_files import save_figure
 from models import prbm
 from models.robot import RobotDescription
@@ -109,7 +108,7 @@ def link_static_curves(sessions: list[Path], link: str = "link2", arm_m: float |
     """Mean (and std over the repetitions) static characteristic per pressure, branch and load: τ, δ, v.
 
     Rows are in test order (loading up, unloading down); ``attrs['sources']`` names the sessions used."""
-    holds = pd.concat([static_holds(lab_path(s), link, arm_m) for s in sessions], ignore_index=True)
+    holds = pd.concat([static_holds(s, link, arm_m) for s in sessions], ignore_index=True)
     holds["order"] = holds.groupby(["pressure_pa", "rep"]).cumcount()
     keys = ["pressure_pa", "branch", "load_kg"]
     g = holds.groupby(keys, sort=False)
@@ -216,7 +215,7 @@ def impact_taps(directory: Path) -> pd.DataFrame:
 
 def impact_parameters(sessions: list[Path]) -> pd.DataFrame:
     """Per pressure: mean and std over taps of the damped frequency f_s [Hz] and damping ratio ζ."""
-    taps = pd.concat([impact_taps(lab_path(s)) for s in sessions], ignore_index=True)
+    taps = pd.concat([impact_taps(s) for s in sessions], ignore_index=True)
     out = taps.groupby("pressure_pa").agg(
         f_s_hz=("f_s_hz", "mean"), f_s_std_hz=("f_s_hz", "std"),
         zeta=("zeta", "mean"), zeta_std=("zeta", "std"), taps=("tap", "count"),

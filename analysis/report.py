@@ -3,7 +3,7 @@ papers' numbers beside ours.
 
     page = Report("vslab — twin run of 2026-11-23")
     page.section("Experiment 2", text="…", figures=[png], tables={"error (mm)": df}, cards={"model": card})
-    page.write(lab / "report" / "index.html")
+    page.write(lab.report / "index.html")  # lab: a pipeline.lab.Lab
 
 Everything is inlined (images as data URIs, no scripts, no fonts fetched): the file can be mailed or archived.
 """
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from acquisition.storage import is_local, lab_path
+from pipeline.lab import LabPath, is_local
 
 STYLE = """
 body { font: 15px/1.45 system-ui, sans-serif; max-width: 1100px; margin: 2em auto; padding: 0 1em; }
@@ -69,15 +69,14 @@ class Report:
                 body.append(f"<h3>{html.escape(name)}</h3>")
                 body.append(_table(table))
             for png in s.figures:
-                body.append(_figure(lab_path(png), base))
+                body.append(_figure(png, base))
             for name, card in s.cards.items():
                 pretty = html.escape(json.dumps(card, indent=1, default=str))
                 body.append(f"<details><summary>{html.escape(name)}</summary><pre>{pretty}</pre></details>")
         head = f'<meta charset="utf-8"><title>{html.escape(self.title)}</title><style>{STYLE}</style>'
         return f"<!doctype html>\n<html><head>{head}</head><body>\n" + "\n".join(body) + "\n</body></html>\n"
 
-    def write(self, path: Path) -> Path:
-        path = lab_path(path)
+    def write(self, path: LabPath) -> LabPath:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(self.html(path.parent), encoding="utf-8")
         return path

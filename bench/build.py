@@ -16,7 +16,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from acquisition.recorder.sessions import SessionStore
 from pipeline.build import build
+from pipeline.lab import Lab
 from twin.runner import simulate_experiment
 
 
@@ -25,7 +27,9 @@ def end_to_end(points: int, benches: int, workers: int) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         lab = Path(tmp)
         start = time.perf_counter()
-        simulate_experiment("campaign", lab / "sessions", benches=benches, overrides={"points": points})
+        simulate_experiment(
+            "campaign", SessionStore(lab / "sessions"), benches=benches, overrides={"points": points}
+        )
         sessions = sorted((lab / "sessions").iterdir())
         size = sum(p.stat().st_size for p in lab.rglob("*.mcap")) / 2**20
         print(f"end to end: campaign of {points:,} points in {len(sessions)} sessions, {size:.0f} MiB "
@@ -33,7 +37,7 @@ def end_to_end(points: int, benches: int, workers: int) -> None:
         for label, params in (("cold", {}), ("warm", {}), ("new split seed", {"splits": {"seed": 1}})):
             with cf.ProcessPoolExecutor(workers) as pool:
                 start = time.perf_counter()
-                report = build(sessions, lab, "campaign", params, executor=pool)
+                report = build(sessions, Lab(lab), "campaign", params, executor=pool)
                 wall = time.perf_counter() - start
             print(f"  build {label:<15} {wall:7.1f} s  {report.rows:6,d} rows  built={report.built!s:<5}  "
                   f"cached {report.cached}/{len(sessions)}  failed {len(report.failed)}")  # fmt: skip

@@ -22,9 +22,11 @@ from pathlib import Path
 
 import yaml
 
+from acquisition.recorder.sessions import SessionStore
 from pipeline.build import build
 from pipeline.cluster import cluster_executor, local_cluster
 from pipeline.grid import load_grid, run_grid
+from pipeline.lab import Lab
 from twin.runner import simulate_experiment
 
 PRESETS = ("small-residual", "paper")
@@ -52,10 +54,10 @@ def run(workers: int, root: Path, sessions: list[Path], grid: Path) -> dict:
     (lab / "sessions").symlink_to(sessions[0].parent)
     with local_cluster(workers, port=0) as cluster, cluster_executor(cluster.scheduler_address) as executor:
         start = time.perf_counter()
-        report = build(sessions, lab, "campaign", executor=executor)
+        report = build(sessions, Lab(lab), "campaign", executor=executor)
         build_s = time.perf_counter() - start
         start = time.perf_counter()
-        results = run_grid(lab, load_grid(grid), executor=executor, threads=1)
+        results = run_grid(Lab(lab), load_grid(grid), executor=executor, threads=1)
         grid_s = time.perf_counter() - start
     train_s = sum(r["train_time_s"] for r in results)
     models = list((lab / "models").rglob("*"))
@@ -88,7 +90,7 @@ def main() -> None:
         root = Path(tmp)
         start = time.perf_counter()
         points = args.sessions * args.points_per_session
-        simulate_experiment("campaign", root / "sessions", seed=0, benches=args.sessions,
+        simulate_experiment("campaign", SessionStore(root / "sessions"), seed=0, benches=args.sessions,
                             overrides={"points": points})  # fmt: skip
         sessions = sorted((root / "sessions").iterdir())
         session_mib = _mib(root.rglob("*.mcap")) / len(sessions)

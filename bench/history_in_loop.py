@@ -1,7 +1,7 @@
 """What the history-aware hybrid's history is worth in the loop: Experiment 2 on the twin with its unmodelled
 effects (vsl_unmodelled), commanded by the history-aware hybrid and by the same regressor without the history,
 both trained on the same rows (Experiment 1 on that twin, every cell but the two Experiment 2 follows, at each
-set-point's end: ``vslab.lab_job.path_rows``), beside the model-based IK.
+set-point's end: ``pipeline.unmodelled.path_rows``), beside the model-based IK.
 
     python bench/history_in_loop.py [--lab DIR] [--points N]
 
@@ -18,6 +18,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from pipeline.lab import Lab
+
 
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -27,21 +29,22 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--points", type=int, default=600, help="campaign points (the registration's)")
     args = parser.parse_args(argv)
 
+    from analysis.vsl_paths import path_errors
+    from pipeline import unmodelled
     from pipeline.baselines import SklearnBaseline
     from pipeline.build import build
     from pipeline.history import PATHS, HistoryModel
+    from pipeline.session_index import sessions_of
     from twin.runner import simulate_experiment
-    from vslab import lab_job
 
     start, load_before = time.perf_counter(), os.getloadavg()
     with tempfile.TemporaryDirectory() as scratch:
-        study = (args.lab or Path(scratch)) / "unmodelled"
-        overrides = {"points": args.points, "robot": lab_job.UNMODELLED_ROBOT}
-        simulate_experiment("campaign", study / "drawn" / "sessions", overrides=overrides)
-        campaign = build(
-            lab_job.sessions_of(study / "drawn" / "sessions", "campaign"), study / "drawn", "campaign"
-        )
-        rows = lab_job.path_rows(study, 0, campaign.version, lab_job.STUDY["paths"])
+        study = Lab(args.lab or Path(scratch)).study("unmodelled")
+        drawn = study.study("drawn")
+        overrides = {"points": args.points, "robot": unmodelled.UNMODELLED_ROBOT}
+        simulate_experiment("campaign", drawn.sessions, overrides=overrides)
+        campaign = build(sessions_of(drawn.sessions, "campaign"), drawn, "campaign")
+        rows = unmodelled.path_rows(study, 0, campaign.version, unmodelled.STUDY["paths"])
         models = {
             "history-aware hybrid": HistoryModel("inverse", PATHS).fit(rows),
             "without the history": SklearnBaseline("gbr", "inverse").fit(rows),
@@ -49,7 +52,7 @@ def main(argv: list[str] | None = None) -> None:
         errors = {}
         for k, (label, model) in enumerate(models.items()):
             commands = ["ik", "history"] if k == 0 else ["history"]
-            table = lab_job.experiment2_path_errors(
+            table = unmodelled.experiment2_rows(
                 study,
                 f"experiment2-{k}",
                 0,
@@ -58,6 +61,7 @@ def main(argv: list[str] | None = None) -> None:
                 {"history": model},
                 {"history": f"{label} on the paths of campaign@{campaign.version}"},
             )
+            table = path_errors(table)
             for row in table.itertuples():
                 name = "model-based IK" if row.mode == "ik" else label
                 errors[(name, f"{row.payload_g:g} g at {row.pressure_bar:g} bar")] = (row.mean_mm, row.p95_mm)

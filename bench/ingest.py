@@ -23,6 +23,7 @@ from pathlib import Path
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
+from acquisition.recorder.sessions import SessionStore
 from acquisition.schemas.session_card import readable_parts
 from pipeline.clean import clean
 from pipeline.ingest import ingest_session
@@ -74,7 +75,7 @@ def main() -> None:
         root = Path(tmp) / "sessions"
         start = time.perf_counter()
         reports = simulate_experiment(
-            "campaign", root, benches=args.benches, overrides={"points": args.points}
+            "campaign", SessionStore(root), benches=args.benches, overrides={"points": args.points}
         )
         written = sum(r.messages for r in reports)
         sessions = sorted(d for d in root.iterdir() if d.is_dir())

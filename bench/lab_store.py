@@ -25,6 +25,9 @@ from pathlib import Path
 
 import yaml
 
+from acquisition.recorder.sessions import SessionStore
+from pipeline.lab import Lab
+
 
 def _free_port() -> int:
     with socket.socket() as s:
@@ -80,7 +83,7 @@ def _bench(args, requests) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         local = Path(tmp) / "lab"
         points = args.sessions * args.points_per_session
-        simulate_experiment("campaign", local / "sessions", seed=0, benches=args.sessions,
+        simulate_experiment("campaign", SessionStore(local / "sessions"), seed=0, benches=args.sessions,
                             overrides={"points": points})  # fmt: skip
         sessions = sorted((local / "sessions").iterdir())
         store = lab_path("s3://bench/lab")
@@ -99,11 +102,11 @@ def _bench(args, requests) -> None:
         times, counts = {}, {}
         for name, lab, found in (("local", local, sessions), ("s3", store, remote_sessions)):
             start, before = time.perf_counter(), requests()
-            report = build(found, lab, "campaign")
+            report = build(found, Lab(lab), "campaign")
             times[name, "build"] = time.perf_counter() - start
             counts[name, "build"] = requests() - before
             start, before = time.perf_counter(), requests()
-            results = run_grid(lab, load_grid(grid_file), workers=2, threads=1)
+            results = run_grid(Lab(lab), load_grid(grid_file), workers=2, threads=1)
             times[name, "grid"] = time.perf_counter() - start
             counts[name, "grid"] = requests() - before
             times[name, "version"] = report.version

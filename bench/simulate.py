@@ -15,6 +15,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from acquisition.recorder.sessions import SessionStore
 from twin.runner import simulate_experiment
 
 TARGET_S = 300.0
@@ -29,7 +30,9 @@ GROUPS = {  # what --only picks → the experiments it runs
 def run(protocol: str, benches: int, overrides: dict) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
-        reports = simulate_experiment(protocol, Path(tmp) / "sessions", benches=benches, overrides=overrides)
+        reports = simulate_experiment(
+            protocol, SessionStore(Path(tmp) / "sessions"), benches=benches, overrides=overrides
+        )
         wall = time.perf_counter() - start
         sessions = sum(len(r.sessions) for r in reports)
         simulated = sum(r.simulated_s for r in reports)

@@ -26,10 +26,12 @@ import numpy as np
 import pandas as pd
 import torch
 
+from acquisition.recorder.sessions import SessionStore
 from models import kinematics
 from models.hybrid import preset
 from models.robot import load_robot
 from pipeline.exports import OnnxModel, quantized
+from pipeline.lab import Lab
 from pipeline.registry import ONNX, load_exported, load_onnx, model_version, save_model
 from pipeline.train import TrainConfig, metrics, train
 
@@ -66,8 +68,10 @@ def simulated(points: int, lab: Path, benches: int) -> pd.DataFrame:
     from twin.runner import simulate_experiment
 
     start = time.perf_counter()
-    simulate_experiment("campaign", lab / "sessions", benches=benches, overrides={"points": points})
-    report = build(sorted((lab / "sessions").iterdir()), lab, "campaign")
+    simulate_experiment(
+        "campaign", SessionStore(lab / "sessions"), benches=benches, overrides={"points": points}
+    )
+    report = build(sorted((lab / "sessions").iterdir()), Lab(lab), "campaign")
     print(f"simulated and built {report.rows:,} rows in {time.perf_counter() - start:.0f} s (not timed)")
     return load_dataset(lab / "datasets", "campaign", report.version)[0]
 

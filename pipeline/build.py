@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from acquisition.storage import fetched, lab_path, read_parquet
+from acquisition.storage import LabPath, fetched, read_parquet
 from models.robot import RobotDescription
 from pipeline import datasets
 from pipeline.cache import RECORD, StageCache, stage_key, stage_version
@@ -40,6 +40,7 @@ from pipeline.errors import PipelineError
 from pipeline.tables import columns
 
 if typing.TYPE_CHECKING:
+    from pipeline.lab import DatasetStore, Lab
     from pipeline.register import Registration
 
 log = logging.getLogger(__name__)
@@ -138,15 +139,14 @@ class BuildReport:
     damaged: dict[str, list[str]] = field(default_factory=dict)  # session → its damaged chunks, one line each
 
 
-def process_session(directory: str, parameters: dict, cache_root: str) -> dict:
-    """Per-session stages of one session (a top-level function: any executor can run it). Returns a small
-    record: the cache key of its outputs, or the reason it failed. A session on a store is fetched once
-    into a temporary folder and read there."""
-    where = lab_path(directory)
-    local = where
+def process_session(directory: LabPath, parameters: dict, cache: StageCache) -> dict:
+    """Per-session stages of one session into ``cache`` (a top-level function: any executor can run it; its
+    arguments pickle). Returns a small record: the cache key of its outputs, or the reason it failed. A
+    session on a store is fetched once into a temporary folder and read there."""
+    where = local = directory
     try:
         with fetched(where) as local:
-            return _session_stages(local, parameters, StageCache(lab_path(cache_root)))
+            return _session_stages(local, parameters, cache)
     except Exception as exc:  # one bad session must not stop the build; its reason goes in the card
         log.debug("session %s failed", where.name, exc_info=True)  # the caller shows the reason
         return {"session": where.name, "error": _reason(exc).replace(str(local), str(where))}
@@ -194,29 +194,27 @@ def _reason(exc: BaseException) -> str:
 
 
 def build(
-    sessions: list[Path],
-    lab: Path,
+    sessions: list[LabPath],
+    lab: Lab,
     name: str,
     parameters: dict | None = None,
     executor: cf.Executor | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> BuildReport:
-    """Build dataset ``name`` from ``sessions`` into ``<lab>/datasets`` (stage outputs in ``<lab>/cache``).
+    """Build dataset ``name`` from ``sessions`` into ``lab.datasets`` (stage outputs in ``lab.cache``).
     ``ValueError`` for bad parameters or a registration to borrow that is not there; ``BuildError`` when no
     session can be read."""
     check_parameters(parameters or {})
     params = {k: {**DEFAULTS[k], **(parameters or {}).get(k, {})} for k in DEFAULTS}
     if "from_dataset" in params["register"]:  # pin the borrowed registration's version: part of ours
-        params["register"]["from_dataset"] = _resolve(
-            lab_path(lab) / "datasets", params["register"]["from_dataset"]
-        )
-    cache_root = lab_path(lab) / "cache"
+        params["register"]["from_dataset"] = _resolve(lab.datasets, params["register"]["from_dataset"])
+    cache = lab.cache
     own = executor is None
     if own:
         workers = max(1, min(len(sessions), os.cpu_count() or 1))
         executor = cf.ProcessPoolExecutor(workers) if workers > 1 else InlineExecutor()
     try:
-        futures = [executor.submit(process_session, str(d), params, str(cache_root)) for d in sessions]
+        futures = [executor.submit(process_session, d, params, cache) for d in sessions]
         results = []
         for k, future in enumerate(cf.as_completed(futures)):
             results.append(future.result())
@@ -230,8 +228,7 @@ def build(
     failed = {r["session"]: r["error"] for r in results if "error" in r}
     sources = {r["session"]: r["source"] for r in good}
     version = datasets.dataset_version(sources, params)
-    root = lab_path(lab) / "datasets"
-    report = BuildReport(name, version, root / name / version, False, sorted(sources), failed,
+    report = BuildReport(name, version, lab.datasets.path(name, version), False, sorted(sources), failed,
                          sum(bool(r.get("cached")) for r in good))  # fmt: skip
     report.damaged = {r["session"]: r["damaged"] for r in good if r.get("damaged")}
     if (report.path / datasets.CARD).is_file():
@@ -239,7 +236,6 @@ def build(
         return report
     if not good:
         raise BuildError(failed)
-    cache = StageCache(cache_root)
     with cf.ThreadPoolExecutor(LOADERS) as pool:  # a store answers many requests at once, not one by one
         loaded = list(pool.map(lambda r: (r, *cache.load("session", r["key"])), good))
     tables, card_sessions, registrations = {"data": [], "trajectories": []}, {}, {}
@@ -248,7 +244,7 @@ def build(
         robot = RobotDescription.model_validate_json(mine[0][2]["robot_description"])
         static = _tagged([(rec, t["static"]) for _, t, rec in mine])
         trajectory = _tagged([(rec, t["trajectory"]) for _, t, rec in mine])
-        registration = _register(static, robot, params["register"], lab_path(lab) / "datasets")
+        registration = _register(static, robot, params["register"], lab.datasets)
         registrations[robot_name] = registration
         for table, rows in (("data", static), ("trajectories", trajectory)):
             if len(rows):
@@ -266,7 +262,7 @@ def build(
         "sessions": card_sessions,
         "registration": {k: _registration_card(v) for k, v in registrations.items()},
     }  # fmt: skip
-    datasets.write_dataset(root, name, version, out, card)
+    lab.datasets.write(name, version, out, card)
     report.built, report.rows = True, len(data)
     return report
 
@@ -282,7 +278,7 @@ def _tagged(items: list[tuple[dict, pd.DataFrame]]) -> pd.DataFrame:
 
 
 def _register(
-    static: pd.DataFrame, robot: RobotDescription, parameters: dict, datasets_root: Path
+    static: pd.DataFrame, robot: RobotDescription, parameters: dict, store: DatasetStore
 ) -> Registration:
     """Fit tracker → base on these sessions' static points, or take it from another dataset of the same
     setup (``from_dataset: name@version``: trajectory-only sessions such as Experiment 2 have no static
@@ -296,17 +292,15 @@ def _register(
         )
     if "from_dataset" in parameters:
         reference = parameters["from_dataset"]
-        return FixedRegistration(borrowed_placement(datasets_root, reference, robot.name), reference).fit(
-            static
-        )
+        return FixedRegistration(borrowed_placement(store, reference, robot.name), reference).fit(static)
     return TrackerRegistration(robot, **parameters).fit(static)
 
 
-def borrowed_placement(datasets_root: Path, reference: str, robot: str) -> np.ndarray:
+def borrowed_placement(store: DatasetStore, reference: str, robot: str) -> np.ndarray:
     """The tracker placement (4×4, base → tracker) that dataset ``name[@version]`` fitted for ``robot``;
     ``ValueError`` that says which dataset is missing, has none for this robot, or is damaged."""
     name, _, version = reference.partition("@")
-    card = _dataset_card(datasets_root, name, version or None)
+    card = _dataset_card(store, name, version or None)
     where = f"{name}@{card.get('version') or version}"
     fitted = card.get("registration") or {}
     # an arm on the same mount (the rigid-link arm in place of the VSL arm) shares the tracker placement
@@ -326,24 +320,23 @@ def borrowed_placement(datasets_root: Path, reference: str, robot: str) -> np.nd
     return placement
 
 
-def _resolve(root: Path, reference: str) -> str:
+def _resolve(store: DatasetStore, reference: str) -> str:
     """``name`` or ``name@version`` → ``name@version`` (the newest version when none is named)."""
     name, _, version = reference.partition("@")
-    card = _dataset_card(root, name, version or None)
+    card = _dataset_card(store, name, version or None)
     return f"{name}@{card.get('version') or version}"
 
 
-def _dataset_card(root: Path, name: str, version: str | None) -> dict:
+def _dataset_card(store: DatasetStore, name: str, version: str | None) -> dict:
     """The card of the dataset whose registration a build borrows; ``ValueError`` that says which dataset is
     missing or damaged and what to do."""
-    where = f"{name}@{version}" if version else name
+    where, root = (f"{name}@{version}" if version else name), store.root
     if not name:
         raise ValueError("register.from_dataset names no dataset: give NAME or NAME@VERSION")
     try:
-        _, card = datasets.load_dataset(root, name, version, table=None)
+        _, card = store.load(name, version, table=None)
     except FileNotFoundError:
-        root = lab_path(root)
-        known = sorted(p.name for p in root.glob("*") if p.is_dir()) if root.is_dir() else []
+        known = store.names()
         raise ValueError(
             f"register.from_dataset={where}: no such dataset under {root} (datasets there: "
             f"{', '.join(known) or 'none'}); build it first (`vslab build --name {name}`)"

@@ -16,7 +16,7 @@ from pathlib import Path
 import pandas as pd
 
 from acquisition.code_version import PACKAGES, _normalised, _tree_version  # noqa: F401 (tests clear their caches)
-from acquisition.storage import lab_path, publish, read_parquet
+from acquisition.storage import LabPath, publish, read_parquet
 
 ROOT = Path(__file__).resolve().parents[1]
 # What each stage's output is made by: its modules and, through their imports, everything they use.
@@ -71,8 +71,8 @@ def stage_key(stage: str, inputs: list[str], parameters: dict) -> str:
 class StageCache:
     """``<root>/<stage>/<key>/`` holding Parquet tables and a JSON record per entry."""
 
-    def __init__(self, root: Path) -> None:
-        self.root = lab_path(root)
+    def __init__(self, root: LabPath) -> None:
+        self.root = root
 
     def path(self, stage: str, key: str) -> Path:
         return self.root / stage / key

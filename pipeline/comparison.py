@@ -20,6 +20,7 @@ import logging
 from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -31,6 +32,9 @@ from pipeline import baselines, metrics
 from pipeline.floor import repeat_floor
 from pipeline.history import HistoryModel, with_history
 from pipeline.train import HybridRegressor, TrainConfig
+
+if TYPE_CHECKING:
+    from pipeline.lab import ModelStore
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +54,7 @@ INPUTS = {
     "after moving; with the previous point's currents the inverse error rises, 0.60 → 1.09 mm)",
 }
 ALL = "all"  # the cell label of the whole test part
-UNMODELLED = Path("comparisons") / "unmodelled.json"  # the main job's comparison, under its lab
+UNMODELLED = "unmodelled"  # the main job's comparison: its name in its lab's comparisons
 
 
 def _errors_mm(direction: str, pred: np.ndarray, rows: pd.DataFrame, lengths) -> np.ndarray:
@@ -136,16 +140,16 @@ def comparison_markdown(table: pd.DataFrame) -> str:
     return "\n\n".join(parts) + "\n"
 
 
-def register_compared(models_root: Path, data: pd.DataFrame, dataset: dict[str, str], table: pd.DataFrame,
+def register_compared(models: ModelStore, data: pd.DataFrame, dataset: dict[str, str], table: pd.DataFrame,
                       nets: dict[tuple[str, str], HybridRegressor],
                       sources: dict[str, str]) -> list[Path]:  # fmt: skip
     """Put the networks of a comparison (``compare_models(..., nets=…)``, trained on ``data``, the dataset
-    ``dataset`` = {name, version}) in the registry at ``models_root``, each card carrying the comparison of
+    ``dataset`` = {name, version}) in the registry ``models``, each card carrying the comparison of
     its direction (``comparison``: the split, the ``sources``, the model's own row name and every record:
     the other models and the floor). The version is the training's plus the comparison's sources, so the
     same training outside a comparison stays another version; one already registered stays as it is. Returns
     the version directories."""
-    from pipeline.registry import model_version, save_model
+    from pipeline.registry import model_version
     from pipeline.train import evaluate, model_card
 
     out = []
@@ -157,9 +161,9 @@ def register_compared(models_root: Path, data: pd.DataFrame, dataset: dict[str, 
         card = model_card(net.history_, dataset, evaluate(net.net_, data, config.split, "test"), net.threads)
         card["comparison"] = {"split": config.split, "sources": sources, "model": model, "records": records}
         try:
-            out.append(save_model(models_root, name, version, net.net_, card))
+            out.append(models.save(name, version, net.net_, card))
         except FileExistsError:
-            out.append(Path(models_root) / name / version)
+            out.append(models.path(name, version))
     return out
 
 

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from acquisition.storage import lab_path, publish, read_parquet
+from acquisition.storage import publish, read_parquet
 from models import kinematics
 from models.robot import AnthropomorphicKinematics, RobotDescription
 from pipeline.cache import digest, stage_version
@@ -132,7 +132,7 @@ def dataset_version(sources: dict[str, str], parameters: dict) -> str:
 def write_dataset(root: Path, name: str, version: str, tables: dict[str, pd.DataFrame], card: dict) -> Path:
     """``<root>/<name>/<version>/``: ``<table>.parquet`` for each table (``data`` is D) and card.json, written
     whole in a temporary directory, then renamed in (a killed build leaves no half dataset)."""
-    final = lab_path(root) / name / version
+    final = root / name / version
 
     def fill(folder: Path) -> None:
         for table, df in tables.items():
@@ -153,7 +153,7 @@ def newest_version(root: Path, name: str) -> str | None:
     files' modification times, which a copy or a backup changes; only a card older than that field falls
     back to its file's); None where there is none."""
     created = []
-    for card in (lab_path(root) / name).glob(f"*/{CARD}"):
+    for card in (root / name).glob(f"*/{CARD}"):
         try:
             when = json.loads(card.read_text()).get("created")
             when = when or datetime.fromtimestamp(card.stat().st_mtime, UTC).isoformat(
@@ -168,7 +168,7 @@ def newest_version(root: Path, name: str) -> str | None:
 def load_dataset(root: Path, name: str, version: str | None = None, table: str | None = "data"):
     """A dataset's table (``data``: D; ``trajectories``; None: only the card) and its card, the newest
     version when none is named: (DataFrame or None, card)."""
-    base = lab_path(root) / name
+    base = root / name
     if version is None:
         version = newest_version(root, name)
         if version is None:

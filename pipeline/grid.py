@@ -17,15 +17,18 @@ import os
 import re
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from acquisition.storage import lab_path
 from models.hybrid import NetConfig, preset
 from models.yaml_files import read_yaml
 from pipeline.build import InlineExecutor
-from pipeline.datasets import SPLIT_COLUMNS, newest_version
+from pipeline.datasets import SPLIT_COLUMNS
 from pipeline.errors import PipelineError
-from pipeline.registry import CARD, check_model, jsonable, load_card, metric, model_version, save_model
+from pipeline.registry import CARD, check_model, jsonable, load_card, metric, model_version
 from pipeline.train import TrainConfig
+
+if TYPE_CHECKING:
+    from pipeline.lab import DatasetStore, Lab
 
 log = logging.getLogger(__name__)
 
@@ -159,16 +162,16 @@ def _kind(value) -> str:
     return names.get(type(value), f"a {type(value).__name__}") + shown
 
 
-def resolve_dataset(root: Path, spec: str) -> tuple[str, str]:
-    """(name, version) of ``name`` (its newest version under ``root``) or ``name@version``."""
+def resolve_dataset(store: DatasetStore, spec: str) -> tuple[str, str]:
+    """(name, version) of ``name`` (its newest version in ``store``) or ``name@version``."""
     name, _, version = str(spec).partition("@")
     if version:
-        if not (lab_path(root) / name / version / CARD).is_file():
-            raise GridError(f"no dataset {name}@{version} under {root}")
+        if not store.has(name, version):
+            raise GridError(f"no dataset {name}@{version} under {store.root}")
         return name, version
-    version = newest_version(root, name)
+    version = store.newest(name)
     if version is None:
-        raise GridError(f"no dataset {name!r} under {root} (build one: `vslab build --name {name}`)")
+        raise GridError(f"no dataset {name!r} under {store.root} (build one: `vslab build --name {name}`)")
     return name, version
 
 
@@ -183,14 +186,14 @@ def _net(entry: dict) -> NetConfig:
     return dataclasses.replace(net, **entry)
 
 
-def expand(lab: Path, grid: dict) -> list[dict]:
+def expand(lab: Lab, grid: dict) -> list[dict]:
     """The grid's jobs (JSON-able dicts): dataset, TrainConfig dict, model name and version."""
     train = grid.get("train", {})
     if unknown := sorted(set(train) - set(TRAIN_KEYS)):
         raise GridError(f"grid train: unknown fields {unknown} (known: {list(TRAIN_KEYS)})")
     jobs = []
     for spec in grid.get("datasets", []):
-        dataset, dataset_version = resolve_dataset(lab_path(lab) / "datasets", spec)
+        dataset, dataset_version = lab.datasets.resolve(spec)
         for entry in grid.get("models", []):
             net = _net(entry)
             for split in grid.get("splits", ["split_random"]):
@@ -219,44 +222,42 @@ def _summary(job: dict, card: dict, status: str) -> dict:
             "epochs": len(card.get("curves", []))}  # fmt: skip
 
 
-def train_job(job: dict, lab: str, threads: int = 1) -> dict:
-    """Train, evaluate (test part of the job's split) and save one job (top-level: any executor runs it)."""
-    from pipeline.datasets import load_dataset
+def train_job(job: dict, lab: Lab, threads: int = 1) -> dict:
+    """Train, evaluate (test part of the job's split) and save one job into ``lab`` (top-level, its arguments
+    pickle: any executor runs it)."""
     from pipeline.train import evaluate, model_card, train
 
-    root = lab_path(lab) / "models"
-    existing = root / job["name"] / job["version"]
+    existing = lab.models.path(job["name"], job["version"])
     if (existing / CARD).is_file():
         return _summary(job, load_card(existing), "existing")
-    data, _ = load_dataset(lab_path(lab) / "datasets", job["dataset"]["name"], job["dataset"]["version"])
+    data, _ = lab.datasets.load(job["dataset"]["name"], job["dataset"]["version"])
     config = TrainConfig.from_dict(job["config"])
     result = train(data, config, threads=threads, device="cpu")
     card = model_card(result, job["dataset"], evaluate(result.model, data, config.split, "test"), threads)
     try:
-        save_model(root, job["name"], job["version"], result.model, card)
+        lab.models.save(job["name"], job["version"], result.model, card)
     except FileExistsError:  # another worker finished the same version first: keep theirs
         return _summary(job, load_card(existing), "existing")
     return _summary(job, jsonable(card), "trained")
 
 
 def run_grid(
-    lab: Path,
+    lab: Lab,
     grid: dict,
     executor: cf.Executor | None = None,
     progress: Callable[[int, int, dict], None] | None = None,
     workers: int | None = None,
     threads: int | None = None,
 ) -> list[dict]:
-    """Train every job of ``grid`` whose version is not in ``<lab>/models`` yet; one summary per job, in grid
+    """Train every job of ``grid`` whose version is not in ``lab.models`` yet; one summary per job, in grid
     order (``status``: "trained" or "existing"). ``progress(done, total, summary)`` after each job.
     ``threads``: torch threads per job (default: this machine's cores shared among ``workers``; a cluster's
     workers take 1 each)."""
     jobs = expand(lab, grid)
-    root = lab_path(lab) / "models"
     results: dict[str, dict] = {}
     todo = []
     for job in jobs:
-        path = root / job["name"] / job["version"]
+        path = lab.models.path(job["name"], job["version"])
         if (path / CARD).is_file():  # an existing version, its files checked (a damaged one: one error)
             results[job["version"]] = _summary(job, check_model(path), "existing")
         else:
@@ -273,7 +274,7 @@ def run_grid(
             progress(done, len(jobs), summary)
     done = len(results)
     try:
-        futures = {executor.submit(train_job, job, str(lab), threads): job for job in todo}
+        futures = {executor.submit(train_job, job, lab, threads): job for job in todo}
         for future in cf.as_completed(futures):
             summary = future.result()
             results[summary["version"]] = summary

@@ -40,7 +40,7 @@ from acquisition.schemas.ros2msg import parse_fixed_message
 from acquisition.schemas.scene import STANDARD_TOPICS
 from acquisition.schemas.session_card import SESSION_METADATA, as_current, readable_parts
 from acquisition.schemas.topics import EVENTS, session_topics
-from acquisition.storage import lab_path
+from acquisition.storage import as_path
 from models.robot import RobotDescription
 from pipeline.cache import file_hash
 from pipeline.errors import PipelineError
@@ -53,7 +53,7 @@ class IngestError(PipelineError):
     """A session that cannot be ingested: ``path`` says which file or directory, ``reason`` why."""
 
     def __init__(self, path: str | Path, reason: str) -> None:
-        self.path, self.reason = lab_path(path), reason
+        self.path, self.reason = as_path(path), reason
         super().__init__(f"{path}: {reason}")
 
 
@@ -80,7 +80,7 @@ def source_hash(parts: Iterable[Path]) -> str:
 def ingest_session(directory: Path, generic_topics: Collection[str] = ()) -> SessionTables:
     """Every part of the session in ``directory`` as tables. Topics in ``generic_topics`` are decoded by the
     generic (message by message) path even when the fast path could read them (for checks and comparisons)."""
-    directory = lab_path(directory)
+    directory = as_path(directory)
     if not directory.is_dir():
         raise IngestError(directory, "not a session directory")
     parts = readable_parts(directory)

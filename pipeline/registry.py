@@ -30,7 +30,7 @@ import safetensors.torch
 import torch
 from safetensors.torch import save_file
 
-from acquisition.storage import is_local, lab_path, publish
+from acquisition.storage import is_local, publish
 from models.hybrid import HybridNet, NetConfig
 from pipeline.cache import digest, file_hash, stage_version
 from pipeline.errors import PipelineError
@@ -67,7 +67,7 @@ class ModelIntegrityError(PipelineError, ValueError):
     lacks a field or was edited, a file whose bytes differ from the card's hash. Names the file and why."""
 
     def __init__(self, directory: Path, file: str, problem: str) -> None:
-        self.directory, self.file, self.problem = lab_path(directory), file, problem
+        self.directory, self.file, self.problem = directory, file, problem
         model = f"{self.directory.parent.name}/{self.directory.name}"
         super().__init__(
             f"{self.directory / file}: {problem}: model {model} is damaged and is not loaded (restore the "
@@ -92,7 +92,7 @@ def model_version(dataset_version: str, config, **context: str) -> str:
 def save_model(root: Path, name: str, version: str, model: HybridNet, card: dict) -> Path:
     """Publish ``<root>/<name>/<version>/`` whole (weights, card, TorchScript, ONNX); FileExistsError if it
     exists (another worker may have written the same version first: theirs stays)."""
-    final = lab_path(root) / name / version
+    final = root / name / version
     if final.exists():
         raise FileExistsError(f"model {name}/{version} already exists at {final}")
     if any(t.device.type != "cpu" for t in model.state_dict().values()):
@@ -134,7 +134,6 @@ def card_digest(card: dict) -> str:
 def load_card(path: Path) -> dict:
     """A model's card (``path``: its version directory), checked: valid JSON, every field, its own hash, the
     directory it is in. :class:`ModelIntegrityError` otherwise (the files beside it: :func:`check_model`)."""
-    path = lab_path(path)
     try:
         text = (path / CARD).read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -167,7 +166,6 @@ def load_card(path: Path) -> dict:
 def check_model(path: Path) -> dict:
     """The card of a version directory once every file is checked against it (:class:`ModelIntegrityError`
     names the first file that is missing, unreadable or not the one the card recorded)."""
-    path = lab_path(path)
     card = load_card(path)
     files = card["files"]
     hashes = files.values()
@@ -192,7 +190,6 @@ def check_model(path: Path) -> dict:
 def load_model(path: Path) -> tuple[HybridNet, dict]:
     """The network and its card from a version directory, every file checked first (:func:`check_model`):
     config from JSON, tensors from safetensors. A damaged version: :class:`ModelIntegrityError`."""
-    path = lab_path(path)
     card = check_model(path)
     try:
         config = NetConfig.from_dict(card["net"])
@@ -213,7 +210,6 @@ def load_model(path: Path) -> tuple[HybridNet, dict]:
 def load_exported(path: Path) -> torch.jit.ScriptModule:
     """The TorchScript export of a version directory: ``module(x: float64 (n, 7)) -> float64 (n, 3)``; every
     file is checked first (:func:`check_model`)."""
-    path = lab_path(path)
     check_model(path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
@@ -227,7 +223,6 @@ def load_onnx(path: Path) -> OnnxModel:
     """The ONNX export of a version directory, run by ONNX Runtime (:class:`pipeline.exports.OnnxModel`);
     every file is checked first (:func:`check_model`). A model saved before vslab exported ONNX has none:
     :class:`ModelIntegrityError` says so."""
-    path = lab_path(path)
     card = check_model(path)
     if ONNX not in card["files"]:
         raise ModelIntegrityError(path, ONNX, "never written (a model saved before vslab exported ONNX: "
@@ -256,7 +251,7 @@ def find(root: Path, version: str) -> Path:
 
 def tags(root: Path) -> dict[str, str]:
     """Every tag of the registry under ``root``: alias → full version id (``{}`` where none was set)."""
-    path = lab_path(root) / TAGS_FILE
+    path = root / TAGS_FILE
     if not path.is_file():
         return {}
     try:
@@ -278,7 +273,6 @@ def tag(root: Path, name: str, version: str) -> str:
     check_model(path)
     current = tags(root) | {name: path.name}
     text = json.dumps(dict(sorted(current.items())), indent=1) + "\n"
-    root = lab_path(root)
     if is_local(root):
         tmp = root / f".{TAGS_FILE}.tmp"
         tmp.write_text(text)
@@ -290,7 +284,6 @@ def tag(root: Path, name: str, version: str) -> str:
 
 def version_dirs(root: Path) -> list[Path]:
     """Every ``<root>/<name>/<version>/`` folder (not the hidden ones a save is writing)."""
-    root = lab_path(root)
     if not is_local(root):  # a store: the versions whose card is there (one listing, not a request each)
         return sorted(card.parent for card in root.glob(f"*/*/{CARD}"))
     if not root.is_dir():

@@ -16,8 +16,10 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from acquisition.recorder.daemon import MAX_LAG_S
+from acquisition.recorder.sessions import SessionStore
 from acquisition.schemas.fast_read import read_fixed_topics
 from models.robot import load_robot
+from pipeline.lab import Lab
 from twin.ptyhost import wait_for_ports
 
 # The CLI's batch commands (train, simulate, build) lower their own process's priority for good; the tests
@@ -115,8 +117,10 @@ def campaign_dataset(tmp_path_factory):
     from twin.runner import simulate_experiment
 
     lab = tmp_path_factory.mktemp("campaign-lab")
-    simulate_experiment("campaign", lab / "sessions", seed=11, benches=8, overrides={"points": 600})
-    report = build(sorted((lab / "sessions").iterdir()), lab, "campaign")
+    simulate_experiment(
+        "campaign", SessionStore(lab / "sessions"), seed=11, benches=8, overrides={"points": 600}
+    )
+    report = build(sorted((lab / "sessions").iterdir()), Lab(lab), "campaign")
     data, _ = load_dataset(lab / "datasets", "campaign", report.version)
     return lab, report.version, data
 
@@ -133,8 +137,10 @@ def hard_labs(tmp_path_factory):
     for order in ("drawn", "shuffled"):
         lab = tmp_path_factory.mktemp(f"hard-{order}")
         overrides = {"points": 600, "robot": "vsl_unmodelled", "visit_order": order}
-        simulate_experiment("campaign", lab / "sessions", seed=11, benches=8, overrides=overrides)
-        out[order] = (lab, build(sorted((lab / "sessions").iterdir()), lab, "campaign").version)
+        simulate_experiment(
+            "campaign", SessionStore(lab / "sessions"), seed=11, benches=8, overrides=overrides
+        )
+        out[order] = (lab, build(sorted((lab / "sessions").iterdir()), Lab(lab), "campaign").version)
     return out
 
 

@@ -26,6 +26,7 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from typer.testing import CliRunner
 
+from acquisition.recorder.sessions import SessionStore
 from twin.runner import simulate_experiment
 from vslab.cli import app
 
@@ -121,7 +122,9 @@ COMMANDS = ("list", "info", "recover", "build")
 def good(tmp_path_factory) -> Path:
     """Two small twin campaign sessions (enough settled points to register the tracker)."""
     root = tmp_path_factory.mktemp("good")
-    simulate_experiment("campaign", root / "sessions", seed=5, benches=GOOD, overrides={"points": 40})
+    simulate_experiment(
+        "campaign", SessionStore(root / "sessions"), seed=5, benches=GOOD, overrides={"points": 40}
+    )
     return root / "sessions"
 
 

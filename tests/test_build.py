@@ -9,9 +9,11 @@ import numpy as np
 import pytest
 
 from acquisition.plans.plan import PlanBuilder
+from acquisition.recorder.sessions import SessionStore
 from models.robot import load_robot
 from pipeline.build import build
 from pipeline.datasets import load_dataset
+from pipeline.lab import Lab
 from twin.runner import simulate, simulate_experiment
 
 POINTS = 96
@@ -21,14 +23,16 @@ POINTS = 96
 def lab(tmp_path_factory):
     """A small campaign (4 benches → 4 sessions of 24 settled points)."""
     lab = tmp_path_factory.mktemp("lab")
-    simulate_experiment("campaign", lab / "sessions", seed=2, benches=4, overrides={"points": POINTS})
+    simulate_experiment(
+        "campaign", SessionStore(lab / "sessions"), seed=2, benches=4, overrides={"points": POINTS}
+    )
     return lab
 
 
 @pytest.mark.slow
 def test_campaign_builds_once(lab):
     sessions = sorted((lab / "sessions").iterdir())
-    report = build(sessions, lab, "campaign")
+    report = build(sessions, Lab(lab), "campaign")
     assert report.built and not report.failed and report.cached == 0
     d, card = load_dataset(lab / "datasets", "campaign", report.version)
     assert abs(len(d) - POINTS) <= 2  # ± settled windows that failed (reported in the card)
@@ -47,11 +51,11 @@ def test_campaign_builds_once(lab):
     assert unfitted >= 1  # ≈ 45 s sessions: a polled servo's phase mostly slips under twice
     # nothing changed: the same version, found without running a stage
     start = time.perf_counter()
-    again = build(sessions, lab, "campaign")
+    again = build(sessions, Lab(lab), "campaign")
     assert again.version == report.version and not again.built and again.rows == len(d)
     assert time.perf_counter() - start < 5.0
     # a changed parameter: a new version; the per-session stages it does not touch are reused
-    other = build(sessions, lab, "campaign", {"splits": {"seed": 1}})
+    other = build(sessions, Lab(lab), "campaign", {"splits": {"seed": 1}})
     assert other.version != report.version and other.built and other.cached == len(sessions)
 
 
@@ -75,7 +79,7 @@ def test_bad_sessions_are_reported_and_the_others_build(lab, tmp_path):
         .settle(1.0, 0, 0.5)
     )
     simulate([plan.build()], blind, bad)
-    report = build([*good, *(sorted(bad.iterdir()))], tmp_path / "lab", "mixed")
+    report = build([*good, *(sorted(bad.iterdir()))], Lab(tmp_path / "lab"), "mixed")
     assert "tracker" in report.failed["sim-no-tracker"]
     assert set(report.sessions) >= {g.name for g in good}
     assert "not-mcap" in report.failed and "MCAP" in report.failed["not-mcap"]
@@ -96,23 +100,23 @@ def test_trajectory_sessions_borrow_the_campaigns_registration(lab):
     from acquisition.plans import experiments
     from models import trajectories
 
-    campaign = build(sorted((lab / "sessions").iterdir()), lab, "campaign")
+    campaign = build(sorted((lab / "sessions").iterdir()), Lab(lab), "campaign")
     case = {
         "cases": [{"payload_g": 75, "pressure_bar": 0.5}],
         "commands": ["ik", "static"],
         "rigid_arm": False,
     }
     overrides = case | {"repetitions": 1, "points_per_segment": 25, "settle_s": 1.0, "rest_s": 0.5}
-    simulate_experiment("experiment2", lab / "e2", seed=3, overrides=overrides)
+    simulate_experiment("experiment2", SessionStore(lab / "e2"), seed=3, overrides=overrides)
     sessions = sorted((lab / "e2").iterdir())
     with pytest.raises(ValueError, match=r"register\.from_dataset"):
-        build(sessions, lab, "experiment2")
+        build(sessions, Lab(lab), "experiment2")
     borrowed = {"register": {"from_dataset": f"campaign@{campaign.version}"}}
     assert (
-        build(sessions, lab, "experiment2", borrowed).version
-        == build(sessions, lab, "experiment2", borrowed).version
+        build(sessions, Lab(lab), "experiment2", borrowed).version
+        == build(sessions, Lab(lab), "experiment2", borrowed).version
     )
-    report = build(sessions, lab, "experiment2", borrowed)
+    report = build(sessions, Lab(lab), "experiment2", borrowed)
     d, card = load_dataset(lab / "datasets", "experiment2", report.version)
     assert card["parameters"]["register"]["from_dataset"] == f"campaign@{campaign.version}"
     assert set(d["repetition"]) == {0} and set(d["session"]) == {s.name for s in sessions}

@@ -12,8 +12,10 @@ import pytest
 
 from acquisition.plans.experiments import expand_experiment, together, visit_order
 from acquisition.plans.plan import Plan, PlanBuilder
+from acquisition.recorder.sessions import SessionStore
 from acquisition.safety import SafetyChecker, SafetyError
 from acquisition.schemas.events import EventKind
+from pipeline.lab import Lab
 from twin.runner import session_id, simulate, simulate_experiment
 
 
@@ -130,10 +132,12 @@ def test_the_report_says_what_the_inverse_models_read(tmp_path):
 
     table = pd.DataFrame([{"direction": d, "model": m, "cell": "all", "n": 10, "tip_mm_mean": 0.5}
                           for d in ("forward", "inverse") for m in ("gbr", "floor")])  # fmt: skip
-    save_comparison(tmp_path / UNMODELLED, table, {"campaign (drawn)": "v1"}, "split_group")
+    save_comparison(
+        Lab(tmp_path).comparisons.path(UNMODELLED), table, {"campaign (drawn)": "v1"}, "split_group"
+    )
     res = Results()
-    _unmodelled(tmp_path, res)
-    page = lab_report(tmp_path, res).read_text()
+    _unmodelled(Lab(tmp_path), res)
+    page = lab_report(Lab(tmp_path), res).read_text()
     assert "The inverse models read the tip wanted" in page and "measured after the move has landed" in page
 
 
@@ -141,5 +145,5 @@ def test_the_report_says_what_the_inverse_models_read(tmp_path):
 def test_the_default_campaign_completes_on_the_twin(tmp_path):
     """The README's `vslab simulate campaign` in full (17,568 points on 128 benches; minutes): no bench
     stops early."""
-    reports = simulate_experiment("campaign", tmp_path / "sessions", seed=0, benches=128)
+    reports = simulate_experiment("campaign", SessionStore(tmp_path / "sessions"), seed=0, benches=128)
     assert [r.stopped for r in reports] == [{}] and sum(len(r.sessions) for r in reports) == 128

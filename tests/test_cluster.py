@@ -23,6 +23,7 @@ from typer.testing import CliRunner
 from pipeline.build import build
 from pipeline.cluster import ClusterError, cluster_executor, local_cluster
 from pipeline.grid import load_grid, run_grid
+from pipeline.lab import Lab
 from vslab.cli import app
 
 GRID = {
@@ -53,7 +54,7 @@ def test_a_build_on_the_cluster_is_the_local_build(tmp_path, campaign_dataset, c
     lab = _lab(tmp_path, campaign_dataset, "remote")
     sessions = sorted((lab / "sessions").iterdir())
     with cluster_executor(cluster) as executor:
-        report = build(sessions, lab, "campaign", executor=executor)
+        report = build(sessions, Lab(lab), "campaign", executor=executor)
     assert report.built and report.cached == 0 and report.version == version
     for table in ("data", "trajectories"):
         local = src / "datasets" / "campaign" / version / f"{table}.parquet"
@@ -79,13 +80,13 @@ def test_a_grid_on_the_cluster_trains_the_local_weights_even_when_a_worker_dies(
     local_lab, remote_lab = (_lab(tmp_path, campaign_dataset, name) for name in ("local", "remote"))
     for lab in (local_lab, remote_lab):
         (lab / "datasets").symlink_to(src / "datasets")
-    local = run_grid(local_lab, load_grid(grid_file), workers=1, threads=1)
+    local = run_grid(Lab(local_lab), load_grid(grid_file), workers=1, threads=1)
     with Client(cluster, set_as_default=False) as client, cluster_executor(cluster) as executor:
         victim = next(iter(client.run(os.getpid).values()))  # one worker's process
         killer = threading.Timer(1.5, os.kill, (victim, signal.SIGKILL))  # mid-job: a job takes seconds
         killer.start()
         started = time.monotonic()
-        remote = run_grid(remote_lab, load_grid(grid_file), executor=executor, threads=1)
+        remote = run_grid(Lab(remote_lab), load_grid(grid_file), executor=executor, threads=1)
         killer.join()
         assert time.monotonic() - started > 1.5, "the worker died while the grid ran"
         assert victim not in client.run(os.getpid).values()  # its nanny started a new one

@@ -17,6 +17,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from acquisition.recorder.foxglove_export import export_foxglove
+from acquisition.recorder.sessions import SessionStore
 from acquisition.schemas import mcap_reader
 from acquisition.schemas.fast_read import read_fixed_topics
 from acquisition.schemas.mcap_reader import DamagedChunkError
@@ -30,7 +31,9 @@ FLIPS = 160  # positions flipped per region, spread evenly over it (deterministi
 def recorded(tmp_path_factory) -> Path:
     """One small twin campaign session (zstd chunks, as the recorder writes them): its session folder."""
     root = tmp_path_factory.mktemp("recorded")
-    simulate_experiment("campaign", root / "sessions", seed=3, benches=1, overrides={"points": 20})
+    simulate_experiment(
+        "campaign", SessionStore(root / "sessions"), seed=3, benches=1, overrides={"points": 20}
+    )
     (session,) = sorted((root / "sessions").iterdir())
     return session
 

@@ -8,6 +8,7 @@ import pytest
 from acquisition.plans import experiments
 from acquisition.plans.compensation import StaticModelCompensator
 from acquisition.plans.plan import PlanBuilder
+from acquisition.recorder.sessions import SessionStore
 from acquisition.safety import SafetyChecker, SafetyError
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
@@ -71,7 +72,7 @@ def test_experiment2_static_compensation_beats_model_based_ik(vsl, tmp_path):
         "experiment2", cases=[{"payload_g": 75, "pressure_bar": 0.5}], commands=["ik", "static"],
         rigid_arm=False, repetitions=1, points_per_segment=25, settle_s=1.0, rest_s=0.5,
     )  # fmt: skip
-    (report,) = simulate_experiment("experiment2", tmp_path, seed=1, overrides=params)
+    (report,) = simulate_experiment("experiment2", SessionStore(tmp_path), seed=1, overrides=params)
     assert len(report.sessions) == 2
     plans = {p.parameters["commands"]: p for p in experiments.experiment2(vsl, None, params)}
     lengths = experiments.arm_lengths(vsl)
@@ -97,10 +98,10 @@ def test_experiment2_static_compensation_beats_model_based_ik(vsl, tmp_path):
 
 def test_hybrid_commands_need_an_inverse_model(tmp_path):
     with pytest.raises(ValueError, match="inverse model"):
-        simulate_experiment("experiment2", tmp_path, overrides={"repetitions": 1})
+        simulate_experiment("experiment2", SessionStore(tmp_path), overrides={"repetitions": 1})
     with pytest.raises(ValueError, match="history commands need a trained inverse model"):
         simulate_experiment(
-            "experiment2", tmp_path, overrides={"repetitions": 1, "commands": ["ik", "history"]}
+            "experiment2", SessionStore(tmp_path), overrides={"repetitions": 1, "commands": ["ik", "history"]}
         )
     assert not any(tmp_path.iterdir())
 

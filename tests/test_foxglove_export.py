@@ -14,6 +14,7 @@ from mcap.records import Schema
 from mcap_ros2.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
 
+from acquisition.recorder.sessions import SessionStore
 from acquisition.schemas import scene as S
 from acquisition.schemas import topics as T
 from acquisition.schemas.fast_read import read_fixed_topics
@@ -155,7 +156,7 @@ def _check_arm(path, source, robot):
 @pytest.mark.slow
 def test_a_popup_session_exports_with_the_arm_for_foxglove(tmp_path, popup):
     lab = tmp_path / "lab"
-    simulate_experiment("popup_reach", lab / "sessions", seed=1)
+    simulate_experiment("popup_reach", SessionStore(lab / "sessions"), seed=1)
     (session,) = sorted((lab / "sessions").iterdir())
     done = _cli(lab, "sessions", "export", session.name, "--foxglove")
     assert done.returncode == 0, done.stdout + done.stderr
@@ -243,7 +244,7 @@ def test_recorded_sessions_carry_the_arm_themselves(tmp_path, campaign_dataset, 
 
     lab, _, _ = campaign_dataset
     vsl_session = sorted((lab / "sessions").iterdir())[0]
-    simulate_experiment("popup_reach", tmp_path / "sessions", seed=1)
+    simulate_experiment("popup_reach", SessionStore(tmp_path / "sessions"), seed=1)
     (popup_session,) = sorted((tmp_path / "sessions").iterdir())
     for session, robot in ((vsl_session, vsl), (popup_session, popup)):
         (part,) = readable_parts(session)

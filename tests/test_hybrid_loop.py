@@ -7,12 +7,14 @@ import numpy as np
 import pytest
 
 from acquisition.plans import experiments
+from acquisition.recorder.sessions import SessionStore
 from models import trajectories
 from models.hybrid import preset
 from models.robot import load_robot
 from pipeline.build import build
 from pipeline.datasets import load_dataset
 from pipeline.in_loop import InverseModelCompensator
+from pipeline.lab import Lab
 from pipeline.train import TrainConfig, train
 from twin.runner import simulate_experiment
 
@@ -22,8 +24,10 @@ CASE = {"payload_g": 75, "pressure_bar": 0.5}  # seed 000's harder case: light p
 @pytest.mark.slow
 def test_hybrid_inverse_model_beats_model_based_ik_in_experiment2(tmp_path):
     vsl = load_robot("vsl")
-    simulate_experiment("campaign", tmp_path / "sessions", seed=21, benches=16, overrides={"points": 3000})
-    campaign = build(sorted((tmp_path / "sessions").iterdir()), tmp_path, "campaign")
+    simulate_experiment(
+        "campaign", SessionStore(tmp_path / "sessions"), seed=21, benches=16, overrides={"points": 3000}
+    )
+    campaign = build(sorted((tmp_path / "sessions").iterdir()), Lab(tmp_path), "campaign")
     data, _ = load_dataset(tmp_path / "datasets", "campaign", campaign.version)
     net = preset("inverse", "small-residual")
     result = train(data, TrainConfig(net=net, max_epochs=150, patience=15, seed=0))
@@ -31,11 +35,15 @@ def test_hybrid_inverse_model_beats_model_based_ik_in_experiment2(tmp_path):
     overrides = {"cases": [CASE], "commands": ["ik", "hybrid"], "rigid_arm": True, "repetitions": 2,
                  "points_per_segment": 30, "settle_s": 1.5, "rest_s": 0.5}  # fmt: skip
     simulate_experiment(
-        "experiment2", tmp_path / "e2", seed=3, overrides=overrides, inverse_model=lambda p: hybrid
+        "experiment2",
+        SessionStore(tmp_path / "e2"),
+        seed=3,
+        overrides=overrides,
+        inverse_model=lambda p: hybrid,
     )
     sessions = sorted((tmp_path / "e2").iterdir())
     borrowed = {"register": {"from_dataset": f"campaign@{campaign.version}"}}
-    e2 = build(sessions, tmp_path, "experiment2", borrowed)
+    e2 = build(sessions, Lab(tmp_path), "experiment2", borrowed)
     d, _ = load_dataset(tmp_path / "datasets", "experiment2", e2.version)
     path = trajectories.experiment1("curve", experiments.arm_lengths(vsl), 0.02, 400).x
     error_mm = {

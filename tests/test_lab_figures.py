@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from acquisition.recorder.sessions import SessionStore
 from acquisition.recorder.writer import SessionWriter
 from acquisition.schemas.events import Event, EventKind
 from analysis.lab_figures import all_figures, lab_report, realtime_sessions
 from models.robot import load_robot
 from pipeline import registry
 from pipeline.grid import run_grid
-from vslab.lab_job import sessions_of
+from pipeline.lab import Lab
+from pipeline.session_index import sessions_of
 
 
 def test_figures_and_report_of_a_lab_with_only_a_campaign(campaign_dataset, tmp_path):
@@ -25,14 +27,14 @@ def test_figures_and_report_of_a_lab_with_only_a_campaign(campaign_dataset, tmp_
         "seeds": [0],
         "train": {"max_epochs": 15, "patience": 5},
     }
-    (trained,) = run_grid(lab, grid)
-    res = all_figures(lab, tmp_path / "figures")
+    (trained,) = run_grid(Lab(lab), grid)
+    res = all_figures(Lab(lab), tmp_path / "figures")
     assert (
         "forward-small-residual"
         not in res.tables["forward model: test error (mm), campaign, random split"].index
     )
     registry.tag(lab / "models", registry.FORWARD, trained["version"])  # figures take models by tag only
-    res = all_figures(lab, tmp_path / "figures")
+    res = all_figures(Lab(lab), tmp_path / "figures")
     assert {"error_heatmaps", "learning_curves", "clock_fits", "registration_vsl"} <= set(res.figures)
     assert all(p.is_file() and p.with_suffix(".pdf").is_file() for p in res.figures.values())
     assert (tmp_path / "figures" / "error_heatmaps.json").is_file()  # which versions it was made from
@@ -42,7 +44,7 @@ def test_figures_and_report_of_a_lab_with_only_a_campaign(campaign_dataset, tmp_
     assert res.versions["dataset campaign"] == version
     reg = res.tables["registration (tracker → base), campaign"].loc["vsl"]
     assert 0 < reg["rms, selected (mm)"] < 1.0 and reg["selected"] <= reg["static points"]
-    page = lab_report(lab, res).read_text()
+    page = lab_report(Lab(lab), res).read_text()
     assert "error_heatmaps" in page and "not made (and why)" in page and "dataset experiment1" in page
 
 
@@ -59,11 +61,13 @@ def test_real_time_sessions_are_reported_apart_from_the_simulated_ones(tmp_path)
     sessions = tmp_path / "sessions"
     _session(sessions, "rig-a", "real-time", 11)
     _session(sessions, "sim-b", "simulated", 3)
-    table = realtime_sessions(tmp_path)
+    table = realtime_sessions(Lab(tmp_path))
     assert table.index.get_level_values("session").unique().tolist() == ["rig-a"]
     row = table.loc[("rig-a", "/events")]
     assert row["messages"] == 11 and np.isclose(row["rate (Hz)"], 10.0) and row["status"] == "complete"
     # the main job builds Experiment 1's dataset from the simulated sessions only
-    assert [d.name for d in sessions_of(sessions, "experiment1", runner="simulated")] == ["sim-b"]
-    assert [d.name for d in sessions_of(sessions, "experiment1")] == ["rig-a", "sim-b"]
-    assert realtime_sessions(tmp_path / "empty").empty
+    assert [d.name for d in sessions_of(SessionStore(sessions), "experiment1", runner="simulated")] == [
+        "sim-b"
+    ]
+    assert [d.name for d in sessions_of(SessionStore(sessions), "experiment1")] == ["rig-a", "sim-b"]
+    assert realtime_sessions(Lab(tmp_path / "empty")).empty

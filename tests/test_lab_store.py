@@ -24,6 +24,7 @@ from conftest import absent_service_ports  # noqa: E402
 
 from acquisition.storage import StoreError, check_store, lab_path, publish  # noqa: E402
 from pipeline.datasets import load_dataset, newest_version, write_dataset  # noqa: E402
+from pipeline.lab import Lab  # noqa: E402
 
 SECRET = "vslab-test-secret-6d1f0c"  # must never appear in what the lab writes
 KEY_ID = "vslab-test-key-id"
@@ -113,7 +114,7 @@ def test_a_lab_on_s3_simulates_builds_trains_and_draws_as_a_local_lab_does(s3, t
     mine = tmp_path / "local"
     mine.mkdir()
     (mine / "datasets").symlink_to(src / "datasets")
-    results = run_grid(mine, load_grid(grid), threads=1)
+    results = run_grid(Lab(mine), load_grid(grid), threads=1)
     for r in results:
         on_s3 = lab / "models" / r["name"] / r["version"] / "weights.safetensors"
         assert (
@@ -264,13 +265,16 @@ def test_a_cluster_builds_a_lab_on_s3_as_one_machine_does(s3, campaign_dataset):
 
 def test_a_damaged_session_on_the_store_is_named_by_its_store_path(s3, campaign_dataset):
     from pipeline.build import process_session
+    from pipeline.cache import StageCache
 
     src, _, _ = campaign_dataset
     good = sorted((src / "sessions").iterdir())[0]
     bad = lab_path("s3://lab/damaged/sessions/sim-bad")
     (bad / "session.json").write_bytes((good / "session.json").read_bytes())
     (bad / "sim-bad_000.mcap").write_bytes(b"not an MCAP file at all")
-    result = process_session(str(bad), {"clean": {}, "segment": {}}, "s3://lab/damaged/cache")
+    result = process_session(
+        bad, {"clean": {}, "segment": {}}, StageCache(lab_path("s3://lab/damaged/cache"))
+    )
     assert "s3://lab/damaged/sessions/sim-bad/sim-bad_000.mcap" in result["error"], result
     assert "vslab-fetch" not in result["error"] and "not an MCAP file" in result["error"]
 

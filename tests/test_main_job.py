@@ -7,6 +7,9 @@ import json
 
 import pytest
 
+from acquisition.recorder.sessions import SessionStore
+from pipeline.lab import Lab
+from pipeline.session_index import sessions_of
 from vslab import lab_job
 
 FIGURES = [
@@ -20,7 +23,7 @@ FIGURES = [
 @pytest.mark.slow
 def test_quick_main_job_makes_every_figure_and_the_report(tmp_path):
     said: list[str] = []
-    report = lab_job.run(tmp_path / "lab", quick=True, say=said.append)
+    report = lab_job.run(Lab(tmp_path / "lab"), quick=True, say=said.append)
     assert not [line for line in said if "not made" in line], said
     figures = tmp_path / "lab" / "figures"
     for name in FIGURES:
@@ -42,7 +45,7 @@ def test_quick_main_job_makes_every_figure_and_the_report(tmp_path):
     from pipeline.comparison import UNMODELLED, load_comparison
     from pipeline.registry import load_card
 
-    _, card = load_comparison(tmp_path / "lab" / UNMODELLED)
+    _, card = load_comparison(Lab(tmp_path / "lab").comparisons.path(UNMODELLED))
     paths = {(r["mode"], r["pressure_bar"]): r["mean_mm"] for r in card["experiment2"]}
     assert set(paths) == {(m, b) for m in ("ik", "static", "hybrid", "history") for b in (0.5, 1.5)}
     assert all(0 < e < 20 for e in paths.values()), paths
@@ -52,5 +55,7 @@ def test_quick_main_job_makes_every_figure_and_the_report(tmp_path):
     assert all("comparison" in load_card(models / m["name"] / m["version"]) for m in card["models"])
     # the rig's real-time session is in the lab, but not in Experiment 1's dataset
     sessions = tmp_path / "lab" / "sessions"
-    rig = [d for d in lab_job.sessions_of(sessions, "experiment1") if d.name.startswith("rig-")]
-    assert len(rig) == 1 and rig[0] not in lab_job.sessions_of(sessions, "experiment1", runner="simulated")
+    rig = [d for d in sessions_of(SessionStore(sessions), "experiment1") if d.name.startswith("rig-")]
+    assert len(rig) == 1 and rig[0] not in sessions_of(
+        SessionStore(sessions), "experiment1", runner="simulated"
+    )

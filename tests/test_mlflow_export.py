@@ -21,6 +21,7 @@ import yaml
 
 from pipeline import registry
 from pipeline.grid import load_grid, run_grid
+from pipeline.lab import Lab
 from pipeline.mlflow_export import NAME_TAG, VERSION_TAG, MlflowExportError, _reachable, run_metrics
 
 
@@ -38,7 +39,7 @@ def lab(tmp_path_factory, campaign_dataset):
     }  # fmt: skip
     path = lab / "grid.yaml"
     path.write_text(yaml.safe_dump(grid))
-    run_grid(lab, load_grid(path), workers=1, threads=1)
+    run_grid(Lab(lab), load_grid(path), workers=1, threads=1)
     return lab
 
 

@@ -10,6 +10,7 @@ import pytest
 import yaml
 from scipy import signal
 
+from acquisition.recorder.sessions import SessionStore
 from analysis import popup_tests as pt
 from models import prbm
 from models.robot import load_robot, robot_path
@@ -45,13 +46,13 @@ def root(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def impact_dir(root):
-    simulate_experiment("popup_impact", root / "impact", seed=SEED, overrides=IMPACT)
+    simulate_experiment("popup_impact", SessionStore(root / "impact"), seed=SEED, overrides=IMPACT)
     return root / "impact"
 
 
 @pytest.fixture(scope="module")
 def static_dir(root):
-    simulate_experiment("popup_static", root / "static", seed=SEED, overrides=STATIC)
+    simulate_experiment("popup_static", SessionStore(root / "static"), seed=SEED, overrides=STATIC)
     return root / "static"
 
 
@@ -118,10 +119,10 @@ def test_table1_recovers_perturbed_twins(tmp_path, k_factor, c_factor):
     k̂ 5 %, ĉ 15 % of what the twin was given, whatever the damping."""
     robot = _perturbed_popup(tmp_path / "popup.yaml", k_factor, c_factor)
     simulate_experiment(
-        "popup_impact", tmp_path / "impact", seed=SEED, overrides=IMPACT | {"robot": str(robot)}
+        "popup_impact", SessionStore(tmp_path / "impact"), seed=SEED, overrides=IMPACT | {"robot": str(robot)}
     )
     simulate_experiment(
-        "popup_static", tmp_path / "static", seed=SEED, overrides=STATIC | {"robot": str(robot)}
+        "popup_static", SessionStore(tmp_path / "static"), seed=SEED, overrides=STATIC | {"robot": str(robot)}
     )
     static_k = pt.static_stiffness(pt.link_static_curves(_sessions(tmp_path / "static")))
     table = pt.table1(static_k, pt.impact_parameters(_sessions(tmp_path / "impact")))
@@ -171,7 +172,7 @@ def hysteresis_curves(root):
     """Figure 7's sessions: the configured twin, 3 runs."""
     # the heaviest masses ring at ≈ 3.5 Hz with ζ ≈ 0.015 (c/2I ≈ 0.3 /s): settle as the protocol does
     fig7 = STATIC | {"pressures_kpa": [20, 40], "repetitions": 3, "settle_s": 5.0, "hold_s": 1.0}
-    simulate_experiment("popup_static", root / "hysteresis", seed=SEED, overrides=fig7)
+    simulate_experiment("popup_static", SessionStore(root / "hysteresis"), seed=SEED, overrides=fig7)
     return pt.link_static_curves(_sessions(root / "hysteresis"))
 
 

@@ -10,6 +10,7 @@ from mcap.reader import make_reader
 from acquisition.plans import experiments
 from acquisition.plans import popup_experiments as pp
 from acquisition.plans.plan import Plan, PlanBuilder
+from acquisition.recorder.sessions import SessionStore
 from acquisition.safety import SafetyChecker
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
@@ -118,7 +119,7 @@ def sessions(tmp_path_factory, popup):
     out = {}
     for name, overrides in REDUCED.items():
         _, plans = _plans(name, popup, **overrides)
-        simulate_experiment(name, directory, seed=SEED, overrides=overrides)
+        simulate_experiment(name, SessionStore(directory), seed=SEED, overrides=overrides)
         out[name] = []
         for plan in plans:
             (part,) = sorted((directory / session_id(plan)).glob("*.mcap"))

@@ -26,7 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from acquisition.plans.popup_experiments import pressure_checks, verify_pressure_checks
 from acquisition.recorder.daemon import MAX_LAG_S
-from acquisition.recorder.sessions import session_info
+from acquisition.recorder.sessions import SessionStore, session_info
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
@@ -37,9 +37,10 @@ from models import prbm
 from models.robot import load_robot
 from models.statics import static_deflection
 from pipeline.build import build
+from pipeline.lab import Lab
+from pipeline.session_index import sessions_of
 from twin.runner import simulate_experiment
 from twin.streams import tracker_spec
-from vslab.lab_job import sessions_of
 
 INERTIA = 0.0358  # the twin's link 2 about its virtual hinge (tests/test_popup_analysis.py)
 PRESSURES_KPA = (10, 50)
@@ -162,8 +163,8 @@ def test_real_time_popup_sessions_build_into_datasets(recorded, popup):
     moves the tip along a line, a link test not at all), D with the drives' torques, the reach's path."""
     sessions = [recorded(name) for name in ("deploy", "reach", "impact-10")]
     lab = recorded.lab
-    simulate_experiment("popup_survey", lab / "sessions", seed=1)
-    survey = build(sessions_of(lab / "sessions", "popup_survey"), lab, "popup_survey")
+    simulate_experiment("popup_survey", SessionStore(lab / "sessions"), seed=1)
+    survey = build(sessions_of(SessionStore(lab / "sessions"), "popup_survey"), Lab(lab), "popup_survey")
     fitted = np.array(
         json.loads((survey.path / "card.json").read_text())["registration"]["popup"]["base_to_tracker"]
     )
@@ -171,7 +172,7 @@ def test_real_time_popup_sessions_build_into_datasets(recorded, popup):
     assert np.degrees(Rotation.from_matrix(fitted[:3, :3] @ truth[:3, :3].T).magnitude()) < 0.05
     assert np.linalg.norm(fitted[:3, 3] - truth[:3, 3]) < 0.5e-3
     borrowed = {"register": {"from_dataset": f"popup_survey@{survey.version}"}}
-    built = {s.name: build([s], lab, f"rt-{s.name}", borrowed) for s in sessions}
+    built = {s.name: build([s], Lab(lab), f"rt-{s.name}", borrowed) for s in sessions}
     deploy = pd.read_parquet(built["deploy"].path / "data.parquet")
     assert len(deploy) == 1 and deploy["p_0"].iloc[0] == pytest.approx(50e3, rel=0.03)  # the deployed arm
     taps = pd.read_parquet(built["impact-10"].path / "trajectories.parquet")

@@ -7,6 +7,7 @@ import pandas as pd
 import pytest
 from twin_timeline import sessions, timeline, true_base_to_tracker
 
+from acquisition.recorder.sessions import SessionStore
 from pipeline.register import (
     ResidualStats,
     RigidTransform,
@@ -71,7 +72,7 @@ def test_robust_fit_trims_outliers():
 def campaign(tmp_path_factory):
     """Static points of a 300-point twin campaign (30 benches) and the twin's true base → tracker (R, t)."""
     root = tmp_path_factory.mktemp("register")
-    simulate_experiment("campaign", root, overrides={"points": 300}, benches=30, seed=0)
+    simulate_experiment("campaign", SessionStore(root), overrides={"points": 300}, benches=30, seed=0)
     tables = sessions(root)
     points = pd.concat([static_points(timeline(s), s.events, s.t0_ns) for s in tables], ignore_index=True)
     return points, tables[0].robot, true_base_to_tracker(tables[0])

@@ -16,6 +16,7 @@ from models.hybrid import NetConfig
 from pipeline import registry
 from pipeline.exports import OnnxModel, quantized
 from pipeline.grid import GridError, load_grid, run_grid
+from pipeline.lab import Lab
 from pipeline.train import TrainConfig, train
 
 TINY = {"hidden": [16, 16]}
@@ -182,7 +183,7 @@ def _grid(tmp_path, **extra) -> dict:
 def test_grid_trains_each_version_once(lab, monkeypatch):
     grid = load_grid(_grid(lab))
     seen = []
-    first = run_grid(lab, grid, workers=1, progress=lambda done, total, s: seen.append((done, total)))
+    first = run_grid(Lab(lab), grid, workers=1, progress=lambda done, total, s: seen.append((done, total)))
     assert [r["status"] for r in first] == ["trained", "trained"] and seen[-1] == (2, 2)
     assert all(np.isfinite(r["test_mean_mm"]) for r in first)
     assert {r["name"] for r in first} == {"forward-small-residual", "inverse-paper"}
@@ -190,7 +191,7 @@ def test_grid_trains_each_version_once(lab, monkeypatch):
     import pipeline.train
 
     monkeypatch.setattr(pipeline.train, "train", lambda *a, **k: pytest.fail("trained an existing version"))
-    second = run_grid(lab, grid, workers=1)
+    second = run_grid(Lab(lab), grid, workers=1)
     assert [r["status"] for r in second] == ["existing", "existing"]
     assert [r["version"] for r in second] == [r["version"] for r in first]
     assert [r["test_mean_mm"] for r in second] == pytest.approx([r["test_mean_mm"] for r in first])
@@ -202,9 +203,9 @@ def test_grid_errors_name_what_is_wrong(lab):
     with pytest.raises(GridError, match="max_epoch"):
         load_grid(_grid(lab), {"max_epoch": 3})
     with pytest.raises(GridError, match="no dataset 'nope'"):
-        run_grid(lab, load_grid(_grid(lab, datasets=["nope"])))
+        run_grid(Lab(lab), load_grid(_grid(lab, datasets=["nope"])))
     with pytest.raises(GridError, match="no preset"):
-        run_grid(lab, load_grid(_grid(lab, models=[{"direction": "inverse", "preset": "huge"}])))
+        run_grid(Lab(lab), load_grid(_grid(lab, models=[{"direction": "inverse", "preset": "huge"}])))
 
 
 def test_cli_train_list_show_compare(lab):

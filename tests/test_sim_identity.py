@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from acquisition.recorder.sessions import list_sessions, read_card, session_info
+from acquisition.recorder.sessions import SessionStore, list_sessions, read_card, session_info
 from acquisition.schemas.session_card import SESSION_CARD
 from models.robot import CONFIG_DIR, load_robot
 from pipeline.session_index import experiment_sessions
@@ -58,7 +58,7 @@ def _refused(result, *says: str) -> str:
 def popup_lab(tmp_path_factory) -> Path:
     """A lab with the nominal POPUP arm's popup_impact sessions (the shipped description)."""
     lab = tmp_path_factory.mktemp("lab")
-    (report,) = simulate_experiment("popup_impact", lab / "sessions", overrides=SMALL)
+    (report,) = simulate_experiment("popup_impact", SessionStore(lab / "sessions"), overrides=SMALL)
     assert len(report.sessions) == 1 and not report.skipped
     return lab
 
@@ -142,7 +142,7 @@ def test_a_session_of_an_older_vslab_is_read_and_built_but_not_reused(popup_lab,
     _refused(_simulate(lab), "differs: unknown (no identity recorded: an older vslab)")
     assert _files(lab / "sessions") == before
     with pytest.raises(StaleSessionsError, match="1 complete session"):
-        simulate_experiment("popup_impact", lab / "sessions", overrides=SMALL)
+        simulate_experiment("popup_impact", SessionStore(lab / "sessions"), overrides=SMALL)
 
 
 def test_campaign_with_a_robot_path_writes_sessions(tmp_path):
@@ -199,7 +199,9 @@ def test_a_session_is_never_reused_for_another_learned_model(tmp_path):
         def compensator(plan):
             return InverseModelCompensator(_RigidInverse(), vsl, identity=identity)
 
-        reports = simulate_experiment("experiment2", tmp_path, overrides=small, inverse_model=compensator)
+        reports = simulate_experiment(
+            "experiment2", SessionStore(tmp_path), overrides=small, inverse_model=compensator
+        )
         return sum(len(r.sessions) for r in reports), sum(len(r.skipped) for r in reports)
 
     assert run("model-a") == (1, 0)

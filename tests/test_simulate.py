@@ -11,7 +11,7 @@ import pytest
 
 from acquisition.plans import experiments
 from acquisition.plans.plan import PlanBuilder
-from acquisition.recorder.sessions import list_sessions, session_info
+from acquisition.recorder.sessions import SessionStore, list_sessions, session_info
 from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
@@ -327,14 +327,14 @@ def test_simulate_protocol_runs_both_arms(tmp_path):
         "settle_s": 0.5,
         "rest_s": 0.2,
     }
-    reports = simulate_experiment("experiment1", tmp_path, seed=3, overrides=overrides)
+    reports = simulate_experiment("experiment1", SessionStore(tmp_path), seed=3, overrides=overrides)
     assert len(reports) == 2  # one batch per robot
     infos = {i.id: i for i in list_sessions(tmp_path)}
     assert set(infos) == {"sim-experiment1-linear-vsl-2bar-25g", "sim-experiment1-linear-vsl_rigid-25g"}
     assert infos["sim-experiment1-linear-vsl-2bar-25g"].robot == "vsl"
     assert infos["sim-experiment1-linear-vsl_rigid-25g"].robot == "vsl_rigid"
     assert all(i.status == "complete" for i in infos.values())
-    again = simulate_experiment("experiment1", tmp_path, seed=3, overrides=overrides)
+    again = simulate_experiment("experiment1", SessionStore(tmp_path), seed=3, overrides=overrides)
     assert all(r.sessions == [] for r in again) and sum(len(r.skipped) for r in again) == 2
 
 
@@ -342,14 +342,16 @@ def test_simulate_protocol_unknown_kind(tmp_path):
     path = tmp_path / "other.yaml"
     path.write_text("robot: vsl\n")
     with pytest.raises(ValueError, match="no plans for experiment"):
-        simulate_experiment(str(path), tmp_path / "sessions")
+        simulate_experiment(str(path), SessionStore(tmp_path / "sessions"))
     with pytest.raises(FileNotFoundError, match="known: campaign, experiment1"):
-        simulate_experiment("nonesuch", tmp_path / "sessions")
+        simulate_experiment("nonesuch", SessionStore(tmp_path / "sessions"))
 
 
 def test_simulate_protocol_campaign(tmp_path):
     overrides = {"points": 6, "settle_s": 0.3, "hold_s": 0.2}
-    (report,) = simulate_experiment("campaign", tmp_path, seed=4, benches=2, overrides=overrides)
+    (report,) = simulate_experiment(
+        "campaign", SessionStore(tmp_path), seed=4, benches=2, overrides=overrides
+    )
     assert report.sessions == ["sim-campaign-bench000", "sim-campaign-bench001"]
     settled = []
     for sid in report.sessions:
@@ -361,7 +363,9 @@ def test_campaign_runs_to_the_end_within_the_safety_limits(tmp_path):
     """Every random point of the campaign (commanded targets down to 20 mm, links sagging below them) stays
     inside the robot's limits: no bench is stopped, all the bench-seconds are simulated."""
     overrides = {"points": 240}
-    (report,) = simulate_experiment("campaign", tmp_path, seed=5, benches=8, overrides=overrides)
+    (report,) = simulate_experiment(
+        "campaign", SessionStore(tmp_path), seed=5, benches=8, overrides=overrides
+    )
     plans = experiments.campaign(
         load_robot("vsl"), experiments.load_experiment("campaign", **overrides), 8, seed=5
     )

@@ -10,12 +10,14 @@ import pytest
 from matplotlib.image import imread
 
 from acquisition.plans import experiments
+from acquisition.recorder.sessions import SessionStore
 from analysis import vsl_figures, vsl_paths
 from models import kinematics, trajectories
 from models.hybrid import FORWARD_INPUTS, preset
 from models.robot import load_robot
 from pipeline.build import build
 from pipeline.datasets import load_dataset
+from pipeline.lab import Lab
 from pipeline.train import TrainConfig, train
 from twin.runner import simulate_experiment
 
@@ -28,16 +30,18 @@ def lab(tmp_path_factory):
     """A campaign (for the tracker registration), a subset of Experiment 1 (the curve at 25/75 g, 0.5/1.5 bar
     and the rigid arm) and Experiment 2 (75 g / 0.5 bar: ik, static, rigid), two repetitions each."""
     lab = tmp_path_factory.mktemp("lab")
-    simulate_experiment("campaign", lab / "campaign", seed=2, benches=2, overrides={"points": 48})
-    campaign = build(sorted((lab / "campaign").iterdir()), lab, "campaign")
+    simulate_experiment(
+        "campaign", SessionStore(lab / "campaign"), seed=2, benches=2, overrides={"points": 48}
+    )
+    campaign = build(sorted((lab / "campaign").iterdir()), Lab(lab), "campaign")
     borrowed = {"register": {"from_dataset": f"campaign@{campaign.version}"}}
     e1 = {"trajectories": ["curve"], "payloads_g": [25, 75], "pressures_bar": [0.5, 1.5]} | SMALL
-    simulate_experiment("experiment1", lab / "e1", seed=4, overrides=e1)
+    simulate_experiment("experiment1", SessionStore(lab / "e1"), seed=4, overrides=e1)
     e2 = {"cases": [{"payload_g": 75, "pressure_bar": 0.5}], "commands": ["ik", "static"], "rigid_arm": True}
-    simulate_experiment("experiment2", lab / "e2", seed=3, overrides=e2 | SMALL)
+    simulate_experiment("experiment2", SessionStore(lab / "e2"), seed=3, overrides=e2 | SMALL)
     out = {}
     for name, folder in (("experiment1", "e1"), ("experiment2", "e2")):
-        report = build(sorted((lab / folder).iterdir()), lab, name, borrowed)
+        report = build(sorted((lab / folder).iterdir()), Lab(lab), name, borrowed)
         out[name] = load_dataset(lab / "datasets", name, report.version, table="trajectories")[0]
         out[f"{name}_version"] = f"{name}@{report.version}"
     d, _ = load_dataset(lab / "datasets", "experiment1", out["experiment1_version"].split("@")[1])

@@ -21,6 +21,7 @@ import numpy as np
 from acquisition.command_guard import CommandGuard, CommandRefused
 from acquisition.plans.compensation import Compensator, compensator_for
 from acquisition.plans.plan import Plan
+from acquisition.recorder.sessions import SessionStore
 from acquisition.recorder.writer import SessionWriter
 from acquisition.safety import SafetyChecker
 from acquisition.schemas import topics as T
@@ -418,7 +419,7 @@ def _write_commands(w: SessionWriter, topics, cmds: dict, tb: np.ndarray, last_g
 
 def simulate_experiment(
     experiment: str,
-    sessions_dir: Path,
+    sessions: SessionStore,
     seed: int = 0,
     benches: int = 128,
     overrides: dict | None = None,
@@ -427,14 +428,15 @@ def simulate_experiment(
     prepared: tuple[dict[str, RobotDescription], list[Plan], dict] | None = None,
 ) -> list[SimReport]:
     """Expand an experiment (``configs/experiments/<name>.yaml`` + overrides) into plans and run them all on
-    the twin, at most ``benches`` benches per batch. Sessions already complete on disk are skipped.
+    the twin, at most ``benches`` benches per batch, into the lab's ``sessions`` (a local store). Sessions
+    already complete on disk are skipped.
 
     Experiment 2's ``hybrid`` and ``history`` plans need ``inverse_model``: it gives the compensator (a
     trained inverse model) for a plan, by its ``parameters["commands"]``; the layers above ``acquisition``
     (the pipeline's registry, the main job) provide it. It is called once per plan, so a compensator with
     memory starts each session afresh. ``prepared``: what :func:`prepare_experiment` gave for these
     arguments (a caller that checks before it commits to the work)."""
-    kind = Path(experiment).stem
+    kind, sessions_dir = Path(experiment).stem, sessions.root
     robots, plans, _ = prepared or prepare_experiment(experiment, overrides, benches, seed, inverse_model)
     batches = []  # (robot, plans, first plan's index in its robot's group, label)
     for name, robot in robots.items():

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import re
 import sys
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Annotated, NoReturn
 
 import typer
@@ -14,14 +14,17 @@ from rich.console import Console
 from rich.markup import escape
 from typer.core import TyperGroup
 
-from acquisition.storage import LabPath, StoreError, check_store, is_local, lab_path
+from acquisition.storage import StoreError
 from models.errors import VslabError
 from models.robot import RobotDescriptionError, load_robot
+from pipeline.lab import Lab, ModelStore
 
 try:  # typer ≥ 0.2x carries its own click, whose exceptions derive from TyperException
     from typer import TyperException as _ClickError
+    from typer._click.globals import get_current_context  # its context stack, not click's
 except ImportError:  # pragma: no cover - older typer on click
     from click import ClickException as _ClickError
+    from click import get_current_context
 
 
 class _Group(TyperGroup):
@@ -61,11 +64,21 @@ app.add_typer(sessions_app, name="sessions")
 console = Console()
 
 
-class Settings:
-    """Options every command shares (set by the top-level callback)."""
+@dataclass(frozen=True)
+class Options:
+    """Options every command shares: the top-level callback opens the lab once and puts these in the typer
+    context, where each command finds them (:func:`options`)."""
 
-    lab: LabPath = Path("lab")  # a local folder, or a store (a UPath)
+    lab: Lab
     quiet: bool = False
+
+
+def options() -> Options:
+    """The shared options of the command that runs now (the context object the top-level callback set)."""
+    found = get_current_context().find_object(Options)
+    if found is None:  # a command run without the app's callback: a programming error, not a user's
+        raise RuntimeError("no vslab options in this command's context: run it through `vslab.app.app`")
+    return found
 
 
 LAB_HELP = ("The lab: a folder, or an fsspec URL such as s3://bucket/prefix (credentials from the store's "
@@ -74,30 +87,27 @@ LAB_HELP = ("The lab: a folder, or an fsspec URL such as s3://bucket/prefix (cre
 
 @app.callback()
 def main(
+    ctx: typer.Context,
     lab: Annotated[str, typer.Option(help=LAB_HELP, envvar="VSLAB_LAB")] = "lab",
     quiet: Annotated[bool, typer.Option("--quiet", "-q", help="No progress output.")] = False,
 ) -> None:
     """Options shared by every command."""
     try:
-        where = lab_path(lab)
-        check_store(where)
+        ctx.obj = Options(Lab.open(lab), quiet)
     except StoreError as exc:
         _error(f"--lab {exc}")
-    if is_local(where) and where.exists() and not where.is_dir():
-        _error(f"--lab {lab}: not a directory (the lab is a folder of sessions, datasets, models, figures)")
-    Settings.lab = where
-    Settings.quiet = quiet
     logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="%(levelname)s %(message)s")
 
 
-def local_lab(command: str) -> Path:
+def local_lab(command: str) -> Lab:
     """The lab for a command that records (or runs a rig): a local folder, or one error line. A recording is
     never written to a store directly (a network stall must not cost a sample): record into a local lab,
     then publish with `vslab --lab URL sessions upload`."""
-    if not is_local(Settings.lab):
-        _error(f"{command} records into a local lab, not {Settings.lab}: give --lab FOLDER, then publish "
-               f"with `vslab --lab {Settings.lab} sessions upload FOLDER/sessions/ID`")  # fmt: skip
-    return Settings.lab
+    lab = options().lab
+    if not lab.is_local:
+        _error(f"{command} records into a local lab, not {lab}: give --lab FOLDER, then publish "
+               f"with `vslab --lab {lab} sessions upload FOLDER/sessions/ID`")  # fmt: skip
+    return lab
 
 
 def _print_error(message: str) -> None:
@@ -217,34 +227,31 @@ HISTORY_NOT_REGISTERED = (
 )
 
 
-def load_inverse_model(version: str, lab: Path | None = None):
-    """The registered inverse network ``version`` of ``lab`` (default: the CLI's) as the control loop runs
-    it: its ONNX export on ONNX Runtime (``predict``), every file checked against its card first. An
+def load_inverse_model(version: str, models: ModelStore | None = None):
+    """The registered inverse network ``version`` of ``models`` (default: the CLI's lab's) as the control
+    loop runs it: its ONNX export on ONNX Runtime (``predict``), every file checked against its card first. An
     unknown, ambiguous, damaged or forward model, or one saved without an ONNX export, is one error line."""
-    from pipeline.registry import find, load_card, load_onnx
+    from pipeline.in_loop import registered_inverse
 
-    root = lab_path(lab or Settings.lab) / "models"
     try:
-        path = find(root, version)
-        direction = load_card(path)["net"].get("direction")
-        if direction == "inverse":
-            return load_onnx(path)
-    except (FileNotFoundError, ValueError) as exc:  # unknown; ambiguous; damaged (ModelIntegrityError)
+        return registered_inverse(models or options().lab.models, version)[0]
+    except (FileNotFoundError, ValueError) as exc:  # unknown, ambiguous, damaged, forward
         _error(f"--inverse-model {version}: {exc}")
-    _error(f"--inverse-model {version}: a {direction} model; hybrid commands need an inverse one")
 
 
-def inverse_compensators(version: str, lab: Path | None = None):
-    """A registered inverse model of ``lab`` (default: the CLI's) as the runners' hybrid commands
-    (``pipeline.in_loop.learned_compensators``; fails clearly)."""
-    from pipeline.in_loop import learned_compensators
+def inverse_compensators(version: str, models: ModelStore | None = None):
+    """A registered inverse model of ``models`` (default: the CLI's lab's) as the runners' hybrid commands
+    (``pipeline.in_loop.learned_compensators``); an unusable model is one error line."""
+    from pipeline.in_loop import learned_compensators, registered_inverse
 
-    model = load_inverse_model(version, lab)
-    return learned_compensators({"hybrid": model}, identities={"hybrid": inverse_model_version(version, lab)})
+    try:
+        model, identity = registered_inverse(models or options().lab.models, version)
+    except (FileNotFoundError, ValueError) as exc:  # unknown, ambiguous, damaged, forward
+        _error(f"--inverse-model {version}: {exc}")
+    return learned_compensators({"hybrid": model}, identities={"hybrid": identity})
 
 
-def inverse_model_version(version: str, lab: Path | None = None) -> str:
-    """The full version id of the registered model ``version`` (a tag or a unique prefix) of ``lab``."""
-    from pipeline.registry import find
-
-    return find(lab_path(lab or Settings.lab) / "models", version).name
+def inverse_model_version(version: str, models: ModelStore | None = None) -> str:
+    """The full version id of the registered model ``version`` (a tag or a unique prefix) of ``models``
+    (default: the CLI's lab's)."""
+    return (models or options().lab.models).find(version).name

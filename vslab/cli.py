@@ -20,7 +20,6 @@ from vslab import (
 )
 from vslab.app import (
     HISTORY_NOT_REGISTERED,
-    Settings,
     _error,
     _fail,
     _overrides,
@@ -30,6 +29,7 @@ from vslab.app import (
     inverse_model_version,
     load_inverse_model,
     local_lab,
+    options,
     robots_app,
     twin_app,
 )
@@ -70,7 +70,7 @@ def robots_urdf(
         out.write_text(text)
     except OSError as exc:
         _error(f"cannot write {out}: {exc.strerror or exc}")
-    if not Settings.quiet:
+    if not options().quiet:
         console.print(f"written: {out}")
 
 
@@ -91,10 +91,10 @@ def twin_survey(
     except ValueError as exc:
         _fail(str(exc))
     _print_grid(grid, f"{desc.name}: mean tip error (mm), true tip vs rigid FK of the encoders, {trajectory}")
-    out = Settings.lab / "twin" / f"survey_{desc.name}_{trajectory}.json"
+    out = options().lab.twin / f"survey_{desc.name}_{trajectory}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(grid.to_dict(), indent=2))
-    if not Settings.quiet:
+    if not options().quiet:
         console.print(f"written: {out}")
 
 
@@ -108,8 +108,8 @@ def rig(
     from twin.rig import serve_rig
 
     desc = _robot(robot)
-    where = run_dir or local_lab("rig (without --run-dir)") / "rig"
-    if not Settings.quiet:
+    where = run_dir or local_lab("rig (without --run-dir)").rigs
+    if not options().quiet:
         console.print(f"rig for {desc.name}: ports in {where / 'ports.json'} (Ctrl-C stops)")
     serve_rig(desc, where, seed=seed)
 
@@ -145,17 +145,18 @@ def figures() -> None:
 
     from analysis.lab_figures import all_figures, lab_report
 
-    datasets = Settings.lab / "datasets"
+    lab = options().lab
+    datasets = lab.datasets.root
     if not any(datasets.glob("*/*/card.json")):
         _error(f"no datasets in {datasets}: nothing to draw (build some first: `vslab build`, `vslab demo`)")
     try:
-        results = all_figures(Settings.lab)  # each failure is a `not made:` line below, with why
+        results = all_figures(lab)  # each failure is a `not made:` line below, with why
     except OSError as exc:  # the figures or report folder cannot be written
-        _error(f"{exc.filename or Settings.lab}: cannot be written ({exc.strerror or exc})")
+        _error(f"{exc.filename or lab}: cannot be written ({exc.strerror or exc})")
     for what, why in results.missing.items():
         console.print(f"[yellow]not made: {escape(what)}:[/] {escape(why)}", soft_wrap=True)
-    console.print(f"{len(results.figures)} figures in {Settings.lab / 'figures'}; "
-                  f"report: {lab_report(Settings.lab, results).resolve()}")  # fmt: skip
+    console.print(f"{len(results.figures)} figures in {lab.figures}; "
+                  f"report: {lab_report(lab, results).resolve()}")  # fmt: skip
 
 
 @app.command()
@@ -181,7 +182,7 @@ def simulate(
     import numpy as np
     from rich.progress import Progress
 
-    from acquisition.recorder.sessions import staged_sessions
+    from acquisition.recorder.sessions import SessionStore
     from acquisition.safety import SafetyError
     from pipeline.in_loop import learned_compensators
     from twin.runner import SIM_PREFIX, prepare_experiment, simulate_experiment
@@ -208,7 +209,8 @@ def simulate(
 
     lower_priority()  # batch work: a recording on this computer goes first
     start = time.perf_counter()
-    sessions_dir = Settings.lab / "sessions"
+    sessions = options().lab.sessions
+    sessions_dir = sessions.root
     compensators = []
     learned = learned_compensators({"hybrid": model}, identities={"hybrid": model_version})
 
@@ -216,7 +218,7 @@ def simulate(
         compensators.append(learned(plan))
         return compensators[-1]
 
-    with Progress(console=console, disable=Settings.quiet, transient=True) as bar:
+    with Progress(console=console, disable=options().quiet, transient=True) as bar:
         tasks: dict[str, int] = {}
 
         def progress(label: str, fraction: float) -> None:
@@ -227,10 +229,10 @@ def simulate(
         folder = sessions_dir
         try:
             # on a store, the sessions are written locally and uploaded once whole
-            with staged_sessions(sessions_dir, f"{SIM_PREFIX}*") as folder:
+            with sessions.staged(f"{SIM_PREFIX}*") as folder:
                 reports = simulate_experiment(
-                    experiment, folder, seed=seed, benches=benches, overrides=overrides, progress=progress,
-                    inverse_model=hybrid if model is not None else None, prepared=prepared,
+                    experiment, SessionStore(folder), seed=seed, benches=benches, overrides=overrides,
+                    progress=progress, inverse_model=hybrid if model is not None else None, prepared=prepared,
                 )  # fmt: skip
         except (ValueError, OSError, RobotDescriptionError, SafetyError) as exc:  # ExperimentError, full disk
             bar.stop()
@@ -305,7 +307,7 @@ def build(
     if not sessions:
         warn(bad)
         unusable = f" ({len(bad)} folder(s) skipped, see above)" if bad else ""
-        _fail(escape(f"no usable session of protocol {wanted!r} in {Settings.lab / 'sessions'}{unusable} "
+        _fail(escape(f"no usable session of protocol {wanted!r} in {options().lab.sessions.root}{unusable} "
                      "(see `vslab sessions list`)"))  # fmt: skip
     if cluster is not None and workers:
         _fail("--workers and --cluster: the cluster's workers build (give one of them)")
@@ -315,7 +317,7 @@ def build(
     start = time.perf_counter()
     with (
         contextlib.ExitStack() as stack,
-        Progress(console=console, disable=Settings.quiet, transient=True) as bar,
+        Progress(console=console, disable=options().quiet, transient=True) as bar,
     ):
         task = bar.add_task(f"{len(sessions)} sessions", total=len(sessions))
         try:
@@ -324,7 +326,7 @@ def build(
                 executor = stack.enter_context(cluster_executor(cluster))
             elif workers > 0:
                 executor = stack.enter_context(cf.ProcessPoolExecutor(workers))
-            report = build_dataset(sessions, Settings.lab, name, parameters, executor=executor,
+            report = build_dataset(sessions, options().lab, name, parameters, executor=executor,
                                    progress=lambda done, total: bar.update(task, completed=done))  # fmt: skip
         except BuildError as exc:
             bar.stop()
@@ -376,19 +378,18 @@ def _sessions_of(wanted: str, pattern: str) -> tuple[list[Path], dict[str, str]]
     that are not readable sessions with the reason (a folder without session.json never joins a build)."""
     from rich.markup import escape
 
-    from pipeline.session_index import experiment_sessions
-
-    root = Settings.lab / "sessions"
+    sessions = options().lab.sessions
+    root = sessions.root
     if not root.is_dir():
         _fail(escape(f"no sessions folder at {root}: record or simulate sessions first (`vslab simulate`)"))
     try:
-        return experiment_sessions(root, wanted, pattern=pattern)
+        return sessions.select(wanted, pattern=pattern)
     except (OSError, ValueError) as exc:
         _fail(escape(f"--sessions {pattern!r}: cannot list {root} ({exc})"))
 
 
 def _print_grid(grid, title: str) -> None:
-    if Settings.quiet:
+    if options().quiet:
         return
     table = Table(title=title)
     table.add_column("pressure")

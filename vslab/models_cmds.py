@@ -12,7 +12,7 @@ from typing import Annotated
 import typer
 from rich.table import Column, Table
 
-from vslab.app import Settings, _error, _overrides, app, console
+from vslab.app import _error, _overrides, app, console, options
 
 models_app = typer.Typer(help="Trained networks in <lab>/models/.", no_args_is_help=True)
 app.add_typer(models_app, name="models")
@@ -61,7 +61,7 @@ def train(
     overrides = _overrides(set_ or [])
     try:
         spec = load_grid(grid, overrides)
-        n_jobs = len(expand(Settings.lab, spec))
+        n_jobs = len(expand(options().lab, spec))
     except (ValueError, OSError) as exc:  # GridError; a damaged model already in the lab
         _error(str(exc))
     if cluster is not None and workers:
@@ -72,7 +72,7 @@ def train(
     start = time.perf_counter()
     with (
         contextlib.ExitStack() as stack,
-        Progress(console=console, disable=Settings.quiet, transient=True) as bar,
+        Progress(console=console, disable=options().quiet, transient=True) as bar,
     ):
         task = bar.add_task(f"{n_jobs} training jobs", total=n_jobs)
 
@@ -88,13 +88,13 @@ def train(
                     workers, mp_context=multiprocessing.get_context("forkserver")
                 )
                 stack.callback(executor.shutdown, cancel_futures=True)
-            results = run_grid(Settings.lab, spec, executor=executor, progress=progress,
+            results = run_grid(options().lab, spec, executor=executor, progress=progress,
                                workers=workers or None, threads=threads)  # fmt: skip
         # GridError; a damaged model or dataset; a full disk; no cluster at the address
         except (ValueError, OSError, ClusterError) as exc:
             bar.stop()
             _error(str(exc))
-    title = f"{len(results)} models in {Settings.lab / 'models'}"
+    title = f"{len(results)} models in {options().lab.models.root}"
     table = Table(_version(), "model", "dataset", "split", "seed", "test mean mm", "test p95 mm", "epochs",
                   "time s", "status", title=title)  # fmt: skip
     for r in results:
@@ -114,12 +114,13 @@ def models_list() -> None:
     against its card: a damaged one is listed as damaged, with a `warning:` line saying which file and why."""
     from rich.markup import escape
 
-    from pipeline.registry import RegistryError, list_models, tags
+    from pipeline.registry import RegistryError
 
-    root = Settings.lab / "models"
+    models = options().lab.models
+    root = models.root
     try:
-        rows = list_models(root)
-        tagged = tags(root)
+        rows = models.list()
+        tagged = models.tags()
     except OSError as exc:
         _error(f"{root}: cannot be listed ({exc.strerror or exc})")
     except RegistryError as exc:
@@ -151,10 +152,10 @@ def models_tag(
 ) -> None:
     """Give a model version a name that any command taking a version accepts (`--inverse-model NAME`,
     `models show NAME`); a tag that exists is moved. Tags live in <lab>/models/tags.json."""
-    from pipeline.registry import RegistryError, tag
+    from pipeline.registry import RegistryError
 
     try:
-        full = tag(Settings.lab / "models", name, version)
+        full = options().lab.models.tag(name, version)
     except (FileNotFoundError, ValueError, RegistryError) as exc:  # unknown, ambiguous, damaged, bad name
         _error(str(exc))
     console.print(f"{name} → {full}", highlight=False, markup=False)
@@ -162,10 +163,10 @@ def models_tag(
 
 def _checked(version: str) -> tuple[Path, dict]:
     """(directory, card) of ``version`` once every file is checked; one error line otherwise."""
-    from pipeline.registry import check_model, find
+    from pipeline.registry import check_model
 
     try:
-        path = find(Settings.lab / "models", version)
+        path = options().lab.models.find(version)
         return path, check_model(path)
     except (FileNotFoundError, ValueError) as exc:  # unknown, ambiguous, damaged (ModelIntegrityError)
         _error(str(exc))
@@ -226,10 +227,8 @@ def models_compare(
     versions: Annotated[list[str], typer.Argument(help="Model versions (unique prefixes will do).")],
 ) -> None:
     """Versions side by side: configuration and test metrics."""
-    from pipeline.registry import compare
-
     try:
-        df = compare(Settings.lab / "models", versions)
+        df = options().lab.models.compare(versions)
     except (FileNotFoundError, ValueError) as exc:  # unknown, ambiguous, damaged (ModelIntegrityError)
         _error(str(exc))
     table = Table("", *(Column(v, no_wrap=True, min_width=len(v)) for v in df.index), title="models compared")
@@ -269,33 +268,33 @@ def models_export_mlflow(
     card, weights and ONNX file, the dataset as an input); versions exported before are skipped."""
     import os
 
-    from acquisition.storage import is_local
     from pipeline.mlflow_export import MlflowExportError, export_models
 
+    lab = options().lab
     artifacts = None
     uri = tracking_uri or os.environ.get("MLFLOW_TRACKING_URI")
     if uri is None:
-        if not is_local(Settings.lab):
+        if not lab.is_local:
             _error(
-                f"--lab {Settings.lab} is on a store: give --tracking-uri (an MLflow server or a local "
+                f"--lab {lab} is on a store: give --tracking-uri (an MLflow server or a local "
                 "sqlite:///… file)"
             )
-        uri = f"sqlite:///{Path(Settings.lab).resolve() / 'mlflow' / 'mlflow.db'}"
+        uri = f"sqlite:///{lab.mlflow.resolve() / 'mlflow.db'}"
     if uri.startswith("sqlite:///"):  # a local store: its artifacts beside it (MLflow's default: ./mlruns)
         folder = Path(uri.removeprefix("sqlite:///")).resolve().parent
         _writable(folder, "the MLflow store")
         artifacts = (folder / "artifacts").as_uri()
     try:
-        report = export_models(Settings.lab / "models", Settings.lab / "datasets", uri, experiment, artifacts)
+        report = export_models(lab.models.root, lab.datasets.root, uri, experiment, artifacts)
     except MlflowExportError as exc:
         _error(str(exc))
     except OSError as exc:
-        _error(f"{exc.filename or Settings.lab}: cannot be read ({exc.strerror or exc})")
+        _error(f"{exc.filename or lab}: cannot be read ({exc.strerror or exc})")
     for line in report.damaged:
         console.print(
             f"warning: not exported, damaged: {line}", highlight=False, markup=False, soft_wrap=True
         )
-    if not Settings.quiet:
+    if not options().quiet:
         console.print(
             f"{len(report.logged)} run(s) logged, {len(report.skipped)} already there, in experiment "
             f"{experiment!r} at {uri}",
@@ -334,8 +333,8 @@ def compare_models_command(
     from acquisition.plans.experiments import arm_lengths
     from models.robot import AnthropomorphicKinematics, RobotDescriptionError, load_robot
     from pipeline.comparison import compare_models, comparison_markdown, register_compared, save_comparison
-    from pipeline.datasets import load_dataset
 
+    lab = options().lab
     if split not in _SPLITS:
         _error(f"--split {split!r}: expected one of {', '.join(_SPLITS)}")
     loaded = {}
@@ -344,7 +343,7 @@ def compare_models_command(
             continue
         name, _, version = reference.partition("@")
         try:
-            data, card = load_dataset(Settings.lab / "datasets", name, version or None)
+            data, card = lab.datasets.load(name, version or None)
         except FileNotFoundError as exc:
             _error(f"{option} {reference}: {exc} (build it first: `vslab build --name {name}`)")
         except (OSError, ValueError) as exc:
@@ -364,7 +363,7 @@ def compare_models_command(
     repeat_data = loaded["--repeat"][0] if "--repeat" in loaded else None
     say = (
         (lambda _: None)
-        if Settings.quiet
+        if options().quiet
         else (lambda line: console.print(line, highlight=False, markup=False))
     )
     try:
@@ -376,12 +375,12 @@ def compare_models_command(
     sources["training"] = json.dumps({"max_epochs": epochs, "seed": seed})
     name, _, version = source.partition("@")
     dataset = {"name": name, "version": version}
-    registered = register_compared(Settings.lab / "models", data, dataset, table, nets, sources)
-    path = Settings.lab / "comparisons" / f"{source}.json"
+    registered = register_compared(lab.models, data, dataset, table, nets, sources)
+    path = lab.comparisons.path(source)
     models = [{"name": p.parent.name, "version": p.name} for p in registered]
     save_comparison(path, table, sources, split, {"models": models})
     console.print(comparison_markdown(table), highlight=False, markup=False, soft_wrap=True)
-    if not Settings.quiet:
+    if not options().quiet:
         console.print(f"card: {path}", highlight=False, markup=False, soft_wrap=True)
         for m in models:
             console.print(f"registered: {m['name']} {m['version']}", highlight=False, markup=False)

@@ -15,7 +15,6 @@ from rich.table import Table
 from acquisition.errors import AcquisitionError
 from vslab.app import (
     HISTORY_NOT_REGISTERED,
-    Settings,
     _error,
     _overrides,
     _robot,
@@ -23,6 +22,7 @@ from vslab.app import (
     console,
     load_inverse_model,
     local_lab,
+    options,
 )
 
 PORTS_HELP = "ports.json (or the rig's run directory) naming each device's port."
@@ -73,7 +73,7 @@ def _session_id(given: str | None, default: str) -> str:
 
 def _rig_dir(rig: bool, session_id: str) -> Path | None:
     """Where ``--rig`` starts the session's rig (None without it)."""
-    return Settings.lab / "rig" / session_id if rig else None
+    return options().lab.rigs / session_id if rig else None
 
 
 def _record_for(rec, duration: float) -> float:
@@ -90,7 +90,7 @@ def _record_for(rec, duration: float) -> float:
             while (duration <= 0 or time.monotonic() - start < duration) and rec.write_error is None:
                 left = start + duration - time.monotonic() if duration > 0 else 0.5
                 time.sleep(min(0.5, max(0.0, left)))
-                if not Settings.quiet:
+                if not options().quiet:
                     counters.update(_counter_table(rec.snapshot(), time.monotonic() - start))
         except KeyboardInterrupt:
             pass
@@ -145,14 +145,14 @@ def record(
     session_id = _session_id(session, time.strftime("%Y%m%d-%H%M%S") + f"-{desc.name}")
     try:
         with session_devices(desc, ports, _rig_dir(rig, session_id)) as (port_map, _):
-            rec = new_recorder(desc, port_map, Settings.lab / "sessions", session_id, experiment, rates)
+            rec = new_recorder(desc, port_map, options().lab.sessions.root, session_id, experiment, rates)
             view = _live_view(desc, live_host, live_port) if live else contextlib.nullcontext()
             with view as live_server:
                 rec.live = live_server
                 recorded_s = _record_for(rec, duration)
     except AcquisitionError as exc:  # a port, the rig, the session folder, the recorder: one line
         _error(str(exc))
-    if not Settings.quiet and rec.final is not None:
+    if not options().quiet and rec.final is not None:
         console.print(_counter_table(rec.final, recorded_s, title=f"recorded {recorded_s:.1f} s"))
     _finish(rec)
 
@@ -193,7 +193,7 @@ def run(
         with session_devices(desc, ports, _rig_dir(rig, session_id), the_plan) as (port_map, rig_dir):
             controls = rig_controls(rig_dir) if rig else operator_prompts(_prompt)
             view = (lambda: _live_view(desc, live_host, live_port)) if live else None
-            report, rec = record_plan(the_plan, desc, port_map, Settings.lab / "sessions", session_id,
+            report, rec = record_plan(the_plan, desc, port_map, options().lab.sessions.root, session_id,
                                       compensator, controls, experiment, device_rates, view)  # fmt: skip
     except AcquisitionError as exc:  # PlanRunError, a port, the rig, the session folder: nothing started
         _error(str(exc))

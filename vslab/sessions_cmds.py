@@ -10,7 +10,7 @@ import typer
 from rich.markup import escape
 from rich.table import Column, Table
 
-from vslab.app import Settings, _fail, console, sessions_app
+from vslab.app import _fail, console, options, sessions_app
 
 
 @sessions_app.command("list")
@@ -19,14 +19,13 @@ def sessions_list() -> None:
     readable session is listed as bad, with a warning line saying why; the rest are listed as usual
     (exit 0)."""
 
-    from acquisition.recorder.sessions import list_sessions
-
     table = Table(Column("session", no_wrap=True), "robot", "experiment", "status", "duration s", "messages",
                   "lost", "dropped", "torn parts")  # fmt: skip
+    sessions = options().lab.sessions
     try:
-        infos = list_sessions(Settings.lab / "sessions")
+        infos = sessions.list()
     except OSError as exc:
-        _fail(escape(f"{Settings.lab / 'sessions'}: cannot be listed ({exc.strerror or exc})"))
+        _fail(escape(f"{sessions.root}: cannot be listed ({exc.strerror or exc})"))
     for info in infos:
         if info.problem:
             table.add_row(escape(info.id), "?", "?", "[red]bad[/]", *["–"] * 5)
@@ -46,9 +45,10 @@ def sessions_list() -> None:
 
 
 def _session_dir(session: str) -> Path:
-    directory = Path(session) if Path(session).is_dir() else Settings.lab / "sessions" / session
+    sessions = options().lab.sessions
+    directory = Path(session) if Path(session).is_dir() else sessions.path(session)
     if not directory.is_dir():
-        _fail(f"no session {session!r} in {Settings.lab / 'sessions'} (see `vslab sessions list`)")
+        _fail(f"no session {session!r} in {sessions.root} (see `vslab sessions list`)")
     return directory
 
 
@@ -121,12 +121,12 @@ def sessions_upload(
     session.json last, so no reader ever sees half a session. A session the lab holds already is left as it
     is. Every folder is checked first: one that is not a complete, readable session is refused with one
     line, and nothing is uploaded."""
-    from acquisition.recorder.sessions import SessionError, check_publishable, publish_session
-    from acquisition.storage import is_local
+    from acquisition.recorder.sessions import SessionError, check_publishable
 
-    root = Settings.lab / "sessions"
-    if is_local(root):
-        _fail(escape(f"--lab {Settings.lab} is a local folder: upload publishes into a lab on a store "
+    sessions = options().lab.sessions
+    root = sessions.root
+    if options().lab.is_local:
+        _fail(escape(f"--lab {options().lab} is a local folder: upload publishes into a lab on a store "
                      "(--lab s3://bucket/prefix); copy folders into a local lab"))  # fmt: skip
     for folder in folders:
         if not folder.is_dir():
@@ -137,7 +137,7 @@ def sessions_upload(
             _fail(escape(str(exc)))
     for folder in folders:
         try:
-            uploaded = publish_session(folder, root)
+            uploaded = sessions.publish(folder)
         except SessionError as exc:
             _fail(escape(str(exc)))
         except OSError as exc:
@@ -169,7 +169,6 @@ def sessions_export(
     from acquisition.recorder.foxglove_export import ExportError, check_rate, export_foxglove, session_robot
     from acquisition.recorder.sessions import SessionError
     from acquisition.schemas.cdr import SchemaError
-    from acquisition.storage import is_local
 
     if not foxglove:
         _fail("say what to export: --foxglove (the one format there is)")
@@ -180,15 +179,14 @@ def sessions_export(
     info = _session_info(session)
     placement = None
     if registration is not None:
-        from pipeline.build import borrowed_placement
-
         try:
             robot = session_robot(info.parts[0]).name
-            placement = borrowed_placement(Settings.lab / "datasets", registration, robot)
+            placement = options().lab.datasets.placement(registration, robot)
         except (SessionError, ValueError) as exc:
             _fail(escape(str(exc)))
     name = f"{info.id}.foxglove.mcap"  # beside the lab's sessions; here when the lab is on a store
-    target = out or (Settings.lab / "exports" / name if is_local(Settings.lab) else Path(name))
+    lab = options().lab
+    target = out or (lab.exports / name if lab.is_local else Path(name))
     if target.is_dir():
         _fail(escape(f"--out {target}: a directory; give the file to write (e.g. {target / name})"))
     try:
@@ -197,5 +195,5 @@ def sessions_export(
         _fail(escape(str(exc)))
     except OSError as exc:
         _fail(escape(f"{exc.filename or target}: cannot be written ({exc.strerror or exc})"))
-    if not Settings.quiet:
+    if not options().quiet:
         console.print(f"written: {target} ({n:,} messages)", soft_wrap=True, highlight=False, markup=False)

@@ -23,7 +23,7 @@ from acquisition.schemas.mcap_reader import metadata_records
 from acquisition.schemas.mcap_writer import merge_with
 from acquisition.schemas.scene import RATE_HZ, STANDARD_TOPICS, URDF_ATTACHMENT, Batch, Scene, SceneStream
 from acquisition.schemas.session_card import SESSION_METADATA
-from acquisition.storage import lab_path
+from acquisition.storage import as_path
 from models.robot import RobotDescription
 
 # /tf and /joint_states are resampled from the measured streams, the fastest of which (servo state) runs at
@@ -46,7 +46,7 @@ def check_rate(rate_hz: float) -> None:
 
 def session_robot(part: Path) -> RobotDescription:
     """The robot description a part recorded (its session metadata)."""
-    with lab_path(part).open("rb") as f:
+    with as_path(part).open("rb") as f:
         for name, metadata in metadata_records(f):
             if name == SESSION_METADATA and "robot_description" in metadata:
                 return RobotDescription.model_validate_json(metadata["robot_description"])
@@ -83,7 +83,7 @@ def export_foxglove(session: Path, out: Path, base_to_tracker: np.ndarray | None
     partial = out.with_name(out.name + ".partial")
     try:
         with ExitStack() as stack:
-            sources = [stack.enter_context(lab_path(p).open("rb")) for p in info.parts]
+            sources = [stack.enter_context(as_path(p).open("rb")) for p in info.parts]
             with open(partial, "wb") as f:
                 urdf = [(URDF_ATTACHMENT, "application/xml", scene.urdf.encode())]
                 # the session's own standard topics (a recording writes them) are made again, tracker placed

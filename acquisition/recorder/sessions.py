@@ -12,25 +12,34 @@ import logging
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
 from acquisition.recorder.recover import RecoveryReport, recover
 from acquisition.schemas.session_card import SESSION_CARD
 from acquisition.schemas.session_files import SessionError, SessionInfo, StreamInfo, read_card, session_info
-from acquisition.storage import LabPath, is_local, lab_path, upload
+from acquisition.storage import LabPath, is_local, published, upload
 
 __all__ = [
-    "SessionError", "SessionInfo", "StreamInfo", "check_publishable", "list_sessions", "publish_session",
-    "read_card", "recover_session", "session_info", "staged_sessions",
+    "SessionError",
+    "SessionInfo",
+    "SessionStore",
+    "StreamInfo",
+    "check_publishable",
+    "list_sessions",
+    "publish_session",
+    "read_card",
+    "recover_session",
+    "session_info",
+    "staged_sessions",
 ]  # fmt: skip
 
 log = logging.getLogger(__name__)
 
 
-def list_sessions(sessions_dir: Path) -> list[SessionInfo]:
+def list_sessions(sessions_dir: LabPath) -> list[SessionInfo]:
     """Every folder under ``sessions_dir``, by id: readable sessions, and the others with ``problem`` saying
     why they are not (a bad session never hides the rest)."""
-    sessions_dir = lab_path(sessions_dir)
     if not sessions_dir.is_dir():
         return []
     out = []
@@ -71,7 +80,7 @@ def publish_session(directory: Path, sessions_root: LabPath) -> bool:
     published (:func:`check_publishable`); False where the lab already holds it (a session is never
     replaced: raw sessions are immutable)."""
     check_publishable(directory)
-    final = lab_path(sessions_root) / directory.name
+    final = sessions_root / directory.name
     if (final / SESSION_CARD).is_file():
         return False
     if is_local(final):
@@ -103,3 +112,61 @@ def staged_sessions(sessions_root: LabPath, pattern: str = "*") -> Iterator[Path
                     publish_session(d, sessions_root)
                 except SessionError as exc:
                     log.warning("not published: %s", exc)
+
+
+@dataclass(frozen=True)
+class SessionStore:
+    """The sessions of one lab: ``root`` holds one folder per session, on a local folder or a store
+    (``pipeline.lab.Lab`` makes it with its ``sessions/``). The recorder and the twin write sessions through
+    it and the pipeline reads them, so none of them joins the store's name to a path. Picklable (it holds
+    its root only)."""
+
+    root: LabPath
+
+    def path(self, session_id: str) -> LabPath:
+        """The folder of session ``session_id`` (whether or not it exists)."""
+        return self.root / session_id
+
+    def list(self) -> list[SessionInfo]:
+        """Every session, readable or not (:func:`list_sessions`)."""
+        return list_sessions(self.root)
+
+    def info(self, directory: LabPath) -> SessionInfo:
+        """What one session holds (:func:`session_info`)."""
+        return session_info(directory)
+
+    def card(self, directory: LabPath) -> dict:
+        """One session's ``session.json`` (:func:`read_card`)."""
+        return read_card(directory)
+
+    def recover(self, directory: LabPath) -> list[RecoveryReport]:
+        """Mend every torn part of one session (:func:`recover_session`)."""
+        return recover_session(directory)
+
+    def publish(self, directory: Path) -> bool:
+        """Publish the local session ``directory`` into this store (:func:`publish_session`)."""
+        return publish_session(directory, self.root)
+
+    def staged(self, pattern: str = "*"):
+        """A local folder to write sessions for this store into (:func:`staged_sessions`)."""
+        return staged_sessions(self.root, pattern)
+
+    def select(
+        self, experiment: str, runner: str | None = None, pattern: str = "*"
+    ) -> tuple[list[LabPath], dict[str, str]]:
+        """The session folders matching ``pattern`` of ``experiment`` ("all": every one), of ``runner``
+        ("simulated", "real-time") if given, in name order; and the folders that are not readable sessions,
+        each with why."""
+        selected, bad = [], {}
+        for d in sorted(self.root.glob(pattern)):
+            if not d.is_dir() or d.name.startswith(".") or not published(d, SESSION_CARD):
+                continue  # not a folder; hidden; on a store, a session still being uploaded
+            try:
+                card = read_card(d)
+            except SessionError as exc:
+                bad[d.name] = str(exc)
+                continue
+            wanted = experiment == "all" or card["experiment"] == experiment
+            if wanted and runner in (None, card.get("runner")):
+                selected.append(d)
+        return selected, bad

@@ -17,7 +17,7 @@ from acquisition.schemas import mcap_reader
 from acquisition.schemas.cdr import FixedMessage, SchemaError
 from acquisition.schemas.events import EVENTS, Event
 from acquisition.schemas.ros2msg import parse_fixed_message
-from acquisition.storage import lab_path
+from acquisition.storage import as_path
 
 
 @dataclass
@@ -51,7 +51,7 @@ def read_topics(
 ) -> tuple[dict[str, TopicData], list[tuple[int, int, int, bytes]]]:
     """``read_fixed_topics`` and, in the same pass over the chunks, (channel id, log time, publish time,
     payload) of every message of the ``others`` topics (any layout, e.g. events): each chunk read once."""
-    path = lab_path(path)
+    path = as_path(path)
     with path.open("rb") as f:
         summary = mcap_reader.read_summary(f)
         if summary is None:
@@ -91,5 +91,5 @@ def read_topics(
 
 def read_events(path: str | Path) -> list[tuple[int, Event]]:
     """The events topic of an MCAP file (generic reader: few, variable-size messages): (log_time, event)."""
-    with lab_path(path).open("rb") as f:
+    with as_path(path).open("rb") as f:
         return [(t, Event.decode(data)) for t, data in mcap_reader.topic_messages(f, [EVENTS])]

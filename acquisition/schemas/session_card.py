@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from acquisition.errors import AcquisitionError
-from acquisition.storage import lab_path
+from acquisition.storage import as_path
 
 SCHEMA_VERSION = 2
 SESSION_CARD = "session.json"  # beside the parts
@@ -93,7 +93,7 @@ def _empty(part: Path) -> bool:
 def readable_parts(directory: Path) -> list[Path]:
     """A session's parts in order: each ``<id>_NNN.mcap``, or its recovered copy where one exists. Empty
     parts after the last one with data (a writer that died opening a new part) are no part of it."""
-    parts = sorted(p for p in lab_path(directory).glob("*.mcap") if not p.name.endswith(RECOVERED_SUFFIX))
+    parts = sorted(p for p in as_path(directory).glob("*.mcap") if not p.name.endswith(RECOVERED_SUFFIX))
     while len(parts) > 1 and _empty(parts[-1]) and not _empty(parts[0]):
         parts.pop()
     return [recovered_path(p) if recovered_path(p).is_file() else p for p in parts]

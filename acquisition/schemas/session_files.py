@@ -32,7 +32,7 @@ from acquisition.schemas.session_card import (
     readable_parts,
     schema_version,
 )
-from acquisition.storage import lab_path
+from acquisition.storage import LabPath, as_path
 
 CARD_FIELDS = ("robot", "experiment")  # what every session.json names (the writer always writes them)
 
@@ -42,18 +42,18 @@ class SessionError(AcquisitionError, ValueError):
     (what is wrong) and ``hint`` (what to do), said in one line."""
 
     def __init__(self, path: str | Path, reason: str, hint: str = "") -> None:
-        self.path, self.reason, self.hint = lab_path(path), reason, hint
+        self.path, self.reason, self.hint = as_path(path), reason, hint
         super().__init__(f"{path}: {reason}" + (f"; {hint}" if hint else ""))
 
 
-def read_card(directory: Path) -> dict:
+def read_card(directory: LabPath) -> dict:
     """A session's ``session.json`` as a dict; ``SessionError`` when it is missing, empty, not JSON
     (truncated, garbled) or lacks the fields every session has (robot, experiment). A version-1 card is
     read with the current keys (``session_card.as_current``)."""
-    path = lab_path(directory) / SESSION_CARD
-    aside = f"move the folder out of {lab_path(directory).parent} (or restore session.json from a backup)"
+    path = directory / SESSION_CARD
+    aside = f"move the folder out of {directory.parent} (or restore session.json from a backup)"
     if not path.is_file():
-        raise SessionError(lab_path(directory), f"not a recorded session: no {SESSION_CARD}", aside)
+        raise SessionError(directory, f"not a recorded session: no {SESSION_CARD}", aside)
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -130,11 +130,10 @@ class SessionInfo:
         return sum(s.lost for s in self.streams.values())
 
 
-def session_info(directory: Path) -> SessionInfo:
+def session_info(directory: LabPath) -> SessionInfo:
     """What a session holds, from its ``session.json`` and its parts' summaries. ``SessionError`` when the
     folder is not a readable session; a torn part (no readable summary or indexes) is not an error: it is
     listed in ``torn`` (``recover_session`` mends it)."""
-    directory = lab_path(directory)
     if not directory.is_dir():
         raise SessionError(directory, "no such session folder")
     card = read_card(directory)

@@ -18,20 +18,19 @@
 
 # %%
 import os
-from pathlib import Path
 
 from analysis import vsl_figures, vsl_paths
-from pipeline.datasets import load_dataset
+from pipeline.lab import Lab
 
-lab = Path(os.environ.get("VSLAB_LAB", "lab"))
-out = lab / "figures" / "notebooks"
+lab = Lab.open(os.environ.get("VSLAB_LAB", "lab"))
+out = lab.figures / "notebooks"
 
 # %% [markdown]
 # The Experiment 2 dataset: trajectory samples in the robot's base frame (the tracker registered with the
 # campaign's static points), with the plan each session ran and the commanded joint angles `qc`.
 
 # %%
-data, card = load_dataset(lab / "datasets", "experiment2")
+data, card = lab.datasets.load("experiment2")
 print(card["version"], len(data), "rows;", data["plan"].nunique(), "plans")
 print(data.groupby("plan").size())
 

@@ -16,14 +16,13 @@
 
 # %%
 import os
-from pathlib import Path
 
 from analysis import popup_tests
+from pipeline.lab import Lab
 
-lab = Path(os.environ.get("VSLAB_LAB", "lab"))
-sessions = lab / "sessions"
-static = sorted(sessions.glob("sim-popup_static-*"))
-impact = sorted(sessions.glob("sim-popup_impact-*"))
+lab = Lab.open(os.environ.get("VSLAB_LAB", "lab"))
+static = sorted(lab.sessions.root.glob("sim-popup_static-*"))
+impact = sorted(lab.sessions.root.glob("sim-popup_impact-*"))
 print(len(static), "static sessions,", len(impact), "impact sessions")
 
 # %% [markdown]
@@ -35,7 +34,7 @@ print(len(static), "static sessions,", len(impact), "impact sessions")
 curves = popup_tests.link_static_curves(static)
 stiffness = popup_tests.static_stiffness(curves)
 print(stiffness.round(3).to_string())
-popup_tests.figure7(curves, lab / "figures" / "notebooks")
+popup_tests.figure7(curves, lab.figures / "notebooks")
 
 # %% [markdown]
 # Impact test: damped frequency and damping ratio from a damped sinusoid fitted to the accelerometer's free
