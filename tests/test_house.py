@@ -47,8 +47,14 @@ REACHABLE = {  # (d): what of acquisition each higher package may import, by dot
     # recorder.sessions: the store of a lab's recorded sessions (list, read, publish, recover), the Lab's
     # ``sessions``: acquisition's face to the pipeline for what it recorded
     "pipeline": {
-        "schemas", "storage", "errors", "code_version", "plans", "devices.kinds", "recorder.sessions",
-    },  # fmt: skip
+        "schemas",
+        "storage",
+        "errors",
+        "code_version",
+        "plans",
+        "devices.kinds",
+        "recorder.sessions",
+    },
     "analysis": set(),
 }
 # Pairs (importer, imported) allowed to break a rule for now, each named exactly so a new one fails.
