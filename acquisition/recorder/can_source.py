@@ -22,6 +22,7 @@ import numpy as np
 from acquisition.codecs import popup_boards as pb
 from acquisition.devices.base import host_now_ns
 from acquisition.devices.can_drives import CanDrives
+from acquisition.devices.kinds import device_of, kind_of
 from acquisition.devices.popup_boards import BoardFrames, BoardSample
 from acquisition.recorder.source_base import SEQ_MODULO, Row, Source
 from acquisition.schemas import topics as T
@@ -34,8 +35,8 @@ class PopupCanSource(Source):
 
     def __init__(self, robot, name, spec, port, rate_hz) -> None:
         boards = {n: d for n, d in robot.devices.items() if d.bus == name}
-        self.main = next((n for n, d in boards.items() if d.driver == "popup_main_board"), None)
-        accel_board = robot.device_of("accelerometer")
+        self.main = next((n for n, d in boards.items() if kind_of(robot, n).role == "pressure"), None)
+        accel_board = device_of(robot, "accelerometer")
         # every board message recorded → (its topic, its period on its board's clock: the sample number
         # times it is the board's micros); and each board's slowest period (how long it may stay silent)
         self.board_streams: dict[str, tuple[str, float]] = {}

@@ -7,8 +7,8 @@ set-points, valves, moves) once the command guard (:mod:`acquisition.command_gua
 process owns the port, so nothing reaches the device without that check — returns the rows that record them
 as sent, and knows the device's safe state
 (servos hold where they are, the stepper stops, pressures stay: an inflatable arm must not be vented under
-load). Sources are registered by the driver name the robot description gives each device (``devices.<name>
-.driver``), so adding a device is a driver, a source, an emulator and a schema.
+load). A source belongs to its device kind (:mod:`acquisition.devices.kinds`, found by the driver name the
+robot description gives each device, ``devices.<name>.driver``), which names it: nothing here lists them.
 
 Two ways of reading: a **polled** source is read once per slot of a host schedule at ``rate_hz`` (the servo
 bus's Sync Reads; the tracker, polled faster than its frames); a **streamed** source has a file descriptor
@@ -25,12 +25,10 @@ from acquisition.devices.base import host_now_ns
 from acquisition.devices.boards import PressureBoard, StepperBoard
 from acquisition.devices.servo_bus import ServoBus
 from acquisition.devices.tracker import Tracker
-from acquisition.recorder.can_source import PopupCanSource
-from acquisition.recorder.source_base import SEQ_MODULO, Row, Source
+from acquisition.recorder.source_base import SEQ_MODULO, Row, Source, make_source
 from acquisition.schemas import topics as T
-from models.robot import RobotDescription
 
-__all__ = ["SEQ_MODULO", "SOURCES", "Row", "Source", "make_source"]
+__all__ = ["SEQ_MODULO", "Row", "Source", "make_source"]
 
 
 # ------------------------------------------------------------------------------------------ servos
@@ -210,25 +208,3 @@ class TrackerSource(Source):
                                 port_status=f.port_status, missing=f.missing, position=f.position_m,
                                 quaternion=f.quaternion, rms_error=f.rms_error))  # fmt: skip
         return out
-
-
-SOURCES: dict[str, type[Source]] = {
-    cls.driver: cls for cls in (ServoSource, PressureSource, StepperSource, TrackerSource, PopupCanSource)
-}
-
-
-def make_source(robot: RobotDescription, name: str, port: str, rate_hz: float | None = None) -> Source:
-    """The source of device ``name`` of ``robot`` on ``port`` (its configured rate unless ``rate_hz``)."""
-    spec = robot.devices.get(name)
-    if spec is None:
-        raise ValueError(f"{robot.name} has no device {name!r} (its devices: {', '.join(robot.devices)})")
-    cls = SOURCES.get(spec.driver)
-    if cls is None:
-        raise ValueError(
-            f"{robot.name}: device {name} uses driver {spec.driver!r}, which vslab cannot record yet "
-            f"(drivers: {', '.join(sorted(SOURCES))})"
-        )
-    rate = rate_hz or spec.rate_hz
-    if not rate or rate <= 0:
-        raise ValueError(f"{robot.name}: device {name} has no rate_hz to read it at")
-    return cls(robot, name, spec, port, rate)
