@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from acquisition.codecs import dynamixel as dx
-from acquisition.devices.kinds import device_kinds, resolve
+from acquisition.devices.kinds import device_kinds, device_of, resolve
 from acquisition.schemas import topics as T
 from models.robot import RobotDescription
 from twin.emulators.cia402_drive import SW_REMOTE, SW_SETPOINT_ACK, SW_VOLTAGE, State
@@ -159,7 +159,7 @@ def accelerometer_rows(robot: RobotDescription, name: str, topics: dict[str, T.T
                        ) -> dict[str, TopicRows]:  # fmt: skip
     """The tip accelerometer's samples."""
     s = streams.get("accelerometer")
-    if s is None or T.ACCEL not in topics:
+    if s is None or T.ACCEL not in topics or device_of(robot, "accelerometer") != name:
         return {}
     rows = topics[T.ACCEL].message.pack(
         {"seq": s["seq"] % 2**32, "micros": s["micros"], "acceleration": s["acceleration"]}

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from acquisition.devices.kinds import device_kinds, resolve
+from acquisition.devices.kinds import device_kinds, device_rng, resolve
 from models.effects import creep_rest
 from models.prbm import interp_table
 from models.robot import TIP_FRAME, RobotDescription
@@ -141,7 +141,9 @@ class World:
         self.robot = robot
         self.batch = batch
         self.dt = dt
+        self.seed = seed
         self.rng = np.random.default_rng(seed)
+        self._device_rngs: dict[str, np.random.Generator] = {}
         self.params = build_params(robot, dt)
         self.layout = Layout(
             tuple(robot.actuated_joints), tuple(robot.virtual_joints), robot.pneumatics.channels
@@ -216,6 +218,13 @@ class World:
             pressure = st.p_link[:, ch] if ch >= 0 else np.zeros(self.batch)
             out[:, v] = interp_table(pressure, p.table_p[link, :m], p.table_k[link, :m])
         return out
+
+    def device_rng(self, device: str) -> np.random.Generator:
+        """Device ``device``'s own random generator (the world's seed spawned by its name, see
+        :func:`acquisition.devices.kinds.device_rng`): its noise does not depend on the other devices."""
+        if device not in self._device_rngs:
+            self._device_rngs[device] = device_rng(self.seed, device)
+        return self._device_rngs[device]
 
     # ------------------------------------------------------------------------------------ commands
     def command_joints(self, goal_rad: np.ndarray, profile_vel: np.ndarray | None = None,
