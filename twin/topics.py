@@ -9,6 +9,7 @@ import numpy as np
 
 from acquisition.codecs import dynamixel as dx
 from acquisition.devices.kinds import device_kinds, device_of, resolve
+from acquisition.schemas import topic_rows as R
 from acquisition.schemas import topics as T
 from models.robot import RobotDescription
 from twin.emulators.cia402_drive import SW_REMOTE, SW_SETPOINT_ACK, SW_VOLTAGE, State
@@ -42,14 +43,14 @@ def servo_rows(robot: RobotDescription, name: str, topics: dict[str, T.Topic], s
         return {}
     zero = robot.servo.zero_count
     rows = topics[T.SERVO_STATE].message.pack(
-        {
-            "seq": s["seq"] % 2**32,
-            "tick_ms": s["tick"],
-            "position": (s["position"] - zero) * dx.RAD_PER_POSITION_COUNT,
-            "velocity": s["velocity"] * dx.RAD_S_PER_VELOCITY_UNIT,
-            "current": s["current"] * dx.AMP_PER_CURRENT_UNIT,
-            "moving": s["velocity"] != 0,
-        }
+        R.servo_state(
+            s["seq"],
+            s["tick"],
+            (s["position"] - zero) * dx.RAD_PER_POSITION_COUNT,
+            s["velocity"] * dx.RAD_S_PER_VELOCITY_UNIT,
+            s["current"] * dx.AMP_PER_CURRENT_UNIT,
+            s["velocity"] != 0,
+        )
     )
     return {T.SERVO_STATE: (s["robot"], s["host_ns"], rows)}
 
@@ -62,13 +63,13 @@ def drive_rows(robot: RobotDescription, name: str, topics: dict[str, T.Topic], s
         return {}
     n = s["position_counts"].shape[1]
     rows = topics[T.JOINT_STATE].message.pack(
-        {
-            "seq": s["seq"] % 2**32,
-            "position": s["position_counts"] / s["counts_per_rad"][:, None],
-            "velocity": s["velocity_counts"] / s["counts_per_rad"][:, None],
-            "torque": s["torque_per_mille"] * 1e-3 * s["rated_nm"][:, None],
-            "statusword": np.full((len(s["seq"]), n), DRIVE_ENABLED_STATUSWORD),
-        }
+        R.joint_state(
+            s["seq"],
+            s["position_counts"] / s["counts_per_rad"][:, None],
+            s["velocity_counts"] / s["counts_per_rad"][:, None],
+            s["torque_per_mille"] * 1e-3 * s["rated_nm"][:, None],
+            np.full((len(s["seq"]), n), DRIVE_ENABLED_STATUSWORD),
+        )
     )
     return {T.JOINT_STATE: (s["robot"], s["host_ns"], rows)}
 
@@ -80,13 +81,10 @@ def link_board_rows(robot: RobotDescription, name: str, topics: dict[str, T.Topi
     if s is None:
         return {}
     link = robot.devices[name].link
-    seq = s["seq"] % 2**32
     orientation = topics[T.link_orientation_topic(link)].message.pack(
-        {"seq": seq, "micros": s["micros"], "rpy": s["rpy"]}
+        R.link_orientation(s["seq"], s["micros"], s["rpy"])
     )
-    flex = topics[T.link_flex_topic(link)].message.pack(
-        {"seq": seq, "micros": s["micros"], "counts": s["flex"]}
-    )
+    flex = topics[T.link_flex_topic(link)].message.pack(R.link_flex(s["seq"], s["micros"], s["flex"]))
     return {
         T.link_orientation_topic(link): (s["robot"], s["host_ns"], orientation),
         T.link_flex_topic(link): (s["robot"], s["host_ns"], flex),
@@ -99,15 +97,8 @@ def pressure_rows(robot: RobotDescription, name: str, topics: dict[str, T.Topic]
     s = streams.get("pressure_board")
     if s is None:
         return {}
-    counts = s["counts"]
     rows = topics[T.PRESSURE].message.pack(
-        {
-            "seq": s["seq"] % 2**32,
-            "micros": s["micros"],
-            "counts": counts,
-            "pressure": robot.sensors.pressure.counts_to_pa(counts),
-            "valve_open": valve_open[s["robot"]],
-        }
+        R.pressure(robot.sensors.pressure, s["seq"], s["micros"], s["counts"], valve_open[s["robot"]])
     )
     return {T.PRESSURE: (s["robot"], s["host_ns"], rows)}
 
@@ -123,13 +114,7 @@ def stepper_rows(robot: RobotDescription, name: str, topics: dict[str, T.Topic],
     same_robot = s["robot"][1:] == s["robot"][:-1]
     moving[1:] = same_robot & np.any(steps[1:] != steps[:-1], axis=1)
     rows = topics[T.STEPPER].message.pack(
-        {
-            "seq": s["seq"] % 2**32,
-            "micros": s["micros"],
-            "position_steps": steps,
-            "position": steps * robot.stepper.rad_per_microstep,
-            "moving": moving,
-        }
+        R.stepper(robot.stepper.rad_per_microstep, s["seq"], s["micros"], steps, moving)
     )
     return {T.STEPPER: (s["robot"], s["host_ns"], rows)}
 
@@ -140,17 +125,10 @@ def tracker_rows(robot: RobotDescription, name: str, topics: dict[str, T.Topic],
     s = streams.get("tracker")
     if s is None:
         return {}
-    rows = topics[T.TRACKER].message.pack(
-        {
-            "frame": s["frame"] % 2**32,
-            "port_handle": robot.devices[name].ids.get("tip", 10),
-            "port_status": s["port_status"],
-            "missing": s["missing"],
-            "position": s["position"],
-            "quaternion": s["quaternion"],
-            "rms_error": s["rms_error"],
-        }
-    )
+    port_handle = robot.devices[name].ids.get("tip", 10)
+    values = R.tracker(s["frame"], port_handle, s["port_status"], s["missing"], s["position"],
+                       s["quaternion"], s["rms_error"])  # fmt: skip
+    rows = topics[T.TRACKER].message.pack(values)
     return {T.TRACKER: (s["robot"], s["host_ns"], rows)}
 
 
@@ -161,7 +139,5 @@ def accelerometer_rows(robot: RobotDescription, name: str, topics: dict[str, T.T
     s = streams.get("accelerometer")
     if s is None or T.ACCEL not in topics or device_of(robot, "accelerometer") != name:
         return {}
-    rows = topics[T.ACCEL].message.pack(
-        {"seq": s["seq"] % 2**32, "micros": s["micros"], "acceleration": s["acceleration"]}
-    )
+    rows = topics[T.ACCEL].message.pack(R.acceleration(s["seq"], s["micros"], s["acceleration"]))
     return {T.ACCEL: (s["robot"], s["host_ns"], rows)}

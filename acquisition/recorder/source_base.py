@@ -13,9 +13,10 @@ from acquisition.command_guard import CommandGuard
 from acquisition.devices import kinds
 from acquisition.schemas import topics as T
 from acquisition.schemas.cdr import FixedMessage
+from acquisition.schemas.topic_rows import SEQ_MODULO
 from models.robot import DeviceSpec, RobotDescription
 
-SEQ_MODULO = 1 << 32  # every counter the sources number samples with is a uint32 field
+__all__ = ["SEQ_MODULO", "Row", "Source", "make_source", "source_class"]
 
 
 @dataclass(frozen=True)

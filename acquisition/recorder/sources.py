@@ -26,6 +26,7 @@ from acquisition.devices.boards import PressureBoard, StepperBoard
 from acquisition.devices.servo_bus import ServoBus
 from acquisition.devices.tracker import Tracker
 from acquisition.recorder.source_base import SEQ_MODULO, Row, Source, make_source
+from acquisition.schemas import topic_rows as R
 from acquisition.schemas import topics as T
 
 __all__ = ["SEQ_MODULO", "Row", "Source", "make_source"]
@@ -57,9 +58,9 @@ class ServoSource(Source):
     def read(self, slot: int) -> list[Row]:
         st = self.bus.read_state()
         self.position = st.position_rad
-        return [self.row(T.SERVO_STATE, st.host_ns, slot, seq=slot % SEQ_MODULO, tick_ms=int(st.tick_ms[0]),
-                         position=st.position_rad, velocity=st.velocity_rad_s, current=st.current_a,
-                         moving=st.moving)]  # fmt: skip
+        values = R.servo_state(slot, int(st.tick_ms[0]), st.position_rad, st.velocity_rad_s, st.current_a,
+                               st.moving)  # fmt: skip
+        return [self.row(T.SERVO_STATE, st.host_ns, slot, **values)]
 
     def command(self, cmd: dict) -> list[Row]:
         op = cmd["op"]
@@ -122,10 +123,9 @@ class PressureSource(_BoardSource):
         self.channels = robot.pneumatics.channels
 
     def sample_row(self, s) -> Row:
-        counts = np.asarray(s.counts)
         valves = [(s.valves >> c) & 1 == 1 for c in range(self.channels)]
-        return self.row(T.PRESSURE, s.host_ns, s.seq, seq=s.seq, micros=s.micros, counts=counts,
-                        pressure=self.calibration.counts_to_pa(counts), valve_open=valves)  # fmt: skip
+        values = R.pressure(self.calibration, s.seq, s.micros, s.counts, valves)
+        return self.row(T.PRESSURE, s.host_ns, s.seq, **values)
 
     def command(self, cmd: dict) -> list[Row]:
         if cmd["op"] != "pressures":
@@ -151,9 +151,8 @@ class StepperSource(_BoardSource):
         self.joint = next(j.name for j in robot.joints if j.drive == "stepper")
 
     def sample_row(self, s) -> Row:
-        return self.row(T.STEPPER, s.host_ns, s.seq, seq=s.seq or 0, micros=s.micros,
-                        position_steps=[s.position_steps], position=[s.position_steps * self.rad_per_step],
-                        moving=s.moving)  # fmt: skip
+        values = R.stepper(self.rad_per_step, s.seq or 0, s.micros, [s.position_steps], s.moving)
+        return self.row(T.STEPPER, s.host_ns, s.seq, **values)
 
     def command(self, cmd: dict) -> list[Row]:
         if cmd["op"] == "move":
@@ -203,8 +202,7 @@ class TrackerSource(Source):
             if f.frame == self.last_frame:
                 continue
             self.last_frame = f.frame
-            frame = f.frame % SEQ_MODULO
-            out.append(self.row(T.TRACKER, f.host_ns, frame, frame=frame, port_handle=f.port_handle,
-                                port_status=f.port_status, missing=f.missing, position=f.position_m,
-                                quaternion=f.quaternion, rms_error=f.rms_error))  # fmt: skip
+            values = R.tracker(f.frame, f.port_handle, f.port_status, f.missing, f.position_m, f.quaternion,
+                               f.rms_error)  # fmt: skip
+            out.append(self.row(T.TRACKER, f.host_ns, f.frame % SEQ_MODULO, **values))
         return out
