@@ -24,6 +24,7 @@ from pipeline.tables import SessionTables, columns
 
 log = logging.getLogger(__name__)
 
+
 class SyncError(PipelineError, ValueError):
     """A session that cannot be put on a timeline (no tracker frames)."""
 
