@@ -25,17 +25,6 @@ from models.yaml_files import read_yaml
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "robots"
 CAN_DIR = CONFIG_DIR.parent / "can"  # the CAN devices' EDS and DBC files
 TIP_FRAME = "tip"
-# What each driver's device does for the robot (RobotDescription.device_of): a description names its devices
-# as it likes; the twin, the topics and the pipeline find them by role.
-DRIVER_ROLES = {
-    "dynamixel": "joints",
-    "popup_can": "joints",  # POPUP's CAN bus: the CiA 402 joint drives (and the boards on the same bus)
-    "vslab_pressure_board": "pressure",
-    "popup_main_board": "pressure",  # POPUP's main board: link pressures and valves, over CAN
-    "vslab_stepper_board": "stepper",
-    "ndi_aurora": "tracker",
-    "popup_link_board": "link",  # a POPUP link board: IMU and flex sensors of its link, over CAN
-}
 
 
 class RobotDescriptionError(ModelError, ValueError):
@@ -401,8 +390,6 @@ class RobotDescription(Part):
                 raise ValueError(f"devices.{name}.bus {dev.bus!r} is not a device with a port of its own")
             if dev.link is not None and dev.link not in link_names:
                 raise ValueError(f"devices.{name}.link {dev.link!r} is not one of the links {link_names}")
-            if DRIVER_ROLES.get(dev.driver) == "link" and (dev.link is None or self.sensors.flex is None):
-                raise ValueError(f"devices.{name}: a link board needs its link and a sensors.flex section")
         hoses = self.effects.hoses
         if hoses is not None and (unknown := sorted(set(hoses.joints) - {j.name for j in self.joints})):
             raise ValueError(f"effects.hoses.joints {unknown} are not actuated joints of this robot")
@@ -416,16 +403,6 @@ class RobotDescription(Part):
         return self
 
     # ------------------------------------------------------------------ derived, plain-number views
-    def device_of(self, role: str) -> str | None:
-        """The name of the device that has ``role`` (see :data:`DRIVER_ROLES`: "joints", "pressure",
-        "stepper", "tracker"; and "accelerometer": the device ``sensors.accelerometer`` names), None if the
-        robot has none: how the twin, the topics and the pipeline find "the device that reads the link
-        pressures" whatever a description calls it."""
-        if role == "accelerometer":
-            accel = self.sensors.accelerometer
-            return accel.device if accel is not None and accel.device in self.devices else None
-        return next((n for n, d in self.devices.items() if DRIVER_ROLES.get(d.driver) == role), None)
-
     def link_end(self, link: str) -> tuple[int, list[int]]:
         """(index of the frame at ``link``'s end in ``chain().frames``, the indices of its two virtual joints
         in δ): where its board's IMU sits and what bends its flex sensors."""
@@ -433,10 +410,6 @@ class RobotDescription(Part):
         chain = self.chain()
         frame = [row.joint for row in chain.rows].index(spec.virtual_joints[-1]) + 1
         return frame, [chain.virtual.index(v) for v in spec.virtual_joints]
-
-    def link_boards(self) -> dict[str, str]:
-        """Link name → the name of the board on it."""
-        return {d.link: n for n, d in self.devices.items() if DRIVER_ROLES.get(d.driver) == "link"}
 
     def dh_rows(self) -> list[DHRowSpec]:
         """The full chain including virtual joints (for the anthropomorphic arm: generated from L1–L3)."""

@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
 
+from acquisition.devices.kinds import device_of
 from models import kinematics
 from models.estimator import Estimator
 from models.hybrid import FORWARD_TARGETS, INVERSE_TARGETS, DirectedColumns
@@ -125,7 +126,7 @@ class PrbmGreyBox(Baseline):
         self.lengths_ = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
         rows = [r.joint for r in robot.dh_rows()]
         self.virtual_rows_ = [i for i, r in enumerate(rows) if not r.startswith("q")]
-        servo_names = list(robot.devices[robot.device_of("joints")].ids)
+        servo_names = list(robot.devices[device_of(robot, "joints")].ids)
         self.servo_rows_ = [rows.index(q) for q in servo_names]
         links = [robot.link_of(v) for v in robot.virtual_joints]
         self.channels_ = [link.pressure_channel or 0 for link in links]

@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 from numpy.lib.stride_tricks import sliding_window_view
 
+from acquisition.devices.kinds import stamp_fields
 from acquisition.schemas import topics as T
 from acquisition.schemas.stamps import unwrap_ticks
 from models.robot import ClockSpecModel, RobotDescription
@@ -27,16 +28,6 @@ from pipeline.tables import SessionTables, StageReport, columns
 MISSING, PORT_STATUS, OUTLIER, DUPLICATE = "missing", "port_status", "outlier", "duplicate"
 
 DEVICE_TICKS = "device_ticks"  # the unwrapped device counter this stage adds to each stamped stream
-# topic → (the role of the device whose clock stamps it (models.robot.RobotDescription.device_of), the stamp
-# field). Its tick and wrap are that device's ``clock`` in the
-# robot description.
-STAMPS: dict[str, tuple[str, str]] = {
-    T.SERVO_STATE: ("joints", "tick_ms"),
-    T.PRESSURE: ("pressure", "micros"),
-    T.STEPPER: ("stepper", "micros"),
-    T.TRACKER: ("tracker", "frame"),
-    T.ACCEL: ("accelerometer", "micros"),
-}
 SEQUENCE_WRAP = 1 << 32  # seq and frame are uint32
 SEQUENCE_COLUMNS = ("seq", "frame")
 HOST_COLUMNS = ("log_time", "publish_time", "t")
@@ -69,12 +60,9 @@ def clean(session: SessionTables, hampel_window: int = 7, hampel_sigmas: float =
 
 
 def stamp_clock(robot: RobotDescription, topic: str) -> tuple[str, str] | None:
-    """(device, stamp field) of the device clock that stamps ``topic`` on ``robot``; None if none does."""
-    if topic not in STAMPS:
-        return None
-    role, field = STAMPS[topic]
-    device = robot.device_of(role)
-    return None if device is None else (device, field)
+    """(device, stamp field) of the device clock that stamps ``topic`` on ``robot`` (its kind's ``stamps``;
+    its tick and wrap are that device's ``clock`` in the robot description); None if none does."""
+    return stamp_fields(robot).get(topic)
 
 
 def device_ticks(df: pd.DataFrame, field: str, clock: ClockSpecModel) -> np.ndarray:

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from acquisition.devices.kinds import device_of
 from acquisition.storage import publish, read_parquet
 from models import kinematics
 from models.robot import AnthropomorphicKinematics, RobotDescription
@@ -43,7 +44,7 @@ def joint_angles(df: pd.DataFrame, robot: RobotDescription, servo: str = "servo_
     (a stepper lands on its commanded step; NaN where no goal was recorded)."""
     q = np.full((len(df), len(robot.joints)), np.nan)
     steppers = [k for k, j in enumerate(robot.joints) if j.drive == "stepper"]
-    joints = robot.device_of("joints")
+    joints = device_of(robot, "joints")
     servo_dev = robot.devices[joints] if joints else None
     names = [j.name for j in robot.joints]
     servos = [names.index(n) for n in (servo_dev.ids if servo_dev else {}) if n in names]

@@ -15,25 +15,14 @@ from collections.abc import Mapping
 import numpy as np
 import pandas as pd
 
+from acquisition.devices.kinds import polled_topics, stamp_fields, timeline_fields
 from acquisition.schemas import topics as T
-from pipeline.clean import DEVICE_TICKS, STAMPS, device_ticks, stamp_clock
+from pipeline.clean import DEVICE_TICKS, device_ticks, stamp_clock
 from pipeline.clock import ClockModel
 from pipeline.errors import PipelineError
 from pipeline.tables import SessionTables, columns
 
 log = logging.getLogger(__name__)
-
-# what the timeline interpolates at the tracker's frames: topic → (column prefix, fields)
-# (POPUP's CiA 402 servo drives answer SYNC with position, velocity and torque on /joint/state: the host
-# stamps it when the answers arrive, ≈ 1 ms after the SYNC they sample at)
-TIMELINE_FIELDS: dict[str, tuple[str, tuple[str, ...]]] = {
-    T.SERVO_STATE: ("servo_", ("position", "velocity", "current")),
-    T.JOINT_STATE: ("servo_", ("position", "velocity", "torque")),
-    T.PRESSURE: ("", ("pressure",)),
-    T.STEPPER: ("stepper_", ("position",)),
-}
-# streams whose samples the host polls (Sync Read, SYNC): sampled on the host's clock, see pipeline.clock
-POLLED = frozenset({T.SERVO_STATE, T.JOINT_STATE})
 
 
 class SyncError(PipelineError, ValueError):
@@ -95,7 +84,7 @@ def fit_stream(
     else:
         ticks = device_ticks(df, field, spec.clock)
     phase = 0.0 if field == "frame" else 0.5  # a frame number is the sampling event; a counter is floored
-    options = {"polled": topic in POLLED, **fit_options}
+    options = {"polled": topic in polled_topics(session.robot), **fit_options}
     model = ClockModel(spec.clock.tick_s, spec.host_link.latency_s, ref_ns=session.t0_ns, stamp_phase=phase,
                        **options)  # fmt: skip
     return device, model.fit(ticks, host), ticks
@@ -112,13 +101,13 @@ def hold_last(t_src: np.ndarray, values: np.ndarray, t_query: np.ndarray) -> np.
 
 def timeline(session: SessionTables, gap_periods: float = 3.0) -> pd.DataFrame:
     """The tracker's frames at their fitted times (``t``, ``tracker_position_<i>``) with the other streams
-    (:data:`TIMELINE_FIELDS`) interpolated there and the servo goals in force (``goal_position_<i>``).
-    Streams must already have ``t`` (see :func:`sync`)."""
+    (their devices' kinds' ``timeline`` fields) interpolated there and the servo goals in force
+    (``goal_position_<i>``). Streams must already have ``t`` (see :func:`sync`)."""
     tracker = session.streams.get(T.TRACKER)
     if tracker is None or "t" not in tracker.columns:
         raise ValueError(f"session {session.session_id}: no synced tracker stream to put the timeline on")
     sources: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for topic, (prefix, fields) in TIMELINE_FIELDS.items():
+    for topic, (prefix, fields) in timeline_fields(session.robot).items():
         df = session.streams.get(topic)
         if df is None or "t" not in df.columns or not len(df):
             continue
@@ -152,11 +141,12 @@ def sync(
         )
     out = session.replace()
     t0 = session.t0_ns
+    stamped = stamp_fields(session.robot)
     for topic, df in session.streams.items():
         fitted = fit_stream(session, topic, **fit_options)
         df = df.copy()
         if fitted is None:
-            if topic in STAMPS and len(df):
+            if topic in stamped and len(df):
                 out.report.warnings.append(f"{topic}: no device stamps to fit; t is the host log time")
             df["t"] = (df["log_time"].to_numpy(dtype=np.int64) - t0) * 1e-9
         else:

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from acquisition.devices.kinds import stamp_fields
 from acquisition.schemas import topics as T
-from pipeline.clean import STAMPS
 from pipeline.clock import ClockModel, slip_drift, unwrap_stamps
 from pipeline.sync import sync
 from twin.clocks import ClockSpec, DeviceClocks, HostLinkSpec, host_receive_ns
@@ -130,7 +130,8 @@ def test_short_twin_session_says_so_in_its_report_and_aligns_its_servo(short_syn
         assert out.report.values["clock/tracker"]["drift_fitted"] is True
         assert any("servo_bus: session too short to fit clock drift" in w for w in out.report.warnings)
         df = out.streams[T.SERVO_STATE]
-        start = _true_times(df[STAMPS[T.SERVO_STATE][1]].to_numpy(), df["log_time"].to_numpy(), clock,
+        stamp = stamp_fields(session.robot)[T.SERVO_STATE][1]
+        start = _true_times(df[stamp].to_numpy(), df["log_time"].to_numpy(), clock,
                             truth["host_epoch_ns"])  # fmt: skip
         poll = np.ceil(start / POLL_S - 1e-6) * POLL_S
         got = df["t"].to_numpy() + (session.t0_ns - truth["host_epoch_ns"]) * 1e-9

@@ -11,10 +11,10 @@ import pandas as pd
 import pytest
 from mcap.reader import make_reader
 
+from acquisition.devices.kinds import stamp_fields
 from acquisition.plans.plan import PlanBuilder
 from acquisition.schemas import topics as T
 from acquisition.schemas.fast_read import read_fixed_topics
-from pipeline.clean import STAMPS
 from pipeline.clock import ClockModel, unwrap_stamps
 from pipeline.sync import interpolate, sync
 from pipeline.tables import EVENT_COLUMNS, SessionTables
@@ -113,10 +113,11 @@ def test_fitted_sample_times_are_the_true_ones(synced):
     for out, _, truth, session in synced:
         for topic, device in DEVICES.items():
             df, clock = out.streams[topic], truth["clocks"][device]
-            true_t = _true_times(df[STAMPS[topic][1]].to_numpy(), df["log_time"].to_numpy(), clock,
+            stamp = stamp_fields(session.robot)[topic][1]
+            true_t = _true_times(df[stamp].to_numpy(), df["log_time"].to_numpy(), clock,
                                  truth["host_epoch_ns"])  # fmt: skip
             got = df["t"].to_numpy() + (session.t0_ns - truth["host_epoch_ns"]) * 1e-9
-            assert np.abs(got - true_t).max() < _time_tolerance(clock, STAMPS[topic][1]), device
+            assert np.abs(got - true_t).max() < _time_tolerance(clock, stamp), device
             assert np.all(np.diff(df["t"].to_numpy()) > 0), device
 
 
@@ -128,7 +129,7 @@ def test_counter_reset_mid_session_is_split_and_fitted(synced, device):
     out, _, truth, session = synced[0]
     topic = next(t for t, d in DEVICES.items() if d == device)
     clock, df = truth["clocks"][device], session.streams[topic]
-    field = STAMPS[topic][1]
+    field = stamp_fields(session.robot)[topic][1]
     raw, host = df[field].to_numpy().astype(np.int64), df["log_time"].to_numpy()
     true_t = _true_times(raw, host, clock, truth["host_epoch_ns"])
     half = len(raw) // 2
@@ -182,7 +183,7 @@ def test_timeline_matches_noise_free_truth_within_sensor_noise(synced, vsl, tmp_
         for topic, field in ((T.PRESSURE, "pressure"), (T.SERVO_STATE, "current")):
             noisy, ref = out.streams[topic], clean.streams[topic]
             np.testing.assert_array_equal(noisy["log_time"], ref["log_time"])  # same draws, same instants
-            stamp = STAMPS[topic][1]
+            stamp = stamp_fields(vsl)[topic][1]
             sample_t = _true_times(ref[stamp].to_numpy(), ref["log_time"].to_numpy(), clocks[DEVICES[topic]],
                                    epoch)  # fmt: skip
             for col in (c for c in timeline.columns if c.endswith(field + "_0") or c.endswith(field + "_1")):

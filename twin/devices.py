@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from acquisition.codecs import dynamixel as dx
+from acquisition.devices.kinds import device_of
 from twin import sensors, streams
 from twin.clocks import _TICK_EPS as TICK_EPS
 from twin.emulators.aurora import TrackerSample
@@ -64,9 +65,10 @@ def _counter_due_s(rig: Rig, device: str, target: int, now_s: float) -> float:
 class TwinServos:
     """The twin's joints behind the Dynamixel control tables."""
 
-    def __init__(self, rig: Rig, joints: dict[int, int]) -> None:
+    def __init__(self, rig: Rig, joints: dict[int, int], counter: str = "servo_bus") -> None:
         self.rig = rig
         self.joints = joints
+        self.counter = counter  # the rig's device counter of the bus (the servos' Realtime Tick)
         self.zero = rig.robot.servo.zero_count
         self._ids = sorted(joints)
         self._columns = np.array([joints[i] for i in self._ids], dtype=np.intp)
@@ -105,7 +107,7 @@ class TwinServos:
             st, j = world.state, self._columns
             qd = st.out_vel[0, j]
             counts = streams.servo_counts(rig.robot, st.out_pos[0, j], qd, st.torque[0, j], world.rng)
-            tick = rig.ticks("servo_bus")
+            tick = rig.ticks(self.counter)
             self._present = {
                 i: (tick, p, v, c, s)
                 for i, p, v, c, s in zip(
@@ -141,7 +143,7 @@ class TwinPressure(_BoardClock):
 
     def __init__(self, rig: Rig) -> None:
         self.rig = rig
-        self.counter = rig.robot.device_of("pressure")
+        self.counter = device_of(rig.robot, "pressure")
         self.spec = streams.pressure_spec(rig.robot)
 
     def set_pressure(self, channel: int, pa: float) -> None:
@@ -178,10 +180,9 @@ class TwinPressure(_BoardClock):
 class TwinStepper(_BoardClock):
     """The J1 stepper behind the Nano: microstep positions of the twin's stepper joint."""
 
-    counter = "stepper_board"
-
-    def __init__(self, rig: Rig) -> None:
+    def __init__(self, rig: Rig, counter: str = "stepper_board") -> None:
         self.rig = rig
+        self.counter = counter
         self.joint = next(i for i, j in enumerate(rig.robot.joints) if j.drive == "stepper")
         self.quantum = rig.robot.stepper.rad_per_microstep
 
@@ -218,6 +219,7 @@ class TwinTrackerSource:
         self.chain = rig.robot.chain()
         self.tool = np.asarray(rig.robot.tool_offset_m)
         self.force_out = False
+        self.counter = "tracker"  # the rig's device counter of the tracker (its frame number)
 
     def __call__(self, now_s: float) -> TrackerSample:
         self.rig.advance(now_s)
@@ -228,7 +230,7 @@ class TwinTrackerSource:
             tip = tip + 10.0  # far outside any field volume
         reading = sensors.tracker_measurement(tip[None], pose[None, :3, :3], self.spec, self.rig.world.rng)
         return TrackerSample(
-            frame=self.rig.ticks("tracker"),
+            frame=self.rig.ticks(self.counter),
             position_m=reading.position_m[0],
             quaternion=reading.quaternion[0],
             rms_error=float(reading.rms_error[0]) * 1e-3,  # the sensor model reports mm

@@ -25,31 +25,15 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from acquisition.codecs import dynamixel as dx
-from acquisition.codecs import popup_boards
-from acquisition.codecs.board_lines import MAX_SET_PA
+from acquisition.devices.kinds import device_kinds, resolve
 from acquisition.processes import RT_PRIORITY, die_with_parent, elevate, settle_heap
-from models.robot import CAN_DIR, RobotDescription, load_robot
-from twin import sensors
+from models.robot import RobotDescription, load_robot
 from twin.can_bus import CanBus
 from twin.clocks import _TICK_EPS as TICK_EPS
-from twin.devices import (
-    RecentSteps,
-    TwinBoardTimer,
-    TwinJoint,
-    TwinLinkBoard,
-    TwinPressure,
-    TwinServos,
-    TwinStepper,
-    TwinTrackerSource,
-)
-from twin.emulators.aurora import AuroraEmulator
+from twin.devices import RecentSteps, TwinTrackerSource
 from twin.emulators.base import Emulator
-from twin.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
 from twin.emulators.cia402_drive import FAULTS, Cia402Drive
-from twin.emulators.dynamixel import DynamixelBusEmulator
-from twin.emulators.popup_boards import BoardNode, LinkBoard, MainBoard
-from twin.emulators.slcan_adapter import SlcanAdapter
+from twin.emulators.popup_boards import BoardNode
 from twin.ptyhost import PtyHost
 from twin.world import World
 
@@ -78,71 +62,17 @@ class Rig:
         self.recent.append(self.world.step(1))
         self.steps = 1
         self.emulators: dict[str, Emulator] = {}
-        if "servo_bus" in robot.devices:
-            self.emulators["servo_bus"] = self._servo_bus()
-        if "pressure_board" in robot.devices:
-            # the firmware's set-point limit is the regulators' range (VSL 3 bar, POPUP's regulators less)
-            self.emulators["pressure_board"] = PressureBoardEmulator(
-                TwinPressure(self), max_set_pa=min(int(robot.pneumatics.regulator_max_pa), MAX_SET_PA)
-            )
-        if "stepper_board" in robot.devices and robot.stepper is not None:
-            self.emulators["stepper_board"] = StepperBoardEmulator(TwinStepper(self))
         self.can_bus: CanBus | None = None
         self.drives: dict[int, Cia402Drive] = {}
-        self.boards: dict[str, BoardNode] = {}  # POPUP's boards on the CAN bus, by device name
-        for name, spec in robot.devices.items():
-            if spec.driver == "popup_can":
-                self.emulators[name] = self._can_bus(spec)
+        self.boards: dict[str, BoardNode] = {}  # the boards on a CAN bus, by device name
         self.coil = TwinTrackerSource(self)
-        if "tracker" in robot.devices:
-            self.emulators["tracker"] = AuroraEmulator(self.coil)
-
-    def _servo_bus(self) -> DynamixelBusEmulator:
-        ids = self.robot.devices["servo_bus"].ids
-        hardware = TwinServos(
-            self, {dxl_id: self.robot.actuated_joints.index(name) for name, dxl_id in ids.items()}
-        )
-        bus = DynamixelBusEmulator(sorted(ids.values()), hardware)
-        for dxl_id, table in bus.tables.items():  # goals start where the joints are: torque-on does not jump
-            joint = hardware.joints[dxl_id]
-            table.set(
-                dx.GOAL_POSITION,
-                int(sensors.encoder_counts(self.world.state.out_pos[0, joint], hardware.zero)),
-            )
-        return bus
-
-    def _can_bus(self, spec) -> SlcanAdapter:
-        """The arm's CAN bus at the description's bit rate (``baud``) with a CiA 402 drive per joint of
-        ``ids``, behind a USB-CAN adapter speaking slcan."""
-        self.can_bus = CanBus(spec.baud)
-        for joint, node_id in spec.ids.items():
-            drive = Cia402Drive(node_id, CAN_DIR / "popup_drive.eds", TwinJoint(self, joint))
-            self.drives[node_id] = drive
-            self.can_bus.attach(drive)
-        for name, dev in self.robot.devices.items():
-            if dev.bus is not None:
-                self.boards[name] = self._board(name, dev)
-                self.can_bus.attach(self.boards[name])
-        return SlcanAdapter(self.can_bus)
-
-    def _board(self, name: str, dev) -> BoardNode:
-        """POPUP's main board or a link board on the CAN bus, sampling the twin on its own clock."""
-        t0 = self.world.t
-        if dev.driver == "popup_main_board":
-            max_set = min(self.robot.pneumatics.regulator_max_pa, popup_boards.setpoint_max_pa())
-            status = TwinBoardTimer(self, name, popup_boards.STATUS_PERIOD_S)
-            return MainBoard(
-                TwinPressure(self), TwinBoardTimer(self, name, 1.0 / dev.rate_hz), status, max_set, t0
-            )
-        if dev.driver == "popup_link_board":
-            accel_timer = None
-            if self.robot.device_of("accelerometer") == name:
-                accel_timer = TwinBoardTimer(
-                    self, name, 1.0 / self.robot.sensors.accelerometer.sample_rate_hz
-                )
-            return LinkBoard(dev.ids["board"], TwinLinkBoard(self, dev.link),
-                             TwinBoardTimer(self, name, 1.0 / dev.rate_hz), accel_timer, t0)  # fmt: skip
-        raise ValueError(f"{self.robot.name}: device {name} ({dev.driver}) cannot sit on the CAN bus")
+        for name, kind in device_kinds(robot).items():  # each device's kind builds its emulator
+            spec = robot.devices[name]
+            if spec.bus is not None or kind.emulator is None:  # on another's bus: that bus attaches it
+                continue
+            emulator = resolve(kind.emulator)(self, name, spec)
+            if emulator is not None:
+                self.emulators[name] = emulator
 
     def advance(self, now_s: float) -> None:
         """Step the twin up to ``now_s`` (rig time): it has then taken ``int(now_s / dt)`` steps."""

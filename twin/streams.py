@@ -14,6 +14,7 @@ import canopen
 import numpy as np
 
 from acquisition.codecs import popup_boards
+from acquisition.devices.kinds import device_of
 from models.robot import CAN_DIR, PressureSensorSpec, RobotDescription
 from twin import sensors
 from twin.clocks import DeviceClocks, HostLinkSpec, host_receive_ns
@@ -72,7 +73,7 @@ def servo_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt
     counts = servo_counts(
         robot, trace.q[r, idx][:, joints], trace.qd[r, idx][:, joints], trace.torque[r, idx][:, joints], rng
     )
-    device = robot.devices[robot.device_of("joints")]
+    device = robot.devices[device_of(robot, "joints")]
     return {
         **_stamped(device, clocks, r, k, t, rng, "tick"),
         **counts,
@@ -96,7 +97,7 @@ def drive_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt
     idx = _step_index(trace, t, dt)
     counts_per_rad, rated_nm = drive_scales(str(CAN_DIR / "popup_drive.eds"))
     return {
-        **_stamped(robot.devices[robot.device_of("joints")], clocks, r, k, t, rng),
+        **_stamped(robot.devices[device_of(robot, "joints")], clocks, r, k, t, rng),
         "position_counts": np.rint(trace.q[r, idx][:, joints] * counts_per_rad),
         "velocity_counts": np.rint(trace.qd[r, idx][:, joints] * counts_per_rad),
         "torque_per_mille": np.clip(
@@ -152,7 +153,7 @@ def pressure_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace,
     rate = robot.sensors.pressure.sample_rate_hz
     r, k, t = device_sample_instants(clocks, 1.0 / rate, trace.t[0] - dt, trace.t[-1])
     idx = _step_index(trace, t, dt)
-    device = robot.devices[robot.device_of("pressure")]
+    device = robot.devices[device_of(robot, "pressure")]
     return {
         **_stamped(device, clocks, r, k, t, rng),
         "counts": sensors.pressure_to_adc_counts(trace.pressure[r, idx], pressure_spec(robot), rng),
@@ -172,7 +173,7 @@ def stepper_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, 
     idx = _step_index(trace, t, dt)
     steps = np.rint(trace.q[r, idx][:, joints] / robot.stepper.rad_per_microstep).astype(np.int64)
     return {
-        **_stamped(robot.devices[robot.device_of("stepper")], clocks, r, k, t, rng),
+        **_stamped(robot.devices[device_of(robot, "stepper")], clocks, r, k, t, rng),
         "position_steps": steps,
     }
 
@@ -202,7 +203,7 @@ def tracker_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, 
         "robot": r,
         "frame": k,
         "t_true": t,
-        "host_ns": _host(robot.devices[robot.device_of("tracker")].host_link, t, rng),
+        "host_ns": _host(robot.devices[device_of(robot, "tracker")].host_link, t, rng),
         "position": reading.position_m,
         "quaternion": reading.quaternion,
         "rms_error": reading.rms_error,

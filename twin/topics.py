@@ -1,11 +1,15 @@
 """The twin's device streams (``twin.streams``) as session topic rows, exactly as the real-time
-recorder writes what the drivers return: same topics, same units, same stamps and sequence numbers."""
+recorder writes what the drivers return: same topics, same units, same stamps and sequence numbers. Each
+built-in device kind names its rows function here (``DeviceKind.rows``); :func:`stream_rows` asks every
+device's kind."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from acquisition.codecs import dynamixel as dx
+from acquisition.devices.kinds import device_kinds, device_of, resolve
+from acquisition.schemas import topic_rows as R
 from acquisition.schemas import topics as T
 from models.robot import RobotDescription
 from twin.emulators.cia402_drive import SW_REMOTE, SW_SETPOINT_ACK, SW_VOLTAGE, State
@@ -18,95 +22,122 @@ TopicRows = tuple[np.ndarray, np.ndarray, np.ndarray]  # robot index, host log t
 
 def stream_rows(robot: RobotDescription, topics: dict[str, T.Topic], streams: dict[str, Stream],
                 valve_open: np.ndarray) -> dict[str, TopicRows]:  # fmt: skip
-    """Topic rows of every device stream; ``valve_open`` (B, C) holds the valve states of the window."""
+    """Topic rows of every device stream, each device's by its kind's ``rows``; ``valve_open`` (B, C) holds
+    the valve states of the window."""
+    calls = [
+        (order, i, resolve(ref), name)
+        for i, (name, kind) in enumerate(device_kinds(robot).items())
+        for order, ref in kind.rows
+    ]
     out: dict[str, TopicRows] = {}
-    if "servo_bus" in streams and T.SERVO_STATE in topics:
-        s = streams["servo_bus"]
-        zero = robot.servo.zero_count
-        rows = topics[T.SERVO_STATE].message.pack(
-            {
-                "seq": s["seq"] % 2**32,
-                "tick_ms": s["tick"],
-                "position": (s["position"] - zero) * dx.RAD_PER_POSITION_COUNT,
-                "velocity": s["velocity"] * dx.RAD_S_PER_VELOCITY_UNIT,
-                "current": s["current"] * dx.AMP_PER_CURRENT_UNIT,
-                "moving": s["velocity"] != 0,
-            }
-        )
-        out[T.SERVO_STATE] = (s["robot"], s["host_ns"], rows)
-    if "drives" in streams and T.JOINT_STATE in topics:
-        s = streams["drives"]
-        n = s["position_counts"].shape[1]
-        rows = topics[T.JOINT_STATE].message.pack(
-            {
-                "seq": s["seq"] % 2**32,
-                "position": s["position_counts"] / s["counts_per_rad"][:, None],
-                "velocity": s["velocity_counts"] / s["counts_per_rad"][:, None],
-                "torque": s["torque_per_mille"] * 1e-3 * s["rated_nm"][:, None],
-                "statusword": np.full((len(s["seq"]), n), DRIVE_ENABLED_STATUSWORD),
-            }
-        )
-        out[T.JOINT_STATE] = (s["robot"], s["host_ns"], rows)
-    for link, board in robot.link_boards().items():
-        s = streams.get(f"link_board:{board}")
-        if s is None:
-            continue
-        seq = s["seq"] % 2**32
-        orientation = topics[T.link_orientation_topic(link)].message.pack(
-            {"seq": seq, "micros": s["micros"], "rpy": s["rpy"]}
-        )
-        flex = topics[T.link_flex_topic(link)].message.pack(
-            {"seq": seq, "micros": s["micros"], "counts": s["flex"]}
-        )
-        out[T.link_orientation_topic(link)] = (s["robot"], s["host_ns"], orientation)
-        out[T.link_flex_topic(link)] = (s["robot"], s["host_ns"], flex)
-    if "pressure_board" in streams:
-        s = streams["pressure_board"]
-        counts = s["counts"]
-        rows = topics[T.PRESSURE].message.pack(
-            {
-                "seq": s["seq"] % 2**32,
-                "micros": s["micros"],
-                "counts": counts,
-                "pressure": robot.sensors.pressure.counts_to_pa(counts),
-                "valve_open": valve_open[s["robot"]],
-            }
-        )
-        out[T.PRESSURE] = (s["robot"], s["host_ns"], rows)
-    if "stepper_board" in streams and T.STEPPER in topics:
-        s = streams["stepper_board"]
-        steps = s["position_steps"]
-        moving = np.zeros(len(steps), bool)
-        same_robot = s["robot"][1:] == s["robot"][:-1]
-        moving[1:] = same_robot & np.any(steps[1:] != steps[:-1], axis=1)
-        rows = topics[T.STEPPER].message.pack(
-            {
-                "seq": s["seq"] % 2**32,
-                "micros": s["micros"],
-                "position_steps": steps,
-                "position": steps * robot.stepper.rad_per_microstep,
-                "moving": moving,
-            }
-        )
-        out[T.STEPPER] = (s["robot"], s["host_ns"], rows)
-    if "tracker" in streams:
-        s = streams["tracker"]
-        rows = topics[T.TRACKER].message.pack(
-            {
-                "frame": s["frame"] % 2**32,
-                "port_handle": robot.devices["tracker"].ids.get("tip", 10),
-                "port_status": s["port_status"],
-                "missing": s["missing"],
-                "position": s["position"],
-                "quaternion": s["quaternion"],
-                "rms_error": s["rms_error"],
-            }
-        )
-        out[T.TRACKER] = (s["robot"], s["host_ns"], rows)
-    if "accelerometer" in streams and T.ACCEL in topics:
-        s = streams["accelerometer"]
-        rows = topics[T.ACCEL].message.pack(
-            {"seq": s["seq"] % 2**32, "micros": s["micros"], "acceleration": s["acceleration"]}
-        )
-        out[T.ACCEL] = (s["robot"], s["host_ns"], rows)
+    for _, _, rows, name in sorted(calls, key=lambda c: c[:2]):
+        out.update(rows(robot, name, topics, streams, valve_open))
     return out
+
+
+def servo_rows(robot: RobotDescription, name: str, topics: dict[str, T.Topic], streams: dict[str, Stream],
+               valve_open: np.ndarray) -> dict[str, TopicRows]:  # fmt: skip
+    """The servo bus's Sync Reads in SI, as ``ServoSource`` records what the driver decoded."""
+    s = streams.get("servo_bus")
+    if s is None or T.SERVO_STATE not in topics:
+        return {}
+    zero = robot.servo.zero_count
+    rows = topics[T.SERVO_STATE].message.pack(
+        R.servo_state(
+            s["seq"],
+            s["tick"],
+            (s["position"] - zero) * dx.RAD_PER_POSITION_COUNT,
+            s["velocity"] * dx.RAD_S_PER_VELOCITY_UNIT,
+            s["current"] * dx.AMP_PER_CURRENT_UNIT,
+            s["velocity"] != 0,
+        )
+    )
+    return {T.SERVO_STATE: (s["robot"], s["host_ns"], rows)}
+
+
+def drive_rows(robot: RobotDescription, name: str, topics: dict[str, T.Topic], streams: dict[str, Stream],
+               valve_open: np.ndarray) -> dict[str, TopicRows]:  # fmt: skip
+    """The CiA 402 drives' answers to SYNC in SI."""
+    s = streams.get("drives")
+    if s is None or T.JOINT_STATE not in topics:
+        return {}
+    n = s["position_counts"].shape[1]
+    rows = topics[T.JOINT_STATE].message.pack(
+        R.joint_state(
+            s["seq"],
+            s["position_counts"] / s["counts_per_rad"][:, None],
+            s["velocity_counts"] / s["counts_per_rad"][:, None],
+            s["torque_per_mille"] * 1e-3 * s["rated_nm"][:, None],
+            np.full((len(s["seq"]), n), DRIVE_ENABLED_STATUSWORD),
+        )
+    )
+    return {T.JOINT_STATE: (s["robot"], s["host_ns"], rows)}
+
+
+def link_board_rows(robot: RobotDescription, name: str, topics: dict[str, T.Topic],
+                    streams: dict[str, Stream], valve_open: np.ndarray) -> dict[str, TopicRows]:  # fmt: skip
+    """A link board's orientation and flex sensors."""
+    s = streams.get(f"link_board:{name}")
+    if s is None:
+        return {}
+    link = robot.devices[name].link
+    orientation = topics[T.link_orientation_topic(link)].message.pack(
+        R.link_orientation(s["seq"], s["micros"], s["rpy"])
+    )
+    flex = topics[T.link_flex_topic(link)].message.pack(R.link_flex(s["seq"], s["micros"], s["flex"]))
+    return {
+        T.link_orientation_topic(link): (s["robot"], s["host_ns"], orientation),
+        T.link_flex_topic(link): (s["robot"], s["host_ns"], flex),
+    }
+
+
+def pressure_rows(robot: RobotDescription, name: str, topics: dict[str, T.Topic], streams: dict[str, Stream],
+                  valve_open: np.ndarray) -> dict[str, TopicRows]:  # fmt: skip
+    """The link pressures: counts, their calibrated Pa, the valves of the window."""
+    s = streams.get("pressure_board")
+    if s is None:
+        return {}
+    rows = topics[T.PRESSURE].message.pack(
+        R.pressure(robot.sensors.pressure, s["seq"], s["micros"], s["counts"], valve_open[s["robot"]])
+    )
+    return {T.PRESSURE: (s["robot"], s["host_ns"], rows)}
+
+
+def stepper_rows(robot: RobotDescription, name: str, topics: dict[str, T.Topic], streams: dict[str, Stream],
+                 valve_open: np.ndarray) -> dict[str, TopicRows]:  # fmt: skip
+    """The stepper board's position reports (moving: the position changed since the last report)."""
+    s = streams.get("stepper_board")
+    if s is None or T.STEPPER not in topics:
+        return {}
+    steps = s["position_steps"]
+    moving = np.zeros(len(steps), bool)
+    same_robot = s["robot"][1:] == s["robot"][:-1]
+    moving[1:] = same_robot & np.any(steps[1:] != steps[:-1], axis=1)
+    rows = topics[T.STEPPER].message.pack(
+        R.stepper(robot.stepper.rad_per_microstep, s["seq"], s["micros"], steps, moving)
+    )
+    return {T.STEPPER: (s["robot"], s["host_ns"], rows)}
+
+
+def tracker_rows(robot: RobotDescription, name: str, topics: dict[str, T.Topic], streams: dict[str, Stream],
+                 valve_open: np.ndarray) -> dict[str, TopicRows]:  # fmt: skip
+    """The tracker's frames of the tip coil."""
+    s = streams.get("tracker")
+    if s is None:
+        return {}
+    port_handle = robot.devices[name].ids.get("tip", 10)
+    values = R.tracker(s["frame"], port_handle, s["port_status"], s["missing"], s["position"],
+                       s["quaternion"], s["rms_error"])  # fmt: skip
+    rows = topics[T.TRACKER].message.pack(values)
+    return {T.TRACKER: (s["robot"], s["host_ns"], rows)}
+
+
+def accelerometer_rows(robot: RobotDescription, name: str, topics: dict[str, T.Topic],
+                       streams: dict[str, Stream], valve_open: np.ndarray,
+                       ) -> dict[str, TopicRows]:  # fmt: skip
+    """The tip accelerometer's samples."""
+    s = streams.get("accelerometer")
+    if s is None or T.ACCEL not in topics or device_of(robot, "accelerometer") != name:
+        return {}
+    rows = topics[T.ACCEL].message.pack(R.acceleration(s["seq"], s["micros"], s["acceleration"]))
+    return {T.ACCEL: (s["robot"], s["host_ns"], rows)}

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from acquisition.devices.kinds import device_kinds, device_rng, resolve
 from models.effects import creep_rest
 from models.prbm import interp_table
 from models.robot import TIP_FRAME, RobotDescription
@@ -140,7 +141,9 @@ class World:
         self.robot = robot
         self.batch = batch
         self.dt = dt
+        self.seed = seed
         self.rng = np.random.default_rng(seed)
+        self._device_rngs: dict[str, np.random.Generator] = {}
         self.params = build_params(robot, dt)
         self.layout = Layout(
             tuple(robot.actuated_joints), tuple(robot.virtual_joints), robot.pneumatics.channels
@@ -187,7 +190,7 @@ class World:
         self.clocks = {
             name: DeviceClocks(_clock_spec(dev.clock), batch, self.rng) for name, dev in robot.devices.items()
         }
-        self._tip_tail: tuple[float, np.ndarray] | None = None  # (time, last two tip positions) of a read
+        self.tip_tail: tuple[float, np.ndarray] | None = None  # (time, last two tip positions) of a read
 
     def _start_at_rest(self) -> None:
         """Start with the drives already drooped under gravity (a few fixed-point steps, clock reset),
@@ -215,6 +218,13 @@ class World:
             pressure = st.p_link[:, ch] if ch >= 0 else np.zeros(self.batch)
             out[:, v] = interp_table(pressure, p.table_p[link, :m], p.table_k[link, :m])
         return out
+
+    def device_rng(self, device: str) -> np.random.Generator:
+        """Device ``device``'s own random generator (the world's seed spawned by its name, see
+        :func:`acquisition.devices.kinds.device_rng`): its noise does not depend on the other devices."""
+        if device not in self._device_rngs:
+            self._device_rngs[device] = device_rng(self.seed, device)
+        return self._device_rngs[device]
 
     # ------------------------------------------------------------------------------------ commands
     def command_joints(self, goal_rad: np.ndarray, profile_vel: np.ndarray | None = None,
@@ -290,37 +300,17 @@ class World:
         return self.step(round(seconds / self.dt))
 
     def read(self, trace: kernel.Trace, servo_rate_hz: float = 500.0) -> dict[str, streams.Stream]:
-        """What every device reported during ``trace``: one column table per device (see ``streams``).
-        Servos are polled by the host at ``servo_rate_hz``; the boards and the tracker run on their clocks."""
-        robot, dt, rng, clocks = self.robot, self.dt, self.rng, self.clocks
+        """What every device reported during ``trace``: one column table per stream (see ``streams``), from
+        each device's kind (its ``streams``). Servos are polled by the host at ``servo_rate_hz``; the boards
+        and the tracker run on their clocks."""
+        calls = [
+            (order, i, resolve(ref), name)
+            for i, (name, kind) in enumerate(device_kinds(self.robot).items())
+            for order, ref in kind.streams
+        ]
         out: dict[str, streams.Stream] = {}
-        servos, pressure = robot.device_of("joints"), robot.device_of("pressure")
-        stepper, tracker = robot.device_of("stepper"), robot.device_of("tracker")
-        if servos is not None and robot.devices[servos].driver == "dynamixel":
-            out["servo_bus"] = streams.servo_stream(robot, clocks[servos], trace, dt, servo_rate_hz, rng)
-        if pressure is not None:
-            out["pressure_board"] = streams.pressure_stream(robot, clocks[pressure], trace, dt, rng)
-        if stepper is not None and robot.stepper is not None:
-            out["stepper_board"] = streams.stepper_stream(robot, clocks[stepper], trace, dt, rng)
-        if tracker is not None:
-            out["tracker"] = streams.tracker_stream(robot, clocks[tracker], trace, dt, rng)
-        accel = robot.device_of("accelerometer")
-        if accel is not None:
-            tail = self._tip_tail
-            before = tail[1] if tail is not None and abs(trace.t[0] - dt - tail[0]) < dt / 2 else None
-            out["accelerometer"] = streams.accelerometer_stream(robot, clocks[accel], trace, dt, rng, before)
-            if trace.tip_pos.shape[1] >= 2:
-                self._tip_tail = (float(trace.t[-1]), trace.tip_pos[:, -2:].copy())
-        # drawn last: the other devices' noise is what it was before POPUP's bus was modelled
-        if (
-            servos is not None and robot.devices[servos].driver != "dynamixel"
-        ):  # CiA 402 drives, answering the host's SYNC at the bus's rate
-            rate = robot.devices[servos].rate_hz or servo_rate_hz
-            out["drives"] = streams.drive_stream(robot, clocks[servos], trace, dt, rate, rng)
-        for board in robot.link_boards().values():
-            out[f"link_board:{board}"] = streams.link_board_stream(
-                robot, board, clocks[board], trace, dt, rng
-            )
+        for _, _, stream, name in sorted(calls, key=lambda c: c[:2]):  # the kinds' draw order
+            out.update(stream(self, name, trace, servo_rate_hz))
         return out
 
     def settle(self, seconds: float = 2.0) -> None:

@@ -32,6 +32,7 @@ import numpy as np
 
 from acquisition.command_guard import CommandGuard, CommandRefused
 from acquisition.devices.base import host_now_ns
+from acquisition.devices.kinds import device_of
 from acquisition.errors import AcquisitionError
 from acquisition.plans.compensation import Compensator
 from acquisition.plans.plan import Plan
@@ -97,7 +98,7 @@ class RealTimeRunner:
         joints = self.robot.joints
         self.servo_joints = [i for i, j in enumerate(joints) if j.drive != "stepper"]
         self.stepper_joints = [i for i, j in enumerate(joints) if j.drive == "stepper"]
-        joints_dev = self.robot.device_of("joints")
+        joints_dev = device_of(self.robot, "joints")
         if joints_dev is not None:  # goals in the bus's id order (Dynamixel IDs, CANopen node ids)
             names = [j.name for j in joints]
             ids = self.robot.devices[joints_dev].ids

@@ -22,8 +22,10 @@ import numpy as np
 from acquisition.codecs import popup_boards as pb
 from acquisition.devices.base import host_now_ns
 from acquisition.devices.can_drives import CanDrives
+from acquisition.devices.kinds import device_of, kind_of
 from acquisition.devices.popup_boards import BoardFrames, BoardSample
-from acquisition.recorder.source_base import SEQ_MODULO, Row, Source
+from acquisition.recorder.source_base import Row, Source
+from acquisition.schemas import topic_rows as R
 from acquisition.schemas import topics as T
 
 log = logging.getLogger(__name__)
@@ -34,8 +36,8 @@ class PopupCanSource(Source):
 
     def __init__(self, robot, name, spec, port, rate_hz) -> None:
         boards = {n: d for n, d in robot.devices.items() if d.bus == name}
-        self.main = next((n for n, d in boards.items() if d.driver == "popup_main_board"), None)
-        accel_board = robot.device_of("accelerometer")
+        self.main = next((n for n, d in boards.items() if kind_of(robot, n).role == "pressure"), None)
+        accel_board = device_of(robot, "accelerometer")
         # every board message recorded → (its topic, its period on its board's clock: the sample number
         # times it is the board's micros); and each board's slowest period (how long it may stay silent)
         self.board_streams: dict[str, tuple[str, float]] = {}
@@ -99,9 +101,9 @@ class PopupCanSource(Source):
         rows = []
         if cycle is not None and cycle.sync >= self.first_sync and cycle.answered.all():
             self.position = cycle.position_rad
-            rows.append(self.row(T.JOINT_STATE, cycle.host_ns, cycle.sync, seq=cycle.sync % SEQ_MODULO,
-                                 position=cycle.position_rad, velocity=cycle.velocity_rad_s,
-                                 torque=cycle.torque_nm, statusword=cycle.statusword))  # fmt: skip
+            values = R.joint_state(cycle.sync, cycle.position_rad, cycle.velocity_rad_s, cycle.torque_nm,
+                                   cycle.statusword)  # fmt: skip
+            rows.append(self.row(T.JOINT_STATE, cycle.host_ns, cycle.sync, **values))
         rows += [r for s in self.boards.take() if (r := self._board_row(s)) is not None]
         return rows
 
@@ -110,21 +112,19 @@ class PopupCanSource(Source):
         if stream is None:
             return None  # MainStatus: the board's uptime and rejected commands (not a sampled stream)
         topic, period_us = stream
-        seq, sig = s.seq % SEQ_MODULO, s.signals
+        sig = s.signals
         micros = round(s.seq * period_us) % (1 << 32)
         if topic == T.PRESSURE:
             counts = np.array([sig["Link1Counts"], sig["Link2Counts"]])
-            return self.row(topic, s.host_ns, s.seq, seq=seq, micros=micros, counts=counts,
-                            pressure=self.calibration.counts_to_pa(counts),
-                            valve_open=[bool(sig["Regulate1"]), bool(sig["Regulate2"])])  # fmt: skip
-        if topic == T.ACCEL:
-            return self.row(topic, s.host_ns, s.seq, seq=seq, micros=micros,
-                            acceleration=[sig["AccelX"], sig["AccelY"], sig["AccelZ"]])  # fmt: skip
-        if topic.endswith("/orientation"):
-            return self.row(topic, s.host_ns, s.seq, seq=seq, micros=micros,
-                            rpy=[sig["Roll"], sig["Pitch"], sig["Yaw"]])  # fmt: skip
-        return self.row(topic, s.host_ns, s.seq, seq=seq, micros=micros,
-                        counts=[sig[f"Flex{i}"] for i in range(1, 5)])  # fmt: skip
+            valves = [bool(sig["Regulate1"]), bool(sig["Regulate2"])]
+            values = R.pressure(self.calibration, s.seq, micros, counts, valves)
+        elif topic == T.ACCEL:
+            values = R.acceleration(s.seq, micros, [sig["AccelX"], sig["AccelY"], sig["AccelZ"]])
+        elif topic.endswith("/orientation"):
+            values = R.link_orientation(s.seq, micros, [sig["Roll"], sig["Pitch"], sig["Yaw"]])
+        else:
+            values = R.link_flex(s.seq, micros, [sig[f"Flex{i}"] for i in range(1, 5)])
+        return self.row(topic, s.host_ns, s.seq, **values)
 
     def _interpolate(self) -> None:
         """Move the CSP targets one SYNC period toward the goals at their profile speeds."""

@@ -35,7 +35,7 @@ from acquisition.errors import DeviceDisconnectedError, DeviceError, DeviceNotFo
 from acquisition.processes import elevate, parent_alive, relinquish, settle_heap
 from acquisition.recorder.layout import Layout
 from acquisition.recorder.ring import Ring
-from acquisition.recorder.sources import SEQ_MODULO, Row, Source, make_source
+from acquisition.recorder.source_base import SEQ_MODULO, Row, Source, make_source
 from acquisition.recorder.status import DaemonStatus, Phase
 from acquisition.schemas.events import Event, EventKind
 from models.robot import RobotDescription

@@ -41,7 +41,7 @@ from acquisition.errors import AcquisitionError
 from acquisition.recorder.daemon import EVENT_BYTES, push_event
 from acquisition.recorder.layout import SUPERVISOR, DeviceEntry, Layout
 from acquisition.recorder.ring import Ring
-from acquisition.recorder.sources import SOURCES, make_source
+from acquisition.recorder.source_base import make_source, source_class
 from acquisition.recorder.status import DaemonStatus, Phase
 from acquisition.recorder.writer import RotationPolicy
 from acquisition.recorder.writer_process import WRITER_FAILED
@@ -139,7 +139,8 @@ class Recorder:
                 source = make_source(robot, name, port, rates.get(name))
             except ValueError as exc:
                 raise RecorderError(str(exc)) from None
-            devices[name] = DeviceEntry(name, source.driver, port, source.rate_hz, list(source.topics),
+            driver = robot.devices[name].driver
+            devices[name] = DeviceEntry(name, driver, port, source.rate_hz, list(source.topics),
                                         list(source.sampled_topics), source.sampled_rates_hz)  # fmt: skip
         rotation = rotation or RotationPolicy()
         now = time.monotonic_ns()
@@ -392,7 +393,7 @@ class Recorder:
             self.event(Event(EventKind.DEVICE_GAP_START, label=name, text=why))
             for topic in entry.sampled:
                 self._rings[topic].note_gap()
-        if not SOURCES[entry.driver].slot_numbered:
+        if not source_class(entry.driver).slot_numbered:
             for topic in entry.sampled:
                 self._rings[topic].restart_sequence()
         self._children[name].close()

@@ -1,5 +1,6 @@
-"""What every source shares (``Source``, ``Row``, ``SEQ_MODULO``): a module of its own, so that the sources of
-each bus (``sources``, ``can_source``) build on it without importing one another."""
+"""What every source shares (``Source``, ``Row``, ``SEQ_MODULO``, :func:`make_source`): a module of its own,
+so that the sources of each bus (``sources``, ``can_source``, a lab's own kinds) build on it without importing
+one another, and a daemon imports only its own device's source (its kind names it)."""
 
 from __future__ import annotations
 
@@ -9,11 +10,13 @@ from typing import ClassVar
 import numpy as np
 
 from acquisition.command_guard import CommandGuard
+from acquisition.devices import kinds
 from acquisition.schemas import topics as T
 from acquisition.schemas.cdr import FixedMessage
+from acquisition.schemas.topic_rows import SEQ_MODULO
 from models.robot import DeviceSpec, RobotDescription
 
-SEQ_MODULO = 1 << 32  # every counter the sources number samples with is a uint32 field
+__all__ = ["SEQ_MODULO", "Row", "Source", "make_source", "source_class"]
 
 
 @dataclass(frozen=True)
@@ -96,3 +99,30 @@ class Source:
 
     def safe(self) -> None:
         """Leave the device safe (the supervisor is gone, or a safe stop): default nothing to do."""
+
+
+def source_class(driver: str) -> type[Source]:
+    """The recorder's source of the device kind ``driver`` (imported now); a kind without one cannot be
+    recorded on a port of its own (a board on another device's bus) and is a ValueError."""
+    kind = kinds.get(driver)
+    if kind.source is None:
+        raise ValueError(f"device kind {driver!r} has no recording source of its own")
+    cls = kinds.resolve(kind.source)
+    if not (isinstance(cls, type) and issubclass(cls, Source)):
+        raise ValueError(f"device kind {driver!r}: its source {kind.source!r} is not a Source")
+    return cls
+
+
+def make_source(robot: RobotDescription, name: str, port: str, rate_hz: float | None = None) -> Source:
+    """The source of device ``name`` of ``robot`` on ``port`` (its configured rate unless ``rate_hz``)."""
+    spec = robot.devices.get(name)
+    if spec is None:
+        raise ValueError(f"{robot.name} has no device {name!r} (its devices: {', '.join(robot.devices)})")
+    try:
+        cls = source_class(spec.driver)
+    except ValueError as exc:
+        raise ValueError(f"{robot.name}: device {name} cannot be recorded: {exc}") from None
+    rate = rate_hz or spec.rate_hz
+    if not rate or rate <= 0:
+        raise ValueError(f"{robot.name}: device {name} has no rate_hz to read it at")
+    return cls(robot, name, spec, port, rate)

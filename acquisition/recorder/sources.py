@@ -7,8 +7,8 @@ set-points, valves, moves) once the command guard (:mod:`acquisition.command_gua
 process owns the port, so nothing reaches the device without that check — returns the rows that record them
 as sent, and knows the device's safe state
 (servos hold where they are, the stepper stops, pressures stay: an inflatable arm must not be vented under
-load). Sources are registered by the driver name the robot description gives each device (``devices.<name>
-.driver``), so adding a device is a driver, a source, an emulator and a schema.
+load). A source belongs to its device kind (:mod:`acquisition.devices.kinds`, found by the driver name the
+robot description gives each device, ``devices.<name>.driver``), which names it: nothing here lists them.
 
 Two ways of reading: a **polled** source is read once per slot of a host schedule at ``rate_hz`` (the servo
 bus's Sync Reads; the tracker, polled faster than its frames); a **streamed** source has a file descriptor
@@ -25,12 +25,11 @@ from acquisition.devices.base import host_now_ns
 from acquisition.devices.boards import PressureBoard, StepperBoard
 from acquisition.devices.servo_bus import ServoBus
 from acquisition.devices.tracker import Tracker
-from acquisition.recorder.can_source import PopupCanSource
-from acquisition.recorder.source_base import SEQ_MODULO, Row, Source
+from acquisition.recorder.source_base import SEQ_MODULO, Row, Source, make_source
+from acquisition.schemas import topic_rows as R
 from acquisition.schemas import topics as T
-from models.robot import RobotDescription
 
-__all__ = ["SEQ_MODULO", "SOURCES", "Row", "Source", "make_source"]
+__all__ = ["SEQ_MODULO", "Row", "Source", "make_source"]
 
 
 # ------------------------------------------------------------------------------------------ servos
@@ -59,9 +58,9 @@ class ServoSource(Source):
     def read(self, slot: int) -> list[Row]:
         st = self.bus.read_state()
         self.position = st.position_rad
-        return [self.row(T.SERVO_STATE, st.host_ns, slot, seq=slot % SEQ_MODULO, tick_ms=int(st.tick_ms[0]),
-                         position=st.position_rad, velocity=st.velocity_rad_s, current=st.current_a,
-                         moving=st.moving)]  # fmt: skip
+        values = R.servo_state(slot, int(st.tick_ms[0]), st.position_rad, st.velocity_rad_s, st.current_a,
+                               st.moving)  # fmt: skip
+        return [self.row(T.SERVO_STATE, st.host_ns, slot, **values)]
 
     def command(self, cmd: dict) -> list[Row]:
         op = cmd["op"]
@@ -124,10 +123,9 @@ class PressureSource(_BoardSource):
         self.channels = robot.pneumatics.channels
 
     def sample_row(self, s) -> Row:
-        counts = np.asarray(s.counts)
         valves = [(s.valves >> c) & 1 == 1 for c in range(self.channels)]
-        return self.row(T.PRESSURE, s.host_ns, s.seq, seq=s.seq, micros=s.micros, counts=counts,
-                        pressure=self.calibration.counts_to_pa(counts), valve_open=valves)  # fmt: skip
+        values = R.pressure(self.calibration, s.seq, s.micros, s.counts, valves)
+        return self.row(T.PRESSURE, s.host_ns, s.seq, **values)
 
     def command(self, cmd: dict) -> list[Row]:
         if cmd["op"] != "pressures":
@@ -153,9 +151,8 @@ class StepperSource(_BoardSource):
         self.joint = next(j.name for j in robot.joints if j.drive == "stepper")
 
     def sample_row(self, s) -> Row:
-        return self.row(T.STEPPER, s.host_ns, s.seq, seq=s.seq or 0, micros=s.micros,
-                        position_steps=[s.position_steps], position=[s.position_steps * self.rad_per_step],
-                        moving=s.moving)  # fmt: skip
+        values = R.stepper(self.rad_per_step, s.seq or 0, s.micros, [s.position_steps], s.moving)
+        return self.row(T.STEPPER, s.host_ns, s.seq, **values)
 
     def command(self, cmd: dict) -> list[Row]:
         if cmd["op"] == "move":
@@ -205,30 +202,7 @@ class TrackerSource(Source):
             if f.frame == self.last_frame:
                 continue
             self.last_frame = f.frame
-            frame = f.frame % SEQ_MODULO
-            out.append(self.row(T.TRACKER, f.host_ns, frame, frame=frame, port_handle=f.port_handle,
-                                port_status=f.port_status, missing=f.missing, position=f.position_m,
-                                quaternion=f.quaternion, rms_error=f.rms_error))  # fmt: skip
+            values = R.tracker(f.frame, f.port_handle, f.port_status, f.missing, f.position_m, f.quaternion,
+                               f.rms_error)  # fmt: skip
+            out.append(self.row(T.TRACKER, f.host_ns, f.frame % SEQ_MODULO, **values))
         return out
-
-
-SOURCES: dict[str, type[Source]] = {
-    cls.driver: cls for cls in (ServoSource, PressureSource, StepperSource, TrackerSource, PopupCanSource)
-}
-
-
-def make_source(robot: RobotDescription, name: str, port: str, rate_hz: float | None = None) -> Source:
-    """The source of device ``name`` of ``robot`` on ``port`` (its configured rate unless ``rate_hz``)."""
-    spec = robot.devices.get(name)
-    if spec is None:
-        raise ValueError(f"{robot.name} has no device {name!r} (its devices: {', '.join(robot.devices)})")
-    cls = SOURCES.get(spec.driver)
-    if cls is None:
-        raise ValueError(
-            f"{robot.name}: device {name} uses driver {spec.driver!r}, which vslab cannot record yet "
-            f"(drivers: {', '.join(sorted(SOURCES))})"
-        )
-    rate = rate_hz or spec.rate_hz
-    if not rate or rate <= 0:
-        raise ValueError(f"{robot.name}: device {name} has no rate_hz to read it at")
-    return cls(robot, name, spec, port, rate)

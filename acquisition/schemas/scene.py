@@ -19,6 +19,7 @@ from itertools import pairwise
 
 import numpy as np
 
+from acquisition.devices.kinds import device_of
 from acquisition.schemas import topics as T
 from acquisition.schemas.standard import (
     STRING_SCHEMA,
@@ -140,7 +141,7 @@ def joint_angles(robot: RobotDescription, streams: Mapping[str, object]) -> tupl
     report (NaN before the first). Velocity and effort NaN where a joint does not report them."""
     names = robot.actuated_joints
     topic = T.joint_state_topic(robot)
-    joints = robot.device_of("joints")
+    joints = device_of(robot, "joints")
     servo_ids = list(robot.devices[joints].ids) if joints else []
     servos = [names.index(n) for n in servo_ids if n in names]
     steppers = [k for k, j in enumerate(robot.joints) if j.drive == "stepper"]

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from acquisition.devices.kinds import device_kinds, device_of, kind_of
 from acquisition.schemas.cdr import Field, FixedMessage
 from acquisition.schemas.events import EVENT_SCHEMA, EVENT_SCHEMA_NAME, EVENTS
 from models.robot import RobotDescription
@@ -192,38 +193,35 @@ class Topic:
 
 
 def session_topics(robot: RobotDescription) -> dict[str, Topic]:
-    """Every topic a session of ``robot`` may write, by topic name."""
-    joints = robot.device_of("joints")
-    joint_dev = robot.devices[joints] if joints else None
-    servos = [n for n in (joint_dev.ids if joint_dev else {}) if _drive(robot, n) != "stepper"]
-    dynamixel = joint_dev is not None and joint_dev.driver == "dynamixel"
-    steppers = [j.name for j in robot.joints if j.drive == "stepper"]
+    """Every topic a session of ``robot`` may write, by topic name: the standard ones (pressure, tracker,
+    accelerometer, events: written by the twin's world whichever devices carry them) and those of each of its
+    devices' kinds (:mod:`acquisition.devices.kinds`)."""
+    joints = device_of(robot, "joints")
+    joint_topics = kind_of(robot, joints).topics_of(robot, joints) if joints else {}
     c = robot.pneumatics.channels
     messages: dict[str, FixedMessage | None] = {
-        SERVO_STATE: servo_state(len(servos)) if servos and dynamixel else None,
-        JOINT_STATE: joint_state(len(servos)) if servos and not dynamixel else None,
-        SERVO_GOAL: servo_goal(len(servos)) if servos else None,
+        SERVO_STATE: joint_topics.get(SERVO_STATE),
+        JOINT_STATE: joint_topics.get(JOINT_STATE),
+        SERVO_GOAL: joint_topics.get(SERVO_GOAL),
         PRESSURE: pressure(c),
         PRESSURE_COMMAND: pressure_command(c),
-        STEPPER: stepper(len(steppers)) if steppers else None,
+        STEPPER: None,
         TRACKER: TRACKER_POSE,
         ACCEL: ACCELERATION,
         EVENTS: None,
     }
-    for link in robot.link_boards():
-        messages[link_orientation_topic(link)] = LINK_ORIENTATION
-        messages[link_flex_topic(link)] = LINK_FLEX
+    for name, kind in device_kinds(robot).items():
+        for topic, message in kind.topics_of(robot, name).items():
+            if messages.get(topic) is None:
+                messages[topic] = message
     return {name: Topic(name, msg) for name, msg in messages.items() if msg is not None or name == EVENTS}
 
 
 def joint_state_topic(robot: RobotDescription) -> str | None:
     """Where ``robot``'s joint angles are measured: the Dynamixel bus's Sync Reads (``/servo/state``) or the
-    CiA 402 drives' answers to SYNC (``/joint/state``); None without a joints device."""
-    joints = robot.device_of("joints")
+    CiA 402 drives' answers to SYNC (``/joint/state``), as the joints device's kind writes them; None without
+    a joints device."""
+    joints = device_of(robot, "joints")
     if joints is None:
         return None
-    return SERVO_STATE if robot.devices[joints].driver == "dynamixel" else JOINT_STATE
-
-
-def _drive(robot: RobotDescription, joint: str) -> str | None:
-    return next((j.drive for j in robot.joints if j.name == joint), None)
+    return SERVO_STATE if SERVO_STATE in kind_of(robot, joints).topics_of(robot, joints) else JOINT_STATE

@@ -58,6 +58,7 @@ class _LineBoard(Emulator):
         self.resets = 0  # DTR resets (port opens) so far
         self._boot_until_s: float | None = None  # while the bootloader runs: when the sketch starts
         self._micros_base = 0  # the hardware clock's count at which the sketch's micros() reads 0
+        self._anchor_due = False  # micros() is anchored to the hardware clock when the sketch starts
         self._start_sketch()
 
     def _start_sketch(self) -> None:
@@ -89,6 +90,7 @@ class _LineBoard(Emulator):
         self._boot_until_s = now_s + self.boot_s
         boot_us = round(self.boot_s * 1e6)
         self._micros_base = (self._hw_micros(now_s) + boot_us) % bp.MICROS_MODULO
+        self._anchor_due = True  # the bootloader's time on the board's own clock is known once it ends
         log.debug("%s reset by a port open at %.3f s", self.name, now_s)
 
     def booting(self, now_s: float) -> bool:
@@ -191,10 +193,21 @@ class _LineBoard(Emulator):
     # --------------------------------------------------------------------------------------- clocks
     def _micros(self, now_s: float) -> int:
         """The sketch's ``micros()``: the hardware clock since the last reset."""
+        self._anchor(now_s)
         return (self._hw_micros(now_s) - self._micros_base) % bp.MICROS_MODULO
+
+    def _anchor(self, now_s: float) -> None:
+        """Once the sketch has started after a DTR reset: its ``micros()`` reads 0 at the rig time the
+        bootloader ended, on the board's own clock (``boot_s`` of rig time is not ``boot_s`` of a drifting
+        board's: a slow board's first sample read up to ms before 0, i.e. just below the wrap)."""
+        if self._anchor_due and not self.booting(now_s):
+            late_us = round((now_s - self._boot_until_s) * 1e6)
+            self._micros_base = (self._hw_micros(now_s) - late_us) % bp.MICROS_MODULO
+            self._anchor_due = False
 
     def _micros_due_s(self, micros: int, now_s: float) -> float:
         """The rig time at which the sketch's ``micros()`` reads ``micros``."""
+        self._anchor(now_s)
         return self._hw_micros_due_s((micros + self._micros_base) % bp.MICROS_MODULO, now_s)
 
     # hooks
