@@ -108,7 +108,7 @@ def test_no_scheduler_is_one_clear_error(tmp_path, campaign_dataset):
     (tmp_path / "grid.yaml").write_text(yaml.safe_dump(GRID))
     nowhere = ["--cluster", "tcp://127.0.0.1:9"]
     for command in (
-        ["build", "--name", "other", "--protocol", "campaign"],
+        ["build", "--name", "other", "--experiment", "campaign"],
         ["train", "--grid", str(tmp_path / "grid.yaml")],
     ):
         done = CliRunner().invoke(app, ["--lab", str(lab), *command, *nowhere])

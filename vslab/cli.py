@@ -264,8 +264,13 @@ def simulate(
 @app.command()
 def build(
     name: Annotated[str, typer.Option(help="Dataset name (datasets/<name>/<version>/).")] = "campaign",
-    protocol: Annotated[
-        str | None, typer.Option(help="Only sessions of this protocol (default: the dataset name's).")
+    experiment: Annotated[
+        str | None,
+        typer.Option(
+            "--experiment",
+            "--protocol",  # its former name, kept so a lab's scripts go on working
+            help="Only sessions of this experiment (default: the dataset name's).",
+        ),
     ] = None,
     pattern: Annotated[str, typer.Option("--sessions", help="Session directories to consider (glob).")] = "*",
     set_: Annotated[
@@ -296,7 +301,7 @@ def build(
     from pipeline.cluster import ClusterError, cluster_executor
 
     parameters = _stage_parameters(set_ or [])
-    wanted = protocol or name
+    wanted = experiment or name
     sessions, bad = _sessions_of(wanted, pattern)
 
     def warn(skipped: dict[str, str]) -> None:
@@ -307,7 +312,7 @@ def build(
     if not sessions:
         warn(bad)
         unusable = f" ({len(bad)} folder(s) skipped, see above)" if bad else ""
-        _fail(escape(f"no usable session of protocol {wanted!r} in {options().lab.sessions.root}{unusable} "
+        _fail(escape(f"no usable session of experiment {wanted!r} in {options().lab.sessions.root}{unusable} "
                      "(see `vslab sessions list`)"))  # fmt: skip
     if cluster is not None and workers:
         _fail("--workers and --cluster: the cluster's workers build (give one of them)")
@@ -374,7 +379,7 @@ def _stage_parameters(pairs: list[str]) -> dict:
 
 
 def _sessions_of(wanted: str, pattern: str) -> tuple[list[Path], dict[str, str]]:
-    """The session folders of protocol ``wanted`` ("all": every one) matching ``pattern``, and the folders
+    """The session folders of experiment ``wanted`` ("all": every one) matching ``pattern``, and the folders
     that are not readable sessions with the reason (a folder without session.json never joins a build)."""
     from rich.markup import escape
 

@@ -15,7 +15,7 @@ from typing import TypeVar
 from acquisition.errors import DeviceError, DeviceNotFoundError, DeviceProtocolError, DeviceTimeoutError
 
 log = logging.getLogger(__name__)
-T = TypeVar("T")
+Answer = TypeVar("Answer")  # what an attempt on the device returns
 
 
 def host_now_ns() -> int:
@@ -75,7 +75,7 @@ class Device:
         except (OSError, DeviceError) as exc:  # closing a vanished port must not hide the real error
             log.debug("%s on %s: error while closing: %s", self.kind, self.port, exc)
 
-    def _retrying(self, what: str, attempt: Callable[[], T]) -> T:
+    def _retrying(self, what: str, attempt: Callable[[], Answer]) -> Answer:
         """Run ``attempt`` up to 1 + retries times on timeouts and corrupted replies, then re-raise."""
         for tries in range(self.retries + 1):
             try:
