@@ -198,3 +198,16 @@ def test_a_kind_from_outside_the_project_is_simulated(toy_kind):
     bench, host_ns, data = rows[loadcell.TOPIC]
     assert len(data) == 100 and np.all(bench == 0) and np.all(np.diff(host_ns) > 0)
     assert abs(np.mean(data["force"]) - 0.1 * 9.81) < 2e-3
+
+
+def test_adding_a_device_changes_no_other_devices_draws(toy_kind, vsl):
+    """Each device draws its clock and its noise from its own generator: the VSL devices report the same
+    samples, to the bit, with the load cell added to the description."""
+    worlds = [World(robot, seed=5) for robot in (vsl, toy_kind)]
+    for w in worlds:
+        w.set_payload(0.05)
+    read = [w.read(w.run_for(1.0)) for w in worlds]
+    assert set(read[1]) == {*read[0], "load_cell"}
+    for key, stream in read[0].items():
+        for column, values in stream.items():
+            np.testing.assert_array_equal(values, read[1][key][column], err_msg=f"{key}.{column}")

@@ -112,7 +112,7 @@ def link_board_node(rig: Rig, name: str, spec: DeviceSpec) -> BoardNode:
     accel_timer = None
     if device_of(rig.robot, "accelerometer") == name:
         accel_timer = TwinBoardTimer(rig, name, 1.0 / rig.robot.sensors.accelerometer.sample_rate_hz)
-    return LinkBoard(spec.ids["board"], TwinLinkBoard(rig, spec.link),
+    return LinkBoard(spec.ids["board"], TwinLinkBoard(rig, spec.link, name),
                      TwinBoardTimer(rig, name, 1.0 / spec.rate_hz), accel_timer, rig.world.t)  # fmt: skip
 
 
@@ -122,7 +122,7 @@ def servo_streams(world: World, name: str, trace: Trace, servo_rate_hz: float) -
     if device_of(world.robot, "joints") != name:
         return {}
     return {"servo_bus": streams.servo_stream(world.robot, world.clocks[name], trace, world.dt, servo_rate_hz,
-                                              world.rng)}  # fmt: skip
+                                              world.device_rng(name))}  # fmt: skip
 
 
 def pressure_streams(world: World, name: str, trace: Trace, servo_rate_hz: float) -> Streams:
@@ -130,7 +130,7 @@ def pressure_streams(world: World, name: str, trace: Trace, servo_rate_hz: float
     if device_of(world.robot, "pressure") != name:
         return {}
     return {"pressure_board": streams.pressure_stream(world.robot, world.clocks[name], trace, world.dt,
-                                                      world.rng)}  # fmt: skip
+                                                      world.device_rng(name))}  # fmt: skip
 
 
 def stepper_streams(world: World, name: str, trace: Trace, servo_rate_hz: float) -> Streams:
@@ -138,14 +138,15 @@ def stepper_streams(world: World, name: str, trace: Trace, servo_rate_hz: float)
     if device_of(world.robot, "stepper") != name or world.robot.stepper is None:
         return {}
     return {"stepper_board": streams.stepper_stream(world.robot, world.clocks[name], trace, world.dt,
-                                                    world.rng)}  # fmt: skip
+                                                    world.device_rng(name))}  # fmt: skip
 
 
 def tracker_streams(world: World, name: str, trace: Trace, servo_rate_hz: float) -> Streams:
     """The tracker's frames."""
     if device_of(world.robot, "tracker") != name:
         return {}
-    return {"tracker": streams.tracker_stream(world.robot, world.clocks[name], trace, world.dt, world.rng)}
+    rng = world.device_rng(name)
+    return {"tracker": streams.tracker_stream(world.robot, world.clocks[name], trace, world.dt, rng)}
 
 
 def drive_streams(world: World, name: str, trace: Trace, servo_rate_hz: float) -> Streams:
@@ -153,13 +154,14 @@ def drive_streams(world: World, name: str, trace: Trace, servo_rate_hz: float) -
     if device_of(world.robot, "joints") != name:
         return {}
     rate = world.robot.devices[name].rate_hz or servo_rate_hz
-    return {"drives": streams.drive_stream(world.robot, world.clocks[name], trace, world.dt, rate, world.rng)}
+    rng = world.device_rng(name)
+    return {"drives": streams.drive_stream(world.robot, world.clocks[name], trace, world.dt, rate, rng)}
 
 
 def link_board_streams(world: World, name: str, trace: Trace, servo_rate_hz: float) -> Streams:
     """A link board's orientation and flex sensors."""
     return {f"link_board:{name}": streams.link_board_stream(world.robot, name, world.clocks[name], trace,
-                                                            world.dt, world.rng)}  # fmt: skip
+                                                            world.dt, world.device_rng(name))}  # fmt: skip
 
 
 def accelerometer_streams(world: World, name: str, trace: Trace,
@@ -170,7 +172,8 @@ def accelerometer_streams(world: World, name: str, trace: Trace,
         return {}
     dt, tail = world.dt, world.tip_tail
     before = tail[1] if tail is not None and abs(trace.t[0] - dt - tail[0]) < dt / 2 else None
-    out = streams.accelerometer_stream(world.robot, world.clocks[name], trace, dt, world.rng, before)
+    rng = world.device_rng(name)
+    out = streams.accelerometer_stream(world.robot, world.clocks[name], trace, dt, rng, before)
     if trace.tip_pos.shape[1] >= 2:
         world.tip_tail = (float(trace.t[-1]), trace.tip_pos[:, -2:].copy())
     return {"accelerometer": out}

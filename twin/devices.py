@@ -106,7 +106,8 @@ class TwinServos:
         if self._sensed_t != world.t:
             st, j = world.state, self._columns
             qd = st.out_vel[0, j]
-            counts = streams.servo_counts(rig.robot, st.out_pos[0, j], qd, st.torque[0, j], world.rng)
+            rng = world.device_rng(self.counter)
+            counts = streams.servo_counts(rig.robot, st.out_pos[0, j], qd, st.torque[0, j], rng)
             tick = rig.ticks(self.counter)
             self._present = {
                 i: (tick, p, v, c, s)
@@ -160,7 +161,7 @@ class TwinPressure(_BoardClock):
     def sample(self, now_s: float) -> tuple[int, int]:
         self.rig.advance(now_s)
         counts = sensors.pressure_to_adc_counts(
-            self.rig.recent.at(now_s).p_link[:2], self.spec, self.rig.world.rng
+            self.rig.recent.at(now_s).p_link[:2], self.spec, self.rig.world.device_rng(self.counter)
         )
         return int(counts[0]), int(counts[1])
 
@@ -228,7 +229,8 @@ class TwinTrackerSource:
         tip = pose[:3, :3] @ self.tool + pose[:3, 3]
         if self.force_out:
             tip = tip + 10.0  # far outside any field volume
-        reading = sensors.tracker_measurement(tip[None], pose[None, :3, :3], self.spec, self.rig.world.rng)
+        rng = self.rig.world.device_rng(self.counter)
+        reading = sensors.tracker_measurement(tip[None], pose[None, :3, :3], self.spec, rng)
         return TrackerSample(
             frame=self.rig.ticks(self.counter),
             position_m=reading.position_m[0],
@@ -347,9 +349,10 @@ class TwinLinkBoard:
     """What a POPUP link board senses on its link: the IMU at the link's end (specific force in the IMU's
     frame, orientation) and the four flex sensors over the link's two virtual joints (``sensors``)."""
 
-    def __init__(self, rig: Rig, link: str) -> None:
+    def __init__(self, rig: Rig, link: str, device: str) -> None:
         robot = rig.robot
         self.rig = rig
+        self.rng = rig.world.device_rng(device)  # the board's own noise
         self.chain = robot.chain()
         self.frame, self.bend = robot.link_end(link)
         self.accel_spec = robot.sensors.accelerometer
@@ -381,7 +384,7 @@ class TwinLinkBoard:
         force = self._rotation(step).T @ (accel - self.gravity)
         spec = self.accel_spec
         return sensors.accelerometer_reading(force, spec.lsb_m_s2, spec.full_scale_m_s2, spec.noise_rms_m_s2,
-                                             self.rig.world.rng)  # fmt: skip
+                                             self.rng)  # fmt: skip
 
     def orientation(self, t: float) -> np.ndarray:
         """(roll, pitch, yaw) of the link's end frame in the base frame (rad)."""
@@ -391,4 +394,4 @@ class TwinLinkBoard:
     def flex(self, t: float) -> np.ndarray:
         self.rig.advance(t)
         bend = self.rig.recent.at(t).delta[self.bend]
-        return sensors.flex_counts(bend, self.flex_spec, self.rig.world.rng)
+        return sensors.flex_counts(bend, self.flex_spec, self.rng)

@@ -1,8 +1,10 @@
 """The digital twin: a batch of simulated lab benches you can command, step and query.
 
 ``World`` wraps the compiled kernel (true physics) with the operator's inputs (goals, pressures, valves,
-payload), the device clocks and the sensor models. It is deterministic for a given seed: every random draw
-comes from the generator it was built with, in the order the caller asks for readings.
+payload), the device clocks and the sensor models. It is deterministic for a given seed: each device draws
+its clock and its noise from a generator of its own, the seed spawned by the device's name
+(:meth:`World.device_rng`), in the order the caller asks for readings; adding a device to a description
+changes no other device's draws.
 """
 
 from __future__ import annotations
@@ -188,7 +190,8 @@ class World:
             self.commands.profile_acc[:, steppers] = robot.stepper.acceleration_rad_s2
         self._start_at_rest()
         self.clocks = {
-            name: DeviceClocks(_clock_spec(dev.clock), batch, self.rng) for name, dev in robot.devices.items()
+            name: DeviceClocks(_clock_spec(dev.clock), batch, self.device_rng(name))
+            for name, dev in robot.devices.items()
         }
         self.tip_tail: tuple[float, np.ndarray] | None = None  # (time, last two tip positions) of a read
 
@@ -309,7 +312,7 @@ class World:
             for order, ref in kind.streams
         ]
         out: dict[str, streams.Stream] = {}
-        for _, _, stream, name in sorted(calls, key=lambda c: c[:2]):  # the kinds' draw order
+        for _, _, stream, name in sorted(calls, key=lambda c: c[:2]):  # the kinds' order
             out.update(stream(self, name, trace, servo_rate_hz))
         return out
 

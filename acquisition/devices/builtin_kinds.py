@@ -57,8 +57,8 @@ def _check_link_board(robot: RobotDescription, name: str, spec: DeviceSpec) -> N
         raise ValueError(f"devices.{name}: a link board needs its link and a sensors.flex section")
 
 
-# the orders of the twin's draws (streams) and of the rows in a window: as they were before kinds were
-# registered, so the twin's outputs did not change with the registry
+# the order of the twin's streams and of the rows in a window (the order its messages are written in): as
+# before kinds were registered, so the files did not change with the registry
 DYNAMIXEL = DeviceKind(
     name="dynamixel",
     role="joints",

@@ -65,8 +65,8 @@ class DeviceKind:
     ``source``, ``emulator``, ``streams`` and ``rows`` are ``"module:attribute"`` strings, resolved when used:
     - ``source``: the recorder's :class:`~acquisition.recorder.source_base.Source` subclass;
     - ``emulator``: ``(rig, name, spec) → Emulator`` (a device on another's bus: the node the bus attaches);
-    - ``streams``: (draw order, ``(world, name, trace, servo_rate_hz) → {stream key: Stream}``) pairs:
-      what the device reports during a trace of the twin (the order keeps the draws of the generator);
+    - ``streams``: (order, ``(world, name, trace, servo_rate_hz) → {stream key: Stream}``) pairs: what
+      the device reports during a trace of the twin, from its own generator (``World.device_rng``);
     - ``rows``: (order, ``(robot, name, topics, streams, valve_open) → {topic: TopicRows}``) pairs: the
       rows of its topics from those streams, as the recorder would have written them.
     ``stamps``: topic → the payload field holding the device's own clock (the pipeline fits it to host
