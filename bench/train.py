@@ -64,7 +64,7 @@ def synthetic(points: int, seed: int = 0) -> pd.DataFrame:
 def simulated(points: int, lab: Path, benches: int) -> pd.DataFrame:
     """The campaign simulated on the twin and built into D."""
     from pipeline.build import build
-    from pipeline.datasets import load_dataset
+    from pipeline.dataset_store import DatasetStore
     from twin.runner import simulate_experiment
 
     start = time.perf_counter()
@@ -73,7 +73,7 @@ def simulated(points: int, lab: Path, benches: int) -> pd.DataFrame:
     )
     report = build(sorted((lab / "sessions").iterdir()), Lab(lab), "campaign")
     print(f"simulated and built {report.rows:,} rows in {time.perf_counter() - start:.0f} s (not timed)")
-    return load_dataset(lab / "datasets", "campaign", report.version)[0]
+    return DatasetStore(lab / "datasets").load("campaign", report.version)[0]
 
 
 def latency_us(predict, calls: int, warmup: int = 300) -> tuple[np.ndarray, np.ndarray]:

@@ -29,13 +29,13 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from acquisition.storage import LabPath, fetched, read_parquet
 from models.robot import RobotDescription
 from pipeline import datasets
 from pipeline.cache import RECORD, StageCache, stage_key, stage_version
+from pipeline.dataset_store import DatasetError
 from pipeline.errors import PipelineError
 from pipeline.tables import columns
 
@@ -207,7 +207,7 @@ def build(
     check_parameters(parameters or {})
     params = {k: {**DEFAULTS[k], **(parameters or {}).get(k, {})} for k in DEFAULTS}
     if "from_dataset" in params["register"]:  # pin the borrowed registration's version: part of ours
-        params["register"]["from_dataset"] = _resolve(lab.datasets, params["register"]["from_dataset"])
+        params["register"]["from_dataset"] = _borrowed(lab.datasets, params["register"]["from_dataset"])
     cache = lab.cache
     own = executor is None
     if own:
@@ -231,7 +231,7 @@ def build(
     report = BuildReport(name, version, lab.datasets.path(name, version), False, sorted(sources), failed,
                          sum(bool(r.get("cached")) for r in good))  # fmt: skip
     report.damaged = {r["session"]: r["damaged"] for r in good if r.get("damaged")}
-    if (report.path / datasets.CARD).is_file():
+    if lab.datasets.has(name, version):
         report.rows = int(read_parquet(report.path / "data.parquet", columns=["robot"]).shape[0])
         return report
     if not good:
@@ -292,61 +292,21 @@ def _register(
         )
     if "from_dataset" in parameters:
         reference = parameters["from_dataset"]
-        return FixedRegistration(borrowed_placement(store, reference, robot.name), reference).fit(static)
+        try:
+            placement = store.placement(reference, robot.name)
+        except DatasetError as exc:
+            raise DatasetError(f"register.from_dataset={reference}: {exc}") from None
+        return FixedRegistration(placement, reference).fit(static)
     return TrackerRegistration(robot, **parameters).fit(static)
 
 
-def borrowed_placement(store: DatasetStore, reference: str, robot: str) -> np.ndarray:
-    """The tracker placement (4×4, base → tracker) that dataset ``name[@version]`` fitted for ``robot``;
-    ``ValueError`` that says which dataset is missing, has none for this robot, or is damaged."""
-    name, _, version = reference.partition("@")
-    card = _dataset_card(store, name, version or None)
-    where = f"{name}@{card.get('version') or version}"
-    fitted = card.get("registration") or {}
-    # an arm on the same mount (the rigid-link arm in place of the VSL arm) shares the tracker placement
-    mine = fitted.get(robot) or (next(iter(fitted.values())) if len(fitted) == 1 else None)
-    if not isinstance(mine, dict):
-        raise ValueError(
-            f"dataset {where} has no registration for robot {robot!r} (its card has "
-            f"{', '.join(fitted) or 'none'}): borrow one from a dataset of {robot}'s sessions"
-        )
+def _borrowed(store: DatasetStore, reference: str) -> str:
+    """``name`` or ``name@version`` of the dataset whose registration a build borrows → ``name@version``;
+    ``DatasetError`` that names the parameter, the dataset and what to do."""
     try:
-        placement = np.asarray(mine["base_to_tracker"], float)
-        if placement.shape != (4, 4) or not np.isfinite(placement).all():
-            raise ValueError(f"base_to_tracker is not a finite 4×4 matrix (shape {placement.shape})")
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"dataset {where}: its registration for {robot!r} is damaged "
-                         f"({type(exc).__name__}: {exc}); build that dataset again") from exc  # fmt: skip
-    return placement
-
-
-def _resolve(store: DatasetStore, reference: str) -> str:
-    """``name`` or ``name@version`` → ``name@version`` (the newest version when none is named)."""
-    name, _, version = reference.partition("@")
-    card = _dataset_card(store, name, version or None)
-    return f"{name}@{card.get('version') or version}"
-
-
-def _dataset_card(store: DatasetStore, name: str, version: str | None) -> dict:
-    """The card of the dataset whose registration a build borrows; ``ValueError`` that says which dataset is
-    missing or damaged and what to do."""
-    where, root = (f"{name}@{version}" if version else name), store.root
-    if not name:
-        raise ValueError("register.from_dataset names no dataset: give NAME or NAME@VERSION")
-    try:
-        _, card = store.load(name, version, table=None)
-    except FileNotFoundError:
-        known = store.names()
-        raise ValueError(
-            f"register.from_dataset={where}: no such dataset under {root} (datasets there: "
-            f"{', '.join(known) or 'none'}); build it first (`vslab build --name {name}`)"
-        ) from None
-    except (ValueError, OSError) as exc:  # a card that is not JSON, or cannot be read
-        raise ValueError(f"register.from_dataset={where}: its card.json under {root} cannot be read "
-                         f"({type(exc).__name__}: {exc}); build that dataset again") from exc  # fmt: skip
-    if not isinstance(card, dict):
-        raise ValueError(f"register.from_dataset={where}: its card.json under {root} is not a JSON object")
-    return card
+        return "@".join(store.resolve(reference))
+    except DatasetError as exc:
+        raise DatasetError(f"register.from_dataset={reference}: {exc}") from None
 
 
 def _in_base_frame(rows: pd.DataFrame, registration: Registration) -> pd.DataFrame:

@@ -11,22 +11,17 @@ has no closed-form IK: POPUP),
 ``experiment1/curve/vsl-1bar/25g``), ``point`` (static point number or −1), ``repetition`` (−1 for static
 points), ``t`` (s since the session's start), ``split_random`` and ``split_group`` ("train" / "val" / "test").
 
-A dataset is written once under ``<lab>/datasets/<name>/<version>/`` (``data.parquet`` + ``card.json``); the
-version is the hash of its source sessions' hashes, the stage parameters and the code version, so building
-unchanged inputs again gives the same version and writes nothing.
+The version of a dataset is the hash of its source sessions' hashes, the stage parameters and the code version
+(:func:`dataset_version`), so building unchanged inputs again gives the same version and writes nothing; the
+lab's store of them is ``pipeline.dataset_store``.
 """
 
 from __future__ import annotations
-
-import json
-from datetime import UTC, datetime
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from acquisition.devices.kinds import device_of
-from acquisition.storage import publish, read_parquet
 from models import kinematics
 from models.robot import AnthropomorphicKinematics, RobotDescription
 from pipeline.cache import digest, stage_version
@@ -34,7 +29,6 @@ from pipeline.tables import columns
 
 SPLITS = ("train", "val", "test")
 SPLIT_COLUMNS = ("split_random", "split_group")  # the two ways D is dealt into those parts
-CARD = "card.json"  # a dataset version's manifest
 FRACTIONS = (0.70, 0.15, 0.15)  # seed 000: 70 / 15 / 15
 
 
@@ -128,54 +122,3 @@ def dataset_version(sources: dict[str, str], parameters: dict) -> str:
     return digest(
         {"sources": dict(sorted(sources.items())), "parameters": parameters, "code": stage_version("dataset")}
     )[:16]
-
-
-def write_dataset(root: Path, name: str, version: str, tables: dict[str, pd.DataFrame], card: dict) -> Path:
-    """``<root>/<name>/<version>/``: ``<table>.parquet`` for each table (``data`` is D) and card.json, written
-    whole in a temporary directory, then renamed in (a killed build leaves no half dataset)."""
-    final = root / name / version
-
-    def fill(folder: Path) -> None:
-        for table, df in tables.items():
-            df.to_parquet(folder / f"{table}.parquet", index=False)
-        data = tables["data"]
-        counts = {"rows": len(data), **{f"rows_{s}": int((data["split_random"] == s).sum()) for s in SPLITS}}
-        counts |= {f"rows_{t}": len(df) for t, df in tables.items() if t != "data"}
-        created = datetime.now(UTC).isoformat(timespec="microseconds")
-        whole = {"name": name, "version": version, "created": created, **card, "counts": counts}
-        (folder / CARD).write_text(json.dumps(whole, indent=1, default=str))
-
-    publish(final, fill, CARD)  # a version written before (same inputs) stays as it is
-    return final
-
-
-def newest_version(root: Path, name: str) -> str | None:
-    """The version of dataset ``name`` written last, by the ``created`` time its card records (not by the
-    files' modification times, which a copy or a backup changes; only a card older than that field falls
-    back to its file's); None where there is none."""
-    created = []
-    for card in (root / name).glob(f"*/{CARD}"):
-        try:
-            when = json.loads(card.read_text()).get("created")
-            when = when or datetime.fromtimestamp(card.stat().st_mtime, UTC).isoformat(
-                timespec="microseconds"
-            )
-        except (OSError, ValueError, AttributeError):  # a damaged card is not a candidate
-            continue
-        created.append((str(when), card.parent.name))
-    return max(created)[1] if created else None
-
-
-def load_dataset(root: Path, name: str, version: str | None = None, table: str | None = "data"):
-    """A dataset's table (``data``: D; ``trajectories``; None: only the card) and its card, the newest
-    version when none is named: (DataFrame or None, card)."""
-    base = root / name
-    if version is None:
-        version = newest_version(root, name)
-        if version is None:
-            raise FileNotFoundError(f"no dataset {name!r} under {root}")
-    path = base / version
-    if not (path / CARD).is_file():
-        raise FileNotFoundError(f"no dataset {name}@{version} under {root}")
-    card = json.loads((path / CARD).read_text())
-    return (read_parquet(path / f"{table}.parquet") if table else None), card

@@ -22,13 +22,14 @@ from typing import TYPE_CHECKING
 from models.hybrid import NetConfig, preset
 from models.yaml_files import read_yaml
 from pipeline.build import InlineExecutor
+from pipeline.dataset_store import DatasetError
 from pipeline.datasets import SPLIT_COLUMNS
 from pipeline.errors import PipelineError
 from pipeline.registry import CARD, check_model, jsonable, load_card, metric, model_version
 from pipeline.train import TrainConfig
 
 if TYPE_CHECKING:
-    from pipeline.lab import DatasetStore, Lab
+    from pipeline.lab import Lab
 
 log = logging.getLogger(__name__)
 
@@ -162,19 +163,6 @@ def _kind(value) -> str:
     return names.get(type(value), f"a {type(value).__name__}") + shown
 
 
-def resolve_dataset(store: DatasetStore, spec: str) -> tuple[str, str]:
-    """(name, version) of ``name`` (its newest version in ``store``) or ``name@version``."""
-    name, _, version = str(spec).partition("@")
-    if version:
-        if not store.has(name, version):
-            raise GridError(f"no dataset {name}@{version} under {store.root}")
-        return name, version
-    version = store.newest(name)
-    if version is None:
-        raise GridError(f"no dataset {name!r} under {store.root} (build one: `vslab build --name {name}`)")
-    return name, version
-
-
 def _net(entry: dict) -> NetConfig:
     entry = dict(entry)
     try:
@@ -193,7 +181,10 @@ def expand(lab: Lab, grid: dict) -> list[dict]:
         raise GridError(f"grid train: unknown fields {unknown} (known: {list(TRAIN_KEYS)})")
     jobs = []
     for spec in grid.get("datasets", []):
-        dataset, dataset_version = lab.datasets.resolve(spec)
+        try:
+            dataset, dataset_version = lab.datasets.resolve(spec)
+        except DatasetError as exc:
+            raise GridError(f"grid dataset {spec}: {exc}") from None
         for entry in grid.get("models", []):
             net = _net(entry)
             for split in grid.get("splits", ["split_random"]):

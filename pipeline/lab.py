@@ -19,10 +19,10 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from acquisition.storage import LabPath, StoreError, check_store, is_local, lab_path, local_folder, upload
+from pipeline.dataset_store import DatasetStore
 
 if TYPE_CHECKING:  # imported where used: opening a lab (every command does) needs neither torch, pandas
     # nor the sessions' readers
-    import numpy as np
     import pandas as pd
 
     from acquisition.recorder.sessions import SessionStore
@@ -36,60 +36,10 @@ __all__ = [
 ]  # fmt: skip
 
 
-def _datasets():
-    from pipeline import datasets
-
-    return datasets
-
-
 def _registry():
     from pipeline import registry
 
     return registry
-
-
-@dataclass(frozen=True)
-class DatasetStore:
-    """``<lab>/datasets/<name>/<version>/``: built datasets, written once (``pipeline.datasets``)."""
-
-    root: LabPath
-
-    def path(self, name: str, version: str) -> LabPath:
-        """The folder of dataset ``name@version`` (whether or not it exists)."""
-        return self.root / name / version
-
-    def names(self) -> list[str]:
-        """The names of the datasets this lab holds (none where the store is empty)."""
-        return sorted(p.name for p in self.root.glob("*") if p.is_dir()) if self.root.is_dir() else []
-
-    def newest(self, name: str) -> str | None:
-        """The version of ``name`` written last, None where there is none."""
-        return _datasets().newest_version(self.root, name)
-
-    def has(self, name: str, version: str) -> bool:
-        """Is ``name@version`` there, whole (its card written)?"""
-        return (self.path(name, version) / _datasets().CARD).is_file()
-
-    def resolve(self, spec: str) -> tuple[str, str]:
-        """(name, version) of ``name`` (its newest version) or ``name@version``; ``GridError`` otherwise."""
-        from pipeline.grid import resolve_dataset
-
-        return resolve_dataset(self, spec)
-
-    def load(self, name: str, version: str | None = None, table: str | None = "data"):
-        """(table or None, card) of ``name`` (the newest version when none is named)."""
-        return _datasets().load_dataset(self.root, name, version, table)
-
-    def write(self, name: str, version: str, tables: dict[str, pd.DataFrame], card: dict) -> LabPath:
-        """Publish ``name@version`` whole (a version written before stays as it is)."""
-        return _datasets().write_dataset(self.root, name, version, tables, card)
-
-    def placement(self, reference: str, robot: str) -> np.ndarray:
-        """The tracker placement (4×4, base → tracker) that dataset ``name[@version]`` fitted for
-        ``robot``."""
-        from pipeline.build import borrowed_placement
-
-        return borrowed_placement(self, reference, robot)
 
 
 @dataclass(frozen=True)

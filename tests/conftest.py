@@ -113,7 +113,7 @@ def campaign_dataset(tmp_path_factory):
     """A small twin campaign built into a dataset: (lab directory, dataset version, D as a DataFrame).
     600 settled points on 8 benches (≈ 10 s once per test run)."""
     from pipeline.build import build
-    from pipeline.datasets import load_dataset
+    from pipeline.dataset_store import DatasetStore
     from twin.runner import simulate_experiment
 
     lab = tmp_path_factory.mktemp("campaign-lab")
@@ -121,7 +121,7 @@ def campaign_dataset(tmp_path_factory):
         "campaign", SessionStore(lab / "sessions"), seed=11, benches=8, overrides={"points": 600}
     )
     report = build(sorted((lab / "sessions").iterdir()), Lab(lab), "campaign")
-    data, _ = load_dataset(lab / "datasets", "campaign", report.version)
+    data, _ = DatasetStore(lab / "datasets").load("campaign", report.version)
     return lab, report.version, data
 
 
@@ -147,10 +147,10 @@ def hard_labs(tmp_path_factory):
 @pytest.fixture(scope="session")
 def hard_campaigns(hard_labs):
     """(D, D of the repeat) of :func:`hard_labs`."""
-    from pipeline.datasets import load_dataset
+    from pipeline.dataset_store import DatasetStore
 
     return tuple(
-        load_dataset(lab / "datasets", "campaign", version)[0] for lab, version in hard_labs.values()
+        DatasetStore(lab / "datasets").load("campaign", version)[0] for lab, version in hard_labs.values()
     )
 
 

@@ -12,7 +12,7 @@ from acquisition.plans.plan import PlanBuilder
 from acquisition.recorder.sessions import SessionStore
 from models.robot import load_robot
 from pipeline.build import build
-from pipeline.datasets import load_dataset
+from pipeline.dataset_store import DatasetStore
 from pipeline.lab import Lab
 from twin.runner import simulate, simulate_experiment
 
@@ -34,7 +34,7 @@ def test_campaign_builds_once(lab):
     sessions = sorted((lab / "sessions").iterdir())
     report = build(sessions, Lab(lab), "campaign")
     assert report.built and not report.failed and report.cached == 0
-    d, card = load_dataset(lab / "datasets", "campaign", report.version)
+    d, card = DatasetStore(lab / "datasets").load("campaign", report.version)
     assert abs(len(d) - POINTS) <= 2  # ± settled windows that failed (reported in the card)
     assert card["counts"]["rows"] == len(d) and set(card["sources"]) == {s.name for s in sessions}
     # the measured tip is in the base frame: near the model's FK, sagging below it (payloads, soft links)
@@ -85,7 +85,7 @@ def test_bad_sessions_are_reported_and_the_others_build(lab, tmp_path):
     assert "not-mcap" in report.failed and "MCAP" in report.failed["not-mcap"]
     assert "empty" in report.failed and "no MCAP parts" in report.failed["empty"]
     # the torn file is read up to the tear (with a warning in its card), or reported — never silently lost
-    _, card = load_dataset(tmp_path / "lab" / "datasets", "mixed", report.version)
+    _, card = DatasetStore(tmp_path / "lab" / "datasets").load("mixed", report.version)
     if "truncated" in report.sessions:
         assert any("torn" in w or "tear" in w for w in card["sessions"]["truncated"]["warnings"])
     else:
@@ -117,7 +117,7 @@ def test_trajectory_sessions_borrow_the_campaigns_registration(lab):
         == build(sessions, Lab(lab), "experiment2", borrowed).version
     )
     report = build(sessions, Lab(lab), "experiment2", borrowed)
-    d, card = load_dataset(lab / "datasets", "experiment2", report.version)
+    d, card = DatasetStore(lab / "datasets").load("experiment2", report.version)
     assert card["parameters"]["register"]["from_dataset"] == f"campaign@{campaign.version}"
     assert set(d["repetition"]) == {0} and set(d["session"]) == {s.name for s in sessions}
     path = trajectories.experiment1("curve", experiments.arm_lengths(load_robot("vsl")), 0.02, 400).x

@@ -10,6 +10,7 @@ from acquisition.plans import experiments
 from models import kinematics
 from pipeline import datasets
 from pipeline.cache import StageCache, stage_key
+from pipeline.dataset_store import DatasetStore
 
 
 def _rows(vsl, n=200, seed=0):
@@ -67,11 +68,11 @@ def test_versions_are_content_addressed(tmp_path, vsl):
     assert v != datasets.dataset_version(sources, {"clean": {"k": 2}})
     assert v != datasets.dataset_version({**sources, "s2": "bc"}, {"clean": {"k": 1}})
     data = datasets.add_splits(datasets.assemble(_rows(vsl), vsl))
-    path = datasets.write_dataset(tmp_path, "d", v, {"data": data}, {"sources": sources})
+    path = DatasetStore(tmp_path).write("d", v, {"data": data}, {"sources": sources})
     mtime = (path / "data.parquet").stat().st_mtime_ns
-    assert datasets.write_dataset(tmp_path, "d", v, {"data": data.head(3)}, {}) == path  # exists: untouched
+    assert DatasetStore(tmp_path).write("d", v, {"data": data.head(3)}, {}) == path  # exists: untouched
     assert (path / "data.parquet").stat().st_mtime_ns == mtime
-    loaded, card = datasets.load_dataset(tmp_path, "d")
+    loaded, card = DatasetStore(tmp_path).load("d")
     pd.testing.assert_frame_equal(loaded, data)
     assert card["version"] == v and card["counts"]["rows"] == len(data)
     assert not [p for p in (tmp_path / "d").iterdir() if p.name.startswith(".")]  # no temporary left

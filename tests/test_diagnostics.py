@@ -9,7 +9,7 @@ import pytest
 from analysis import diagnostics
 from models.robot import load_robot
 from models.statics import static_deflection
-from pipeline.datasets import load_dataset
+from pipeline.dataset_store import DatasetStore
 
 
 def _card(seed):
@@ -49,7 +49,7 @@ def test_registration_residuals_are_the_cards_on_the_fitted_points(campaign_data
     """The figure's residuals are the registered tip minus the model's deflected tip, and over the points the
     registration was fitted on they give back the dataset card's residual statistics."""
     lab, version, data = campaign_dataset
-    _, card = load_dataset(lab / "datasets", "campaign", version)
+    _, card = DatasetStore(lab / "datasets").load("campaign", version)
     fitted = card["registration"]["vsl"]
     vsl = load_robot("vsl")
     out = diagnostics.registration_residuals(data, vsl, fitted, tmp_path)

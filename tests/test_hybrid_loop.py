@@ -12,7 +12,7 @@ from models import trajectories
 from models.hybrid import preset
 from models.robot import load_robot
 from pipeline.build import build
-from pipeline.datasets import load_dataset
+from pipeline.dataset_store import DatasetStore
 from pipeline.in_loop import InverseModelCompensator
 from pipeline.lab import Lab
 from pipeline.train import TrainConfig, train
@@ -28,7 +28,7 @@ def test_hybrid_inverse_model_beats_model_based_ik_in_experiment2(tmp_path):
         "campaign", SessionStore(tmp_path / "sessions"), seed=21, benches=16, overrides={"points": 3000}
     )
     campaign = build(sorted((tmp_path / "sessions").iterdir()), Lab(tmp_path), "campaign")
-    data, _ = load_dataset(tmp_path / "datasets", "campaign", campaign.version)
+    data, _ = DatasetStore(tmp_path / "datasets").load("campaign", campaign.version)
     net = preset("inverse", "small-residual")
     result = train(data, TrainConfig(net=net, max_epochs=150, patience=15, seed=0))
     hybrid = InverseModelCompensator(result.model, vsl)
@@ -44,7 +44,7 @@ def test_hybrid_inverse_model_beats_model_based_ik_in_experiment2(tmp_path):
     sessions = sorted((tmp_path / "e2").iterdir())
     borrowed = {"register": {"from_dataset": f"campaign@{campaign.version}"}}
     e2 = build(sessions, Lab(tmp_path), "experiment2", borrowed)
-    d, _ = load_dataset(tmp_path / "datasets", "experiment2", e2.version)
+    d, _ = DatasetStore(tmp_path / "datasets").load("experiment2", e2.version)
     path = trajectories.experiment1("curve", experiments.arm_lengths(vsl), 0.02, 400).x
     error_mm = {
         ("rigid/" if "vsl_rigid" in session else "vsl/") + session.split("-")[-1]: 1e3

@@ -23,7 +23,7 @@ moto_server = pytest.importorskip("moto.server", reason="moto[server] (dev insta
 from conftest import absent_service_ports  # noqa: E402
 
 from acquisition.storage import StoreError, check_store, lab_path, publish  # noqa: E402
-from pipeline.datasets import load_dataset, newest_version, write_dataset  # noqa: E402
+from pipeline.dataset_store import DatasetStore  # noqa: E402
 from pipeline.lab import Lab  # noqa: E402
 
 SECRET = "vslab-test-secret-6d1f0c"  # must never appear in what the lab writes
@@ -105,8 +105,8 @@ def test_a_lab_on_s3_simulates_builds_trains_and_draws_as_a_local_lab_does(s3, t
     assert sorted(p.name for p in (lab / "sessions").iterdir()) == sorted(
         p.name for p in (src / "sessions").iterdir()
     )
-    stored, _ = load_dataset(lab / "datasets", "campaign", local_version)
-    local, _ = load_dataset(src / "datasets", "campaign", local_version)
+    stored, _ = DatasetStore(lab / "datasets").load("campaign", local_version)
+    local, _ = DatasetStore(src / "datasets").load("campaign", local_version)
     assert stored.equals(local)
     # the models: the versions and the weights' bytes a local run of the same grid gives
     from pipeline.grid import load_grid, run_grid
@@ -152,14 +152,15 @@ def test_a_half_uploaded_entry_is_never_visible(s3, monkeypatch):
 
     monkeypatch.setattr(root.fs, "put_file", put_file)
     with pytest.raises(ConnectionError):
-        write_dataset(root, "d", "v1", table, {})
+        DatasetStore(root).write("d", "v1", table, {})
     assert (root / "d" / "v1" / "data.parquet").is_file()  # the data went up ...
-    assert newest_version(root, "d") is None  # ... but no reader takes the version
+    assert DatasetStore(root).newest("d") is None  # ... but no reader takes the version
     with pytest.raises(FileNotFoundError):
-        load_dataset(root, "d", "v1")
+        DatasetStore(root).load("d", "v1")
     monkeypatch.setattr(root.fs, "put_file", real_put)
-    write_dataset(root, "d", "v1", table, {})  # the next writer of the same content completes it
-    assert newest_version(root, "d") == "v1" and load_dataset(root, "d", "v1")[0]["x_0"].tolist() == [1.0]
+    DatasetStore(root).write("d", "v1", table, {})  # the next writer of the same content completes it
+    store = DatasetStore(root)
+    assert store.newest("d") == "v1" and store.load("d", "v1")[0]["x_0"].tolist() == [1.0]
 
 
 def test_a_model_or_session_without_its_manifest_is_not_listed(s3):

@@ -16,7 +16,7 @@ from models import kinematics, trajectories
 from models.hybrid import FORWARD_INPUTS, preset
 from models.robot import load_robot
 from pipeline.build import build
-from pipeline.datasets import load_dataset
+from pipeline.dataset_store import DatasetStore
 from pipeline.lab import Lab
 from pipeline.train import TrainConfig, train
 from twin.runner import simulate_experiment
@@ -42,9 +42,9 @@ def lab(tmp_path_factory):
     out = {}
     for name, folder in (("experiment1", "e1"), ("experiment2", "e2")):
         report = build(sorted((lab / folder).iterdir()), Lab(lab), name, borrowed)
-        out[name] = load_dataset(lab / "datasets", name, report.version, table="trajectories")[0]
+        out[name] = DatasetStore(lab / "datasets").load(name, report.version, table="trajectories")[0]
         out[f"{name}_version"] = f"{name}@{report.version}"
-    d, _ = load_dataset(lab / "datasets", "experiment1", out["experiment1_version"].split("@")[1])
+    d, _ = DatasetStore(lab / "datasets").load("experiment1", out["experiment1_version"].split("@")[1])
     net = preset("forward", "small-residual")
     out["forward"] = train(d[d["robot"] == "vsl"], TrainConfig(net=net, max_epochs=15, seed=0)).model
     return lab, out
