@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 import pandas as pd
 
-from pipeline.session_index import sessions_of
+from pipeline.simulated import simulated_dataset
 
 if TYPE_CHECKING:
     from pipeline.lab import Lab
@@ -44,7 +44,6 @@ def unmodelled_study(lab: Lab, seed: int, points: int, train: dict, paths: dict,
     ``UNMODELLED`` unless it was made from these datasets already."""
     from acquisition.plans.experiments import arm_lengths
     from models.robot import load_robot
-    from pipeline.build import build
     from pipeline.comparison import (
         UNMODELLED,
         compare_models,
@@ -52,7 +51,6 @@ def unmodelled_study(lab: Lab, seed: int, points: int, train: dict, paths: dict,
         register_compared,
         save_comparison,
     )
-    from twin.runner import simulate_experiment
 
     robot = UNMODELLED_ROBOT
     study = lab.study("unmodelled")
@@ -61,8 +59,7 @@ def unmodelled_study(lab: Lab, seed: int, points: int, train: dict, paths: dict,
     for order in ("drawn", "shuffled"):  # not reversed: creep would make a point's two visits anti-correlated
         part = study.study(order)
         overrides = {"points": points, "robot": robot, "visit_order": order}
-        simulate_experiment("campaign", part.sessions, seed=seed, overrides=overrides)
-        report = build(sessions_of(part.sessions, "campaign"), part, "campaign")
+        report = simulated_dataset(part, "campaign", seed=seed, overrides=overrides)
         versions[f"campaign ({order})"] = report.version
         data[order] = part.datasets.load("campaign", report.version)[0]
     path = lab.comparisons.path(UNMODELLED)
@@ -110,18 +107,15 @@ def path_rows(study: Lab, seed: int, campaign_version: str, paths: dict) -> pd.D
     but the ones Experiment 2 follows, with the ``PATHS`` history of every frame, at each set-point's end
     (``pipeline.history.set_point_ends``)."""
     from acquisition.plans.experiments import expand_experiment
-    from pipeline.build import build
     from pipeline.history import PATHS, set_point_ends, with_history
-    from twin.runner import simulate_experiment
 
     _, plans, _ = expand_experiment("experiment2", {"robot": UNMODELLED_ROBOT, "rigid_arm": False})
     followed = {"experiment1/" + p.name.removeprefix("experiment2/").rsplit("/", 1)[0] for p in plans}
     sessions = study.study("experiment1").sessions
     drawn = study.study("drawn")
     overrides = paths | {"robot": UNMODELLED_ROBOT, "rigid_arm": False}
-    simulate_experiment("experiment1", sessions, seed=seed, overrides=overrides)
-    borrowed = {"register": {"from_dataset": f"campaign@{campaign_version}"}}
-    report = build(sessions_of(sessions, "experiment1"), drawn, "experiment1", borrowed)
+    report = simulated_dataset(drawn, "experiment1", seed=seed, overrides=overrides, sessions=sessions,
+                               registration_from=f"campaign@{campaign_version}")  # fmt: skip
     rows = drawn.datasets.load("experiment1", report.version)[0]
     rows = rows[~rows["plan"].isin(followed)]  # not the cells Experiment 2 is scored on
     return set_point_ends(with_history(rows, PATHS))
@@ -134,15 +128,13 @@ def experiment2_rows(study: Lab, name: str, seed: int, campaign_version: str, co
     learned command ("hybrid", "history"); the dataset's rows (``analysis.vsl_paths.path_errors`` scores
     them)."""
     from models.robot import load_robot
-    from pipeline.build import build
     from pipeline.in_loop import learned_compensators
-    from twin.runner import simulate_experiment
 
     compensator = learned_compensators(models, load_robot(UNMODELLED_ROBOT), identities)
     overrides = {"robot": UNMODELLED_ROBOT, "rigid_arm": False, "commands": commands, "repetitions": 2}
     sessions = study.study(name).sessions
     drawn = study.study("drawn")
-    simulate_experiment("experiment2", sessions, seed=seed, overrides=overrides, inverse_model=compensator)
-    borrowed = {"register": {"from_dataset": f"campaign@{campaign_version}"}}
-    report = build(sessions_of(sessions, "experiment2"), drawn, name, borrowed)
+    report = simulated_dataset(drawn, "experiment2", seed=seed, overrides=overrides, name=name,
+                               inverse_model=compensator, sessions=sessions,
+                               registration_from=f"campaign@{campaign_version}")  # fmt: skip
     return drawn.datasets.load(name, report.version)[0]

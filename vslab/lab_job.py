@@ -1,17 +1,17 @@
 """The main job: the whole lab on the twin, end to end (`make demo` / `vslab demo`).
 
 1. a short real-time session through the rig (the twin behind its devices' emulators, recorded live);
-2. the simulated campaign, Experiment 1 and the POPUP link tests (the batched twin, in simulated time);
-3. `vslab build`: the campaign dataset, then Experiment 1's (borrowing the campaign's registration) from the
-   simulated sessions: the rig's single real-time repetition is reported on its own, not pooled with the
-   five simulated ones of its cell, whose spread Fig. 5 shows;
-4. `vslab train`: the forward and inverse networks of the grid (existing versions skipped);
-5. Experiment 2 with the model-based, grey-box and hybrid (trained inverse) commands, and its dataset;
-6. the twin with its unmodelled effects (``vsl_unmodelled``): a campaign and its repeat in a lab of their own
+2. the POPUP link tests, the campaign and Experiment 1 simulated (the batched twin, in simulated time), and
+   the campaign's dataset and Experiment 1's (borrowing the campaign's registration) built of the simulated
+   sessions (``pipeline.simulated``): the rig's single real-time repetition is reported on its own, not
+   pooled with the five simulated ones of its cell, whose spread Fig. 5 shows;
+3. `vslab train`: the forward and inverse networks of the grid (existing versions skipped);
+4. Experiment 2 with the model-based, grey-box and hybrid (trained inverse) commands, and its dataset;
+5. the twin with its unmodelled effects (``vsl_unmodelled``): a campaign and its repeat in a lab of their own
    (``lab.study("unmodelled")``), every model beside the floor on them (the networks registered there, their
    cards carrying the table), Experiment 1 on that twin (the paths the history-aware hybrid learns from) and
    Experiment 2 on it (the lab's comparison ``unmodelled``): ``pipeline.unmodelled``;
-7. the figures and the report.
+6. the figures and the report.
 Every step reuses what an earlier run left (complete sessions, cached stages, existing versions), so a second
 run is quick. Each step is timed; the report page says where everything came from.
 """
@@ -25,7 +25,6 @@ from pathlib import Path
 
 from pipeline.lab import Lab
 from pipeline.registry import INVERSE, LAB_TAGS
-from pipeline.session_index import sessions_of
 from pipeline.unmodelled import STUDY, STUDY_QUICK
 from vslab.app import CommandLineError
 
@@ -40,9 +39,9 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     work, a test run, keeps its own)."""
     from analysis.lab_figures import all_figures, lab_report
     from analysis.vsl_paths import path_errors
-    from pipeline.build import build
     from pipeline.grid import load_grid, run_grid
     from pipeline.in_loop import learned_compensators, registered_inverse
+    from pipeline.simulated import simulated_dataset
     from pipeline.unmodelled import unmodelled_study
     from twin.runner import simulate_experiment
 
@@ -64,20 +63,26 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
 
         lower_priority()
 
-    step("simulated campaign, Experiment 1, POPUP tests")
-    for experiment in ("campaign", "experiment1", "popup_static", "popup_impact", "popup_deploy"):
-        overrides = QUICK.get(experiment, {}) if quick else {}
-        simulate_experiment(experiment, lab.sessions, seed=seed, overrides=overrides)
-    done("simulated campaign, Experiment 1, POPUP tests")
+    def sized(experiment: str) -> dict:
+        return QUICK.get(experiment, {}) if quick else {}
 
-    step("datasets")
-    campaign = build(sessions_of(lab.sessions, "campaign"), lab, "campaign")
-    borrowed = {"register": {"from_dataset": f"campaign@{campaign.version}"}}
-    build(sessions_of(lab.sessions, "experiment1", runner="simulated"), lab, "experiment1", borrowed)
-    done("datasets")
+    step("POPUP tests")  # the figures read their sessions
+    for experiment in ("popup_static", "popup_impact", "popup_deploy"):
+        simulate_experiment(experiment, lab.sessions, seed=seed, overrides=sized(experiment))
+    done("POPUP tests")
+
+    step("campaign")
+    campaign = simulated_dataset(lab, "campaign", seed=seed, overrides=sized("campaign"))
+    registration = f"campaign@{campaign.version}"  # Experiments 1 and 2 borrow the campaign's
+    done("campaign")
+
+    step("Experiment 1")  # its simulated sessions only: the rig's repetition is reported on its own
+    simulated_dataset(lab, "experiment1", seed=seed, overrides=sized("experiment1"),
+                      registration_from=registration)  # fmt: skip
+    done("Experiment 1")
 
     step("training")  # the grid's forward and inverse networks on the campaign (existing versions skipped)
-    grid = load_grid(LAB_GRID, {"datasets": [f"campaign@{campaign.version}"]})
+    grid = load_grid(LAB_GRID, {"datasets": [registration]})
     trained = {r["name"]: r["version"] for r in run_grid(lab, grid)}
     for tag, model in LAB_TAGS.items():  # the figures and Experiment 2 find them by these tags
         lab.models.tag(tag, trained[model])
@@ -86,8 +91,7 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     step("Experiment 2 with the trained inverse model")
     model, identity = registered_inverse(lab.models, trained[LAB_TAGS[INVERSE]])
     learned = learned_compensators({"hybrid": model}, identities={"hybrid": identity})
-    simulate_experiment("experiment2", lab.sessions, seed=seed, inverse_model=learned)
-    build(sessions_of(lab.sessions, "experiment2"), lab, "experiment2", borrowed)
+    simulated_dataset(lab, "experiment2", seed=seed, inverse_model=learned, registration_from=registration)
     done("Experiment 2 with the trained inverse model")
 
     step("unmodelled effects: every model beside the floor")
