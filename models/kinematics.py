@@ -92,6 +92,19 @@ def vsl_ik(x: ArrayLike, lengths: ArmLengths, elbow: int = 1) -> Array:
     return np.stack([theta1, theta2, theta3], -1)
 
 
+def vsl_ik_where_reachable(x: ArrayLike, lengths: ArmLengths, elbow: int = 1) -> Array:
+    """:func:`vsl_ik` of every reachable position of x (n, 3), NaN for the others (out of the annulus, or
+    NaN themselves): the rigid IK column of a dataset, where a measured tip may lie beyond the rigid arm's
+    reach."""
+    x = np.asarray(x, dtype=float).reshape(-1, 3)
+    out = np.full((len(x), 3), np.nan)
+    r3 = np.hypot(np.hypot(x[:, 0], x[:, 1]), x[:, 2] - lengths.l1)
+    ok = np.isfinite(r3) & (r3 <= lengths.l2 + lengths.l3) & (r3 >= abs(lengths.l2 - lengths.l3))
+    if ok.any():
+        out[ok] = vsl_ik(x[ok], lengths, elbow)
+    return out
+
+
 def vsl_jacobian(q: ArrayLike, lengths: ArmLengths) -> Array:
     """∂x/∂q (..., 3, 3) of eq. (1)'s position.
 

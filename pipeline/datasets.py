@@ -73,7 +73,7 @@ def assemble(points: pd.DataFrame, robot: RobotDescription) -> pd.DataFrame:
     if isinstance(robot.kinematics, AnthropomorphicKinematics):
         kin = robot.kinematics
         lengths = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
-        fk, ik = kinematics.vsl_fk(q, lengths), _ik_or_nan(x, lengths)
+        fk, ik = kinematics.vsl_fk(q, lengths), kinematics.vsl_ik_where_reachable(x, lengths)
     else:
         fk, ik = robot.chain().position(q), np.full((len(x), q.shape[1]), np.nan)
     out |= {f"fk_{k}": fk[:, k] for k in range(3)}
@@ -84,15 +84,6 @@ def assemble(points: pd.DataFrame, robot: RobotDescription) -> pd.DataFrame:
     for name, default in (("session", ""), ("plan", ""), ("point", -1), ("repetition", -1), ("t", np.nan)):
         out[name] = points[name].to_numpy() if name in points else np.full(n, default)
     return pd.DataFrame(out)
-
-
-def _ik_or_nan(x: np.ndarray, lengths: kinematics.ArmLengths) -> np.ndarray:
-    out = np.full((len(x), 3), np.nan)
-    r3 = np.hypot(np.hypot(x[:, 0], x[:, 1]), x[:, 2] - lengths.l1)
-    ok = np.isfinite(r3) & (r3 <= lengths.l2 + lengths.l3) & (r3 >= abs(lengths.l2 - lengths.l3))
-    if ok.any():
-        out[ok] = kinematics.vsl_ik(x[ok], lengths, 1)
-    return out
 
 
 def add_splits(d: pd.DataFrame, seed: int = 0, group: str = "session") -> pd.DataFrame:

@@ -245,7 +245,7 @@ def test_sessions_list_marks_each_bad_folder_and_lists_the_rest(good, shared, tm
         (["--set", "clean.hampel_window=[7"], "--set clean.hampel_window=[7: the value is not YAML"),
         (["--set", "splits.seed=0.5"], "splits.seed=0.5: expected an integer"),
         (["--set", "register.deflection=3"], "register.deflection=3: expected true or false"),
-        (["--set", "register.from_dataset=nothing"], "register.from_dataset=nothing: no dataset 'nothing' under"),
+        (["--set", "register.from_dataset=nothing"], "from_dataset=nothing: no dataset 'nothing' under"),
         (["--set", "register.from_dataset=nothing@0123"], "no dataset nothing@0123 under"),
     ],
 )

@@ -177,3 +177,13 @@ def test_dh_chain_jacobian_matches_central_differences():
         -1,
     )
     assert np.abs(chain.jacobian(q, delta) - numeric).max() < 1e-6
+
+
+def test_ik_where_reachable_is_nan_exactly_where_the_ik_refuses():
+    """The dataset's rigid IK column: the closed form where it answers, NaN (not an error) elsewhere."""
+    from models.kinematics import vsl_ik_where_reachable
+
+    x = np.array([[0.3, 0, 0.2], [0.7, 0, 0.1], [np.nan, 0, 0.2], [0, 0.3, 0.25]])
+    out = vsl_ik_where_reachable(x, L)
+    assert np.isnan(out[[1, 2]]).all()
+    np.testing.assert_array_equal(out[[0, 3]], vsl_ik(x[[0, 3]], L))
