@@ -3,7 +3,7 @@
 Two levels of work:
 1. per session (independent, parallel): ingest → clean → sync → segment, cached under
    ``<lab>/cache/session/<key>/`` by the session's content hash + the stages' parameters + the code version;
-2. per robot (needs every session): register the tracker frame to the robot base from the static points of
+2. per robot (needs every session): fit the registration (tracker frame → robot base) on the static points of
    all its sessions, put every tip position in the base frame, assemble D, split, and write the dataset under
    a version that is the hash of all of its inputs: a build with nothing changed finds it and does no work.
 
@@ -41,14 +41,14 @@ from pipeline.tables import columns
 
 if typing.TYPE_CHECKING:
     from pipeline.lab import DatasetStore, Lab
-    from pipeline.register import Registration
+    from pipeline.registration import Registration
 
 log = logging.getLogger(__name__)
 
 DEFAULTS: dict = {
     "clean": {"hampel_window": 7, "hampel_sigmas": 4.0},
     "segment": {},
-    "register": {},
+    "registration": {},
     "splits": {"seed": 0, "group": "session"},
 }
 
@@ -69,7 +69,7 @@ class BuildError(PipelineError, ValueError):
 def stage_parameters() -> dict[str, dict[str, object]]:
     """Every stage's parameters and their types, from the stage functions themselves (what ``--set
     stage.key=value`` may name): {stage: {key: type}}."""
-    from pipeline import clean, register, segment
+    from pipeline import clean, registration, segment
 
     def keyword(fn: Callable, skip: int) -> dict[str, object]:
         hints = typing.get_type_hints(fn)
@@ -80,7 +80,7 @@ def stage_parameters() -> dict[str, dict[str, object]]:
     return {
         "clean": keyword(clean.clean, 1),
         "segment": {f.name: still[f.name] for f in dataclasses.fields(segment.Stillness)},
-        "register": keyword(register.TrackerRegistration.__init__, 2) | {"from_dataset": str},
+        "registration": keyword(registration.TrackerRegistration.__init__, 2) | {"from_dataset": str},
         "splits": keyword(datasets.add_splits, 1),
     }
 
@@ -206,8 +206,10 @@ def build(
     session can be read."""
     check_parameters(parameters or {})
     params = {k: {**DEFAULTS[k], **(parameters or {}).get(k, {})} for k in DEFAULTS}
-    if "from_dataset" in params["register"]:  # pin the borrowed registration's version: part of ours
-        params["register"]["from_dataset"] = _resolve(lab.datasets, params["register"]["from_dataset"])
+    if "from_dataset" in params["registration"]:  # pin the borrowed registration's version: part of ours
+        params["registration"]["from_dataset"] = _resolve(
+            lab.datasets, params["registration"]["from_dataset"]
+        )
     cache = lab.cache
     own = executor is None
     if own:
@@ -244,7 +246,7 @@ def build(
         robot = RobotDescription.model_validate_json(mine[0][2]["robot_description"])
         static = _tagged([(rec, t["static"]) for _, t, rec in mine])
         trajectory = _tagged([(rec, t["trajectory"]) for _, t, rec in mine])
-        registration = _register(static, robot, params["register"], lab.datasets)
+        registration = _fit_registration(static, robot, params["registration"], lab.datasets)
         registrations[robot_name] = registration
         for table, rows in (("data", static), ("trajectories", trajectory)):
             if len(rows):
@@ -277,18 +279,18 @@ def _tagged(items: list[tuple[dict, pd.DataFrame]]) -> pd.DataFrame:
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
-def _register(
+def _fit_registration(
     static: pd.DataFrame, robot: RobotDescription, parameters: dict, store: DatasetStore
 ) -> Registration:
     """Fit tracker → base on these sessions' static points, or take it from another dataset of the same
     setup (``from_dataset: name@version``: trajectory-only sessions such as Experiment 2 have no static
     points)."""
-    from pipeline.register import FixedRegistration, TrackerRegistration
+    from pipeline.registration import FixedRegistration, TrackerRegistration
 
     if "from_dataset" not in parameters and not len(static):
         raise ValueError(
             f"no settled static points of {robot.name} to register the tracker on: take the registration of "
-            "another dataset of the same setup (--set register.from_dataset=campaign)"
+            "another dataset of the same setup (--set registration.from_dataset=campaign)"
         )
     if "from_dataset" in parameters:
         reference = parameters["from_dataset"]
@@ -332,20 +334,22 @@ def _dataset_card(store: DatasetStore, name: str, version: str | None) -> dict:
     missing or damaged and what to do."""
     where, root = (f"{name}@{version}" if version else name), store.root
     if not name:
-        raise ValueError("register.from_dataset names no dataset: give NAME or NAME@VERSION")
+        raise ValueError("registration.from_dataset names no dataset: give NAME or NAME@VERSION")
     try:
         _, card = store.load(name, version, table=None)
     except FileNotFoundError:
         known = store.names()
         raise ValueError(
-            f"register.from_dataset={where}: no such dataset under {root} (datasets there: "
+            f"registration.from_dataset={where}: no such dataset under {root} (datasets there: "
             f"{', '.join(known) or 'none'}); build it first (`vslab build --name {name}`)"
         ) from None
     except (ValueError, OSError) as exc:  # a card that is not JSON, or cannot be read
-        raise ValueError(f"register.from_dataset={where}: its card.json under {root} cannot be read "
+        raise ValueError(f"registration.from_dataset={where}: its card.json under {root} cannot be read "
                          f"({type(exc).__name__}: {exc}); build that dataset again") from exc  # fmt: skip
     if not isinstance(card, dict):
-        raise ValueError(f"register.from_dataset={where}: its card.json under {root} is not a JSON object")
+        raise ValueError(
+            f"registration.from_dataset={where}: its card.json under {root} is not a JSON object"
+        )
     return card
 
 

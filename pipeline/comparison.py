@@ -81,7 +81,7 @@ def compare_models(data: pd.DataFrame, lengths: kinematics.ArmLengths, repeat: p
     """The comparison as long records: ``direction``, ``model``, ``cell`` (``"all"`` or ``"<pressure bin> /
     <payload> g"``), ``n`` and ``tip_mm_mean``. ``train``: TrainConfig fields for the networks (e.g.
     ``max_epochs``); ``repeat``: the campaign's repeat, for the floor; ``nets``: given a dict, the trained
-    networks go in it by (direction, model) (for :func:`register_compared`)."""
+    networks go in it by (direction, model) (for :func:`save_compared`)."""
     d = with_history(data)
     rows = baselines.part_of(d, split, "train")
     test = baselines.part_of(d, split, "test")
@@ -140,16 +140,16 @@ def comparison_markdown(table: pd.DataFrame) -> str:
     return "\n\n".join(parts) + "\n"
 
 
-def register_compared(models: ModelStore, data: pd.DataFrame, dataset: dict[str, str], table: pd.DataFrame,
+def save_compared(models: ModelStore, data: pd.DataFrame, dataset: dict[str, str], table: pd.DataFrame,
                       nets: dict[tuple[str, str], HybridRegressor],
                       sources: dict[str, str]) -> list[Path]:  # fmt: skip
     """Put the networks of a comparison (``compare_models(..., nets=…)``, trained on ``data``, the dataset
-    ``dataset`` = {name, version}) in the registry ``models``, each card carrying the comparison of
+    ``dataset`` = {name, version}) in the model store ``models``, each card carrying the comparison of
     its direction (``comparison``: the split, the ``sources``, the model's own row name and every record:
     the other models and the floor). The version is the training's plus the comparison's sources, so the
-    same training outside a comparison stays another version; one already registered stays as it is. Returns
+    same training outside a comparison stays another version; one already saved stays as it is. Returns
     the version directories."""
-    from pipeline.registry import model_version
+    from pipeline.model_store import model_version
     from pipeline.train import evaluate, model_card
 
     out = []

@@ -34,7 +34,7 @@ class InverseModelCompensator:
     ``robot``: currents are taken from its servo joints (the dataset's i_0, i_1 are J2 and J3). A baseline
     (``pipeline.baselines``) gets its rows as a DataFrame; a :class:`HistoryModel` gets them with their
     history, which this compensator keeps from call to call (one compensator per session: each starts with
-    no history). ``identity``: what the model is (a registered version's id, or what trained it), recorded in
+    no history). ``identity``: what the model is (a saved version's id, or what trained it), recorded in
     each simulated session it drives so a session is never reused for another model."""
 
     def __init__(self, model, robot: RobotDescription, identity: str | None = None) -> None:
@@ -103,12 +103,12 @@ def learned_compensators(
     return learned
 
 
-def registered_inverse(models: ModelStore, version: str) -> tuple[OnnxModel, str]:
-    """(model, full version id) of the registered inverse network ``version`` (a tag or a unique prefix) of
+def stored_inverse(models: ModelStore, version: str) -> tuple[OnnxModel, str]:
+    """(model, full version id) of the saved inverse network ``version`` (a tag or a unique prefix) of
     ``models`` as the control loop runs it: its ONNX export on ONNX Runtime, every file checked against its
     card first. FileNotFoundError for an unknown version; ValueError for an ambiguous, damaged or forward
     one, or one saved without an ONNX export."""
-    from pipeline.registry import load_card, load_onnx
+    from pipeline.model_store import load_card, load_onnx
 
     path = models.find(version)
     direction = load_card(path)["net"].get("direction")

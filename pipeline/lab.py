@@ -42,10 +42,10 @@ def _datasets():
     return datasets
 
 
-def _registry():
-    from pipeline import registry
+def _model_store():
+    from pipeline import model_store
 
-    return registry
+    return model_store
 
 
 @dataclass(frozen=True)
@@ -94,7 +94,7 @@ class DatasetStore:
 
 @dataclass(frozen=True)
 class ModelStore:
-    """``<lab>/models/<name>/<version>/``: trained networks, content-addressed (``pipeline.registry``)."""
+    """``<lab>/models/<name>/<version>/``: trained networks, content-addressed (``pipeline.model_store``)."""
 
     root: LabPath
 
@@ -104,35 +104,35 @@ class ModelStore:
 
     def find(self, version: str) -> LabPath:
         """The folder of ``version`` (a tag, a version id or a unique prefix of one)."""
-        return _registry().find(self.root, version)
+        return _model_store().find(self.root, version)
 
     def tags(self) -> dict[str, str]:
         """Every tag: alias → full version id."""
-        return _registry().tags(self.root)
+        return _model_store().tags(self.root)
 
     def tag(self, name: str, version: str) -> str:
         """Point tag ``name`` at ``version``; the full version id."""
-        return _registry().tag(self.root, name, version)
+        return _model_store().tag(self.root, name, version)
 
     def save(self, name: str, version: str, model, card: dict) -> LabPath:
         """Publish a trained network and its card (``FileExistsError`` where that version is there)."""
-        return _registry().save_model(self.root, name, version, model, card)
+        return _model_store().save_model(self.root, name, version, model, card)
 
     def load(self, version: str):
         """(network, card) of ``version``, every file checked against its card."""
-        return _registry().load_model(self.find(version))
+        return _model_store().load_model(self.find(version))
 
     def onnx(self, version: str):
         """The ONNX export of ``version`` on ONNX Runtime, every file checked against its card."""
-        return _registry().load_onnx(self.find(version))
+        return _model_store().load_onnx(self.find(version))
 
     def list(self) -> list[dict]:
-        """Every version, oldest first, then the damaged ones (``registry.list_models``)."""
-        return _registry().list_models(self.root)
+        """Every version, oldest first, then the damaged ones (``model_store.list_models``)."""
+        return _model_store().list_models(self.root)
 
     def compare(self, versions: list[str]) -> pd.DataFrame:
-        """Versions side by side (``registry.compare``)."""
-        return _registry().compare(self.root, versions)
+        """Versions side by side (``model_store.compare``)."""
+        return _model_store().compare(self.root, versions)
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,7 @@ model beside the floor on it, and Experiment 2 on it with the learned commands.
 
 It works in a lab of its own inside the main job's (``lab.study("unmodelled")``):
 - ``drawn/``, ``shuffled/``: the campaign and its repeat from other histories (each bench shuffled), their
-  sessions and datasets; the networks of the comparison registered in ``drawn/``'s models, their cards
+  sessions and datasets; the networks of the comparison saved in ``drawn/``'s models, their cards
   carrying the table beside the floor;
 - ``experiment1/``: Experiment 1 on that twin (the paths the history-aware hybrid learns from);
 - ``experiment2/``: Experiment 2 on it (both built in ``drawn/``, borrowing its campaign's registration).
@@ -49,7 +49,7 @@ def unmodelled_study(lab: Lab, seed: int, points: int, train: dict, paths: dict,
         UNMODELLED,
         compare_models,
         load_comparison,
-        register_compared,
+        save_compared,
         save_comparison,
     )
     from twin.runner import simulate_experiment
@@ -73,9 +73,9 @@ def unmodelled_study(lab: Lab, seed: int, points: int, train: dict, paths: dict,
     table = compare_models(data["drawn"], lengths, data["shuffled"], train=train, seed=seed, nets=nets)
     campaign = {"name": "campaign", "version": versions["campaign (drawn)"]}
     models = study.study("drawn").models  # their cards carry the table beside the floor
-    registered = register_compared(models, data["drawn"], campaign, table, nets, versions)
+    saved = save_compared(models, data["drawn"], campaign, table, nets, versions)
     errors = _experiment2(study, seed, data["drawn"], versions["campaign (drawn)"], train, paths, score)
-    made = [{"name": p.parent.name, "version": p.name} for p in registered]
+    made = [{"name": p.parent.name, "version": p.name} for p in saved]
     save_comparison(path, table, versions, "split_group", {"experiment2": errors.to_dict("records"),
                                                            "models": made})  # fmt: skip
 
@@ -120,7 +120,7 @@ def path_rows(study: Lab, seed: int, campaign_version: str, paths: dict) -> pd.D
     drawn = study.study("drawn")
     overrides = paths | {"robot": UNMODELLED_ROBOT, "rigid_arm": False}
     simulate_experiment("experiment1", sessions, seed=seed, overrides=overrides)
-    borrowed = {"register": {"from_dataset": f"campaign@{campaign_version}"}}
+    borrowed = {"registration": {"from_dataset": f"campaign@{campaign_version}"}}
     report = build(sessions_of(sessions, "experiment1"), drawn, "experiment1", borrowed)
     rows = drawn.datasets.load("experiment1", report.version)[0]
     rows = rows[~rows["plan"].isin(followed)]  # not the cells Experiment 2 is scored on
@@ -143,6 +143,6 @@ def experiment2_rows(study: Lab, name: str, seed: int, campaign_version: str, co
     sessions = study.study(name).sessions
     drawn = study.study("drawn")
     simulate_experiment("experiment2", sessions, seed=seed, overrides=overrides, inverse_model=compensator)
-    borrowed = {"register": {"from_dataset": f"campaign@{campaign_version}"}}
+    borrowed = {"registration": {"from_dataset": f"campaign@{campaign_version}"}}
     report = build(sessions_of(sessions, "experiment2"), drawn, name, borrowed)
     return drawn.datasets.load(name, report.version)[0]

@@ -109,16 +109,16 @@ def test_trajectory_sessions_borrow_the_campaigns_registration(lab):
     overrides = case | {"repetitions": 1, "points_per_segment": 25, "settle_s": 1.0, "rest_s": 0.5}
     simulate_experiment("experiment2", SessionStore(lab / "e2"), seed=3, overrides=overrides)
     sessions = sorted((lab / "e2").iterdir())
-    with pytest.raises(ValueError, match=r"register\.from_dataset"):
+    with pytest.raises(ValueError, match=r"registration\.from_dataset"):
         build(sessions, Lab(lab), "experiment2")
-    borrowed = {"register": {"from_dataset": f"campaign@{campaign.version}"}}
+    borrowed = {"registration": {"from_dataset": f"campaign@{campaign.version}"}}
     assert (
         build(sessions, Lab(lab), "experiment2", borrowed).version
         == build(sessions, Lab(lab), "experiment2", borrowed).version
     )
     report = build(sessions, Lab(lab), "experiment2", borrowed)
     d, card = load_dataset(lab / "datasets", "experiment2", report.version)
-    assert card["parameters"]["register"]["from_dataset"] == f"campaign@{campaign.version}"
+    assert card["parameters"]["registration"]["from_dataset"] == f"campaign@{campaign.version}"
     assert set(d["repetition"]) == {0} and set(d["session"]) == {s.name for s in sessions}
     path = trajectories.experiment1("curve", experiments.arm_lengths(load_robot("vsl")), 0.02, 400).x
     error = {s: trajectories.distance_to_path(g[["x_0", "x_1", "x_2"]].to_numpy(), path).mean()

@@ -24,7 +24,7 @@ from pipeline.comparison import (
 from pipeline.floor import matched_points, repeat_floor
 from pipeline.history import PATHS, STATIC_POINTS, HistoryModel, HistoryState, set_point_ends, with_history
 from pipeline.in_loop import InverseModelCompensator
-from pipeline.registry import load_card
+from pipeline.model_store import load_card
 from vslab.cli import app
 
 runner = CliRunner()
@@ -233,7 +233,7 @@ def test_compare_models_command(hard_labs, hard_campaigns, tmp_path):
     (card,) = (lab / "comparisons").glob("campaign@*.json")
     table, meta = load_comparison(card)
     assert meta["sources"]["repeat"].startswith("repeat@") and set(table["model"]) >= {"floor", "history"}
-    # the networks it trained are registered, each card carrying its direction's table beside the floor
+    # the networks it trained are saved, each card carrying its direction's table beside the floor
     assert len(meta["models"]) == 6  # three networks, forward and inverse
     for model in meta["models"]:
         compared = load_card(lab / "models" / model["name"] / model["version"])["comparison"]

@@ -8,7 +8,7 @@
 4. `vslab train`: the forward and inverse networks of the grid (existing versions skipped);
 5. Experiment 2 with the model-based, grey-box and hybrid (trained inverse) commands, and its dataset;
 6. the twin with its unmodelled effects (``vsl_unmodelled``): a campaign and its repeat in a lab of their own
-   (``lab.study("unmodelled")``), every model beside the floor on them (the networks registered there, their
+   (``lab.study("unmodelled")``), every model beside the floor on them (the networks saved there, their
    cards carrying the table), Experiment 1 on that twin (the paths the history-aware hybrid learns from) and
    Experiment 2 on it (the lab's comparison ``unmodelled``): ``pipeline.unmodelled``;
 7. the figures and the report.
@@ -24,7 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pipeline.lab import Lab
-from pipeline.registry import INVERSE, LAB_TAGS
+from pipeline.model_store import INVERSE, LAB_TAGS
 from pipeline.session_index import sessions_of
 from pipeline.unmodelled import STUDY, STUDY_QUICK
 from vslab.app import CommandLineError
@@ -42,7 +42,7 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     from analysis.vsl_paths import path_errors
     from pipeline.build import build
     from pipeline.grid import load_grid, run_grid
-    from pipeline.in_loop import learned_compensators, registered_inverse
+    from pipeline.in_loop import learned_compensators, stored_inverse
     from pipeline.unmodelled import unmodelled_study
     from twin.runner import simulate_experiment
 
@@ -72,7 +72,7 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
 
     step("datasets")
     campaign = build(sessions_of(lab.sessions, "campaign"), lab, "campaign")
-    borrowed = {"register": {"from_dataset": f"campaign@{campaign.version}"}}
+    borrowed = {"registration": {"from_dataset": f"campaign@{campaign.version}"}}
     build(sessions_of(lab.sessions, "experiment1", runner="simulated"), lab, "experiment1", borrowed)
     done("datasets")
 
@@ -84,7 +84,7 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     done("training")
 
     step("Experiment 2 with the trained inverse model")
-    model, identity = registered_inverse(lab.models, trained[LAB_TAGS[INVERSE]])
+    model, identity = stored_inverse(lab.models, trained[LAB_TAGS[INVERSE]])
     learned = learned_compensators({"hybrid": model}, identities={"hybrid": identity})
     simulate_experiment("experiment2", lab.sessions, seed=seed, inverse_model=learned)
     build(sessions_of(lab.sessions, "experiment2"), lab, "experiment2", borrowed)

@@ -58,8 +58,8 @@ HEADLINE = ("tip_mean_mm",)  # the test metric a listing shows (the first one pr
 P95 = ("tip_p95_mm",)
 
 
-class RegistryError(PipelineError, ValueError):
-    """The registry's own files (the tags) cannot be used."""
+class ModelStoreError(PipelineError, ValueError):
+    """The model store's own files (the tags) cannot be used."""
 
 
 class ModelIntegrityError(PipelineError, ValueError):
@@ -250,16 +250,16 @@ def find(root: Path, version: str) -> Path:
 
 
 def tags(root: Path) -> dict[str, str]:
-    """Every tag of the registry under ``root``: alias → full version id (``{}`` where none was set)."""
+    """Every tag of the model store under ``root``: alias → full version id (``{}`` where none was set)."""
     path = root / TAGS_FILE
     if not path.is_file():
         return {}
     try:
         found = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise RegistryError(f"{path}: unreadable ({type(exc).__name__}); tag the models again") from None
+        raise ModelStoreError(f"{path}: unreadable ({type(exc).__name__}); tag the models again") from None
     if not isinstance(found, dict) or not all(isinstance(v, str) for v in found.values()):
-        raise RegistryError(f"{path}: not a mapping of tag → version; tag the models again")
+        raise ModelStoreError(f"{path}: not a mapping of tag → version; tag the models again")
     return found
 
 
