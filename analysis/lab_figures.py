@@ -101,7 +101,7 @@ def _unmodelled(lab: Lab, res: Results) -> None:
     if card.get("experiment2"):
         paths = pd.DataFrame(card["experiment2"]).drop(columns=["session"], errors="ignore")
         res.tables["unmodelled effects: Experiment 2, distance to the desired path (mm)"] = paths.round(3)
-    for name, version in card["sources"].items():
+    for name, version in card["made_from"].items():
         res.versions[f"dataset {name}, vsl_unmodelled"] = version
 
 

@@ -228,9 +228,9 @@ def build(
     results.sort(key=lambda r: r["session"])
     good = [r for r in results if "error" not in r]
     failed = {r["session"]: r["error"] for r in results if "error" in r}
-    sources = {r["session"]: r["source"] for r in good}
-    version = datasets.dataset_version(sources, params)
-    report = BuildReport(name, version, lab.datasets.path(name, version), False, sorted(sources), failed,
+    made_from = {r["session"]: r["source"] for r in good}
+    version = datasets.dataset_version(made_from, params)
+    report = BuildReport(name, version, lab.datasets.path(name, version), False, sorted(made_from), failed,
                          sum(bool(r.get("cached")) for r in good))  # fmt: skip
     report.damaged = {r["session"]: r["damaged"] for r in good if r.get("damaged")}
     if (report.path / datasets.CARD).is_file():
@@ -260,8 +260,8 @@ def build(
     data = datasets.add_splits(pd.concat(rows, ignore_index=True), **params["splits"])
     out = {"data": data} | ({"trajectories": trajectories} if trajectories is not None else {})
     card = {
-        "sources": sources, "failed": failed, "parameters": params, "code_version": stage_version("dataset"),
-        "sessions": card_sessions,
+        "made_from": made_from, "failed": failed, "parameters": params,
+        "code_version": stage_version("dataset"), "sessions": card_sessions,
         "registration": {k: _registration_card(v) for k, v in registrations.items()},
     }  # fmt: skip
     lab.datasets.write(name, version, out, card)

@@ -43,9 +43,9 @@ class InverseModelCompensator:
         self.latencies_s: list[float] = []
         self.history: HistoryState | None = None
         if isinstance(model, HistoryModel):
-            self.sources = model.history_sources()
-            self.columns = model.window.columns(self.sources)
-            self.history = HistoryState(model.window, len(self.sources))
+            self.history_inputs = model.history_inputs()
+            self.columns = model.window.columns(self.history_inputs)
+            self.history = HistoryState(model.window, len(self.history_inputs))
 
     def __call__(self, q_ik: np.ndarray, pressure_pa: np.ndarray, current_a: np.ndarray,
                  t_s: float | None = None) -> np.ndarray:  # fmt: skip
@@ -70,7 +70,7 @@ class InverseModelCompensator:
         if len(inputs) != 1:
             raise ValueError(f"a history-aware compensator takes one set-point per call, got {len(inputs)}")
         row = dict(zip(INVERSE_INPUTS, inputs[0], strict=True))
-        history = self.history.update(t_s, [row[c] for c in self.sources])
+        history = self.history.update(t_s, [row[c] for c in self.history_inputs])
         return pd.DataFrame([row | dict(zip(self.columns, history, strict=True))])
 
     def latency_us(self) -> dict[str, float]:

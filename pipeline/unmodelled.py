@@ -66,7 +66,7 @@ def unmodelled_study(lab: Lab, seed: int, points: int, train: dict, paths: dict,
         versions[f"campaign ({order})"] = report.version
         data[order] = part.datasets.load("campaign", report.version)[0]
     path = lab.comparisons.path(UNMODELLED)
-    if path.exists() and load_comparison(path)[1]["sources"] == versions:
+    if path.exists() and load_comparison(path)[1]["made_from"] == versions:
         return
     lengths = arm_lengths(load_robot(robot))
     nets = {}

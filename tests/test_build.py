@@ -36,7 +36,7 @@ def test_campaign_builds_once(lab):
     assert report.built and not report.failed and report.cached == 0
     d, card = load_dataset(lab / "datasets", "campaign", report.version)
     assert abs(len(d) - POINTS) <= 2  # ± settled windows that failed (reported in the card)
-    assert card["counts"]["rows"] == len(d) and set(card["sources"]) == {s.name for s in sessions}
+    assert card["counts"]["rows"] == len(d) and set(card["made_from"]) == {s.name for s in sessions}
     # the measured tip is in the base frame: near the model's FK, sagging below it (payloads, soft links)
     sag = d["fk_2"] - d["x_2"]
     assert 0 < sag.mean() < 0.03 and np.hypot(d["fk_0"] - d["x_0"], d["fk_1"] - d["x_1"]).mean() < 0.01

@@ -371,14 +371,14 @@ def compare_models_command(
         table = compare_models(data, lengths, repeat_data, split, {"max_epochs": epochs}, seed, say, nets)
     except (KeyError, ValueError) as exc:  # not a campaign, a repeat of another campaign, too few rows
         _error(f"{source}: {exc}")
-    sources = {"dataset": source} | ({"repeat": loaded["--repeat"][1]} if "--repeat" in loaded else {})
-    sources["training"] = json.dumps({"max_epochs": epochs, "seed": seed})
+    made_from = {"dataset": source} | ({"repeat": loaded["--repeat"][1]} if "--repeat" in loaded else {})
+    made_from["training"] = json.dumps({"max_epochs": epochs, "seed": seed})
     name, _, version = source.partition("@")
     dataset = {"name": name, "version": version}
-    saved = save_compared(lab.models, data, dataset, table, nets, sources)
+    saved = save_compared(lab.models, data, dataset, table, nets, made_from)
     path = lab.comparisons.path(source)
     models = [{"name": p.parent.name, "version": p.name} for p in saved]
-    save_comparison(path, table, sources, split, {"models": models})
+    save_comparison(path, table, made_from, split, {"models": models})
     console.print(comparison_markdown(table), highlight=False, markup=False, soft_wrap=True)
     if not options().quiet:
         console.print(f"card: {path}", highlight=False, markup=False, soft_wrap=True)
