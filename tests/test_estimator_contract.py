@@ -1,4 +1,4 @@
-"""One contract for every fitted thing (models/estimator.py, scikit-learn's): the clock model, the tracker
+"""One contract for every fitted thing (models/estimator.py, scikit-learn's): the clock fitter, the tracker
 registrations (fitted and borrowed), every baseline and the hybrid networks, run through the same checks.
 
 - the constructor only stores its parameters: ``get_params`` gives back what was passed, nothing learned;
@@ -27,7 +27,7 @@ from models.estimator import Estimator
 from models.hybrid import preset
 from models.robot import load_robot
 from pipeline import baselines as B
-from pipeline.clock import ClockModel
+from pipeline.clock import ClockFitter
 from pipeline.registration import FixedRegistration, RigidTransform, TrackerRegistration, model_tip
 from pipeline.train import HybridRegressor, TrainConfig, train
 
@@ -85,7 +85,7 @@ def _to_base(est: Estimator, d) -> np.ndarray:
 
 
 CASES = {
-    "clock": Case(lambda: ClockModel(tick_s=1e-3), _clock_data, lambda e, d: e.predict(_clock_data(d)[0])),
+    "clock": Case(lambda: ClockFitter(tick_s=1e-3), _clock_data, lambda e, d: e.predict(_clock_data(d)[0])),
     "registration": Case(lambda: TrackerRegistration(load_robot("vsl")), _static_points, _to_base),
     "registration-borrowed": Case(
         lambda: FixedRegistration(BASE_TO_TRACKER.matrix().tolist(), "campaign@v1"), _static_points, _to_base
