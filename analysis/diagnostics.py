@@ -108,10 +108,10 @@ def registration_residuals(data: pd.DataFrame, robot, registration: dict, out_di
 
     Residual = measured tip in the base frame (the registered tracker, ``x_*``) − the model's tip at the
     measured joints with the links' static deflection at the measured pressures and payload
-    (``pipeline.register.model_tip``). Left: |residual| against the sag the model predicts, the points the
+    (``pipeline.registration.model_tip``). Left: |residual| against the sag the model predicts, the points the
     registration was fitted on (the ``selected`` least-sagging ones, from the dataset card) marked off; right:
     the residual's components over those points. Returns ``{"sag_mm", "residual_mm" (n, 3), "selected"}``."""
-    from pipeline.register import model_tip
+    from pipeline.registration import model_tip
     from pipeline.tables import columns
 
     rows = data[data["robot"] == robot.name]

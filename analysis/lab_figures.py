@@ -18,7 +18,7 @@ import pandas as pd
 from analysis import diagnostics
 from analysis.report import Report
 from pipeline.lab import Lab, LabPath, local_folder, upload
-from pipeline.registry import FORWARD, LAB_TAGS
+from pipeline.model_store import FORWARD, LAB_TAGS
 from pipeline.session_index import SessionError
 
 log = logging.getLogger(__name__)
@@ -34,7 +34,7 @@ class Results:
 
 
 def tagged_model(lab: Lab, tag: str) -> tuple[str, LabPath] | None:
-    """(version, directory) of the model the registry's ``tag`` names (``pipeline.registry.LAB_TAGS``: the
+    """(version, directory) of the model the store's ``tag`` names (``pipeline.model_store.LAB_TAGS``: the
     main job's), or None where no such tag is set."""
     if tag not in lab.models.tags():
         return None
@@ -101,13 +101,13 @@ def _unmodelled(lab: Lab, res: Results) -> None:
     if card.get("experiment2"):
         paths = pd.DataFrame(card["experiment2"]).drop(columns=["session"], errors="ignore")
         res.tables["unmodelled effects: Experiment 2, distance to the desired path (mm)"] = paths.round(3)
-    for name, version in card["sources"].items():
+    for name, version in card["made_from"].items():
         res.versions[f"dataset {name}, vsl_unmodelled"] = version
 
 
 def _models(lab: Lab, datasets: dict, res: Results, out: Path) -> None:
     from pipeline import baselines
-    from pipeline.registry import load_card
+    from pipeline.model_store import load_card
     from pipeline.train import evaluate_rigid
 
     data = datasets["campaign"][0]
@@ -178,7 +178,7 @@ def _summary_mm(summary: dict) -> dict:
 
 def _experiment1(datasets: dict, forward, res: Results, out: Path) -> None:
     from analysis import vsl_figures
-    from pipeline.registry import load_model
+    from pipeline.model_store import load_model
 
     trajectories = datasets["experiment1"][1]
     versions = {"dataset experiment1": res.versions["dataset experiment1"]}

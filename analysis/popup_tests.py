@@ -107,7 +107,7 @@ def static_holds(directory: Path, link: str = "link2", arm_m: float | None = Non
 def link_static_curves(sessions: list[Path], link: str = "link2", arm_m: float | None = None) -> pd.DataFrame:
     """Mean (and std over the repetitions) static characteristic per pressure, branch and load: τ, δ, v.
 
-    Rows are in test order (loading up, unloading down); ``attrs['sources']`` names the sessions used."""
+    Rows are in test order (loading up, unloading down); ``attrs['sessions']`` names the sessions used."""
     holds = pd.concat([static_holds(s, link, arm_m) for s in sessions], ignore_index=True)
     holds["order"] = holds.groupby(["pressure_pa", "rep"]).cumcount()
     keys = ["pressure_pa", "branch", "load_kg"]
@@ -124,7 +124,7 @@ def link_static_curves(sessions: list[Path], link: str = "link2", arm_m: float |
         wrinkling_moment_nm=("wrinkling_moment_nm", "first"),
     ).reset_index()
     curves = curves.sort_values(["pressure_pa", "order"], ignore_index=True).drop(columns="order")
-    curves.attrs["sources"] = sorted(holds["session_id"].unique().tolist())
+    curves.attrs["sessions"] = sorted(holds["session_id"].unique().tolist())
     return curves
 
 
@@ -220,7 +220,7 @@ def impact_parameters(sessions: list[Path]) -> pd.DataFrame:
         f_s_hz=("f_s_hz", "mean"), f_s_std_hz=("f_s_hz", "std"),
         zeta=("zeta", "mean"), zeta_std=("zeta", "std"), taps=("tap", "count"),
     ).reset_index()  # fmt: skip
-    out.attrs["sources"] = sorted(taps["session_id"].unique().tolist())
+    out.attrs["sessions"] = sorted(taps["session_id"].unique().tolist())
     return out
 
 
@@ -274,7 +274,7 @@ def figure7(curves: pd.DataFrame, out_dir: Path) -> dict:
     """Figure 7: torque [N·m] against angular deflection [deg] per pressure, loading solid, unloading dashed
     (drawn from the loading branch's top point), mean of the runs with ±1 std error bars in δ, M_w(p) dotted
     (the end of the linear range). Writes
-    ``fig7_popup_hysteresis.{pdf,png}`` (+ ``.json`` with the sources); returns the plotted arrays:
+    ``fig7_popup_hysteresis.{pdf,png}`` (+ ``.json`` with the sessions); returns the plotted arrays:
     ``{(pressure_kpa, branch): {"x_deg", "xerr_deg", "y_nm"}}``."""
     import matplotlib
 
@@ -308,6 +308,6 @@ def figure7(curves: pd.DataFrame, out_dir: Path) -> dict:
     ax.set_title("Link 2 static characteristic (mean of runs, ±1 std)", fontsize=10)
     ax.grid(alpha=0.3, axis="x")
     ax.legend(fontsize=8, loc="upper left")
-    save_figure(fig, out_dir, "fig7_popup_hysteresis", {"sessions": curves.attrs.get("sources", [])},
+    save_figure(fig, out_dir, "fig7_popup_hysteresis", {"sessions": curves.attrs.get("sessions", [])},
                 arm_m=float(curves["arm_m"].iloc[0]), x="delta (deg)", y="torque (N m)")  # fmt: skip
     return data

@@ -32,7 +32,7 @@ from models.hybrid import preset
 from models.robot import load_robot
 from pipeline.exports import OnnxModel, quantized
 from pipeline.lab import Lab
-from pipeline.registry import ONNX, load_exported, load_onnx, model_version, save_model
+from pipeline.model_store import ONNX, load_exported, load_onnx, model_version, save_model
 from pipeline.train import TrainConfig, metrics, train
 
 TARGET_P99_US = {"paper": 100.0, "small-residual": 20.0}  # issue 18: the control loop's latency goals

@@ -1,4 +1,4 @@
-"""The one estimator contract of vslab, scikit-learn's: every fitted thing (clock models, registrations,
+"""The one estimator contract of vslab, scikit-learn's: every fitted thing (clock fitters, registrations,
 baselines, the hybrid networks) is an :class:`Estimator`.
 
 - The constructor only stores its keyword parameters, unchanged (no work, no data, no validation);

@@ -281,14 +281,19 @@ class SensorsSpec(Part):
     flex: FlexSensorSpec | None = None
 
 
-class ClockSpecModel(Part):
+class ClockDescription(Part):
+    """What the description says of a device's counter (its YAML ``clock:``): the twin simulates it
+    (``twin.clocks.SimulatedClockSpec``), the pipeline fits it (``pipeline.clock.ClockFitter``)."""
+
     tick_s: PositiveFloat
     wrap: int | None = Field(default=None, gt=1)
     drift_ppm_sigma: NonNegFloat
     offset_max_s: NonNegFloat
 
 
-class HostLinkModel(Part):
+class HostLinkDescription(Part):
+    """What the description says of the delay from a device to the host (its YAML ``host_link:``)."""
+
     latency_s: NonNegFloat
     jitter_s: NonNegFloat
     kind: Literal["exponential", "uniform"] = "uniform"
@@ -306,8 +311,8 @@ class DeviceSpec(Part):
     ids: dict[str, int] = Field(default_factory=dict)
     bus: str | None = None  # a device on another device's bus (a CAN board): that device's port reaches it
     link: str | None = None  # a link board: the link it sits on
-    clock: ClockSpecModel
-    host_link: HostLinkModel
+    clock: ClockDescription
+    host_link: HostLinkDescription
 
 
 class SafetySpec(Part):

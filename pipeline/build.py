@@ -3,7 +3,7 @@
 Two levels of work:
 1. per session (independent, parallel): ingest → clean → sync → segment, cached under
    ``<lab>/cache/session/<key>/`` by the session's content hash + the stages' parameters + the code version;
-2. per robot (needs every session): register the tracker frame to the robot base from the static points of
+2. per robot (needs every session): fit the registration (tracker frame → robot base) on the static points of
    all its sessions, put every tip position in the base frame, assemble D, split, and write the dataset under
    a version that is the hash of all of its inputs: a build with nothing changed finds it and does no work.
 
@@ -41,14 +41,14 @@ from pipeline.tables import columns
 
 if typing.TYPE_CHECKING:
     from pipeline.lab import DatasetStore, Lab
-    from pipeline.register import Registration
+    from pipeline.registration import Registration
 
 log = logging.getLogger(__name__)
 
 DEFAULTS: dict = {
     "clean": {"hampel_window": 7, "hampel_sigmas": 4.0},
     "segment": {},
-    "register": {},
+    "registration": {},
     "splits": {"seed": 0, "group": "session"},
 }
 
@@ -69,7 +69,7 @@ class BuildError(PipelineError, ValueError):
 def stage_parameters() -> dict[str, dict[str, object]]:
     """Every stage's parameters and their types, from the stage functions themselves (what ``--set
     stage.key=value`` may name): {stage: {key: type}}."""
-    from pipeline import clean, register, segment
+    from pipeline import clean, registration, segment
 
     def keyword(fn: Callable, skip: int) -> dict[str, object]:
         hints = typing.get_type_hints(fn)
@@ -80,7 +80,7 @@ def stage_parameters() -> dict[str, dict[str, object]]:
     return {
         "clean": keyword(clean.clean, 1),
         "segment": {f.name: still[f.name] for f in dataclasses.fields(segment.Stillness)},
-        "register": keyword(register.TrackerRegistration.__init__, 2) | {"from_dataset": str},
+        "registration": keyword(registration.TrackerRegistration.__init__, 2) | {"from_dataset": str},
         "splits": keyword(datasets.add_splits, 1),
     }
 
@@ -206,8 +206,9 @@ def build(
     session can be read."""
     check_parameters(parameters or {})
     params = {k: {**DEFAULTS[k], **(parameters or {}).get(k, {})} for k in DEFAULTS}
-    if "from_dataset" in params["register"]:  # pin the borrowed registration's version: part of ours
-        params["register"]["from_dataset"] = _borrowed(lab.datasets, params["register"]["from_dataset"])
+    borrowed = params["registration"]
+    if "from_dataset" in borrowed:  # pin the borrowed registration's version: part of ours
+        borrowed["from_dataset"] = _borrowed(lab.datasets, borrowed["from_dataset"])
     cache = lab.cache
     own = executor is None
     if own:
@@ -226,9 +227,9 @@ def build(
     results.sort(key=lambda r: r["session"])
     good = [r for r in results if "error" not in r]
     failed = {r["session"]: r["error"] for r in results if "error" in r}
-    sources = {r["session"]: r["source"] for r in good}
-    version = datasets.dataset_version(sources, params)
-    report = BuildReport(name, version, lab.datasets.path(name, version), False, sorted(sources), failed,
+    made_from = {r["session"]: r["source"] for r in good}
+    version = datasets.dataset_version(made_from, params)
+    report = BuildReport(name, version, lab.datasets.path(name, version), False, sorted(made_from), failed,
                          sum(bool(r.get("cached")) for r in good))  # fmt: skip
     report.damaged = {r["session"]: r["damaged"] for r in good if r.get("damaged")}
     if lab.datasets.has(name, version):
@@ -244,7 +245,7 @@ def build(
         robot = RobotDescription.model_validate_json(mine[0][2]["robot_description"])
         static = _tagged([(rec, t["static"]) for _, t, rec in mine])
         trajectory = _tagged([(rec, t["trajectory"]) for _, t, rec in mine])
-        registration = _register(static, robot, params["register"], lab.datasets)
+        registration = _fit_registration(static, robot, params["registration"], lab.datasets)
         registrations[robot_name] = registration
         for table, rows in (("data", static), ("trajectories", trajectory)):
             if len(rows):
@@ -258,8 +259,8 @@ def build(
     data = datasets.add_splits(pd.concat(rows, ignore_index=True), **params["splits"])
     out = {"data": data} | ({"trajectories": trajectories} if trajectories is not None else {})
     card = {
-        "sources": sources, "failed": failed, "parameters": params, "code_version": stage_version("dataset"),
-        "sessions": card_sessions,
+        "made_from": made_from, "failed": failed, "parameters": params,
+        "code_version": stage_version("dataset"), "sessions": card_sessions,
         "registration": {k: _registration_card(v) for k, v in registrations.items()},
     }  # fmt: skip
     lab.datasets.write(name, version, out, card)
@@ -277,25 +278,25 @@ def _tagged(items: list[tuple[dict, pd.DataFrame]]) -> pd.DataFrame:
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
 
 
-def _register(
+def _fit_registration(
     static: pd.DataFrame, robot: RobotDescription, parameters: dict, store: DatasetStore
 ) -> Registration:
     """Fit tracker → base on these sessions' static points, or take it from another dataset of the same
     setup (``from_dataset: name@version``: trajectory-only sessions such as Experiment 2 have no static
     points)."""
-    from pipeline.register import FixedRegistration, TrackerRegistration
+    from pipeline.registration import FixedRegistration, TrackerRegistration
 
     if "from_dataset" not in parameters and not len(static):
         raise ValueError(
             f"no settled static points of {robot.name} to register the tracker on: take the registration of "
-            "another dataset of the same setup (--set register.from_dataset=campaign)"
+            "another dataset of the same setup (--set registration.from_dataset=campaign)"
         )
     if "from_dataset" in parameters:
         reference = parameters["from_dataset"]
         try:
             placement = store.placement(reference, robot.name)
         except DatasetError as exc:
-            raise DatasetError(f"register.from_dataset={reference}: {exc}") from None
+            raise DatasetError(f"registration.from_dataset={reference}: {exc}") from None
         return FixedRegistration(placement, reference).fit(static)
     return TrackerRegistration(robot, **parameters).fit(static)
 
@@ -306,7 +307,7 @@ def _borrowed(store: DatasetStore, reference: str) -> str:
     try:
         return "@".join(store.resolve(reference))
     except DatasetError as exc:
-        raise DatasetError(f"register.from_dataset={reference}: {exc}") from None
+        raise DatasetError(f"registration.from_dataset={reference}: {exc}") from None
 
 
 def _in_base_frame(rows: pd.DataFrame, registration: Registration) -> pd.DataFrame:

@@ -22,8 +22,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # What each stage's output is made by: its modules and, through their imports, everything they use.
 STAGE_MODULES = {
     "session": ("pipeline.build",),  # ingest → clean → sync → segment of one session
-    "dataset": ("pipeline.build", "pipeline.datasets"),  # register, D, splits
-    "model": ("pipeline.train", "pipeline.registry"),  # fit, evaluate, save
+    "dataset": ("pipeline.build", "pipeline.datasets"),  # registration, D, splits
+    "model": ("pipeline.train", "pipeline.model_store"),  # fit, evaluate, save
     "figure": ("analysis.lab_figures",),
 }
 RECORD = "record.json"  # a cache entry's manifest

@@ -21,7 +21,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from acquisition.devices.kinds import stamp_fields
 from acquisition.schemas import topics as T
 from acquisition.schemas.stamps import unwrap_ticks
-from models.robot import ClockSpecModel, RobotDescription
+from models.robot import ClockDescription, RobotDescription
 from pipeline.clock import unwrap_stamps
 from pipeline.tables import SessionTables, StageReport, columns
 
@@ -65,7 +65,7 @@ def stamp_clock(robot: RobotDescription, topic: str) -> tuple[str, str] | None:
     return stamp_fields(robot).get(topic)
 
 
-def device_ticks(df: pd.DataFrame, field: str, clock: ClockSpecModel) -> np.ndarray:
+def device_ticks(df: pd.DataFrame, field: str, clock: ClockDescription) -> np.ndarray:
     """The stamp column ``field`` unwrapped (int64) by the tick and wrap of the device ``clock`` that wrote
     it, host log times guiding the unwrap (``clock.unwrap_stamps``)."""
     raw, host = df[field].to_numpy(dtype=np.int64), df["log_time"].to_numpy(dtype=np.int64)

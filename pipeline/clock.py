@@ -155,8 +155,8 @@ def envelope_line(x: np.ndarray, z: np.ndarray, width: float, slope: float | Non
     return float(np.min(zw[keep])), c
 
 
-class ClockModel(Estimator):
-    """A device clock fitted to host time: ``ClockModel(tick_s).fit(device_ticks, host_ns)``, then
+class ClockFitter(Estimator):
+    """A device clock fitted to host time: ``ClockFitter(tick_s).fit(device_ticks, host_ns)``, then
     ``predict(ticks)`` gives the host time of sampling (int64 ns) and ``clock_`` the fit (:class:`ClockFit`).
 
     ``fit`` takes device ticks (unwrapped, int64, in host order) and host receive times (int64 ns); the
@@ -181,12 +181,12 @@ class ClockModel(Estimator):
         self.polled = polled
         self.min_slips = min_slips
 
-    def fit(self, device_ticks: np.ndarray, host_ns: np.ndarray) -> ClockModel:
+    def fit(self, device_ticks: np.ndarray, host_ns: np.ndarray) -> ClockFitter:
         ticks = np.asarray(device_ticks, dtype=np.int64)
         host = np.asarray(host_ns, dtype=np.int64)
         if ticks.shape != host.shape or ticks.ndim != 1 or ticks.size < 2:
             raise ValueError(
-                f"ClockModel.fit needs ≥ 2 paired 1-D samples, got {ticks.shape} and {host.shape}"
+                f"ClockFitter.fit needs ≥ 2 paired 1-D samples, got {ticks.shape} and {host.shape}"
             )
         tick_s, window_s = self.tick_s, self.window_s
         ref = int(host[0]) if self.ref_ns is None else int(self.ref_ns)

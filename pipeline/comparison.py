@@ -34,7 +34,7 @@ from pipeline.history import HistoryModel, with_history
 from pipeline.train import HybridRegressor, TrainConfig
 
 if TYPE_CHECKING:
-    from pipeline.lab import ModelStore
+    from pipeline.model_store import ModelStore
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +81,7 @@ def compare_models(data: pd.DataFrame, lengths: kinematics.ArmLengths, repeat: p
     """The comparison as long records: ``direction``, ``model``, ``cell`` (``"all"`` or ``"<pressure bin> /
     <payload> g"``), ``n`` and ``tip_mm_mean``. ``train``: TrainConfig fields for the networks (e.g.
     ``max_epochs``); ``repeat``: the campaign's repeat, for the floor; ``nets``: given a dict, the trained
-    networks go in it by (direction, model) (for :func:`register_compared`)."""
+    networks go in it by (direction, model) (for :func:`save_compared`)."""
     d = with_history(data)
     rows = baselines.part_of(d, split, "train")
     test = baselines.part_of(d, split, "test")
@@ -140,26 +140,27 @@ def comparison_markdown(table: pd.DataFrame) -> str:
     return "\n\n".join(parts) + "\n"
 
 
-def register_compared(models: ModelStore, data: pd.DataFrame, dataset: dict[str, str], table: pd.DataFrame,
+def save_compared(models: ModelStore, data: pd.DataFrame, dataset: dict[str, str], table: pd.DataFrame,
                       nets: dict[tuple[str, str], HybridRegressor],
-                      sources: dict[str, str]) -> list[Path]:  # fmt: skip
+                  made_from: dict[str, str]) -> list[Path]:  # fmt: skip
     """Put the networks of a comparison (``compare_models(..., nets=…)``, trained on ``data``, the dataset
-    ``dataset`` = {name, version}) in the registry ``models``, each card carrying the comparison of
-    its direction (``comparison``: the split, the ``sources``, the model's own row name and every record:
-    the other models and the floor). The version is the training's plus the comparison's sources, so the
-    same training outside a comparison stays another version; one already registered stays as it is. Returns
-    the version directories."""
-    from pipeline.registry import model_version
+    ``dataset`` = {name, version}) in the model store ``models``, each card carrying the comparison of
+    its direction (``comparison``: the split, ``made_from``, the model's own row name and every record:
+    the other models and the floor). The version is the training's plus the comparison's ``made_from``,
+    so the same training outside a comparison stays another version; one already saved stays as it is.
+    Returns the version directories."""
+    from pipeline.model_store import model_version
     from pipeline.train import evaluate, model_card
 
     out = []
     for (direction, model), net in nets.items():
         config = net.config
         name = f"{direction}-{config.net.name}"
-        version = model_version(dataset["version"], config, comparison=json.dumps(sources, sort_keys=True))
+        version = model_version(dataset["version"], config, comparison=json.dumps(made_from, sort_keys=True))
         records = table[table["direction"] == direction].to_dict("records")
         card = model_card(net.history_, dataset, evaluate(net.net_, data, config.split, "test"), net.threads)
-        card["comparison"] = {"split": config.split, "sources": sources, "model": model, "records": records}
+        compared = {"split": config.split, "made_from": made_from, "model": model, "records": records}
+        card["comparison"] = compared
         try:
             out.append(models.save(name, version, net.net_, card))
         except FileExistsError:
@@ -167,18 +168,22 @@ def register_compared(models: ModelStore, data: pd.DataFrame, dataset: dict[str,
     return out
 
 
-def save_comparison(path: LabPath, table: pd.DataFrame, sources: dict[str, str], split: str,
+def save_comparison(path: LabPath, table: pd.DataFrame, made_from: dict[str, str], split: str,
                     extra: dict[str, list[dict]] | None = None) -> None:  # fmt: skip
-    """The comparison's card: what it was made from (``sources``: dataset versions), the split, when, its
+    """The comparison's card: what it was made from (``made_from``: dataset versions), the split, when, its
     records, what each direction's models read (``inputs``: :data:`INPUTS`), and ``extra`` tables as records
     (the main job adds its Experiment 2 on the same twin) (JSON)."""
-    card = {"sources": sources, "split": split, "created": datetime.now(UTC).isoformat(timespec="seconds"),
-            "inputs": INPUTS, "records": table.to_dict("records"), **(extra or {})}  # fmt: skip
+    created = datetime.now(UTC).isoformat(timespec="seconds")
+    card = {"made_from": made_from, "split": split, "created": created, "inputs": INPUTS,
+            "records": table.to_dict("records"), **(extra or {})}  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(card, indent=1, allow_nan=True))
 
 
 def load_comparison(path: LabPath) -> tuple[pd.DataFrame, dict]:
-    """(records as a DataFrame, the card) of :func:`save_comparison`'s file."""
+    """(records as a DataFrame, the card) of :func:`save_comparison`'s file. A card written before
+    ``made_from`` had its name (``sources``) is read under the name it has now."""
     card = json.loads(path.read_text())
+    if "made_from" not in card and "sources" in card:
+        card["made_from"] = card.pop("sources")
     return pd.DataFrame(card["records"]), card

@@ -108,8 +108,8 @@ def add_splits(d: pd.DataFrame, seed: int = 0, group: str = "session") -> pd.Dat
     return out
 
 
-def dataset_version(sources: dict[str, str], parameters: dict) -> str:
-    """The version id: a hash of the source sessions' content hashes, the parameters and the code version."""
-    return digest(
-        {"sources": dict(sorted(sources.items())), "parameters": parameters, "code": stage_version("dataset")}
-    )[:16]
+def dataset_version(made_from: dict[str, str], parameters: dict) -> str:
+    """The version id: a hash of its sessions' content hashes (``made_from``), the parameters and the code
+    version."""
+    inputs = {"made_from": dict(sorted(made_from.items())), "parameters": parameters}
+    return digest(inputs | {"code": stage_version("dataset")})[:16]

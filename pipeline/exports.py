@@ -2,8 +2,8 @@
 
 Both take float64 (n, 7) raw SI inputs and give float64 (n, 3) raw SI outputs (the standardisation is inside).
 The ONNX file is run by ONNX Runtime (:class:`OnnxModel`, one thread, every graph optimisation): the in-loop
-executor of `vslab simulate|run --inverse-model`. The registry writes both beside the weights and checks their
-bytes against the card before loading either.
+executor of `vslab simulate|run --inverse-model`. The model store writes both beside the weights and checks
+their bytes against the card before loading either.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Grid training: models × datasets × splits × seeds (``configs/train/grid.yaml``), one job each.
 
-A job's model version is known before it trains (:func:`pipeline.registry.model_version`), so a job whose
+A job's model version is known before it trains (:func:`pipeline.model_store.model_version`), so a job whose
 version exists is skipped: running the same grid twice trains nothing the second time. Jobs run on any
 ``concurrent.futures.Executor`` (local processes by default, each with cores / workers torch threads; a
 distributed engine's executor with shared lab storage) through the top-level function :func:`train_job`.
@@ -25,7 +25,7 @@ from pipeline.build import InlineExecutor
 from pipeline.dataset_store import DatasetError
 from pipeline.datasets import SPLIT_COLUMNS
 from pipeline.errors import PipelineError
-from pipeline.registry import CARD, check_model, jsonable, load_card, metric, model_version
+from pipeline.model_store import CARD, check_model, jsonable, load_card, metric, model_version
 from pipeline.train import TrainConfig
 
 if TYPE_CHECKING:

@@ -31,7 +31,9 @@ from models.hybrid import FORWARD_INPUTS, INVERSE_INPUTS
 from pipeline.baselines import SklearnBaseline
 
 PREFIX = "hist_"
-SOURCES = tuple(dict.fromkeys([*FORWARD_INPUTS, *INVERSE_INPUTS]))  # every input column, forward and inverse
+HISTORY_INPUTS = tuple(
+    dict.fromkeys([*FORWARD_INPUTS, *INVERSE_INPUTS])
+)  # every input column, both directions
 
 
 @dataclass(frozen=True)
@@ -42,10 +44,10 @@ class HistoryWindow:
     lags: int = 2
     time_constants_s: tuple[float, ...] = (10.0, 60.0)
 
-    def columns(self, sources: tuple[str, ...] = SOURCES) -> list[str]:
-        """The names :func:`with_history` adds for ``sources`` (by default all it adds), in order."""
+    def columns(self, inputs: tuple[str, ...] = HISTORY_INPUTS) -> list[str]:
+        """The names :func:`with_history` adds for the columns ``inputs`` (by default all), in order."""
         names = [f"{PREFIX}dt_s"] if self.lags else []
-        for c in sources:
+        for c in inputs:
             if self.lags:
                 names += [f"{PREFIX}{c}_step"]
                 names += [f"{PREFIX}{c}_lag{k}" for k in range(1, self.lags + 1)]
@@ -59,19 +61,19 @@ PATHS = HistoryWindow(lags=0, time_constants_s=(0.25, 1.0, 4.0, 30.0))  # a path
 
 class HistoryState:
     """The history of one stream of rows (one session, or one control loop), updated a row at a time:
-    ``update(t, x)`` gives the features of row ``x`` (n_sources values) at ``t`` seconds from the rows before
+    ``update(t, x)`` gives the features of row ``x`` (n_inputs values) at ``t`` seconds from the rows before
     it, in :meth:`HistoryWindow.columns` order, then remembers it. The first row is its own history (its
     values for every lag and mean, a step and a dt of 0). A mean weighs each value by how long it was held
     (e^(−age/τ)): exact for set-points held between calls. A missing value (NaN: a tip out of the rigid IK's
     reach) has no step; the history holds the last value seen, and a column seen first later starts there."""
 
-    def __init__(self, window: HistoryWindow, n_sources: int) -> None:
+    def __init__(self, window: HistoryWindow, n_inputs: int) -> None:
         self.window = window
         self.taus = np.asarray(window.time_constants_s, float)[:, None]
         self.t: float | None = None
-        self.prev = np.full(n_sources, np.nan)
-        self.lagged = np.full((window.lags, n_sources), np.nan)
-        self.means = np.full((len(window.time_constants_s), n_sources), np.nan)
+        self.prev = np.full(n_inputs, np.nan)
+        self.lagged = np.full((window.lags, n_inputs), np.nan)
+        self.means = np.full((len(window.time_constants_s), n_inputs), np.nan)
 
     def update(self, t: float, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, float)
@@ -82,10 +84,10 @@ class HistoryState:
             self.means = w * self.means + (1.0 - w) * self.prev
         self.means = np.where(np.isnan(self.means), held, self.means)  # the first value seen starts it
         self.lagged = np.where(np.isnan(self.lagged), held, self.lagged)
-        per_source = [self.means]
+        per_input = [self.means]
         if self.window.lags:
-            per_source = [x - self.lagged[:1], self.lagged, self.means]
-        features = np.vstack(per_source).T.ravel()  # source by source: step, lags, means
+            per_input = [x - self.lagged[:1], self.lagged, self.means]
+        features = np.vstack(per_input).T.ravel()  # input by input: step, lags, means
         if self.window.lags:
             features = np.r_[dt, features]
             self.lagged = np.vstack([held, self.lagged[:-1]])
@@ -96,14 +98,14 @@ class HistoryState:
 def with_history(d: pd.DataFrame, window: HistoryWindow = STATIC_POINTS) -> pd.DataFrame:
     """``d`` with ``window``'s ``hist_*`` columns for every forward and inverse input column: per session in
     time order, each row's history (:class:`HistoryState`)."""
-    sources = list(SOURCES)
-    sessions, times, values = d["session"].to_numpy(), d["t"].to_numpy(float), d[sources].to_numpy(float)
+    inputs = list(HISTORY_INPUTS)
+    sessions, times, values = d["session"].to_numpy(), d["t"].to_numpy(float), d[inputs].to_numpy(float)
     names = window.columns()
     out = np.empty((len(d), len(names)))
     for session in pd.unique(sessions):
         at = np.flatnonzero(sessions == session)
         at = at[np.argsort(times[at], kind="stable")]
-        state = HistoryState(window, len(sources))
+        state = HistoryState(window, len(inputs))
         for row in at:
             out[row] = state.update(times[row], values[row])
     return d.assign(**dict(zip(names, out.T, strict=True)))
@@ -137,13 +139,13 @@ class HistoryModel(SklearnBaseline):
     def name(self) -> str:
         return "history"
 
-    def history_sources(self) -> tuple[str, ...]:
+    def history_inputs(self) -> tuple[str, ...]:
         """The input columns whose history it reads: its own direction's (an inverse input, the rigid IK, is
         NaN out of reach, so a forward model does not read it)."""
-        return tuple(c for c in SOURCES if c in self.inputs)
+        return tuple(c for c in HISTORY_INPUTS if c in self.inputs)
 
     def _features(self, df: pd.DataFrame) -> np.ndarray:
-        names = self.window.columns(self.history_sources())
+        names = self.window.columns(self.history_inputs())
         if missing := [c for c in names if c not in df]:
             raise ValueError(
                 f"HistoryModel needs the history columns of pipeline.history.with_history (missing "

@@ -26,7 +26,7 @@ from pipeline.history import HistoryModel, HistoryState
 
 if TYPE_CHECKING:
     from pipeline.exports import OnnxModel
-    from pipeline.lab import ModelStore
+    from pipeline.model_store import ModelStore
 
 
 class InverseModelCompensator:
@@ -34,7 +34,7 @@ class InverseModelCompensator:
     ``robot``: currents are taken from its servo joints (the dataset's i_0, i_1 are J2 and J3). A baseline
     (``pipeline.baselines``) gets its rows as a DataFrame; a :class:`HistoryModel` gets them with their
     history, which this compensator keeps from call to call (one compensator per session: each starts with
-    no history). ``identity``: what the model is (a registered version's id, or what trained it), recorded in
+    no history). ``identity``: what the model is (a saved version's id, or what trained it), recorded in
     each simulated session it drives so a session is never reused for another model."""
 
     def __init__(self, model, robot: RobotDescription, identity: str | None = None) -> None:
@@ -43,9 +43,9 @@ class InverseModelCompensator:
         self.latencies_s: list[float] = []
         self.history: HistoryState | None = None
         if isinstance(model, HistoryModel):
-            self.sources = model.history_sources()
-            self.columns = model.window.columns(self.sources)
-            self.history = HistoryState(model.window, len(self.sources))
+            self.history_inputs = model.history_inputs()
+            self.columns = model.window.columns(self.history_inputs)
+            self.history = HistoryState(model.window, len(self.history_inputs))
 
     def __call__(self, q_ik: np.ndarray, pressure_pa: np.ndarray, current_a: np.ndarray,
                  t_s: float | None = None) -> np.ndarray:  # fmt: skip
@@ -70,7 +70,7 @@ class InverseModelCompensator:
         if len(inputs) != 1:
             raise ValueError(f"a history-aware compensator takes one set-point per call, got {len(inputs)}")
         row = dict(zip(INVERSE_INPUTS, inputs[0], strict=True))
-        history = self.history.update(t_s, [row[c] for c in self.sources])
+        history = self.history.update(t_s, [row[c] for c in self.history_inputs])
         return pd.DataFrame([row | dict(zip(self.columns, history, strict=True))])
 
     def latency_us(self) -> dict[str, float]:
@@ -103,12 +103,12 @@ def learned_compensators(
     return learned
 
 
-def registered_inverse(models: ModelStore, version: str) -> tuple[OnnxModel, str]:
-    """(model, full version id) of the registered inverse network ``version`` (a tag or a unique prefix) of
+def stored_inverse(models: ModelStore, version: str) -> tuple[OnnxModel, str]:
+    """(model, full version id) of the saved inverse network ``version`` (a tag or a unique prefix) of
     ``models`` as the control loop runs it: its ONNX export on ONNX Runtime, every file checked against its
     card first. FileNotFoundError for an unknown version; ValueError for an ambiguous, damaged or forward
     one, or one saved without an ONNX export."""
-    from pipeline.registry import load_card, load_onnx
+    from pipeline.model_store import load_card, load_onnx
 
     path = models.find(version)
     direction = load_card(path)["net"].get("direction")

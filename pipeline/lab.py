@@ -23,66 +23,17 @@ from pipeline.dataset_store import DatasetStore
 
 if TYPE_CHECKING:  # imported where used: opening a lab (every command does) needs neither torch, pandas
     # nor the sessions' readers
-    import pandas as pd
 
     from acquisition.recorder.sessions import SessionStore
     from pipeline.cache import StageCache
+    from pipeline.model_store import ModelStore
 
 # the lab's file primitives, for the layers above the pipeline (analysis writes figures and the report with
 # them): they reach the storage through the Lab module, never below it
 __all__ = [
-    "ComparisonStore", "DatasetStore", "Lab", "LabPath", "ModelStore", "StoreError", "is_local",
+    "ComparisonStore", "DatasetStore", "Lab", "LabPath", "StoreError", "is_local",
     "local_folder", "upload",
 ]  # fmt: skip
-
-
-def _registry():
-    from pipeline import registry
-
-    return registry
-
-
-@dataclass(frozen=True)
-class ModelStore:
-    """``<lab>/models/<name>/<version>/``: trained networks, content-addressed (``pipeline.registry``)."""
-
-    root: LabPath
-
-    def path(self, name: str, version: str) -> LabPath:
-        """The folder of model ``name`` at ``version`` (whether or not it exists)."""
-        return self.root / name / version
-
-    def find(self, version: str) -> LabPath:
-        """The folder of ``version`` (a tag, a version id or a unique prefix of one)."""
-        return _registry().find(self.root, version)
-
-    def tags(self) -> dict[str, str]:
-        """Every tag: alias → full version id."""
-        return _registry().tags(self.root)
-
-    def tag(self, name: str, version: str) -> str:
-        """Point tag ``name`` at ``version``; the full version id."""
-        return _registry().tag(self.root, name, version)
-
-    def save(self, name: str, version: str, model, card: dict) -> LabPath:
-        """Publish a trained network and its card (``FileExistsError`` where that version is there)."""
-        return _registry().save_model(self.root, name, version, model, card)
-
-    def load(self, version: str):
-        """(network, card) of ``version``, every file checked against its card."""
-        return _registry().load_model(self.find(version))
-
-    def onnx(self, version: str):
-        """The ONNX export of ``version`` on ONNX Runtime, every file checked against its card."""
-        return _registry().load_onnx(self.find(version))
-
-    def list(self) -> list[dict]:
-        """Every version, oldest first, then the damaged ones (``registry.list_models``)."""
-        return _registry().list_models(self.root)
-
-    def compare(self, versions: list[str]) -> pd.DataFrame:
-        """Versions side by side (``registry.compare``)."""
-        return _registry().compare(self.root, versions)
 
 
 @dataclass(frozen=True)
@@ -136,6 +87,8 @@ class Lab:
 
     @property
     def models(self) -> ModelStore:
+        from pipeline.model_store import ModelStore  # torch: imported where a command uses models
+
         return ModelStore(self.root / "models")
 
     @property

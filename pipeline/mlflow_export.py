@@ -1,4 +1,4 @@
-"""``vslab models export-mlflow``: every registered model version as one MLflow run (the optional
+"""``vslab models export-mlflow``: every saved model version as one MLflow run (the optional
 extra ``vslab[mlflow]``).
 
 A run holds the version's training parameters (flattened: ``net.hidden``, ``lr`` …), its test metrics (and
@@ -6,7 +6,7 @@ one metric per pressure × payload cell: ``test.cell.<bin>.<payload>g.tip_mm_mea
 metric histories (``train_loss``, ``val_loss``, ``val_error_mm`` by epoch), its card, weights and ONNX file as
 artifacts (``model/``) and its dataset as an input (name, version id as digest, the dataset's folder as
 source). The run is tagged with the version id: exporting again skips what is there (a run an interrupted
-export left unfinished is replaced), so nothing is duplicated. The registry stays the record; MLflow is a
+export left unfinished is replaced), so nothing is duplicated. The model store stays the record; MLflow is a
 view.
 """
 
@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipeline.errors import PipelineError
-from pipeline.registry import CARD, FILES, ModelIntegrityError, check_model, version_dirs
+from pipeline.model_store import CARD, FILES, ModelIntegrityError, check_model, version_dirs
 
 VERSION_TAG = "vslab.model_version"
 NAME_TAG = "vslab.model_name"

@@ -40,5 +40,5 @@ def simulated_dataset(
     reports = simulate_experiment(experiment, store, seed=seed, overrides=overrides,
                                   inverse_model=inverse_model)  # fmt: skip
     made = sorted({s for r in reports for s in (*r.sessions, *r.skipped)})
-    parameters = {"register": {"from_dataset": registration_from}} if registration_from else None
+    parameters = {"registration": {"from_dataset": registration_from}} if registration_from else None
     return build([store.path(s) for s in made], lab, name or experiment, parameters)

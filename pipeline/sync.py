@@ -1,6 +1,6 @@
 """The sync stage: every device's stamps → host time of sampling, then every stream on one timeline.
 
-Each stamped stream's device clock is fitted (``pipeline.clock.ClockModel``, lower envelope, resets split)
+Each stamped stream's device clock is fitted (``pipeline.clock.ClockFitter``, lower envelope, resets split)
 and the stream gets ``t``: its samples' fitted sampling times in s since the session's ``t0_ns``. Streams the
 host stamps itself (commands) get ``t`` from their log time. The timeline is the tracker's frames at their
 fitted times, with the other streams linearly interpolated there, NaN outside a stream's span and across its
@@ -18,7 +18,7 @@ import pandas as pd
 from acquisition.devices.kinds import polled_topics, stamp_fields, timeline_fields
 from acquisition.schemas import topics as T
 from pipeline.clean import DEVICE_TICKS, device_ticks, stamp_clock
-from pipeline.clock import ClockModel
+from pipeline.clock import ClockFitter
 from pipeline.errors import PipelineError
 from pipeline.tables import SessionTables, columns
 
@@ -68,8 +68,8 @@ def resample(t_query: np.ndarray, sources: Mapping[str, tuple[np.ndarray, np.nda
 
 def fit_stream(
     session: SessionTables, topic: str, **fit_options
-) -> tuple[str, ClockModel, np.ndarray] | None:
-    """Fit the clock of the device that stamps ``topic``: (device, fitted :class:`ClockModel`, unwrapped
+) -> tuple[str, ClockFitter, np.ndarray] | None:
+    """Fit the clock of the device that stamps ``topic``: (device, fitted :class:`ClockFitter`, unwrapped
     ticks), or None (not stamped, or fewer than 2 rows). The ticks are clean's ``device_ticks``, or the stamps
     unwrapped the same way for a stream that was not cleaned."""
     stamped = stamp_clock(session.robot, topic)
@@ -85,7 +85,7 @@ def fit_stream(
         ticks = device_ticks(df, field, spec.clock)
     phase = 0.0 if field == "frame" else 0.5  # a frame number is the sampling event; a counter is floored
     options = {"polled": topic in polled_topics(session.robot), **fit_options}
-    model = ClockModel(spec.clock.tick_s, spec.host_link.latency_s, ref_ns=session.t0_ns, stamp_phase=phase,
+    model = ClockFitter(spec.clock.tick_s, spec.host_link.latency_s, ref_ns=session.t0_ns, stamp_phase=phase,
                        **options)  # fmt: skip
     return device, model.fit(ticks, host), ticks
 

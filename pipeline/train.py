@@ -168,7 +168,7 @@ class HybridRegressor(Estimator):
     """A hybrid network as an estimator (the one contract, ``models.estimator``):
     ``HybridRegressor(TrainConfig(net=preset("forward", "small-residual"))).fit(data)`` trains a
     :class:`HybridNet` on the ``train`` rows of ``config.split``, early-stopped on ``val`` (the best weights
-    are kept), learning ``net_`` (the net: what the registry saves) and ``history_`` (its
+    are kept), learning ``net_`` (the net: what the model store saves) and ``history_`` (its
     :class:`TrainResult`: curves, best epoch, timings). ``predict(rows)`` gives the outputs (n, 3) of a
     DataFrame holding the net's input columns (or of an (n, 7) array). Randomness comes from
     ``config.seed``; ``threads`` (default: every core) and ``device`` (default: CUDA if there is one) are
@@ -224,7 +224,7 @@ def train(
 
 
 def model_card(result: TrainResult, dataset: dict, metrics: dict, threads: int | None) -> dict:
-    """What a registered net's card says of its training (``registry.save_model`` adds its name, version,
+    """What a saved net's card says of its training (``model_store.save_model`` adds its name, version,
     files and hashes): the dataset (name, version), the config, the test ``metrics``, the learning curves,
     timings and sizes."""
     losses = zip(result.train_loss, result.val_loss, result.val_error_mm, strict=True)

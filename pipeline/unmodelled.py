@@ -3,7 +3,7 @@ model beside the floor on it, and Experiment 2 on it with the learned commands.
 
 It works in a lab of its own inside the main job's (``lab.study("unmodelled")``):
 - ``drawn/``, ``shuffled/``: the campaign and its repeat from other histories (each bench shuffled), their
-  sessions and datasets; the networks of the comparison registered in ``drawn/``'s models, their cards
+  sessions and datasets; the networks of the comparison saved in ``drawn/``'s models, their cards
   carrying the table beside the floor;
 - ``experiment1/``: Experiment 1 on that twin (the paths the history-aware hybrid learns from);
 - ``experiment2/``: Experiment 2 on it (both built in ``drawn/``, borrowing its campaign's registration).
@@ -48,7 +48,7 @@ def unmodelled_study(lab: Lab, seed: int, points: int, train: dict, paths: dict,
         UNMODELLED,
         compare_models,
         load_comparison,
-        register_compared,
+        save_compared,
         save_comparison,
     )
 
@@ -63,16 +63,16 @@ def unmodelled_study(lab: Lab, seed: int, points: int, train: dict, paths: dict,
         versions[f"campaign ({order})"] = report.version
         data[order] = part.datasets.load("campaign", report.version)[0]
     path = lab.comparisons.path(UNMODELLED)
-    if path.exists() and load_comparison(path)[1]["sources"] == versions:
+    if path.exists() and load_comparison(path)[1]["made_from"] == versions:
         return
     lengths = arm_lengths(load_robot(robot))
     nets = {}
     table = compare_models(data["drawn"], lengths, data["shuffled"], train=train, seed=seed, nets=nets)
     campaign = {"name": "campaign", "version": versions["campaign (drawn)"]}
     models = study.study("drawn").models  # their cards carry the table beside the floor
-    registered = register_compared(models, data["drawn"], campaign, table, nets, versions)
+    saved = save_compared(models, data["drawn"], campaign, table, nets, versions)
     errors = _experiment2(study, seed, data["drawn"], versions["campaign (drawn)"], train, paths, score)
-    made = [{"name": p.parent.name, "version": p.name} for p in registered]
+    made = [{"name": p.parent.name, "version": p.name} for p in saved]
     save_comparison(path, table, versions, "split_group", {"experiment2": errors.to_dict("records"),
                                                            "models": made})  # fmt: skip
 

@@ -27,7 +27,7 @@ from safetensors.torch import save_file
 from typer.testing import CliRunner
 
 from models.hybrid import HybridNet, NetConfig
-from pipeline import registry
+from pipeline import model_store
 from vslab.cli import app
 
 runner = CliRunner()
@@ -54,10 +54,10 @@ def _card(direction: str) -> dict:
 
 @pytest.fixture(scope="module")
 def good_lab(tmp_path_factory) -> Path:
-    """A lab with a tiny inverse and a tiny forward model, saved by the registry (hashes on their cards)."""
+    """A lab with a tiny inverse and a tiny forward model, saved in the model store (hashes on cards)."""
     lab = tmp_path_factory.mktemp("models-lab")
     for (name, version), direction, seed in ((INVERSE, "inverse", 1), (FORWARD, "forward", 2)):
-        registry.save_model(lab / "models", name, version, _net(direction, seed), _card(direction))
+        model_store.save_model(lab / "models", name, version, _net(direction, seed), _card(direction))
     return lab
 
 
@@ -78,18 +78,18 @@ def _edit_card(path: Path, edit) -> None:
 
 
 def _set_weights_hash(card: dict) -> None:
-    card["files"][registry.WEIGHTS] = "0" * 64
+    card["files"][model_store.WEIGHTS] = "0" * 64
 
 
 def _foreign_card(d: Path) -> None:
-    shutil.copy(d.parents[1] / FORWARD[0] / FORWARD[1] / registry.CARD, d / registry.CARD)
+    shutil.copy(d.parents[1] / FORWARD[0] / FORWARD[1] / model_store.CARD, d / model_store.CARD)
 
 
 def _halve(path: Path) -> None:
     path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
 
 
-W, E, X, C = registry.WEIGHTS, registry.EXPORT, registry.ONNX, registry.CARD
+W, E, X, C = model_store.WEIGHTS, model_store.EXPORT, model_store.ONNX, model_store.CARD
 DAMAGE = {  # name: (what it does to the model folder, the file the error must name)
     "weights-flipped": (lambda d: _flip(d / W), W),
     "weights-truncated": (lambda d: _halve(d / W), W),
@@ -179,7 +179,7 @@ def test_the_good_lab_lists_shows_and_compares(good_lab, tmp_path):
     for args in (ARGS["show"], ARGS["compare"]):
         result = _invoke(lab, *args)
         assert result.exit_code == 0 and "Traceback" not in result.output, result.output
-    assert registry.check_model(lab / "models" / INVERSE[0] / INVERSE[1])["version"] == INVERSE[1]
+    assert model_store.check_model(lab / "models" / INVERSE[0] / INVERSE[1])["version"] == INVERSE[1]
 
 
 def test_a_good_inverse_model_runs_in_the_loop(good_lab, tmp_path):
@@ -248,14 +248,19 @@ def test_list_goes_on_past_several_damaged_models(good_lab, tmp_path):
 def test_loading_checks_every_file_and_names_it(good_lab, tmp_path):
     lab = _lab(tmp_path, good_lab, None)
     path = lab / "models" / INVERSE[0] / INVERSE[1]
-    model, card = registry.load_model(path)
+    model, card = model_store.load_model(path)
     assert card["version"] == INVERSE[1] and model.config.direction == "inverse"
-    registry.load_exported(path)
-    registry.load_onnx(path)
+    model_store.load_exported(path)
+    model_store.load_onnx(path)
     _flip(path / W)
-    for load in (registry.load_model, registry.load_exported, registry.load_onnx, registry.check_model):
+    for load in (
+        model_store.load_model,
+        model_store.load_exported,
+        model_store.load_onnx,
+        model_store.check_model,
+    ):
         with pytest.raises(
-            registry.ModelIntegrityError, match=r"weights\.safetensors: not the bytes"
+            model_store.ModelIntegrityError, match=r"weights\.safetensors: not the bytes"
         ) as info:
             load(path)
         assert isinstance(info.value, ValueError) and info.value.file == W
@@ -273,12 +278,12 @@ def test_consistent_hashes_over_bad_tensors_still_do_not_load(good_lab, tmp_path
                                                   "Unexpected key")):  # fmt: skip
         save_file({k: v.contiguous() for k, v in tensors.items()}, path / W)
         card = json.loads((path / C).read_text())
-        card["files"][W] = registry.file_hash([path / W])
-        card["card_sha256"] = registry.card_digest(card)
+        card["files"][W] = model_store.file_hash([path / W])
+        card["card_sha256"] = model_store.card_digest(card)
         (path / C).write_text(json.dumps(card))
-        assert registry.check_model(path)  # the hashes agree …
-        with pytest.raises(registry.ModelIntegrityError, match=says):  # … the tensors do not
-            registry.load_model(path)
+        assert model_store.check_model(path)  # the hashes agree …
+        with pytest.raises(model_store.ModelIntegrityError, match=says):  # … the tensors do not
+            model_store.load_model(path)
 
 
 def test_a_card_edited_by_hand_is_caught_even_when_it_stays_valid_json(good_lab, tmp_path):
@@ -286,10 +291,10 @@ def test_a_card_edited_by_hand_is_caught_even_when_it_stays_valid_json(good_lab,
     path = lab / "models" / INVERSE[0] / INVERSE[1]
     text = (path / C).read_text()
     (path / C).write_text(text.replace('"tip_mean_mm": 1.5', '"tip_mean_mm": 0.5'))
-    with pytest.raises(registry.ModelIntegrityError, match="card_sha256 does not match"):
-        registry.load_card(path)
+    with pytest.raises(model_store.ModelIntegrityError, match="card_sha256 does not match"):
+        model_store.load_card(path)
     (path / C).write_text(json.dumps(json.loads(text), indent=4, sort_keys=True))  # layout is not content
-    assert registry.load_card(path)["version"] == INVERSE[1]
+    assert model_store.load_card(path)["version"] == INVERSE[1]
 
 
 def test_train_refuses_to_count_a_damaged_version_as_trained(tmp_path, campaign_dataset):

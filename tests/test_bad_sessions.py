@@ -240,13 +240,13 @@ def test_sessions_list_marks_each_bad_folder_and_lists_the_rest(good, shared, tm
     [
         (["--set", "clean.window=3"], "clean.window: no such parameter (those of clean: hampel_window"),
         (["--set", "cleaning.hampel_window=3"], "unknown stage 'cleaning'"),
-        (["--set", "hampel_window=3"], "stage.key=value (stages: clean, segment, register, splits)"),
+        (["--set", "hampel_window=3"], "stage.key=value (stages: clean, segment, registration, splits)"),
         (["--set", "clean.hampel_window=wide"], "clean.hampel_window='wide': expected an integer"),
         (["--set", "clean.hampel_window=[7"], "--set clean.hampel_window=[7: the value is not YAML"),
         (["--set", "splits.seed=0.5"], "splits.seed=0.5: expected an integer"),
-        (["--set", "register.deflection=3"], "register.deflection=3: expected true or false"),
-        (["--set", "register.from_dataset=nothing"], "from_dataset=nothing: no dataset 'nothing' under"),
-        (["--set", "register.from_dataset=nothing@0123"], "no dataset nothing@0123 under"),
+        (["--set", "registration.deflection=3"], "registration.deflection=3: expected true or false"),
+        (["--set", "registration.from_dataset=nothing"], "from_dataset=nothing: no dataset 'nothing' under"),
+        (["--set", "registration.from_dataset=nothing@0123"], "no dataset nothing@0123 under"),
     ],
 )
 def test_bad_stage_parameters_and_missing_registrations_are_one_line(good, tmp_path, args, says):
@@ -257,6 +257,19 @@ def test_bad_stage_parameters_and_missing_registrations_are_one_line(good, tmp_p
     (error,) = _lines(result.output, "error:")
     assert says in error, result.output
     assert not (lab / "datasets").exists() and not (lab / "cache").exists()  # checked before any work
+
+
+def test_the_registration_stage_under_its_former_name_is_read_with_a_warning(good, tmp_path):
+    """`--set register.…` (the stage's name before it was `registration`) still reaches the registration:
+    one warning line naming the new name, then the same checks as under the new name."""
+    lab = tmp_path / "lab"
+    shutil.copytree(sorted(good.iterdir())[0], lab / "sessions" / "s")
+    result = _invoke(lab, "build", "--name", "campaign", "--set", "register.from_dataset=nothing")
+    assert result.exit_code == 2 and "Traceback" not in result.output, result.output
+    (warning,) = _lines(result.output, "warning:")
+    assert "'register' is now 'registration'" in warning, result.output
+    (error,) = _lines(result.output, "error:")
+    assert "registration.from_dataset=nothing: no dataset 'nothing'" in error, result.output
 
 
 def test_an_unknown_session_and_an_empty_lab(tmp_path):

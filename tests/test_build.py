@@ -36,7 +36,7 @@ def test_campaign_builds_once(lab):
     assert report.built and not report.failed and report.cached == 0
     d, card = DatasetStore(lab / "datasets").load("campaign", report.version)
     assert abs(len(d) - POINTS) <= 2  # ± settled windows that failed (reported in the card)
-    assert card["counts"]["rows"] == len(d) and set(card["sources"]) == {s.name for s in sessions}
+    assert card["counts"]["rows"] == len(d) and set(card["made_from"]) == {s.name for s in sessions}
     # the measured tip is in the base frame: near the model's FK, sagging below it (payloads, soft links)
     sag = d["fk_2"] - d["x_2"]
     assert 0 < sag.mean() < 0.03 and np.hypot(d["fk_0"] - d["x_0"], d["fk_1"] - d["x_1"]).mean() < 0.01
@@ -109,16 +109,16 @@ def test_trajectory_sessions_borrow_the_campaigns_registration(lab):
     overrides = case | {"repetitions": 1, "points_per_segment": 25, "settle_s": 1.0, "rest_s": 0.5}
     simulate_experiment("experiment2", SessionStore(lab / "e2"), seed=3, overrides=overrides)
     sessions = sorted((lab / "e2").iterdir())
-    with pytest.raises(ValueError, match=r"register\.from_dataset"):
+    with pytest.raises(ValueError, match=r"registration\.from_dataset"):
         build(sessions, Lab(lab), "experiment2")
-    borrowed = {"register": {"from_dataset": f"campaign@{campaign.version}"}}
+    borrowed = {"registration": {"from_dataset": f"campaign@{campaign.version}"}}
     assert (
         build(sessions, Lab(lab), "experiment2", borrowed).version
         == build(sessions, Lab(lab), "experiment2", borrowed).version
     )
     report = build(sessions, Lab(lab), "experiment2", borrowed)
     d, card = DatasetStore(lab / "datasets").load("experiment2", report.version)
-    assert card["parameters"]["register"]["from_dataset"] == f"campaign@{campaign.version}"
+    assert card["parameters"]["registration"]["from_dataset"] == f"campaign@{campaign.version}"
     assert set(d["repetition"]) == {0} and set(d["session"]) == {s.name for s in sessions}
     path = trajectories.experiment1("curve", experiments.arm_lengths(load_robot("vsl")), 0.02, 400).x
     error = {s: trajectories.distance_to_path(g[["x_0", "x_1", "x_2"]].to_numpy(), path).mean()

@@ -14,16 +14,18 @@ import pytest
 
 from acquisition.devices.kinds import stamp_fields
 from acquisition.schemas import topics as T
-from pipeline.clock import ClockModel, slip_drift, unwrap_stamps
+from pipeline.clock import ClockFitter, slip_drift, unwrap_stamps
 from pipeline.sync import sync
-from twin.clocks import ClockSpec, DeviceClocks, HostLinkSpec, host_receive_ns
+from twin.clocks import HostLinkSpec, SimulatedClocks, SimulatedClockSpec, host_receive_ns
 from twin.runner import simulate
 from twin.streams import host_poll_instants
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_sync import _load, _plans, _true_times
 
-SERVO = ClockSpec(tick_s=1e-3, wrap=32768, drift_ppm_sigma=40.0, offset_max_s=30.0)  # configs/robots/vsl.yaml
+SERVO = SimulatedClockSpec(
+    tick_s=1e-3, wrap=32768, drift_ppm_sigma=40.0, offset_max_s=30.0
+)  # configs/robots/vsl.yaml
 LINK = HostLinkSpec(latency_s=0.001, jitter_s=0.001, kind="uniform")
 EPOCH = 10**18
 POLL_S = 0.002  # the twin's Sync Reads: 500 Hz on the host clock
@@ -34,15 +36,15 @@ def _polled(drift_ppm: float, seconds: float, seed: int, dither_s: float = 0.0):
     ``dither_s``, an OS scheduler), the counter floored at that instant, the host receiving after latency +
     uniform jitter. Returns (unwrapped ticks, host receive ns, true sampling times s since EPOCH)."""
     rng = np.random.default_rng(seed)
-    clocks = DeviceClocks.from_truth(SERVO, np.array([drift_ppm]), rng.uniform(0.0, 30.0, 1))
+    clocks = SimulatedClocks.from_truth(SERVO, np.array([drift_ppm]), rng.uniform(0.0, 30.0, 1))
     robot, _, t = host_poll_instants(1, POLL_S, 0.0, seconds)
     t = t + rng.uniform(0.0, dither_s, t.size)
     host = EPOCH + host_receive_ns(t, LINK, rng)
     return unwrap_stamps(clocks.ticks_at(robot, t), host, SERVO.tick_s, SERVO.wrap), host, t
 
 
-def _fit(ticks: np.ndarray, host: np.ndarray, polled: bool = True) -> tuple[ClockModel, np.ndarray]:
-    model = ClockModel(SERVO.tick_s, LINK.latency_s, ref_ns=EPOCH, polled=polled).fit(ticks, host)
+def _fit(ticks: np.ndarray, host: np.ndarray, polled: bool = True) -> tuple[ClockFitter, np.ndarray]:
+    model = ClockFitter(SERVO.tick_s, LINK.latency_s, ref_ns=EPOCH, polled=polled).fit(ticks, host)
     return model, (model.predict(ticks) - EPOCH) * 1e-9
 
 

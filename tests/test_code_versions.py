@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import cache, datasets, registry
+from pipeline import cache, datasets, model_store
 from pipeline.cache import STAGE_MODULES, stage_version
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -102,11 +102,11 @@ def test_dataset_and_model_ids_survive_a_docstring_edit(tree):
     sources = {"sim-campaign-000": "ab" * 32}
     parameters = {"clean": {"hampel_window": 7}}
     config = {"net": {"hidden": [64]}, "seed": 0}
-    ids = datasets.dataset_version(sources, parameters), registry.model_version("v1", config)
+    ids = datasets.dataset_version(sources, parameters), model_store.model_version("v1", config)
     _edit(tree / "pipeline" / "train.py", '"""', '"""Edited. ')
     _edit(tree / "pipeline" / "datasets.py", '"""', '"""Edited. ')
     _forget()
-    assert (datasets.dataset_version(sources, parameters), registry.model_version("v1", config)) == ids
+    assert (datasets.dataset_version(sources, parameters), model_store.model_version("v1", config)) == ids
     _edit(tree / "pipeline" / "datasets.py", "FRACTIONS = ", "FRACTIONS = 1 and ")
     _forget()
     assert datasets.dataset_version(sources, parameters) != ids[0]

@@ -68,7 +68,7 @@ def test_versions_are_content_addressed(tmp_path, vsl):
     assert v != datasets.dataset_version(sources, {"clean": {"k": 2}})
     assert v != datasets.dataset_version({**sources, "s2": "bc"}, {"clean": {"k": 1}})
     data = datasets.add_splits(datasets.assemble(_rows(vsl), vsl))
-    path = DatasetStore(tmp_path).write("d", v, {"data": data}, {"sources": sources})
+    path = DatasetStore(tmp_path).write("d", v, {"data": data}, {"made_from": sources})
     mtime = (path / "data.parquet").stat().st_mtime_ns
     assert DatasetStore(tmp_path).write("d", v, {"data": data.head(3)}, {}) == path  # exists: untouched
     assert (path / "data.parquet").stat().st_mtime_ns == mtime

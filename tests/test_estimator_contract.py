@@ -1,4 +1,4 @@
-"""One contract for every fitted thing (models/estimator.py, scikit-learn's): the clock model, the tracker
+"""One contract for every fitted thing (models/estimator.py, scikit-learn's): the clock fitter, the tracker
 registrations (fitted and borrowed), every baseline and the hybrid networks, run through the same checks.
 
 - the constructor only stores its parameters: ``get_params`` gives back what was passed, nothing learned;
@@ -6,7 +6,7 @@ registrations (fitted and borrowed), every baseline and the hybrid networks, run
 - use before ``fit`` raises the one ``NotFittedError``;
 - the same parameters and seed give the same result; ``clone`` / ``set_params`` make a fresh, equal one;
 - what is saved comes back the same: a network through the registry, a registration through a dataset
-  card, a baseline's parameters through JSON (the registry saves no baseline).
+  card, a baseline's parameters through JSON (the model store saves no baseline).
 """
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ from models.estimator import Estimator
 from models.hybrid import preset
 from models.robot import load_robot
 from pipeline import baselines as B
-from pipeline.clock import ClockModel
-from pipeline.register import FixedRegistration, RigidTransform, TrackerRegistration, model_tip
+from pipeline.clock import ClockFitter
+from pipeline.registration import FixedRegistration, RigidTransform, TrackerRegistration, model_tip
 from pipeline.train import HybridRegressor, TrainConfig, train
 
 
@@ -85,7 +85,7 @@ def _to_base(est: Estimator, d) -> np.ndarray:
 
 
 CASES = {
-    "clock": Case(lambda: ClockModel(tick_s=1e-3), _clock_data, lambda e, d: e.predict(_clock_data(d)[0])),
+    "clock": Case(lambda: ClockFitter(tick_s=1e-3), _clock_data, lambda e, d: e.predict(_clock_data(d)[0])),
     "registration": Case(lambda: TrackerRegistration(load_robot("vsl")), _static_points, _to_base),
     "registration-borrowed": Case(
         lambda: FixedRegistration(BASE_TO_TRACKER.matrix().tolist(), "campaign@v1"), _static_points, _to_base
@@ -165,14 +165,16 @@ def test_clone_is_a_fresh_estimator_with_the_same_parameters(fitted):
     assert copy.get_params(deep=False)[name] is other and est.get_params(deep=False)[name] is params[name]
 
 
-def test_a_trained_network_round_trips_through_the_registry(tmp_path, data):
-    from pipeline import registry
+def test_a_trained_network_round_trips_through_the_model_store(tmp_path, data):
+    from pipeline import model_store
 
     est = _net("forward").fit(data)
     assert est.history_.best_epoch >= 0
-    version = registry.model_version("v1", est.config)
-    path = registry.save_model(tmp_path, "forward", version, est.net_, {"train_config": est.config.to_dict()})
-    loaded, _ = registry.load_model(path)
+    version = model_store.model_version("v1", est.config)
+    path = model_store.save_model(
+        tmp_path, "forward", version, est.net_, {"train_config": est.config.to_dict()}
+    )
+    loaded, _ = model_store.load_model(path)
     test = B.part_of(data, "split_random", "test")
     x = test[list(est.config.net.inputs)].to_numpy(float)
     np.testing.assert_array_equal(loaded.predict(x), est.predict(test))

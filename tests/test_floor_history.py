@@ -24,7 +24,7 @@ from pipeline.comparison import (
 from pipeline.floor import matched_points, repeat_floor
 from pipeline.history import PATHS, STATIC_POINTS, HistoryModel, HistoryState, set_point_ends, with_history
 from pipeline.in_loop import InverseModelCompensator
-from pipeline.registry import load_card
+from pipeline.model_store import load_card
 from vslab.cli import app
 
 runner = CliRunner()
@@ -205,10 +205,26 @@ def test_every_model_beside_the_floor(hard_campaigns, lengths, tmp_path):
     save_comparison(path, table, {"campaign": "v1"}, "split_group")
     again, card = load_comparison(path)
     pd.testing.assert_frame_equal(again, table)
-    assert card["sources"] == {"campaign": "v1"} and card["split"] == "split_group"
+    assert card["made_from"] == {"campaign": "v1"} and card["split"] == "split_group"
     # the inverse table says its pressures and currents are measured after the move has landed
     assert "measured after the move has landed" in card["inputs"]["inverse"]
     assert "inverse models read the tip wanted" in markdown and "payload sensor" in markdown
+
+
+def test_a_comparison_card_written_before_made_from_still_loads(tmp_path):
+    """A card of a lab written when ``made_from`` was ``sources`` gives the same datasets under the new name;
+    a card that has ``made_from`` keeps it."""
+    import json
+
+    records = [{"direction": "forward", "model": "floor", "mean_mm": 1.0}]
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({"sources": {"campaign": "v1"}, "split": "split_group", "records": records}))
+    table, card = load_comparison(old)
+    assert card["made_from"] == {"campaign": "v1"} and "sources" not in card
+    assert table.to_dict("records") == records
+    new = tmp_path / "new.json"
+    save_comparison(new, table, {"campaign": "v2"}, "split_group")
+    assert load_comparison(new)[1]["made_from"] == {"campaign": "v2"}
 
 
 def test_compare_models_command(hard_labs, hard_campaigns, tmp_path):
@@ -232,8 +248,8 @@ def test_compare_models_command(hard_labs, hard_campaigns, tmp_path):
     assert done.output.count("| all |") == 2 and "floor" in done.output
     (card,) = (lab / "comparisons").glob("campaign@*.json")
     table, meta = load_comparison(card)
-    assert meta["sources"]["repeat"].startswith("repeat@") and set(table["model"]) >= {"floor", "history"}
-    # the networks it trained are registered, each card carrying its direction's table beside the floor
+    assert meta["made_from"]["repeat"].startswith("repeat@") and set(table["model"]) >= {"floor", "history"}
+    # the networks it trained are saved, each card carrying its direction's table beside the floor
     assert len(meta["models"]) == 6  # three networks, forward and inverse
     for model in meta["models"]:
         compared = load_card(lab / "models" / model["name"] / model["version"])["comparison"]

@@ -42,7 +42,7 @@ def test_hybrid_inverse_model_beats_model_based_ik_in_experiment2(tmp_path):
         inverse_model=lambda p: hybrid,
     )
     sessions = sorted((tmp_path / "e2").iterdir())
-    borrowed = {"register": {"from_dataset": f"campaign@{campaign.version}"}}
+    borrowed = {"registration": {"from_dataset": f"campaign@{campaign.version}"}}
     e2 = build(sessions, Lab(tmp_path), "experiment2", borrowed)
     d, _ = DatasetStore(tmp_path / "datasets").load("experiment2", e2.version)
     path = trajectories.experiment1("curve", experiments.arm_lengths(vsl), 0.02, 400).x

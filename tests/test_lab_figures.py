@@ -9,7 +9,7 @@ from acquisition.recorder.writer import SessionWriter
 from acquisition.schemas.events import Event, EventKind
 from analysis.lab_figures import all_figures, lab_report, realtime_sessions
 from models.robot import load_robot
-from pipeline import registry
+from pipeline import model_store
 from pipeline.grid import run_grid
 from pipeline.lab import Lab
 from pipeline.session_index import sessions_of
@@ -33,7 +33,9 @@ def test_figures_and_report_of_a_lab_with_only_a_campaign(campaign_dataset, tmp_
         "forward-small-residual"
         not in res.tables["forward model: test error (mm), campaign, random split"].index
     )
-    registry.tag(lab / "models", registry.FORWARD, trained["version"])  # figures take models by tag only
+    model_store.tag(
+        lab / "models", model_store.FORWARD, trained["version"]
+    )  # figures take models by tag only
     res = all_figures(Lab(lab), tmp_path / "figures")
     assert {"error_heatmaps", "learning_curves", "clock_fits", "registration_vsl"} <= set(res.figures)
     assert all(p.is_file() and p.with_suffix(".pdf").is_file() for p in res.figures.values())

@@ -164,7 +164,7 @@ def test_a_half_uploaded_entry_is_never_visible(s3, monkeypatch):
 
 
 def test_a_model_or_session_without_its_manifest_is_not_listed(s3):
-    from pipeline.registry import list_models
+    from pipeline.model_store import list_models
     from pipeline.session_index import experiment_sessions
 
     lab = lab_path("s3://lab/partial")

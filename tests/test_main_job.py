@@ -41,9 +41,9 @@ def test_quick_main_job_makes_every_figure_and_the_report(tmp_path):
     assert "unmodelled effects: forward models" in page and "unmodelled effects: inverse models" in page
     assert "unmodelled effects: Experiment 2" in page
     # on that twin: IK, static, the hybrid and the history-aware hybrid along the paper's two cases, and the
-    # networks of the comparison registered with the table in their cards
+    # networks of the comparison saved with the table in their cards
     from pipeline.comparison import UNMODELLED, load_comparison
-    from pipeline.registry import load_card
+    from pipeline.model_store import load_card
 
     _, card = load_comparison(Lab(tmp_path / "lab").comparisons.path(UNMODELLED))
     paths = {(r["mode"], r["pressure_bar"]): r["mean_mm"] for r in card["experiment2"]}

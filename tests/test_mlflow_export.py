@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pipeline import registry
+from pipeline import model_store
 from pipeline.grid import load_grid, run_grid
 from pipeline.lab import Lab
 from pipeline.mlflow_export import NAME_TAG, VERSION_TAG, MlflowExportError, _reachable, run_metrics
@@ -60,12 +60,12 @@ def test_every_model_version_becomes_one_run_and_exporting_again_adds_none(lab, 
     experiment = client.get_experiment_by_name("vslab")
     assert experiment.artifact_location == (tmp_path / "artifacts").as_uri()  # beside the store, not ./mlruns
     runs = client.search_runs([experiment.experiment_id])
-    models = registry.list_models(lab / "models")
+    models = model_store.list_models(lab / "models")
     assert sorted(r.data.tags[VERSION_TAG] for r in runs) == sorted(m["version"] for m in models)
     for run in runs:
         version = run.data.tags[VERSION_TAG]
-        path = registry.find(lab / "models", version)
-        card = json.loads((path / registry.CARD).read_text())
+        path = model_store.find(lab / "models", version)
+        card = json.loads((path / model_store.CARD).read_text())
         assert run.info.status == "FINISHED" and run.data.tags[NAME_TAG] == card["name"]
         # parameters: the training configuration, flattened
         assert run.data.params["net.direction"] == card["train_config"]["net"]["direction"]
@@ -83,7 +83,7 @@ def test_every_model_version_becomes_one_run_and_exporting_again_adds_none(lab, 
                                    [c["val_loss"] for c in card["curves"]])  # fmt: skip
         # the files, byte for byte
         client.download_artifacts(run.info.run_id, "model", str(tmp_path / version))
-        for name in (registry.CARD, *registry.FILES):
+        for name in (model_store.CARD, *model_store.FILES):
             assert (path / name).read_bytes() == (tmp_path / version / "model" / name).read_bytes(), name
         # the dataset as an input, its version id as digest
         (dataset,) = run.inputs.dataset_inputs
@@ -95,7 +95,7 @@ def test_an_interrupted_export_is_replaced_not_duplicated(lab, tmp_path):
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     client = mlflow.MlflowClient(tracking_uri=uri)
     experiment_id = client.create_experiment("vslab", artifact_location=str(tmp_path / "artifacts"))
-    version = registry.list_models(lab / "models")[0]["version"]
+    version = model_store.list_models(lab / "models")[0]["version"]
     half = client.create_run(experiment_id, tags={VERSION_TAG: version})  # a run left RUNNING
     done = _cli(lab, "models", "export-mlflow", "--tracking-uri", uri)
     assert done.returncode == 0, done.stdout + done.stderr

@@ -1,4 +1,4 @@
-"""Models chosen by a tag kept in the registry (`vslab models tag NAME VERSION`): any command that takes a
+"""Models chosen by a tag kept in the model store (`vslab models tag NAME VERSION`): any command that takes a
 version takes a tag; a bad tag or a tag to nothing is one error line; re-tagging moves the tag."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 from test_bad_models import _card, _net
 from typer.testing import CliRunner
 
-from pipeline import registry
+from pipeline import model_store
 from vslab.cli import app
 
 runner = CliRunner()
@@ -23,7 +23,7 @@ def lab(tmp_path) -> Path:
         (("inverse-tiny", INVERSE), "inverse", 1),
         (("forward-tiny", FORWARD), "forward", 2),
     ):
-        registry.save_model(tmp_path / "models", name, version, _net(direction, seed), _card(direction))
+        model_store.save_model(tmp_path / "models", name, version, _net(direction, seed), _card(direction))
     return tmp_path
 
 
@@ -35,8 +35,8 @@ def test_a_tag_names_a_version_everywhere_a_version_is_taken(lab):
     result = _invoke(lab, "models", "tag", "inverse", INVERSE[:6])  # a unique prefix will do
     assert result.exit_code == 0, result.output
     assert f"inverse → {INVERSE}" in result.output
-    assert registry.tags(lab / "models") == {"inverse": INVERSE}
-    assert registry.find(lab / "models", "inverse").name == INVERSE
+    assert model_store.tags(lab / "models") == {"inverse": INVERSE}
+    assert model_store.find(lab / "models", "inverse").name == INVERSE
     shown = _invoke(lab, "models", "show", "inverse")
     assert shown.exit_code == 0 and f"inverse-tiny {INVERSE}" in shown.output
     listed = _invoke(lab, "models", "list")
@@ -44,9 +44,9 @@ def test_a_tag_names_a_version_everywhere_a_version_is_taken(lab):
 
 
 def test_re_tagging_moves_the_tag(lab):
-    registry.tag(lab / "models", "best", INVERSE)
+    model_store.tag(lab / "models", "best", INVERSE)
     assert _invoke(lab, "models", "tag", "best", FORWARD).exit_code == 0
-    assert registry.tags(lab / "models") == {"best": FORWARD}
+    assert model_store.tags(lab / "models") == {"best": FORWARD}
     assert not list((lab / "models").glob(".*tmp"))  # written whole, nothing left behind
 
 
@@ -64,15 +64,15 @@ def test_a_bad_tag_or_a_tag_to_nothing_is_one_line(lab, args, says):
     assert result.exit_code == 2, result.output
     lines = [ln for ln in result.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error:") and says in lines[0], result.output
-    assert registry.tags(lab / "models") == {}
+    assert model_store.tags(lab / "models") == {}
 
 
 def test_a_damaged_model_cannot_be_tagged_and_a_damaged_tags_file_is_one_line(lab):
-    weights = registry.find(lab / "models", FORWARD) / "weights.safetensors"
+    weights = model_store.find(lab / "models", FORWARD) / "weights.safetensors"
     weights.write_bytes(weights.read_bytes()[:-8] + b"\x00" * 8)
     result = _invoke(lab, "models", "tag", "best", FORWARD)
     assert result.exit_code == 2 and "weights.safetensors" in result.output
-    (lab / "models" / registry.TAGS_FILE).write_text("{not json")
+    (lab / "models" / model_store.TAGS_FILE).write_text("{not json")
     result = _invoke(lab, "models", "list")
     assert result.exit_code == 2 and "tags.json: unreadable" in result.output, result.output
     shutil.rmtree(lab / "models")

@@ -171,7 +171,7 @@ def test_real_time_popup_sessions_build_into_datasets(recorded, popup):
     truth = tracker_spec(popup).base_to_tracker
     assert np.degrees(Rotation.from_matrix(fitted[:3, :3] @ truth[:3, :3].T).magnitude()) < 0.05
     assert np.linalg.norm(fitted[:3, 3] - truth[:3, 3]) < 0.5e-3
-    borrowed = {"register": {"from_dataset": f"popup_survey@{survey.version}"}}
+    borrowed = {"registration": {"from_dataset": f"popup_survey@{survey.version}"}}
     built = {s.name: build([s], Lab(lab), f"rt-{s.name}", borrowed) for s in sessions}
     deploy = pd.read_parquet(built["deploy"].path / "data.parquet")
     assert len(deploy) == 1 and deploy["p_0"].iloc[0] == pytest.approx(50e3, rel=0.03)  # the deployed arm

@@ -155,7 +155,7 @@ def test_ctrl_c_on_vslab_run_is_a_safe_stop(tmp_path):
 
 
 def test_compensated_goals_are_sent_and_recorded(host_factory, tmp_path, vsl):
-    """A compensator in the real-time loop (the grey-box static one here; a registered inverse network plugs
+    """A compensator in the real-time loop (the grey-box static one here; a saved inverse network plugs
     in the same way): the goals sent are its commands for the measured pressures, not the plan's IK goals."""
     from acquisition.plans.compensation import StaticModelCompensator
 

@@ -3,15 +3,17 @@
 import numpy as np
 import pytest
 
-from twin.clocks import ClockSpec, DeviceClocks, HostLinkSpec, host_receive_ns, unwrap_ticks
+from twin.clocks import HostLinkSpec, SimulatedClocks, SimulatedClockSpec, host_receive_ns, unwrap_ticks
 
-TICK = ClockSpec(tick_s=1e-3, wrap=32768, drift_ppm_sigma=40.0, offset_max_s=30.0)  # Dynamixel Realtime Tick
-MICROS = ClockSpec(tick_s=1e-6, wrap=2**32, drift_ppm_sigma=2000.0, offset_max_s=0.0)  # Uno micros()
+TICK = SimulatedClockSpec(
+    tick_s=1e-3, wrap=32768, drift_ppm_sigma=40.0, offset_max_s=30.0
+)  # Dynamixel Realtime Tick
+MICROS = SimulatedClockSpec(tick_s=1e-6, wrap=2**32, drift_ppm_sigma=2000.0, offset_max_s=0.0)  # Uno micros()
 
 
 def test_same_seed_same_clocks_and_drift_spread():
-    a = DeviceClocks(MICROS, 2000, np.random.default_rng(1))
-    b = DeviceClocks(MICROS, 2000, np.random.default_rng(1))
+    a = SimulatedClocks(MICROS, 2000, np.random.default_rng(1))
+    b = SimulatedClocks(MICROS, 2000, np.random.default_rng(1))
     np.testing.assert_array_equal(a.drift_ppm, b.drift_ppm)
     np.testing.assert_array_equal(a.offset_s, b.offset_s)
     assert a.batch == 2000
@@ -20,13 +22,13 @@ def test_same_seed_same_clocks_and_drift_spread():
 
 
 def test_offsets_are_drawn_in_range():
-    clocks = DeviceClocks(TICK, 2000, np.random.default_rng(2))
+    clocks = SimulatedClocks(TICK, 2000, np.random.default_rng(2))
     assert clocks.offset_s.min() >= 0.0 and clocks.offset_s.max() < 30.0
     assert clocks.offset_s.mean() == pytest.approx(15.0, rel=0.05)
 
 
 def test_device_seconds_broadcast_over_the_batch():
-    clocks = DeviceClocks.from_truth(TICK, np.array([0.0, 100.0, -50.0]), np.array([1.0, 2.0, 3.0]))
+    clocks = SimulatedClocks.from_truth(TICK, np.array([0.0, 100.0, -50.0]), np.array([1.0, 2.0, 3.0]))
     t = np.tile(np.linspace(0.0, 10.0, 5), (3, 1))
     expected = (1 + clocks.drift_ppm[:, None] * 1e-6) * t + clocks.offset_s[:, None]
     np.testing.assert_allclose(clocks.device_seconds(t), expected, rtol=0, atol=1e-12)
@@ -35,7 +37,7 @@ def test_device_seconds_broadcast_over_the_batch():
 
 
 def test_ticks_run_at_the_drifted_rate():
-    clocks = DeviceClocks.from_truth(MICROS, np.array([1500.0, -800.0]), np.array([2.0, 0.5]))
+    clocks = SimulatedClocks.from_truth(MICROS, np.array([1500.0, -800.0]), np.array([2.0, 0.5]))
     t = np.array([[0.0, 1.0], [0.0, 1.0]])
     ticks = clocks.ticks(t)
     np.testing.assert_allclose(ticks[:, 1] - ticks[:, 0], 1e6 * (1 + clocks.drift_ppm * 1e-6), atol=1)
@@ -43,7 +45,7 @@ def test_ticks_run_at_the_drifted_rate():
 
 
 def test_realtime_tick_wraps_and_unwraps_exactly():
-    clocks = DeviceClocks.from_truth(TICK, np.array([30.0]), np.array([12.0]))
+    clocks = SimulatedClocks.from_truth(TICK, np.array([30.0]), np.array([12.0]))
     t = np.arange(0.0, 120.0, 0.01)[None, :]  # several wraps of 32.768 s
     ticks = clocks.ticks(t)[0]
     assert ticks.min() >= 0 and ticks.max() < 32768 and np.sum(np.diff(ticks) < 0) >= 3
@@ -54,15 +56,15 @@ def test_realtime_tick_wraps_and_unwraps_exactly():
 
 
 def test_micros_wraps_at_two_to_the_32():
-    spec = ClockSpec(tick_s=1e-6, wrap=2**32, drift_ppm_sigma=0.0, offset_max_s=0.0)
-    clocks = DeviceClocks.from_truth(spec, np.zeros(1), np.array([2**32 * 1e-6 - 0.5]))
+    spec = SimulatedClockSpec(tick_s=1e-6, wrap=2**32, drift_ppm_sigma=0.0, offset_max_s=0.0)
+    clocks = SimulatedClocks.from_truth(spec, np.zeros(1), np.array([2**32 * 1e-6 - 0.5]))
     ticks = clocks.ticks(np.array([[0.0, 1.0]]))[0]
     assert ticks[1] < ticks[0]
     assert unwrap_ticks(ticks, 2**32)[1] - ticks[0] == 1_000_000
 
 
 def test_micros_unwraps_over_several_wraps():
-    clocks = DeviceClocks.from_truth(MICROS, np.array([-2021.0]), np.array([4000.0]))
+    clocks = SimulatedClocks.from_truth(MICROS, np.array([-2021.0]), np.array([4000.0]))
     t = np.arange(0.0, 20_000.0, 997.0)[None, :]  # gaps < half a wrap (2147 s), ~4.7 wraps
     ticks = clocks.ticks(t)[0]
     assert ticks.max() < 2**32 and np.sum(np.diff(ticks) < 0) >= 4
@@ -80,9 +82,9 @@ def test_unwrap_ticks_edge_cases():
 
 def test_specs_and_pinned_clocks_are_validated():
     with pytest.raises(ValueError, match="tick_s"):
-        ClockSpec(tick_s=0.0, wrap=None, drift_ppm_sigma=0.0, offset_max_s=0.0)
+        SimulatedClockSpec(tick_s=0.0, wrap=None, drift_ppm_sigma=0.0, offset_max_s=0.0)
     with pytest.raises(ValueError, match="must both be"):
-        DeviceClocks.from_truth(TICK, np.zeros(3), np.zeros(2))
+        SimulatedClocks.from_truth(TICK, np.zeros(3), np.zeros(2))
     with pytest.raises(ValueError, match="one-sided"):
         HostLinkSpec(latency_s=-0.001, jitter_s=0.001)
 

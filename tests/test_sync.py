@@ -15,7 +15,7 @@ from acquisition.devices.kinds import stamp_fields
 from acquisition.plans.plan import PlanBuilder
 from acquisition.schemas import topics as T
 from acquisition.schemas.fast_read import read_fixed_topics
-from pipeline.clock import ClockModel, unwrap_stamps
+from pipeline.clock import ClockFitter, unwrap_stamps
 from pipeline.sync import interpolate, sync
 from pipeline.tables import EVENT_COLUMNS, SessionTables
 from twin.clocks import unwrap_ticks
@@ -136,7 +136,7 @@ def test_counter_reset_mid_session_is_split_and_fitted(synced, device):
     after = unwrap_stamps(raw, host, clock["tick_s"], clock["wrap"])[half:]
     raw[half:] = (after - after[0] + 1234) % clock["wrap"]  # boot, then the first sample 1234 ticks in
     ticks = unwrap_ticks(raw, clock["wrap"])
-    fit = ClockModel(clock["tick_s"], clock["latency_s"], ref_ns=session.t0_ns).fit(ticks, host).clock_
+    fit = ClockFitter(clock["tick_s"], clock["latency_s"], ref_ns=session.t0_ns).fit(ticks, host).clock_
     assert fit.resets == 1 and fit.segments[1].start == half
     for segment in fit.segments:
         assert abs(segment.drift_ppm - clock["drift_ppm"]) < 20.0
@@ -210,7 +210,7 @@ def test_fit_on_arrays_with_exponential_jitter_a_wrap_and_a_short_segment():
     delay = latency + rng.exponential(0.005, t.size) + np.where((t > 40.0) & (t < 41.0), 0.08, 0.0)
     host = 10**18 + np.round((t + delay) * 1e9).astype(np.int64)
     ticks = unwrap_stamps(raw, host, tick, wrap)
-    fit = ClockModel(tick, latency, ref_ns=10**18).fit(ticks, host).clock_
+    fit = ClockFitter(tick, latency, ref_ns=10**18).fit(ticks, host).clock_
     assert fit.resets == 1 and fit.segments[1].start == int(np.argmax(boot))
     assert abs(fit.drift_ppm - eps * 1e6) < 1.0 and abs(fit.segments[1].drift_ppm - eps * 1e6) < 1.0
     assert abs(fit.offset_s - b) < 1e-4

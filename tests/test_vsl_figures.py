@@ -34,7 +34,7 @@ def lab(tmp_path_factory):
         "campaign", SessionStore(lab / "campaign"), seed=2, benches=2, overrides={"points": 48}
     )
     campaign = build(sorted((lab / "campaign").iterdir()), Lab(lab), "campaign")
-    borrowed = {"register": {"from_dataset": f"campaign@{campaign.version}"}}
+    borrowed = {"registration": {"from_dataset": f"campaign@{campaign.version}"}}
     e1 = {"trajectories": ["curve"], "payloads_g": [25, 75], "pressures_bar": [0.5, 1.5]} | SMALL
     simulate_experiment("experiment1", SessionStore(lab / "e1"), seed=4, overrides=e1)
     e2 = {"cases": [{"payload_g": 75, "pressure_bar": 0.5}], "commands": ["ik", "static"], "rigid_arm": True}

@@ -3,7 +3,8 @@
 A device counter runs at its own rate: t_dev = (1 + ε)·t + b with ε a few tens of ppm for a crystal and up to
 ≈ 2000 ppm for the Uno's ceramic resonator; it counts ticks and wraps (Dynamixel Realtime Tick at 32768 ms,
 ``micros()`` at 2³² µs). The host sees a sample after a one-sided delay: fixed latency plus jitter ≥ 0.
-The drawn ε and b are public: they are the truth a fitted clock model is checked against.
+The drawn ε and b are public: they are the truth a fitted clock (``pipeline.clock.ClockFitter``) is
+checked against.
 """
 
 from __future__ import annotations
@@ -20,9 +21,10 @@ _TICK_EPS = 1e-9
 
 
 @dataclass(frozen=True)
-class ClockSpec:
-    """A device counter: tick length (s), wrap modulus (None = never wraps), drift spread (ppm, 1σ) and the
-    range [0, offset_max_s) of its start offset."""
+class SimulatedClockSpec:
+    """The twin's simulated device counter (made from the description's ``ClockDescription``): tick length
+    (s), wrap modulus (None = never wraps), drift spread (ppm, 1σ) and the range [0, offset_max_s) of its
+    start offset."""
 
     tick_s: float
     wrap: int | None
@@ -38,10 +40,11 @@ class ClockSpec:
             raise ValueError("drift_ppm_sigma and offset_max_s must be ≥ 0")
 
 
-class DeviceClocks:
-    """One clock per robot of a batch, with drawn drift ``drift_ppm`` (B,) and offset ``offset_s`` (B,)."""
+class SimulatedClocks:
+    """The twin's simulated device clocks, one per robot of a batch, with drawn drift ``drift_ppm`` (B,) and
+    offset ``offset_s`` (B,)."""
 
-    def __init__(self, spec: ClockSpec, batch: int, rng: np.random.Generator) -> None:
+    def __init__(self, spec: SimulatedClockSpec, batch: int, rng: np.random.Generator) -> None:
         self.spec = spec
         self.drift_ppm: np.ndarray = rng.normal(0.0, spec.drift_ppm_sigma, size=batch)
         self.offset_s: np.ndarray = (
@@ -49,7 +52,9 @@ class DeviceClocks:
         )
 
     @classmethod
-    def from_truth(cls, spec: ClockSpec, drift_ppm: np.ndarray, offset_s: np.ndarray) -> DeviceClocks:
+    def from_truth(
+        cls, spec: SimulatedClockSpec, drift_ppm: np.ndarray, offset_s: np.ndarray
+    ) -> SimulatedClocks:
         """Clocks with pinned drift (ppm) and offset (s), both (B,) (tests, or a config that fixes them)."""
         drift = np.atleast_1d(np.asarray(drift_ppm, dtype=float))
         offset = np.atleast_1d(np.asarray(offset_s, dtype=float))

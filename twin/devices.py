@@ -5,7 +5,7 @@ world's commands, and reads the world's true state through the same sensor model
 (``streams``/``sensors``), stamped by the device's own clock. A reading depends only on the twin's state,
 which changes once per step: the servos are sensed once per step for all of them (a Sync Read of N servos
 draws the noise once, vectorised; repeated reads within a step share it), and the device counters are read
-with ``Rig.ticks`` (the clock model in plain floats).
+with ``Rig.ticks`` (the simulated clock in plain floats).
 The boards' adapters also invert their device clock (``micros_due_s``) so the pty host can sleep until the
 next streamed line is due.
 """
@@ -39,10 +39,10 @@ assert (
 
 
 def _counter_due_s(rig: Rig, device: str, target: int, now_s: float) -> float:
-    """The rig time at which the twin's ``device`` counter (``DeviceClocks.ticks_at`` at the twin's time: it
-    moves once per step) first reads ``target`` (modulo its wrap, within half a wrap); ``now_s`` if it
-    already does. The clock's arithmetic inverted; float rounding at a step boundary can at worst make it
-    one step late, and a not-yet-due answer is always after the next step (so the host never spins)."""
+    """The rig time at which the twin's ``device`` counter (``SimulatedClocks.ticks_at`` at the twin's
+    time: it moves once per step) first reads ``target`` (modulo its wrap, within half a wrap); ``now_s``
+    if it already does. The clock's arithmetic inverted; float rounding at a step boundary can at worst make
+    it one step late, and a not-yet-due answer is always after the next step (so the host never spins)."""
     rig.advance(now_s)
     clocks = rig.world.clocks[device]
     spec = clocks.spec

@@ -56,7 +56,7 @@ def plan_sha256(plan: Plan, seed: int) -> str:
 
 def session_identity(plan: Plan, robot: RobotDescription, seed: int, compensator=None) -> dict:
     """The identity of the session ``plan`` makes on ``robot`` with ``seed``, by this checkout's code; with a
-    learned ``compensator`` in the loop, the model it runs (its ``identity``: a registered version's id)."""
+    learned ``compensator`` in the loop, the model it runs (its ``identity``: a saved version's id)."""
     return {
         "robot_sha256": robot_sha256(robot),
         "plan_sha256": plan_sha256(plan, seed),
@@ -89,7 +89,7 @@ def differences(recorded: dict | None, wanted: dict[str, str]) -> list[str]:
         return ["unknown (no identity recorded: an older vslab)"]
     differ = [what for key, what in FIELDS.items() if recorded.get(key) != wanted[key]]
     if wanted["model"] == UNKNOWN_MODEL and FIELDS["model"] not in differ:  # nothing says it is the same
-        differ.append(f"{FIELDS['model']} (this run's names no registered version)")
+        differ.append(f"{FIELDS['model']} (this run's names no saved version)")
     return differ
 
 

@@ -86,7 +86,7 @@ class Rig:
         return (steps + 1e-3) * self.world.dt
 
     def ticks(self, device: str) -> int:
-        """``device``'s own counter at the twin's current time: ``DeviceClocks.ticks_at`` in Python floats
+        """``device``'s own counter at the twin's current time: ``SimulatedClocks.ticks_at`` in Python floats
         (the same IEEE operations in the same order, so the same count, without numpy's per-call cost)."""
         clocks = self.world.clocks[device]
         seconds = (1.0 + float(clocks.drift_ppm[0]) * 1e-6) * self.world.t + float(clocks.offset_s[0])

@@ -433,7 +433,7 @@ def simulate_experiment(
 
     Experiment 2's ``hybrid`` and ``history`` plans need ``inverse_model``: it gives the compensator (a
     trained inverse model) for a plan, by its ``parameters["commands"]``; the layers above ``acquisition``
-    (the pipeline's registry, the main job) provide it. It is called once per plan, so a compensator with
+    (the pipeline's model store, the main job) provide it. It is called once per plan, so a compensator with
     memory starts each session afresh. ``prepared``: what :func:`prepare_experiment` gave for these
     arguments (a caller that checks before it commits to the work)."""
     kind, sessions_dir = Path(experiment).stem, sessions.root

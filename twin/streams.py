@@ -17,13 +17,13 @@ from acquisition.codecs import popup_boards
 from acquisition.devices.kinds import device_of
 from models.robot import CAN_DIR, PressureSensorSpec, RobotDescription
 from twin import sensors
-from twin.clocks import DeviceClocks, HostLinkSpec, host_receive_ns
+from twin.clocks import HostLinkSpec, SimulatedClocks, host_receive_ns
 from twin.kernel import Trace
 
 Stream = dict[str, np.ndarray]
 
 
-def device_sample_instants(clocks: DeviceClocks, period_s: float, t0: float, t1: float):
+def device_sample_instants(clocks: SimulatedClocks, period_s: float, t0: float, t1: float):
     """True times in (t0, t1] at which each robot's device fires at multiples of ``period_s`` of its own
     clock. Returns (robot index, sample number k, true time), all flat and ordered by robot then time."""
     rate = 1.0 + clocks.drift_ppm * 1e-6
@@ -55,7 +55,7 @@ def _host(link, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return host_receive_ns(t, spec, rng)
 
 
-def _stamped(device, clocks: DeviceClocks, r: np.ndarray, k: np.ndarray, t: np.ndarray,
+def _stamped(device, clocks: SimulatedClocks, r: np.ndarray, k: np.ndarray, t: np.ndarray,
              rng: np.random.Generator, stamp: str = "micros") -> Stream:  # fmt: skip
     """The columns every device stream has: bench, sequence number, true time, host receive time (ns) and
     the device's own clock reading under ``stamp``."""
@@ -63,7 +63,7 @@ def _stamped(device, clocks: DeviceClocks, r: np.ndarray, k: np.ndarray, t: np.n
             stamp: clocks.ticks_at(r, t)}  # fmt: skip
 
 
-def servo_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float, rate_hz: float,
+def servo_stream(robot: RobotDescription, clocks: SimulatedClocks, trace: Trace, dt: float, rate_hz: float,
                  rng: np.random.Generator) -> Stream:  # fmt: skip
     """Sync Reads of every position-controlled joint polled at ``rate_hz``: counts as the XM430 reports."""
     joints = [i for i, j in enumerate(robot.joints) if j.drive != "stepper"]
@@ -88,7 +88,7 @@ def drive_scales(eds: str) -> tuple[float, float]:
     return od[0x2000].default / (2 * np.pi), od[0x6076].default * 1e-3
 
 
-def drive_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float, rate_hz: float,
+def drive_stream(robot: RobotDescription, clocks: SimulatedClocks, trace: Trace, dt: float, rate_hz: float,
                  rng: np.random.Generator) -> Stream:  # fmt: skip
     """The CiA 402 drives' answers to the host's SYNC at ``rate_hz``: position and velocity in encoder
     counts, torque in thousandths of the rated torque (what their PDOs carry), operation enabled."""
@@ -108,7 +108,7 @@ def drive_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt
     }
 
 
-def link_board_stream(robot: RobotDescription, board: str, clocks: DeviceClocks, trace: Trace, dt: float,
+def link_board_stream(robot: RobotDescription, board: str, clocks: SimulatedClocks, trace: Trace, dt: float,
                       rng: np.random.Generator) -> Stream:  # fmt: skip
     """A POPUP link board on its own clock at its rate: the orientation of its link's end (roll, pitch, yaw
     at the IMU's resolution) and its four flex sensors' counts."""
@@ -147,7 +147,7 @@ def servo_current_a(servo, torque: np.ndarray, qd: np.ndarray) -> np.ndarray:
     )
 
 
-def pressure_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float,
+def pressure_stream(robot: RobotDescription, clocks: SimulatedClocks, trace: Trace, dt: float,
                     rng: np.random.Generator) -> Stream:  # fmt: skip
     """ADS1115 conversions of every channel, on the board's own (drifting) clock."""
     rate = robot.sensors.pressure.sample_rate_hz
@@ -165,7 +165,7 @@ def pressure_spec(robot: RobotDescription) -> PressureSensorSpec:
     return robot.sensors.pressure
 
 
-def stepper_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float,
+def stepper_stream(robot: RobotDescription, clocks: SimulatedClocks, trace: Trace, dt: float,
                    rng: np.random.Generator) -> Stream:  # fmt: skip
     """The Nano's position reports (microsteps of each stepper joint) on its own clock."""
     joints = [i for i, j in enumerate(robot.joints) if j.drive == "stepper"]
@@ -191,7 +191,7 @@ def tracker_spec(robot: RobotDescription) -> sensors.TrackerSpec:
     )  # fmt: skip
 
 
-def tracker_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float,
+def tracker_stream(robot: RobotDescription, clocks: SimulatedClocks, trace: Trace, dt: float,
                    rng: np.random.Generator) -> Stream:  # fmt: skip
     """Aurora-like frames at the tracker's own frame rate: pose of the tip coil in the tracker's frame."""
     period = 1.0 / robot.sensors.tracker.frame_rate_hz
@@ -225,7 +225,7 @@ def tip_acceleration(trace: Trace, dt: float, tip_before: np.ndarray | None = No
     return (x[:, 2:] - 2.0 * x[:, 1:-1] + x[:, :-2]) / dt**2
 
 
-def accelerometer_stream(robot: RobotDescription, clocks: DeviceClocks, trace: Trace, dt: float,
+def accelerometer_stream(robot: RobotDescription, clocks: SimulatedClocks, trace: Trace, dt: float,
                          rng: np.random.Generator, tip_before: np.ndarray | None = None,
                          ) -> Stream:  # fmt: skip
     """The tip accelerometer on its own clock: specific force R_tipᵀ (a − g) in the sensor (tip) frame,

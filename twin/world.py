@@ -19,7 +19,7 @@ from models.effects import creep_rest
 from models.prbm import interp_table
 from models.robot import TIP_FRAME, RobotDescription
 from twin import kernel, streams
-from twin.clocks import ClockSpec, DeviceClocks
+from twin.clocks import SimulatedClocks, SimulatedClockSpec
 
 DEFAULT_DT = 1e-3  # 1 kHz
 
@@ -190,7 +190,7 @@ class World:
             self.commands.profile_acc[:, steppers] = robot.stepper.acceleration_rad_s2
         self._start_at_rest()
         self.clocks = {
-            name: DeviceClocks(_clock_spec(dev.clock), batch, self.device_rng(name))
+            name: SimulatedClocks(_clock_spec(dev.clock), batch, self.device_rng(name))
             for name, dev in robot.devices.items()
         }
         self.tip_tail: tuple[float, np.ndarray] | None = None  # (time, last two tip positions) of a read
@@ -321,8 +321,8 @@ class World:
         self.run_for(seconds)
 
 
-def _clock_spec(model) -> ClockSpec:
-    return ClockSpec(
+def _clock_spec(model) -> SimulatedClockSpec:
+    return SimulatedClockSpec(
         tick_s=model.tick_s,
         wrap=model.wrap,
         drift_ppm_sigma=model.drift_ppm_sigma,

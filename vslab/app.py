@@ -6,7 +6,7 @@ import logging
 import re
 import sys
 from dataclasses import dataclass
-from typing import Annotated, NoReturn
+from typing import TYPE_CHECKING, Annotated, NoReturn
 
 import typer
 import yaml
@@ -17,7 +17,10 @@ from typer.core import TyperGroup
 from acquisition.storage import StoreError
 from models.errors import VslabError
 from models.robot import RobotDescriptionError, load_robot
-from pipeline.lab import Lab, ModelStore
+from pipeline.lab import Lab
+
+if TYPE_CHECKING:  # torch: imported by the commands that use models
+    from pipeline.model_store import ModelStore
 
 try:  # typer ≥ 0.2x carries its own click, whose exceptions derive from TyperException
     from typer import TyperException as _ClickError
@@ -220,38 +223,38 @@ def _overrides(pairs: list[str]) -> dict:
 
 
 # ------------------------------------------------------------------------------------------------ models
-HISTORY_NOT_REGISTERED = (
-    "history commands need a history-aware inverse model, which the model registry does not keep (it keeps "
+HISTORY_NOT_STORED = (
+    "history commands need a history-aware inverse model, which the model store does not keep (it keeps "
     "networks): the main job trains one in process (`vslab demo`); run without them: "
     "--set 'commands=[ik,static,hybrid]'"
 )
 
 
 def load_inverse_model(version: str, models: ModelStore | None = None):
-    """The registered inverse network ``version`` of ``models`` (default: the CLI's lab's) as the control
+    """The saved inverse network ``version`` of ``models`` (default: the CLI's lab's) as the control
     loop runs it: its ONNX export on ONNX Runtime (``predict``), every file checked against its card first. An
     unknown, ambiguous, damaged or forward model, or one saved without an ONNX export, is one error line."""
-    from pipeline.in_loop import registered_inverse
+    from pipeline.in_loop import stored_inverse
 
     try:
-        return registered_inverse(models or options().lab.models, version)[0]
+        return stored_inverse(models or options().lab.models, version)[0]
     except (FileNotFoundError, ValueError) as exc:  # unknown, ambiguous, damaged, forward
         _error(f"--inverse-model {version}: {exc}")
 
 
 def inverse_compensators(version: str, models: ModelStore | None = None):
-    """A registered inverse model of ``models`` (default: the CLI's lab's) as the runners' hybrid commands
+    """A saved inverse model of ``models`` (default: the CLI's lab's) as the runners' hybrid commands
     (``pipeline.in_loop.learned_compensators``); an unusable model is one error line."""
-    from pipeline.in_loop import learned_compensators, registered_inverse
+    from pipeline.in_loop import learned_compensators, stored_inverse
 
     try:
-        model, identity = registered_inverse(models or options().lab.models, version)
+        model, identity = stored_inverse(models or options().lab.models, version)
     except (FileNotFoundError, ValueError) as exc:  # unknown, ambiguous, damaged, forward
         _error(f"--inverse-model {version}: {exc}")
     return learned_compensators({"hybrid": model}, identities={"hybrid": identity})
 
 
 def inverse_model_version(version: str, models: ModelStore | None = None) -> str:
-    """The full version id of the registered model ``version`` (a tag or a unique prefix) of ``models``
+    """The full version id of the saved model ``version`` (a tag or a unique prefix) of ``models``
     (default: the CLI's lab's)."""
     return (models or options().lab.models).find(version).name

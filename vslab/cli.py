@@ -19,7 +19,7 @@ from vslab import (
     sessions_cmds,  # noqa: F401  (registers sessions on the app)
 )
 from vslab.app import (
-    HISTORY_NOT_REGISTERED,
+    HISTORY_NOT_STORED,
     _error,
     _fail,
     _overrides,
@@ -170,7 +170,7 @@ def simulate(
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     inverse_model: Annotated[
         str | None,
-        typer.Option(help="Registered inverse model (version) for Experiment 2's hybrid commands."),
+        typer.Option(help="Saved inverse model (version) for Experiment 2's hybrid commands."),
     ] = None,
     dry_run: Annotated[
         bool, typer.Option("--dry-run", help="Build and check the plans, print size and duration, stop.")
@@ -191,7 +191,7 @@ def simulate(
         _error(f"--benches must be ≥ 1 and --seed ≥ 0, got --benches {benches} --seed {seed}")
     overrides = _overrides(set_ or [])
     if "history" in str(overrides.get("commands", "")):
-        _error(HISTORY_NOT_REGISTERED)
+        _error(HISTORY_NOT_STORED)
     model = None if inverse_model is None else load_inverse_model(inverse_model)  # checked before any run
     model_version = None if inverse_model is None else inverse_model_version(inverse_model)
     try:  # every argument checked before the batch priority (on a busy machine a typo is refused at once)
@@ -285,7 +285,8 @@ def build(
         ),
     ] = None,
 ) -> None:
-    """Build a versioned dataset from recorded sessions: ingest, clean, sync, register, segment, D + splits.
+    """Build a versioned dataset from recorded sessions: ingest, clean, sync, registration, segment, D,
+    splits.
     Every stage is cached: building again with nothing changed does no work. A session that cannot be read
     (a damaged session.json or MCAP part, a folder without session.json) gets a `warning:` line with its
     reason and is left out; the others build (exit 0). No usable session: one `error:` line, exit 2."""
@@ -357,6 +358,11 @@ def build(
     warn(bad | report.failed)
 
 
+# a stage's former name → its name now: `--set register.from_dataset=…` (the README's command before the
+# frame registration's stage was named for what it is) is read as `registration.from_dataset=…`, warned
+RENAMED_STAGES = {"register": "registration"}
+
+
 def _stage_parameters(pairs: list[str]) -> dict:
     """``--set stage.key=value`` pairs → {stage: {key: value}}, checked against the stages' parameters (one
     error line naming a bad key or value and the allowed ones)."""
@@ -370,6 +376,11 @@ def _stage_parameters(pairs: list[str]) -> dict:
         if not (dot and stage and param):
             _fail(escape(f"--set {key}=…: a stage parameter is stage.key=value (stages: "
                          f"{', '.join(stage_parameters())})"))  # fmt: skip
+        if stage in RENAMED_STAGES:  # commands written before the rename still build the same dataset
+            new = RENAMED_STAGES[stage]
+            console.print(f"[yellow]warning:[/] --set {escape(key)}: the stage {stage!r} is now {new!r}; "
+                          "the old name will go", highlight=False, soft_wrap=True)  # fmt: skip
+            stage = new
         parameters.setdefault(stage, {})[param] = value
     try:
         check_parameters(parameters)

@@ -24,7 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pipeline.lab import Lab
-from pipeline.registry import INVERSE, LAB_TAGS
+from pipeline.model_store import INVERSE, LAB_TAGS
 from pipeline.unmodelled import STUDY, STUDY_QUICK
 from vslab.app import CommandLineError
 
@@ -40,7 +40,7 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     from analysis.lab_figures import all_figures, lab_report
     from analysis.vsl_paths import path_errors
     from pipeline.grid import load_grid, run_grid
-    from pipeline.in_loop import learned_compensators, registered_inverse
+    from pipeline.in_loop import learned_compensators, stored_inverse
     from pipeline.simulated import simulated_dataset
     from pipeline.unmodelled import unmodelled_study
     from twin.runner import simulate_experiment
@@ -89,7 +89,7 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     done("training")
 
     step("Experiment 2 with the trained inverse model")
-    model, identity = registered_inverse(lab.models, trained[LAB_TAGS[INVERSE]])
+    model, identity = stored_inverse(lab.models, trained[LAB_TAGS[INVERSE]])
     learned = learned_compensators({"hybrid": model}, identities={"hybrid": identity})
     simulated_dataset(lab, "experiment2", seed=seed, inverse_model=learned, registration_from=registration)
     done("Experiment 2 with the trained inverse model")

@@ -114,7 +114,7 @@ def models_list() -> None:
     against its card: a damaged one is listed as damaged, with a `warning:` line saying which file and why."""
     from rich.markup import escape
 
-    from pipeline.registry import RegistryError
+    from pipeline.model_store import ModelStoreError
 
     models = options().lab.models
     root = models.root
@@ -123,7 +123,7 @@ def models_list() -> None:
         tagged = models.tags()
     except OSError as exc:
         _error(f"{root}: cannot be listed ({exc.strerror or exc})")
-    except RegistryError as exc:
+    except ModelStoreError as exc:
         _error(str(exc))
     if not rows:
         console.print(f"no models in {root} (train some: `vslab train`)", highlight=False, markup=False)
@@ -152,18 +152,18 @@ def models_tag(
 ) -> None:
     """Give a model version a name that any command taking a version accepts (`--inverse-model NAME`,
     `models show NAME`); a tag that exists is moved. Tags live in <lab>/models/tags.json."""
-    from pipeline.registry import RegistryError
+    from pipeline.model_store import ModelStoreError
 
     try:
         full = options().lab.models.tag(name, version)
-    except (FileNotFoundError, ValueError, RegistryError) as exc:  # unknown, ambiguous, damaged, bad name
+    except (FileNotFoundError, ValueError, ModelStoreError) as exc:  # unknown, ambiguous, damaged, bad name
         _error(str(exc))
     console.print(f"{name} → {full}", highlight=False, markup=False)
 
 
 def _checked(version: str) -> tuple[Path, dict]:
     """(directory, card) of ``version`` once every file is checked; one error line otherwise."""
-    from pipeline.registry import check_model
+    from pipeline.model_store import check_model
 
     try:
         path = options().lab.models.find(version)
@@ -332,7 +332,7 @@ def compare_models_command(
     <lab>/comparisons/NAME@VERSION.json."""
     from acquisition.plans.experiments import arm_lengths
     from models.robot import AnthropomorphicKinematics, RobotDescriptionError, load_robot
-    from pipeline.comparison import compare_models, comparison_markdown, register_compared, save_comparison
+    from pipeline.comparison import compare_models, comparison_markdown, save_compared, save_comparison
 
     lab = options().lab
     if split not in _SPLITS:
@@ -371,16 +371,16 @@ def compare_models_command(
         table = compare_models(data, lengths, repeat_data, split, {"max_epochs": epochs}, seed, say, nets)
     except (KeyError, ValueError) as exc:  # not a campaign, a repeat of another campaign, too few rows
         _error(f"{source}: {exc}")
-    sources = {"dataset": source} | ({"repeat": loaded["--repeat"][1]} if "--repeat" in loaded else {})
-    sources["training"] = json.dumps({"max_epochs": epochs, "seed": seed})
+    made_from = {"dataset": source} | ({"repeat": loaded["--repeat"][1]} if "--repeat" in loaded else {})
+    made_from["training"] = json.dumps({"max_epochs": epochs, "seed": seed})
     name, _, version = source.partition("@")
     dataset = {"name": name, "version": version}
-    registered = register_compared(lab.models, data, dataset, table, nets, sources)
+    saved = save_compared(lab.models, data, dataset, table, nets, made_from)
     path = lab.comparisons.path(source)
-    models = [{"name": p.parent.name, "version": p.name} for p in registered]
-    save_comparison(path, table, sources, split, {"models": models})
+    models = [{"name": p.parent.name, "version": p.name} for p in saved]
+    save_comparison(path, table, made_from, split, {"models": models})
     console.print(comparison_markdown(table), highlight=False, markup=False, soft_wrap=True)
     if not options().quiet:
         console.print(f"card: {path}", highlight=False, markup=False, soft_wrap=True)
         for m in models:
-            console.print(f"registered: {m['name']} {m['version']}", highlight=False, markup=False)
+            console.print(f"saved: {m['name']} {m['version']}", highlight=False, markup=False)

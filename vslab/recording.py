@@ -14,7 +14,7 @@ from rich.table import Table
 
 from acquisition.errors import AcquisitionError
 from vslab.app import (
-    HISTORY_NOT_REGISTERED,
+    HISTORY_NOT_STORED,
     _error,
     _overrides,
     _robot,
@@ -166,7 +166,7 @@ def run(
     rig: Annotated[bool, typer.Option("--rig", help=RIG_HELP)] = False,
     session: Annotated[str | None, typer.Option(help="Session id (default: time, plan).")] = None,
     inverse_model: Annotated[
-        str | None, typer.Option(help="Registered inverse model for hybrid commands.")
+        str | None, typer.Option(help="Saved inverse model for hybrid commands.")
     ] = None,
     rate: RateOption = None,
     live: LiveOption = False,
@@ -182,7 +182,7 @@ def run(
     local_lab("run")
     overrides = _overrides(set_ or [])
     model = None if inverse_model is None else load_inverse_model(inverse_model)  # checked, whatever the plan
-    refused = {"history": HISTORY_NOT_REGISTERED} | ({"hybrid": NO_INVERSE_MODEL} if model is None else {})
+    refused = {"history": HISTORY_NOT_STORED} | ({"hybrid": NO_INVERSE_MODEL} if model is None else {})
     try:
         the_plan, desc = choose_plan(experiment, plan, overrides)
         device_rates = _rates(rate, desc)

@@ -1,4 +1,4 @@
-"""Model registry, grid training and `vslab train` / `vslab models`: content-addressed versions that load
+"""Model store, grid training and `vslab train` / `vslab models`: content-addressed versions that load
 without unpickling, TorchScript exports that agree with the module, grids that never train a version twice."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import yaml
 from typer.testing import CliRunner
 
 from models.hybrid import NetConfig
-from pipeline import registry
+from pipeline import model_store
 from pipeline.exports import OnnxModel, quantized
 from pipeline.grid import GridError, load_grid, run_grid
 from pipeline.lab import Lab
@@ -40,7 +40,7 @@ def trained(campaign_dataset):
     """(config, version, TrainResult) of a tiny inverse net on the campaign dataset."""
     _, version, data = campaign_dataset
     config = _config()
-    return config, registry.model_version(version, config), train(data, config, threads=1)
+    return config, model_store.model_version(version, config), train(data, config, threads=1)
 
 
 def _inputs(data, config) -> np.ndarray:
@@ -54,7 +54,7 @@ def test_round_trip_gives_identical_predictions_without_unpickling(
     _, dataset_version, data = campaign_dataset
     config, version, result = trained
     card = {"dataset": {"name": "campaign", "version": dataset_version}, "train_config": config.to_dict()}
-    path = registry.save_model(tmp_path, "inverse-tiny", version, result.model, card)
+    path = model_store.save_model(tmp_path, "inverse-tiny", version, result.model, card)
     assert sorted(p.name for p in path.iterdir()) == ["card.json", "export", "weights.safetensors"]
     assert sorted(p.name for p in (path / "export").iterdir()) == ["model.onnx", "model.ts"]
     assert [p.name for p in tmp_path.joinpath("inverse-tiny").iterdir()] == [version]  # no temp dir left
@@ -64,7 +64,7 @@ def test_round_trip_gives_identical_predictions_without_unpickling(
 
     for target, attr in ((torch, "load"), (pickle, "load"), (pickle, "loads"), (pickle, "Unpickler")):
         monkeypatch.setattr(target, attr, refuse)
-    model, loaded = registry.load_model(path)
+    model, loaded = model_store.load_model(path)
     x = _inputs(data, config)
     np.testing.assert_array_equal(model.predict(x), result.model.predict(x))
     assert loaded["version"] == version and loaded["dataset"]["version"] == dataset_version
@@ -75,10 +75,10 @@ def test_round_trip_gives_identical_predictions_without_unpickling(
 def test_export_gives_the_module_outputs(tmp_path, campaign_dataset, trained):
     _, _, data = campaign_dataset
     config, version, result = trained
-    path = registry.save_model(
+    path = model_store.save_model(
         tmp_path, "inverse-tiny", version, result.model, {"train_config": config.to_dict()}
     )
-    exported = registry.load_exported(path)
+    exported = model_store.load_exported(path)
     x = _inputs(data, config)
     with torch.no_grad():
         out = exported(torch.as_tensor(x, dtype=torch.float64))
@@ -100,10 +100,10 @@ def test_the_onnx_export_run_by_onnx_runtime_is_the_network(tmp_path, campaign_d
     net = dataclasses.replace(preset("inverse", preset_name))
     config = TrainConfig(net=net, max_epochs=2, patience=2, batch_size=64, seed=0)
     result = train(data, config, threads=1)
-    version = registry.model_version(dataset_version, config)
-    path = registry.save_model(tmp_path, f"inverse-{preset_name}", version, result.model,
+    version = model_store.model_version(dataset_version, config)
+    path = model_store.save_model(tmp_path, f"inverse-{preset_name}", version, result.model,
                                {"train_config": config.to_dict()})  # fmt: skip
-    onnx = registry.load_onnx(path)
+    onnx = model_store.load_onnx(path)
     x = _inputs(data[data[config.split] == "test"], config)
     assert len(x) > 50
     reference = result.model.predict(x)
@@ -113,7 +113,7 @@ def test_the_onnx_export_run_by_onnx_runtime_is_the_network(tmp_path, campaign_d
     assert onnx.predict(x).dtype == np.float64
     # the int8 graph bench/train.py times: a quarter of the weights' bytes, the same interface, near the
     # network (not within 1e-5: its error on the test split is the bench's to report)
-    data = (path / registry.ONNX).read_bytes()
+    data = (path / model_store.ONNX).read_bytes()
     int8 = quantized(data)
     assert quantized(data) == int8  # deterministic: the same bytes for the same graph
     if preset_name == "paper":
@@ -123,23 +123,23 @@ def test_the_onnx_export_run_by_onnx_runtime_is_the_network(tmp_path, campaign_d
 
 def test_a_model_saved_before_the_onnx_export_loads_but_has_no_onnx(tmp_path, trained):
     config, version, result = trained
-    path = registry.save_model(tmp_path, "m", version, result.model, {"train_config": config.to_dict()})
-    card = registry.load_card(path)
-    del card["files"][registry.ONNX]
-    card["card_sha256"] = registry.card_digest(card)
-    (path / registry.CARD).write_text(json.dumps(card, indent=1))
-    (path / registry.ONNX).unlink()
-    registry.load_model(path)  # weights and TorchScript: as they were
-    with pytest.raises(registry.ModelIntegrityError, match="saved before vslab exported ONNX"):
-        registry.load_onnx(path)
+    path = model_store.save_model(tmp_path, "m", version, result.model, {"train_config": config.to_dict()})
+    card = model_store.load_card(path)
+    del card["files"][model_store.ONNX]
+    card["card_sha256"] = model_store.card_digest(card)
+    (path / model_store.CARD).write_text(json.dumps(card, indent=1))
+    (path / model_store.ONNX).unlink()
+    model_store.load_model(path)  # weights and TorchScript: as they were
+    with pytest.raises(model_store.ModelIntegrityError, match="saved before vslab exported ONNX"):
+        model_store.load_onnx(path)
 
 
 def test_an_existing_version_is_never_overwritten(tmp_path, trained):
     config, version, result = trained
-    path = registry.save_model(tmp_path, "m", version, result.model, {"train_config": config.to_dict()})
+    path = model_store.save_model(tmp_path, "m", version, result.model, {"train_config": config.to_dict()})
     before = (path / "weights.safetensors").read_bytes()
     with pytest.raises(FileExistsError):
-        registry.save_model(tmp_path, "m", version, HybridLike(config), {"train_config": config.to_dict()})
+        model_store.save_model(tmp_path, "m", version, HybridLike(config), {"train_config": config.to_dict()})
     assert (path / "weights.safetensors").read_bytes() == before
     assert [p.name for p in (tmp_path / "m").iterdir()] == [version]
 
@@ -151,19 +151,23 @@ def HybridLike(config):
 
 
 def test_version_id_is_stable_and_content_derived():
-    a = registry.model_version("d1", _config())
-    assert a == registry.model_version("d1", _config()) == registry.model_version("d1", _config().to_dict())
+    a = model_store.model_version("d1", _config())
+    assert (
+        a
+        == model_store.model_version("d1", _config())
+        == model_store.model_version("d1", _config().to_dict())
+    )
     assert len(a) == 16
-    assert a != registry.model_version("d2", _config())
-    assert a != registry.model_version("d1", _config(seed=1))
-    assert a != registry.model_version("d1", _config(lr=2e-3))
+    assert a != model_store.model_version("d2", _config())
+    assert a != model_store.model_version("d1", _config(seed=1))
+    assert a != model_store.model_version("d1", _config(lr=2e-3))
 
 
 def test_training_twice_gives_the_same_version_and_weights(campaign_dataset, trained):
     _, dataset_version, data = campaign_dataset
     _, version, first = trained
     again = train(data, _config(), threads=1)
-    assert registry.model_version(dataset_version, again.config) == version
+    assert model_store.model_version(dataset_version, again.config) == version
     a, b = first.model.state_dict(), again.model.state_dict()
     assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
@@ -195,7 +199,7 @@ def test_grid_trains_each_version_once(lab, monkeypatch):
     assert [r["status"] for r in second] == ["existing", "existing"]
     assert [r["version"] for r in second] == [r["version"] for r in first]
     assert [r["test_mean_mm"] for r in second] == pytest.approx([r["test_mean_mm"] for r in first])
-    listed = registry.list_models(lab / "models")
+    listed = model_store.list_models(lab / "models")
     assert sorted(r["version"] for r in listed) == sorted(r["version"] for r in first)
 
 
@@ -224,7 +228,7 @@ def test_cli_train_list_show_compare(lab):
     assert "2 trained, 0 existing" in result.output
     result = runner.invoke(app, train)
     assert "0 trained, 2 existing" in result.output, result.output
-    versions = [r["version"] for r in registry.list_models(lab / "models")]
+    versions = [r["version"] for r in model_store.list_models(lab / "models")]
     result = runner.invoke(app, [*args, "models", "list"])
     assert result.exit_code == 0 and all(v in result.output for v in versions), result.output
     result = runner.invoke(app, [*args, "models", "show", versions[0][:8]])

@@ -22,6 +22,7 @@ import json
 import logging
 import re
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +31,7 @@ import safetensors.torch
 import torch
 from safetensors.torch import save_file
 
-from acquisition.storage import is_local, publish
+from acquisition.storage import LabPath, is_local, publish
 from models.hybrid import HybridNet, NetConfig
 from pipeline.cache import digest, file_hash, stage_version
 from pipeline.errors import PipelineError
@@ -58,8 +59,8 @@ HEADLINE = ("tip_mean_mm",)  # the test metric a listing shows (the first one pr
 P95 = ("tip_p95_mm",)
 
 
-class RegistryError(PipelineError, ValueError):
-    """The registry's own files (the tags) cannot be used."""
+class ModelStoreError(PipelineError, ValueError):
+    """The model store's own files (the tags) cannot be used."""
 
 
 class ModelIntegrityError(PipelineError, ValueError):
@@ -250,16 +251,16 @@ def find(root: Path, version: str) -> Path:
 
 
 def tags(root: Path) -> dict[str, str]:
-    """Every tag of the registry under ``root``: alias → full version id (``{}`` where none was set)."""
+    """Every tag of the model store under ``root``: alias → full version id (``{}`` where none was set)."""
     path = root / TAGS_FILE
     if not path.is_file():
         return {}
     try:
         found = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise RegistryError(f"{path}: unreadable ({type(exc).__name__}); tag the models again") from None
+        raise ModelStoreError(f"{path}: unreadable ({type(exc).__name__}); tag the models again") from None
     if not isinstance(found, dict) or not all(isinstance(v, str) for v in found.values()):
-        raise RegistryError(f"{path}: not a mapping of tag → version; tag the models again")
+        raise ModelStoreError(f"{path}: not a mapping of tag → version; tag the models again")
     return found
 
 
@@ -367,3 +368,46 @@ def jsonable(value):
     if isinstance(value, Path):
         return str(value)
     return value
+
+
+@dataclass(frozen=True)
+class ModelStore:
+    """``<lab>/models/<name>/<version>/``: trained networks, content-addressed (``lab.models``)."""
+
+    root: LabPath
+
+    def path(self, name: str, version: str) -> LabPath:
+        """The folder of model ``name`` at ``version`` (whether or not it exists)."""
+        return self.root / name / version
+
+    def find(self, version: str) -> LabPath:
+        """The folder of ``version`` (a tag, a version id or a unique prefix of one)."""
+        return find(self.root, version)
+
+    def tags(self) -> dict[str, str]:
+        """Every tag: alias → full version id."""
+        return tags(self.root)
+
+    def tag(self, name: str, version: str) -> str:
+        """Point tag ``name`` at ``version``; the full version id."""
+        return tag(self.root, name, version)
+
+    def save(self, name: str, version: str, model: HybridNet, card: dict) -> LabPath:
+        """Publish a trained network and its card (``FileExistsError`` where that version is there)."""
+        return save_model(self.root, name, version, model, card)
+
+    def load(self, version: str) -> tuple[HybridNet, dict]:
+        """(network, card) of ``version``, every file checked against its card."""
+        return load_model(self.find(version))
+
+    def onnx(self, version: str) -> OnnxModel:
+        """The ONNX export of ``version`` on ONNX Runtime, every file checked against its card."""
+        return load_onnx(self.find(version))
+
+    def list(self) -> list[dict]:
+        """Every version, oldest first, then the damaged ones (:func:`list_models`)."""
+        return list_models(self.root)
+
+    def compare(self, versions: list[str]) -> pd.DataFrame:
+        """Versions side by side (:func:`compare`)."""
+        return compare(self.root, versions)

@@ -1,4 +1,4 @@
-"""pipeline.register: Kabsch–Umeyama, trimmed refits, and the tracker → base registration on the twin."""
+"""pipeline.registration: Kabsch–Umeyama, trimmed refits, and the tracker → base registration on the twin."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import pytest
 from twin_timeline import sessions, timeline, true_base_to_tracker
 
 from acquisition.recorder.sessions import SessionStore
-from pipeline.register import (
+from pipeline.registration import (
     ResidualStats,
     RigidTransform,
     TrackerRegistration,
