@@ -25,7 +25,7 @@ from pipeline.build import InlineExecutor
 from pipeline.dataset_store import DatasetError
 from pipeline.datasets import SPLIT_COLUMNS
 from pipeline.errors import PipelineError
-from pipeline.model_store import CARD, check_model, jsonable, load_card, metric, model_version
+from pipeline.model_store import CARD, TAG, check_model, jsonable, load_card, metric, model_version
 from pipeline.train import TrainConfig
 
 if TYPE_CHECKING:
@@ -135,8 +135,10 @@ def _check_model(entry, fail) -> None:
         preset(entry["direction"], entry["preset"])
     except KeyError as exc:
         fail(exc.args[0])
-    if unknown := sorted(set(entry) - {"direction", "preset", *NET_KEYS}, key=str):
-        fail(f"unknown field(s) {unknown} (a preset takes {list(NET_KEYS)})")
+    if unknown := sorted(set(entry) - {"direction", "preset", "tag", *NET_KEYS}, key=str):
+        fail(f"unknown field(s) {unknown} (a preset takes {list(NET_KEYS)}; any model a tag)")
+    if "tag" in entry and not (isinstance(entry["tag"], str) and TAG.fullmatch(entry["tag"])):
+        fail(f"tag: {entry['tag']!r}: expected a tag name (lower-case letters, digits, - and _)")
     hidden = entry.get("hidden", [1])
     if not isinstance(hidden, list) or not hidden or not all(_integer(h) and h >= 1 for h in hidden):
         fail(f"hidden: {hidden!r}: expected a [list] of layer widths (integers ≥ 1)")
@@ -164,7 +166,7 @@ def _kind(value) -> str:
 
 
 def _net(entry: dict) -> NetConfig:
-    entry = dict(entry)
+    entry = {k: v for k, v in entry.items() if k != "tag"}
     try:
         net = preset(entry.pop("direction"), entry.pop("preset"))
     except KeyError as exc:
@@ -180,6 +182,13 @@ def expand(lab: Lab, grid: dict) -> list[dict]:
     if unknown := sorted(set(train) - set(TRAIN_KEYS)):
         raise GridError(f"grid train: unknown fields {unknown} (known: {list(TRAIN_KEYS)})")
     jobs = []
+    tagged = [e["tag"] for e in grid.get("models", []) if "tag" in e]
+    if len(tagged) != len(set(tagged)):
+        raise GridError(f"grid models: a tag names one network, and {sorted(tagged)} repeat one")
+    each = len(grid.get("datasets", [])) * len(grid.get("splits", [0])) * len(grid.get("seeds", [0]))
+    if tagged and each > 1:
+        raise GridError("grid models: a tag names one network: tag the models of a grid of one dataset, "
+                        "one split and one seed")  # fmt: skip
     for spec in grid.get("datasets", []):
         try:
             dataset, dataset_version = lab.datasets.resolve(spec)
@@ -199,7 +208,7 @@ def expand(lab: Lab, grid: dict) -> list[dict]:
                     jobs.append({
                         "name": name, "version": model_version(dataset_version, config),
                         "dataset": {"name": dataset, "version": dataset_version}, "config": config.to_dict(),
-                    })  # fmt: skip
+                    } | ({"tag": entry["tag"]} if "tag" in entry else {}))  # fmt: skip
     return list({job["version"]: job for job in jobs}.values())  # the same job listed twice runs once
 
 
@@ -243,7 +252,8 @@ def run_grid(
     """Train every job of ``grid`` whose version is not in ``lab.models`` yet; one summary per job, in grid
     order (``status``: "trained" or "existing"). ``progress(done, total, summary)`` after each job.
     ``threads``: torch threads per job (default: this machine's cores shared among ``workers``; a cluster's
-    workers take 1 each)."""
+    workers take 1 each). A model of the grid with a ``tag`` gets it in ``lab.models`` once every job is
+    done (the main job's grid tags the networks the figures and Experiment 2 use)."""
     jobs = expand(lab, grid)
     results: dict[str, dict] = {}
     todo = []
@@ -276,4 +286,8 @@ def run_grid(
     finally:
         if own:
             executor.shutdown(cancel_futures=True)
+    for job in jobs:  # a tag moves only once the whole grid is trained
+        if "tag" in job:
+            lab.models.tag(job["tag"], job["version"])
+            results[job["version"]]["tag"] = job["tag"]
     return [results[job["version"]] for job in jobs]

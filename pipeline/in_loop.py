@@ -103,6 +103,14 @@ def learned_compensators(
     return learned
 
 
+def stored_compensators(models: ModelStore, version: str) -> Callable[[Plan], InverseModelCompensator]:
+    """The saved inverse network ``version`` (a tag or a unique prefix) of ``models`` as the runners' hybrid
+    commands (:func:`learned_compensators`, recorded as its full version id); errors as
+    :func:`stored_inverse`."""
+    model, identity = stored_inverse(models, version)
+    return learned_compensators({"hybrid": model}, identities={"hybrid": identity})
+
+
 def stored_inverse(models: ModelStore, version: str) -> tuple[OnnxModel, str]:
     """(model, full version id) of the saved inverse network ``version`` (a tag or a unique prefix) of
     ``models`` as the control loop runs it: its ONNX export on ONNX Runtime, every file checked against its

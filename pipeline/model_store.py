@@ -47,14 +47,10 @@ SHA256 = re.compile(r"[0-9a-f]{64}")
 VERSION = re.compile(r"[0-9A-Za-z][0-9A-Za-z_-]*")  # what `find` takes: a version id or a prefix of one
 TAGS_FILE = "tags.json"  # <lab>/models/tags.json: alias → version (`vslab models tag NAME VERSION`)
 TAG = re.compile(r"[a-z][a-z0-9_-]*")
-# The tags the main job gives the networks of configs/train/lab.yaml: Experiment 2 and the figures use them.
+# The tags the main job's grid (configs/train/lab.yaml) gives its networks: Experiment 2 and the figures use
+# them. FORWARD: Fig. 6's hybrid forward prediction; INVERSE: Experiment 2's hybrid commands.
 FORWARD, INVERSE = "forward", "inverse"
-LAB_TAGS = {
-    FORWARD: "forward-small-residual",  # Fig. 6's hybrid forward prediction
-    INVERSE: "inverse-small-residual",  # Experiment 2's hybrid commands
-    "forward-ensemble": "forward-ensemble-small-residual",
-    "forward-paper": "forward-paper",  # the paper's network, for the comparison
-}
+LAB_TAGS = (FORWARD, INVERSE, "forward-ensemble", "forward-paper")
 HEADLINE = ("tip_mean_mm",)  # the test metric a listing shows (the first one present)
 P95 = ("tip_p95_mm",)
 

@@ -212,6 +212,34 @@ def test_grid_errors_name_what_is_wrong(lab):
         run_grid(Lab(lab), load_grid(_grid(lab, models=[{"direction": "inverse", "preset": "huge"}])))
 
 
+def test_a_grid_tags_its_tagged_models_once_every_job_is_done(lab):
+    """`tag:` on a grid's model: that network gets the tag in the lab's models (the main job's grid tags what
+    the figures and Experiment 2 use); a tag that cannot name one network is refused before any training."""
+    models = [{"direction": "forward", "preset": "small-residual", "tag": "fwd", **TINY},
+              {"direction": "inverse", "preset": "paper", **TINY}]  # fmt: skip
+    results = run_grid(Lab(lab), load_grid(_grid(lab, models=models)), workers=1)
+    assert [r.get("tag") for r in results] == ["fwd", None]
+    assert Lab(lab).models.tags() == {"fwd": results[0]["version"]}
+    assert Lab(lab).models.find("fwd").name == results[0]["version"]
+    refused = {
+        "repeat one": {"models": [models[0], {**models[1], "tag": "fwd"}]},
+        "one split and one seed": {"models": models, "seeds": [0, 1]},
+        "expected a tag name": {"models": [{**models[0], "tag": "Fwd!"}]},
+    }
+    for says, grid in refused.items():
+        with pytest.raises(GridError, match=says):
+            run_grid(Lab(lab), load_grid(_grid(lab, **grid)), workers=1)
+
+
+def test_the_main_jobs_grid_tags_the_networks_the_figures_and_experiment2_find():
+    from pathlib import Path
+
+    from pipeline.model_store import LAB_TAGS
+
+    grid = load_grid(Path(__file__).resolve().parents[1] / "configs" / "train" / "lab.yaml")
+    assert sorted(m["tag"] for m in grid["models"] if "tag" in m) == sorted(LAB_TAGS)
+
+
 def test_cli_train_list_show_compare(lab):
     from vslab.cli import app
 

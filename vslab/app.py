@@ -245,13 +245,12 @@ def load_inverse_model(version: str, models: ModelStore | None = None):
 def inverse_compensators(version: str, models: ModelStore | None = None):
     """A saved inverse model of ``models`` (default: the CLI's lab's) as the runners' hybrid commands
     (``pipeline.in_loop.learned_compensators``); an unusable model is one error line."""
-    from pipeline.in_loop import learned_compensators, stored_inverse
+    from pipeline.in_loop import stored_compensators
 
     try:
-        model, identity = stored_inverse(models or options().lab.models, version)
+        return stored_compensators(models or options().lab.models, version)
     except (FileNotFoundError, ValueError) as exc:  # unknown, ambiguous, damaged, forward
         _error(f"--inverse-model {version}: {exc}")
-    return learned_compensators({"hybrid": model}, identities={"hybrid": identity})
 
 
 def inverse_model_version(version: str, models: ModelStore | None = None) -> str:

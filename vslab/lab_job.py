@@ -24,7 +24,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pipeline.lab import Lab
-from pipeline.model_store import INVERSE, LAB_TAGS
+from pipeline.model_store import INVERSE
 from pipeline.unmodelled import STUDY, STUDY_QUICK
 from vslab.app import CommandLineError
 
@@ -40,7 +40,7 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     from analysis.lab_figures import all_figures, lab_report
     from analysis.vsl_paths import path_errors
     from pipeline.grid import load_grid, run_grid
-    from pipeline.in_loop import learned_compensators, stored_inverse
+    from pipeline.in_loop import stored_compensators
     from pipeline.simulated import simulated_dataset
     from pipeline.unmodelled import unmodelled_study
     from twin.runner import simulate_experiment
@@ -83,14 +83,11 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
 
     step("training")  # the grid's forward and inverse networks on the campaign (existing versions skipped)
     grid = load_grid(LAB_GRID, {"datasets": [registration]})
-    trained = {r["name"]: r["version"] for r in run_grid(lab, grid)}
-    for tag, model in LAB_TAGS.items():  # the figures and Experiment 2 find them by these tags
-        lab.models.tag(tag, trained[model])
+    run_grid(lab, grid)  # its networks tagged: the figures and Experiment 2 find them by LAB_TAGS
     done("training")
 
     step("Experiment 2 with the trained inverse model")
-    model, identity = stored_inverse(lab.models, trained[LAB_TAGS[INVERSE]])
-    learned = learned_compensators({"hybrid": model}, identities={"hybrid": identity})
+    learned = stored_compensators(lab.models, INVERSE)
     simulated_dataset(lab, "experiment2", seed=seed, inverse_model=learned, registration_from=registration)
     done("Experiment 2 with the trained inverse model")
 

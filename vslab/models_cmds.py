@@ -102,6 +102,8 @@ def train(
                       _mm(r["test_mean_mm"]), _mm(r["test_p95_mm"]), str(r["epochs"]),
                       f"{r['train_time_s']:.1f}", r["status"])  # fmt: skip
     console.print(table)
+    if tagged := {r["tag"]: r["version"] for r in results if "tag" in r}:
+        console.print("tagged: " + ", ".join(f"{tag} → {version}" for tag, version in tagged.items()))
     trained = sum(r["status"] == "trained" for r in results)
     console.print(
         f"{trained} trained, {len(results) - trained} existing, in {time.perf_counter() - start:.1f} s"
