@@ -12,7 +12,7 @@ has no closed-form IK: POPUP),
 points), ``t`` (s since the session's start), ``split_random`` and ``split_group`` ("train" / "val" / "test").
 
 A dataset is written once under ``<lab>/datasets/<name>/<version>/`` (``data.parquet`` + ``card.json``); the
-version is the hash of its source sessions' hashes, the stage parameters and the code version, so building
+version is the hash of its sessions' content hashes, the stage parameters and the code version, so building
 unchanged inputs again gives the same version and writes nothing.
 """
 
