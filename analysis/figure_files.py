@@ -19,7 +19,7 @@ PNG_DPI = 150
 def save_figure(fig, out_dir: Path, stem: str, made_from: dict | None = None, tight: bool = False,
                 **details) -> Path:  # fmt: skip
     """``<out_dir>/<stem>.pdf``, ``.png`` (150 dpi) and ``.json`` (``figure``, ``made_from``: the versions or
-    sources shown, ``code_version``, and any ``details``); ``tight`` crops to the drawn area. A pyplot figure
+    sessions shown, ``code_version``, and any ``details``); ``tight`` crops to the drawn area. A pyplot figure
     is closed afterwards. Returns the PNG's path."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -211,7 +211,7 @@ def _popup(lab: Lab, res: Results, out: Path) -> None:
     curves = popup_tests.link_static_curves(static)
     fig = popup_tests.figure7(curves, out)
     assert fig, "no static curves to plot"
-    res.figures["popup_fig7"] = out / "fig7_popup_hysteresis.png"  # figure7 records its sources beside it
+    res.figures["popup_fig7"] = out / "fig7_popup_hysteresis.png"  # figure7 records its sessions beside it
     table = popup_tests.table1(popup_tests.static_stiffness(curves), popup_tests.impact_parameters(impact))
     res.tables["POPUP Table 1: ours (twin) / the paper's"] = popup_tests.table1_side_by_side(table)
     from analysis import popup_reach

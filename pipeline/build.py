@@ -156,20 +156,21 @@ def _session_stages(directory: Path, parameters: dict, cache: StageCache) -> dic
     """ingest → clean → sync → segment of the local session ``directory``, cached by its content."""
     from acquisition.schemas.session_card import readable_parts
     from pipeline.clean import clean
-    from pipeline.ingest import DAMAGED_CHUNKS, IngestError, ingest_session, source_hash
+    from pipeline.ingest import DAMAGED_CHUNKS, IngestError, content_hash, ingest_session
     from pipeline.segment import Stillness, repetitions, static_points
     from pipeline.sync import sync
 
     parts = readable_parts(directory)
     if not parts:
         raise IngestError(directory, "no MCAP parts (*.mcap)")
-    source = source_hash(parts)
+    content = content_hash(parts)
     session_params = {k: parameters[k] for k in ("clean", "segment")}
-    key = stage_key("session", [source], session_params)
+    key = stage_key("session", [content], session_params)
+    done = {"session": directory.name, "key": key, "content_hash": content}
     if cache.has("session", key):
         record = json.loads((cache.path("session", key) / RECORD).read_text())
         damaged = record["report"]["values"].get(DAMAGED_CHUNKS, [])
-        return {"session": directory.name, "key": key, "source": source, "cached": True, "damaged": damaged}
+        return done | {"cached": True, "damaged": damaged}
     s = ingest_session(directory)
     s = clean(s, **parameters["clean"])
     s, timeline = sync(s)
@@ -177,12 +178,12 @@ def _session_stages(directory: Path, parameters: dict, cache: StageCache) -> dic
     points = static_points(timeline, s.events, s.t0_ns, stillness=still, report=s.report)
     timeline = timeline.assign(repetition=repetitions(timeline, s.events, s.t0_ns))
     trajectory = timeline[timeline["repetition"] >= 0]
-    record = {"session": directory.name, "robot": s.robot.name, "source": source,
+    record = {"session": directory.name, "robot": s.robot.name, "content_hash": content,
               "robot_description": s.robot.model_dump_json(), "report": s.report.as_dict(),
               "metadata": {k: v for k, v in s.metadata.items() if k != "robot_description"}}  # fmt: skip
     cache.store("session", key, {"static": points, "trajectory": trajectory}, record)
     damaged = s.report.values.get(DAMAGED_CHUNKS, [])
-    return {"session": directory.name, "key": key, "source": source, "cached": False, "damaged": damaged}
+    return done | {"cached": False, "damaged": damaged}
 
 
 def _reason(exc: BaseException) -> str:
@@ -227,7 +228,7 @@ def build(
     results.sort(key=lambda r: r["session"])
     good = [r for r in results if "error" not in r]
     failed = {r["session"]: r["error"] for r in results if "error" in r}
-    made_from = {r["session"]: r["source"] for r in good}
+    made_from = {r["session"]: r["content_hash"] for r in good}
     version = datasets.dataset_version(made_from, params)
     report = BuildReport(name, version, lab.datasets.path(name, version), False, sorted(made_from), failed,
                          sum(bool(r.get("cached")) for r in good))  # fmt: skip
@@ -318,8 +319,9 @@ def _in_base_frame(rows: pd.DataFrame, registration: Registration) -> pd.DataFra
 
 def _session_card(record: dict) -> dict:
     report = record["report"]
-    return {"source": record["source"], "removed": report["removed"], "warnings": report["warnings"],
-            "values": report["values"], "experiment": record["metadata"].get("experiment", "")}  # fmt: skip
+    return {"content_hash": record["content_hash"], "removed": report["removed"],
+            "warnings": report["warnings"], "values": report["values"],
+            "experiment": record["metadata"].get("experiment", "")}  # fmt: skip
 
 
 def _registration_card(registration: Registration) -> dict:

@@ -11,7 +11,7 @@ has no closed-form IK: POPUP),
 ``experiment1/curve/vsl-1bar/25g``), ``point`` (static point number or −1), ``repetition`` (−1 for static
 points), ``t`` (s since the session's start), ``split_random`` and ``split_group`` ("train" / "val" / "test").
 
-The version of a dataset is the hash of its source sessions' hashes, the stage parameters and the code version
+A dataset's version is the hash of its sessions' content hashes, the stage parameters and the code version
 (:func:`dataset_version`), so building unchanged inputs again gives the same version and writes nothing; the
 lab's store of them is ``pipeline.dataset_store``.
 """

@@ -68,11 +68,11 @@ def quantized(onnx: bytes) -> bytes:
     quiet = logging.getLogger()  # it suggests a pre-processing pass on the root logger at every call
     level = quiet.level
     with tempfile.TemporaryDirectory(prefix="vslab-int8-") as tmp:
-        source, target = Path(tmp) / "float.onnx", Path(tmp) / "int8.onnx"
-        source.write_bytes(onnx)
+        plain, target = Path(tmp) / "float.onnx", Path(tmp) / "int8.onnx"
+        plain.write_bytes(onnx)
         try:
             quiet.setLevel(logging.ERROR)
-            quantize_dynamic(source, target, per_channel=True, weight_type=QuantType.QInt8)
+            quantize_dynamic(plain, target, per_channel=True, weight_type=QuantType.QInt8)
         finally:
             quiet.setLevel(level)
         return target.read_bytes()

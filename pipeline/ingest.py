@@ -72,7 +72,7 @@ class _Part:
     topics: set[str] = field(default_factory=set)
 
 
-def source_hash(parts: Iterable[Path]) -> str:
+def content_hash(parts: Iterable[Path]) -> str:
     """sha256 over the parts' bytes, in order (streamed)."""
     return file_hash(parts)
 
@@ -111,7 +111,7 @@ def ingest_session(directory: Path, generic_topics: Collection[str] = ()) -> Ses
         streams=streams,
         events=events,
         report=report,
-        source_hash=source_hash(parts),
+        content_hash=content_hash(parts),
     )
 
 

@@ -163,13 +163,13 @@ class Registration(Estimator):
 
 class FixedRegistration(Registration):
     """A registration fitted elsewhere (another dataset of the same setup), applied as it is:
-    ``FixedRegistration(base_to_tracker, source).fit()`` takes the placement a dataset card recorded (4×4,
-    base → tracker) and learns ``transform_`` (tracker → base). ``fit`` takes the points of the estimator
-    contract and ignores them: nothing is learned from this dataset's points."""
+    ``FixedRegistration(base_to_tracker, from_dataset).fit()`` takes the placement a dataset card recorded
+    (4×4, base → tracker) and learns ``transform_`` (tracker → base). ``fit`` takes the points of the
+    estimator contract and ignores them: nothing is learned from this dataset's points."""
 
-    def __init__(self, base_to_tracker: ArrayLike | None = None, source: str = "") -> None:
+    def __init__(self, base_to_tracker: ArrayLike | None = None, from_dataset: str = "") -> None:
         self.base_to_tracker = base_to_tracker
-        self.source = source
+        self.from_dataset = from_dataset
 
     def fit(self, points: pd.DataFrame | None = None) -> FixedRegistration:
         placement = np.asarray(self.base_to_tracker, float)
@@ -180,7 +180,7 @@ class FixedRegistration(Registration):
 
     def summary(self) -> dict:
         """JSON-ready: the placement and the dataset it came from."""
-        return {"base_to_tracker": self.placement(), "from_dataset": self.source}
+        return {"base_to_tracker": self.placement(), "from_dataset": self.from_dataset}
 
 
 class TrackerRegistration(Registration):

@@ -46,12 +46,12 @@ def interpolate(t_src: np.ndarray, values: np.ndarray, t_query: np.ndarray, max_
     return out
 
 
-def resample(t_query: np.ndarray, sources: Mapping[str, tuple[np.ndarray, np.ndarray]],
+def resample(t_query: np.ndarray, series: Mapping[str, tuple[np.ndarray, np.ndarray]],
              gap_periods: float = 3.0) -> pd.DataFrame:  # fmt: skip
-    """Columns ``sources[name] = (t, values (n,) or (n, k))`` interpolated at ``t_query``: one column
+    """Columns ``series[name] = (t, values (n,) or (n, k))`` interpolated at ``t_query``: one column
     ``name`` (k = 1) or ``name_<i>``. A gap is longer than ``gap_periods`` median sample periods."""
     out: dict[str, np.ndarray] = {"t": np.asarray(t_query, dtype=float)}
-    for name, (t, values) in sources.items():
+    for name, (t, values) in series.items():
         t, values = np.asarray(t, dtype=float), np.asarray(values, dtype=float)
         scalar = values.ndim == 1
         values = values.reshape(len(t), -1)
@@ -106,18 +106,18 @@ def timeline(session: SessionTables, gap_periods: float = 3.0) -> pd.DataFrame:
     tracker = session.streams.get(T.TRACKER)
     if tracker is None or "t" not in tracker.columns:
         raise ValueError(f"session {session.session_id}: no synced tracker stream to put the timeline on")
-    sources: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    series: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     for topic, (prefix, fields) in timeline_fields(session.robot).items():
         df = session.streams.get(topic)
         if df is None or "t" not in df.columns or not len(df):
             continue
         for name in fields:
             try:
-                sources[prefix + name] = (df["t"].to_numpy(), columns(df, name))
+                series[prefix + name] = (df["t"].to_numpy(), columns(df, name))
             except KeyError:
                 continue
     frame_t = tracker["t"].to_numpy(dtype=float)
-    out = resample(frame_t, sources, gap_periods)
+    out = resample(frame_t, series, gap_periods)
     goals = session.streams.get(T.SERVO_GOAL)
     if goals is not None and len(goals) and "t" in goals.columns:  # commands hold until the next one
         held = hold_last(goals["t"].to_numpy(float), columns(goals, "position"), frame_t)

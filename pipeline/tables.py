@@ -67,7 +67,7 @@ class SessionTables:
     streams: dict[str, pd.DataFrame]
     events: pd.DataFrame
     report: StageReport = field(default_factory=StageReport)
-    source_hash: str = ""  # content hash of the session's MCAP parts (ingest sets it)
+    content_hash: str = ""  # content hash of the session's MCAP parts (ingest sets it)
 
     @property
     def t0_ns(self) -> int:

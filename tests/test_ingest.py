@@ -18,7 +18,7 @@ from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
 from pipeline.clean import OUTLIER, clean
-from pipeline.ingest import IngestError, ingest_session, source_hash
+from pipeline.ingest import IngestError, content_hash, ingest_session
 from pipeline.tables import EVENT_COLUMNS
 from twin.runner import session_id, simulate
 
@@ -67,7 +67,7 @@ def test_simulated_session_gives_one_table_per_topic(session, vsl):
     assert list(tables.events.columns) == list(EVENT_COLUMNS) and len(tables.events) == len(events)
     assert counters[T.EVENTS]["written"] == len(events)
     assert "moved" in set(tables.events["text"]) and EventKind.NOTE in set(tables.events["kind"])
-    assert tables.source_hash == source_hash([_part(session)]) and len(tables.source_hash) == 64
+    assert tables.content_hash == content_hash([_part(session)]) and len(tables.content_hash) == 64
     assert "robot_description" not in tables.metadata and tables.metadata["experiment"] == "short"
 
 

@@ -172,10 +172,20 @@ def hysteresis_curves(root):
     """Figure 7's sessions: the configured twin, 3 runs."""
     # the heaviest masses ring at ≈ 3.5 Hz with ζ ≈ 0.015 (c/2I ≈ 0.3 /s): settle as the protocol does
     fig7 = STATIC | {"pressures_kpa": [20, 40], "repetitions": 3, "settle_s": 5.0, "hold_s": 1.0}
-    # seed 10: with each device's own noise, the peak of these 3 runs' mean curve sits within the 0.2 mrad of
-    # the model below (seeds 1-9 put it 0.25-0.46 mrad above; the shared generator's seed 7 put it 0.19)
-    simulate_experiment("popup_static", SessionStore(root / "hysteresis"), seed=10, overrides=fig7)
+    simulate_experiment("popup_static", SessionStore(root / "hysteresis"), seed=SEED, overrides=fig7)
     return pt.link_static_curves(_sessions(root / "hysteresis"))
+
+
+def _noise_bound(arm_m: float, hold_s: float, runs: int, k: float = 4.0) -> float:
+    """k standard errors (rad) of a mean point of the curves from the tracker noise the twin draws.
+
+    A point's δ is (z₀ − z)/arm: z the tracker's mean height over a hold (n = hold_s · frame rate frames, each
+    with σ = noise_m, so σ/√n), averaged over the runs; z₀ the session's first hold, one for every run. So
+    σ_δ = noise_m / (arm √n) · √(1/runs + 1): 0.25 mm, 40 frames, 0.59 m, 3 runs → 0.077 mrad. With k = 4,
+    each of the 26 points stays inside by chance with probability 1 − 6.3e-5 (all 26: 99.8 %)."""
+    tracker = load_robot("popup").sensors.tracker
+    n = hold_s * tracker.frame_rate_hz
+    return k * tracker.noise_m / (arm_m * np.sqrt(n)) * np.sqrt(1.0 / runs + 1.0)
 
 
 def test_static_curves_follow_the_link_model(hysteresis_curves, link2):
@@ -190,7 +200,16 @@ def test_static_curves_follow_the_link_model(hysteresis_curves, link2):
         torque = np.concatenate([[own], np.tile(one, 3)])
         delta = prbm.static_loading_curve(torque, k, 0.00436, 1.8, m_w)[1:]
         model = (delta - delta[0]).reshape(3, -1).mean(axis=0)
-        np.testing.assert_allclose(c["delta_rad"], model, atol=2e-4)  # tracker noise over the holds
+        residual = c["delta_rad"].to_numpy() - model
+        bound = _noise_bound(c["arm_m"].iloc[0], hold_s=1.0, runs=3)
+        # The loop's peak (the heaviest load, on the wrinkled link) is not noise-limited: seeds 0-10 put
+        # it 0.19-0.46 mrad above the quasi-static model at 40 kPa (mean 0.28, spread the noise's 0.08), the
+        # twin's settling there, which the quasi-static model does not have. It is held one-sided, within
+        # half the configured loop (δ_h/2 = 2.2 mrad) above: a top further off would be another loop.
+        peak = one == one.max()
+        assert np.abs(residual[~peak]).max() <= bound, (p, residual * 1e3, bound * 1e3)
+        half_loop = 0.00436 / 2  # δ_h / 2 (configs/robots/popup.yaml)
+        assert -bound <= residual[peak].min() <= residual[peak].max() <= bound + half_loop, p
         top = c["torque_nm"] > m_w
         gap = np.interp(
             one[top][0], one[one.argmax() :][::-1], c["delta_rad"].to_numpy()[one.argmax() :][::-1]

@@ -347,8 +347,8 @@ def build(
             _fail("a build worker process died (out of memory?): try fewer --workers")
     wall = time.perf_counter() - start
     what = "built" if report.built else "already built (nothing to do)"
-    sources = f"{len(report.sessions)} sessions ({report.cached} cached)"
-    line = f"dataset {name} {report.version}: {what}, {report.rows:,} rows from {sources} in {wall:.1f} s"
+    inputs = f"{len(report.sessions)} sessions ({report.cached} cached)"
+    line = f"dataset {name} {report.version}: {what}, {report.rows:,} rows from {inputs} in {wall:.1f} s"
     console.print(line, soft_wrap=True)
     console.print(f"  → {report.path}", soft_wrap=True, highlight=False, markup=False)
     for session, lines in sorted(report.damaged.items()):  # its other chunks built; these messages are lost

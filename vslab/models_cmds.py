@@ -351,16 +351,16 @@ def compare_models_command(
         except (OSError, ValueError) as exc:
             _error(f"{option} {reference}: cannot be read ({type(exc).__name__}: {exc}); build it again")
         loaded[option] = (data, f"{name}@{card['version']}")
-    data, source = loaded["DATASET"]
-    if "--repeat" in loaded and loaded["--repeat"][1] == source:
-        _error(f"--repeat {repeat}: is DATASET itself ({source}); the repeat is the campaign run again")
+    data, dataset_ref = loaded["DATASET"]
+    if "--repeat" in loaded and loaded["--repeat"][1] == dataset_ref:
+        _error(f"--repeat {repeat}: is DATASET itself ({dataset_ref}); the repeat is the campaign run again")
     robots = sorted(set(data["robot"].astype(str))) if "robot" in data else []
     try:
         robot = load_robot(robots[0]) if len(robots) == 1 else None
     except RobotDescriptionError as exc:
-        _error(f"DATASET {source}: {exc}")
+        _error(f"DATASET {dataset_ref}: {exc}")
     if robot is None or not isinstance(robot.kinematics, AnthropomorphicKinematics):
-        _error(f"DATASET {source}: robot(s) {robots}: the comparison needs one VSL-type arm's campaign")
+        _error(f"DATASET {dataset_ref}: robot(s) {robots}: the comparison needs one VSL-type arm's campaign")
     lengths = arm_lengths(robot)
     repeat_data = loaded["--repeat"][0] if "--repeat" in loaded else None
     say = (
@@ -372,13 +372,13 @@ def compare_models_command(
         nets: dict = {}
         table = compare_models(data, lengths, repeat_data, split, {"max_epochs": epochs}, seed, say, nets)
     except (KeyError, ValueError) as exc:  # not a campaign, a repeat of another campaign, too few rows
-        _error(f"{source}: {exc}")
-    made_from = {"dataset": source} | ({"repeat": loaded["--repeat"][1]} if "--repeat" in loaded else {})
+        _error(f"{dataset_ref}: {exc}")
+    made_from = {"dataset": dataset_ref} | ({"repeat": loaded["--repeat"][1]} if "--repeat" in loaded else {})
     made_from["training"] = json.dumps({"max_epochs": epochs, "seed": seed})
-    name, _, version = source.partition("@")
+    name, _, version = dataset_ref.partition("@")
     dataset = {"name": name, "version": version}
     saved = save_compared(lab.models, data, dataset, table, nets, made_from)
-    path = lab.comparisons.path(source)
+    path = lab.comparisons.path(dataset_ref)
     models = [{"name": p.parent.name, "version": p.name} for p in saved]
     save_comparison(path, table, made_from, split, {"models": models})
     console.print(comparison_markdown(table), highlight=False, markup=False, soft_wrap=True)
