@@ -1,5 +1,5 @@
-"""Which sessions a lab holds: the one place the pipeline and the figures choose sessions by experiment and
-runner, from each folder's ``session.json`` (a damaged folder is named with its reason, never joined)."""
+"""The sessions of one experiment for the pipeline and the figures: ``SessionStore.select`` with each damaged
+folder named in the log (never joined), and the error a damaged session raises, for the layers above."""
 
 from __future__ import annotations
 
@@ -7,25 +7,11 @@ import logging
 from pathlib import Path
 
 from acquisition.recorder.sessions import SessionStore
-from acquisition.schemas.session_files import SessionError, SessionInfo, read_card, session_info
+from acquisition.schemas.session_files import SessionError
 
-__all__ = ["SessionError", "experiment_sessions", "read_session", "sessions_of"]
+__all__ = ["SessionError", "sessions_of"]
 
 log = logging.getLogger(__name__)
-
-
-def experiment_sessions(
-    root: Path, experiment: str, runner: str | None = None, pattern: str = "*"
-) -> tuple[list[Path], dict[str, str]]:
-    """The session folders under ``root`` (a lab's ``sessions/``) matching ``pattern`` of ``experiment``
-    ("all": every one), of ``runner`` ("simulated", "real-time") if given, in name order; and the folders
-    that are not readable sessions, each with why (:meth:`SessionStore.select`)."""
-    return SessionStore(root).select(experiment, runner, pattern)
-
-
-def read_session(directory: Path) -> tuple[dict, SessionInfo]:
-    """(card, what its parts hold) of one session; ``SessionError`` for a damaged one."""
-    return read_card(directory), session_info(directory)
 
 
 def sessions_of(sessions: SessionStore, experiment: str, runner: str | None = None) -> list[Path]:

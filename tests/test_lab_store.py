@@ -164,8 +164,8 @@ def test_a_half_uploaded_entry_is_never_visible(s3, monkeypatch):
 
 
 def test_a_model_or_session_without_its_manifest_is_not_listed(s3):
+    from acquisition.recorder.sessions import SessionStore
     from pipeline.model_store import list_models
-    from pipeline.session_index import experiment_sessions
 
     lab = lab_path("s3://lab/partial")
     (lab / "models" / "forward-x" / "0123abcd").mkdir(parents=True, exist_ok=True)
@@ -173,7 +173,7 @@ def test_a_model_or_session_without_its_manifest_is_not_listed(s3):
     (lab / "sessions" / "sim-a").mkdir(parents=True, exist_ok=True)
     (lab / "sessions" / "sim-a" / "sim-a_000.mcap").write_bytes(b"half")
     assert list_models(lab / "models") == []
-    assert experiment_sessions(lab / "sessions", "all") == ([], {})  # not even named as damaged: in transit
+    assert SessionStore(lab / "sessions").select("all") == ([], {})  # not even named as damaged: in transit
 
 
 def test_publish_keeps_what_another_writer_published_first(s3):

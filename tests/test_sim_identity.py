@@ -18,7 +18,6 @@ from typer.testing import CliRunner
 from acquisition.recorder.sessions import SessionStore, list_sessions, read_card, session_info
 from acquisition.schemas.session_card import SESSION_CARD
 from models.robot import CONFIG_DIR, load_robot
-from pipeline.session_index import experiment_sessions
 from twin.identity import IDENTITY, StaleSessionsError, robot_sha256
 from twin.runner import simulate_experiment
 from vslab.cli import app
@@ -136,7 +135,7 @@ def test_a_session_of_an_older_vslab_is_read_and_built_but_not_reused(popup_lab,
     del card[IDENTITY]
     (session / SESSION_CARD).write_text(json.dumps(card, indent=2) + "\n")
     assert session_info(session).status == "complete" and len(list_sessions(lab / "sessions")) == 1
-    selected, bad = experiment_sessions(lab / "sessions", "popup_impact")
+    selected, bad = SessionStore(lab / "sessions").select("popup_impact")
     assert selected == [session] and not bad
     before = _files(lab / "sessions")
     _refused(_simulate(lab), "differs: unknown (no identity recorded: an older vslab)")
