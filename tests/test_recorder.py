@@ -106,19 +106,21 @@ def test_a_session_meets_its_rates_loses_nothing_and_its_file_agrees(
 
 
 def test_rate_override_sets_the_servo_poll_rate(host_factory, tmp_path, vsl, real_time):
-    """``rates=`` (``vslab record --rate servo_bus=500``) polls the bus at that rate, not the description's
-    400 Hz. (How fast the bus can be polled is bench/record.py's to measure: 1.5 kHz, tried here before, sat
-    at the edge of what the 2-core machine gave and lost slots when it was busy.)"""
+    """``rates=`` (``vslab record --rate servo_bus=250``) polls the bus at that rate, not the description's
+    400 Hz. (How fast the bus can be polled is bench/bus.py's to measure. 500 Hz, asked here while the rig
+    answered at once, is now 85 % of the wire's ceiling at 1 Mbaud behind a 1 ms latency timer, and the
+    host's own time per read on a busy 2-core machine pushes it past its slot: 250 Hz, below the
+    description's rate as the override's point is a rate other than it.)"""
     with host_factory(**RIG) as ports:
-        with Recorder(vsl, ports, tmp_path / "s", "slow", rates={"servo_bus": 500}) as rec:
+        with Recorder(vsl, ports, tmp_path / "s", "slow", rates={"servo_bus": 250}) as rec:
             time.sleep(3.0)
     real_time()
     c = rec.final[T.SERVO_STATE]
     assert c["lost"] == 0 and c["expected"] == c["written"]
     assert file_account(readable_parts(tmp_path / "s"), vsl)[T.SERVO_STATE]["rate_hz"] == pytest.approx(
-        500, rel=0.01
+        250, rel=0.01
     )
-    assert json.loads(_card(tmp_path / "s")["rates_hz"])["servo_bus"] == 500
+    assert json.loads(_card(tmp_path / "s")["rates_hz"])["servo_bus"] == 250
 
 
 def _plug_pressure_board_back(run_dir: Path, rec: Recorder) -> None:

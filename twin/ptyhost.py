@@ -327,21 +327,19 @@ class PtyHost:
             sel.close()
 
     def _emit_due(self, now: float) -> float | None:
-        """Write every plugged emulator's output that is due by ``now``; the earliest next due time."""
-        earliest = None
-        for port in self.ports.values():
-            if port.faults.unplugged:
-                continue
+        """Write every plugged emulator's output that is due by ``now``; the earliest next due time. Replies
+        already on the wire go out first: a stream's next sample (which may step the twin) waits for them."""
+        plugged = [port for port in self.ports.values() if not port.faults.unplugged]
+        times = [port.deliver(now) for port in plugged]
+        for port in plugged:
             emulator = port.emulator
             due = emulator.next_output_s(now)
             if due is not None and due <= now:
                 port.send(emulator.poll(now), now, client_baud(port.master))
                 due = emulator.next_output_s(now)
-            queued = port.deliver(now)
-            for when in (due, queued):
-                if when is not None and (earliest is None or when < earliest):
-                    earliest = when
-        return earliest
+                times.append(port.deliver(now))
+            times.append(due)
+        return min((t for t in times if t is not None), default=None)
 
     def _sync_registrations(self, sel: selectors.BaseSelector, registered: dict[str, int]) -> None:
         for name, port in self.ports.items():
