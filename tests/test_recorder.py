@@ -36,7 +36,9 @@ DEVICE = {
     T.TRACKER: "tracker",
 }
 SLOT_NUMBERED = {T.SERVO_STATE}  # numbered by poll slot: the numbers go on across a gap
-RATES = {T.SERVO_STATE: 1000.0, T.PRESSURE: 250.0, T.STEPPER: 100.0, T.TRACKER: 40.0}
+# the servo bus at the description's 400 Hz (it was 1 kHz, more than a real 1 Mbaud bus behind a 1 ms
+# latency timer carries: its ceiling is 588 Hz, and the rig now keeps the wire's timing)
+RATES = {T.SERVO_STATE: 400.0, T.PRESSURE: 250.0, T.STEPPER: 100.0, T.TRACKER: 40.0}
 
 
 def file_account(parts: list[Path], robot) -> dict[str, dict]:
@@ -83,7 +85,7 @@ def _events(directory: Path) -> list[tuple[int, Event]]:
 def test_a_session_meets_its_rates_loses_nothing_and_its_file_agrees(
     host_factory, tmp_path, vsl, ros2_agrees, real_time
 ):
-    """Servo 1 kHz, pressure 250 Hz, stepper 100 Hz, tracker 40 Hz: every sample expected is received and
+    """Servo 400 Hz, pressure 250 Hz, stepper 100 Hz, tracker 40 Hz: every sample expected is received and
     written; the account computed from the file with the mcap reader equals session.json's; the generic
     ROS 2 decoder reads every message as the fast path does. VSLAB_RECORD_S sets the length (default 8 s)."""
     seconds = float(os.environ.get("VSLAB_RECORD_S", "8"))
@@ -104,19 +106,21 @@ def test_a_session_meets_its_rates_loses_nothing_and_its_file_agrees(
 
 
 def test_rate_override_sets_the_servo_poll_rate(host_factory, tmp_path, vsl, real_time):
-    """``rates=`` (``vslab record --rate servo_bus=500``) polls the bus at that rate, not the description's
-    1 kHz. (How fast the bus can be polled is bench/record.py's to measure: 1.5 kHz, tried here before, sat
-    at the edge of what the 2-core machine gave and lost slots when it was busy.)"""
+    """``rates=`` (``vslab record --rate servo_bus=250``) polls the bus at that rate, not the description's
+    400 Hz. (How fast the bus can be polled is bench/bus.py's to measure. 500 Hz, asked here while the rig
+    answered at once, is now 85 % of the wire's ceiling at 1 Mbaud behind a 1 ms latency timer, and the
+    host's own time per read on a busy 2-core machine pushes it past its slot: 250 Hz, below the
+    description's rate as the override's point is a rate other than it.)"""
     with host_factory(**RIG) as ports:
-        with Recorder(vsl, ports, tmp_path / "s", "slow", rates={"servo_bus": 500}) as rec:
+        with Recorder(vsl, ports, tmp_path / "s", "slow", rates={"servo_bus": 250}) as rec:
             time.sleep(3.0)
     real_time()
     c = rec.final[T.SERVO_STATE]
     assert c["lost"] == 0 and c["expected"] == c["written"]
     assert file_account(readable_parts(tmp_path / "s"), vsl)[T.SERVO_STATE]["rate_hz"] == pytest.approx(
-        500, rel=0.01
+        250, rel=0.01
     )
-    assert json.loads(_card(tmp_path / "s")["rates_hz"])["servo_bus"] == 500
+    assert json.loads(_card(tmp_path / "s")["rates_hz"])["servo_bus"] == 250
 
 
 def _plug_pressure_board_back(run_dir: Path, rec: Recorder) -> None:
