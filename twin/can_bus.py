@@ -4,8 +4,16 @@ A node puts frames up for transmission (ready from a time on); when the bus fall
 identifier among the frames ready then wins arbitration (as dominant bits do on a real bus) and occupies the
 bus for its exact length (``codecs.can.frame_bits``, stuff bits included); at its end every other node
 receives it and may answer (an SDO reply, the PDOs a SYNC triggers). The bus counts what it carried, so its
-load is measured, not estimated. ``bus_off`` stands for a bus that carries nothing (a short, a missing
-terminator, a controller in bus-off): frames offered then are lost, and the nodes see nothing.
+load is measured, not estimated.
+
+Frames offered while the bus is busy wait in their node's transmit queue, which is finite (``tx_queue``
+frames: a CAN controller's mailboxes, or an adapter's firmware buffer). A bus offered more than it can
+carry (over 100 % load) therefore delays frames, the highest identifiers longest, and once a node's queue is
+full the frames it offers next are lost: counted by the bus (``lost``, ``dropped`` per node) and told to the
+node (``tx_dropped``), as a controller's transmit-overflow flag does. Frames that waited behind others and
+lost arbitration are counted too (``delayed``, ``arbitration_lost``), as is the longest wait. ``bus_off``
+stands for a bus that carries nothing (a short, a missing terminator, a controller in bus-off): frames
+offered then are lost, and the nodes see nothing.
 
 Event-driven: ``run_until(t)`` plays the bus forward to rig time ``t``; ``next_event_s`` says when anything
 next happens, so the pty host sleeps until then.
@@ -27,6 +35,9 @@ class CanNode:
 
     name = "node"
     silent = False  # a node without power or cut off: it neither sends nor receives
+    # frames waiting to be sent at most (ASSUMED: a CAN controller's three transmit mailboxes, as in the
+    # STM32 bxCAN of most drives' and boards' microcontrollers, with no software queue behind them)
+    tx_queue = 3
 
     def receive(self, frame: CanFrame, t: float) -> list[tuple[float, CanFrame]]:
         return []
@@ -39,15 +50,26 @@ class CanNode:
         """Its own frames due at or before ``t``."""
         return []
 
+    def tx_dropped(self, frame: CanFrame, t: float) -> None:
+        """``frame`` was lost at ``t``: this node's transmit queue was full."""
+
+    def lost_arbitration(self, frame: CanFrame, t: float) -> None:
+        """``frame`` was ready when the bus fell idle at ``t`` but a lower identifier won it."""
+
 
 @dataclass
 class BusCounters:
-    """What the bus carried since it started: frames, bits, busy time, frames lost while bus-off."""
+    """What the bus carried since it started: frames, bits, busy time; frames lost (a full transmit queue
+    or a bus-off), frames that waited for the bus, frames that lost an arbitration (once each, however
+    many they lost), and the longest wait."""
 
     frames: int = 0
     bits: int = 0
     busy_s: float = 0.0
     lost: int = 0
+    delayed: int = 0
+    arbitration_lost: int = 0
+    max_wait_s: float = 0.0
 
 
 class CanBus:
@@ -61,18 +83,29 @@ class CanBus:
         self.counters = BusCounters()
         self._pending: list[tuple[float, int, int, CanFrame, CanNode]] = []  # ready, id, order, frame, sender
         self._order = itertools.count()
+        self.queued: dict[int, int] = {}  # id(node) → its frames waiting
+        self._lost_once: set[int] = set()  # the waiting frames that lost an arbitration already
+        self.dropped: dict[str, int] = {}  # node name → frames lost on its full transmit queue
 
     def attach(self, node: CanNode) -> None:
         self.nodes.append(node)
 
-    def offer(self, node: CanNode, ready_s: float, frame: CanFrame) -> None:
-        """``node`` wants to send ``frame`` from ``ready_s`` on."""
+    def offer(self, node: CanNode, ready_s: float, frame: CanFrame) -> bool:
+        """``node`` wants to send ``frame`` from ``ready_s`` on: False if it is lost (a silent node, a bus-off
+        bus, or the node's transmit queue full)."""
         if node.silent:
-            return
+            return False
         if self.bus_off:
             self.counters.lost += 1
-            return
+            return False
+        if self.queued.get(id(node), 0) >= node.tx_queue:
+            self.counters.lost += 1
+            self.dropped[node.name] = self.dropped.get(node.name, 0) + 1
+            node.tx_dropped(frame, ready_s)
+            return False
+        self.queued[id(node)] = self.queued.get(id(node), 0) + 1
         heapq.heappush(self._pending, (ready_s, frame.can_id, next(self._order), frame, node))
+        return True
 
     def next_event_s(self) -> float | None:
         """Rig time of the next thing that happens on the bus (a frame's end, a node's own frame)."""
@@ -84,17 +117,25 @@ class CanBus:
         return min(due) if due else None
 
     def run_until(self, t: float) -> None:
-        """Play the bus up to rig time ``t``: every frame that ends by then is delivered."""
+        """Play the bus up to rig time ``t``: every frame that ends by then is delivered. Nodes' own frames
+        are offered at their due times, in order with the frames' ends, so a late call does not fill a
+        transmit queue the bus would have drained meanwhile."""
         while True:
-            self._collect(t)
-            if not self._pending:
+            start = max(self.free_at, self._pending[0][0]) if self._pending else None
+            if self._collect(t if start is None else min(t, start)):
+                continue
+            if start is None:
                 return
             start, winner = self._arbitrate()
             end = start + self._duration(winner[3])
+            while self._collect(min(end, t)):  # due while the frame is on the bus: they wait in their queues
+                pass
             if end > t:
                 return
             self._pending.remove(winner)
             heapq.heapify(self._pending)
+            self.queued[id(winner[4])] -= 1
+            self._count_waits(start, winner)
             self.free_at = end
             self._deliver(winner[3], winner[4], start, end)
 
@@ -104,17 +145,33 @@ class CanBus:
         start = max(self.free_at, self._pending[0][0])
         return start, min((p for p in self._pending if p[0] <= start), key=lambda p: (p[1], p[2]))
 
+    def _count_waits(self, start: float, winner: tuple) -> None:
+        """The winner's wait for the bus, and every frame ready at ``start`` that lost to it."""
+        c = self.counters
+        wait = start - winner[0]
+        if wait > 0:
+            c.delayed += 1
+            c.max_wait_s = max(c.max_wait_s, wait)
+        self._lost_once.discard(winner[2])
+        for ready, _id, order, frame, node in self._pending:
+            if ready <= start and order not in self._lost_once:  # each frame counted once, however long
+                self._lost_once.add(order)
+                c.arbitration_lost += 1
+                node.lost_arbitration(frame, start)
+
     def _duration(self, frame: CanFrame) -> float:
         return frame_bits(frame) / self.bitrate
 
-    def _collect(self, t: float) -> None:
-        for node in self.nodes:
-            if node.silent:
-                continue
-            due = node.next_due_s()
-            if due is not None and due <= t:
-                for ready, frame in node.produce(t):
-                    self.offer(node, ready, frame)
+    def _collect(self, t: float) -> bool:
+        """Offer the frames of the node next due, if that is at or before ``t``; False if none is."""
+        due = [(d, k) for k, n in enumerate(self.nodes) if not n.silent and (d := n.next_due_s()) is not None]
+        if not due or min(due)[0] > t:
+            return False
+        when, k = min(due)
+        node = self.nodes[k]
+        for ready, frame in node.produce(when):
+            self.offer(node, ready, frame)
+        return True
 
     def _deliver(self, frame: CanFrame, sender: CanNode, start: float, end: float) -> None:
         bits = frame_bits(frame)
@@ -134,3 +191,5 @@ class CanBus:
         if off:
             self.counters.lost += len(self._pending)
             self._pending.clear()
+            self.queued.clear()
+            self._lost_once.clear()
