@@ -180,6 +180,17 @@ def test_a_sync_rate_above_the_bus_delays_and_loses_frames_and_counts_them():
     assert got["frames"] > 0.9 * syncs * 4
 
 
+class Listener(CanNode):
+    """A node that only listens."""
+
+    def __init__(self) -> None:
+        self.heard: list[CanFrame] = []
+
+    def receive(self, frame: CanFrame, t: float) -> list[tuple[float, CanFrame]]:
+        self.heard.append(frame)
+        return []
+
+
 class Periodic(CanNode):
     """A node sending ``frame`` every ``period_s``."""
 
@@ -220,3 +231,17 @@ def test_only_the_lower_priority_loses_on_an_overloaded_bus_and_a_late_look_lose
     sent = one.counters.frames
     assert one.dropped["low"] == pytest.approx(sent * 0.2 / 1.0, rel=0.1)  # 120 % offered, 20 % lost
     assert one.counters.busy_s > 0.99
+
+
+def test_the_adapter_sends_the_hosts_frames_in_the_order_the_host_sent_them():
+    """Its firmware queue is a FIFO: a low identifier sent after a high one waits behind it (a node's
+    mailboxes would send it first), and the queue's 64 frames are all it takes before refusing more."""
+    listener = Listener()
+    bus = CanBus(1_000_000, [listener])
+    adapter = A.SlcanAdapter(bus)
+    adapter.feed(b"S8\rO\r", 0.0)
+    replies = adapter.feed(b"t3000\r" + b"t1000\r" * (A.TX_QUEUE - 1) + b"t0500\r", 0.0)
+    assert replies == b"z\r" * A.TX_QUEUE + slcan.BEL  # the 65th refused
+    adapter.poll(1.0)
+    assert [f.can_id for f in listener.heard] == [0x300] + [0x100] * (A.TX_QUEUE - 1)
+    assert adapter.counters.tx_dropped == 1 and int(adapter.feed(b"F\r", 1.0)[1:3], 16) & A.TX_FULL

@@ -7,7 +7,8 @@ receives it and may answer (an SDO reply, the PDOs a SYNC triggers). The bus cou
 load is measured, not estimated.
 
 Frames offered while the bus is busy wait in their node's transmit queue, which is finite (``tx_queue``
-frames: a CAN controller's mailboxes, or an adapter's firmware buffer). A bus offered more than it can
+frames: a CAN controller's mailboxes, sent lowest identifier first, or an adapter's firmware buffer, sent
+in order: ``tx_fifo``). A bus offered more than it can
 carry (over 100 % load) therefore delays frames, the highest identifiers longest, and once a node's queue is
 full the frames it offers next are lost: counted by the bus (``lost``, ``dropped`` per node) and told to the
 node (``tx_dropped``), as a controller's transmit-overflow flag does. Frames that waited behind others and
@@ -38,6 +39,9 @@ class CanNode:
     # frames waiting to be sent at most (ASSUMED: a CAN controller's three transmit mailboxes, as in the
     # STM32 bxCAN of most drives' and boards' microcontrollers, with no software queue behind them)
     tx_queue = 3
+    # its frames contend lowest identifier first (False: the mailboxes' priority mode) or in the order they
+    # were queued (True: a firmware FIFO, as a USB-CAN adapter's; its own frames wait behind each other)
+    tx_fifo = False
 
     def receive(self, frame: CanFrame, t: float) -> list[tuple[float, CanFrame]]:
         return []
@@ -122,14 +126,13 @@ class CanBus:
         transmit queue the bus would have drained meanwhile."""
         while True:
             start = max(self.free_at, self._pending[0][0]) if self._pending else None
-            if self._collect(t if start is None else min(t, start)):
+            if self._collect(t if start is None else min(t, start), first_only=start is None):
                 continue
             if start is None:
                 return
             start, winner = self._arbitrate()
             end = start + self._duration(winner[3])
-            while self._collect(min(end, t)):  # due while the frame is on the bus: they wait in their queues
-                pass
+            self._collect(min(end, t))  # due while the frame is on the bus: they wait in their queues
             if end > t:
                 return
             self._pending.remove(winner)
@@ -143,7 +146,12 @@ class CanBus:
         """When the next frame starts and which one it is: of the frames ready when the bus is next free, the
         lowest identifier (then the first offered)."""
         start = max(self.free_at, self._pending[0][0])
-        return start, min((p for p in self._pending if p[0] <= start), key=lambda p: (p[1], p[2]))
+        heads: dict[int, int] = {}  # a FIFO node's oldest frame: only it may contend
+        for p in self._pending:
+            if p[4].tx_fifo:
+                heads[id(p[4])] = min(heads.get(id(p[4]), p[2]), p[2])
+        ready = (p for p in self._pending if p[0] <= start and (not p[4].tx_fifo or heads[id(p[4])] == p[2]))
+        return start, min(ready, key=lambda p: (p[1], p[2]))
 
     def _count_waits(self, start: float, winner: tuple) -> None:
         """The winner's wait for the bus, and every frame ready at ``start`` that lost to it."""
@@ -162,15 +170,18 @@ class CanBus:
     def _duration(self, frame: CanFrame) -> float:
         return frame_bits(frame) / self.bitrate
 
-    def _collect(self, t: float) -> bool:
-        """Offer the frames of the node next due, if that is at or before ``t``; False if none is."""
-        due = [(d, k) for k, n in enumerate(self.nodes) if not n.silent and (d := n.next_due_s()) is not None]
-        if not due or min(due)[0] > t:
+    def _collect(self, t: float, first_only: bool = False) -> bool:
+        """Offer every node's frames due at or before ``t`` (``first_only``: only those of the earliest due
+        time, the bus being idle: a frame then starts at once); False if none is due. The callers choose
+        ``t`` so that no frame ends before it: a node's queue cannot drain meanwhile."""
+        due = [(d, n) for n in self.nodes if not n.silent and (d := n.next_due_s()) is not None and d <= t]
+        if not due:
             return False
-        when, k = min(due)
-        node = self.nodes[k]
-        for ready, frame in node.produce(when):
-            self.offer(node, ready, frame)
+        until = min(d for d, _ in due) if first_only else t
+        for d, node in due:
+            if d <= until:
+                for ready, frame in node.produce(until):
+                    self.offer(node, ready, frame)
         return True
 
     def _deliver(self, frame: CanFrame, sender: CanNode, start: float, end: float) -> None:

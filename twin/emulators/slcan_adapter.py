@@ -7,13 +7,13 @@ a malformed line). Open, it puts the host's frames on the bus (``z``/``Z`` when 
 frame the bus carries to the host as a frame line. The bus's bit rate must match the one the host set:
 a mismatched adapter sees only errors, so it passes nothing either way (as a real one on a wrong-rate bus).
 
-The adapter queues the host's frames for the bus (``TX_QUEUE`` frames, as the CANable 2.0 firmware's
-transmit buffer): on a bus too loaded to take them a frame waits there, and one sent while the queue is full
-is refused (BEL, which python-can ignores) and counted. Received frames wait in a receive FIFO until they
-go to the host; more than ``RX_FIFO`` between two deliveries overrun it. ``F`` reads the Lawicel status
-flags latched since the last ``F`` (and clears them, as the SJA1000's interrupt register behind the Lawicel
-CANUSB does): ``counters`` keeps the totals. The serial side is USB CDC: no baud limits it, each received
-frame costs ``bus_budget.slcan_line_bytes`` characters there.
+The adapter queues the host's frames for the bus in order (``TX_QUEUE`` frames, as the CANable 2.0
+firmware's transmit ring buffer): on a bus too loaded to take them a frame waits there, and one sent while
+the queue is full is refused (BEL, which python-can ignores) and counted. Received frames wait in a receive
+FIFO until they go to the host; more than ``RX_FIFO`` between two deliveries overrun it. ``F`` reads the
+Lawicel status flags latched since the last ``F`` (and clears them, as the SJA1000's interrupt register
+behind the Lawicel CANUSB does): ``counters`` keeps the totals. The serial side is USB CDC: no baud limits
+it, each received frame costs ``bus_budget.slcan_line_bytes`` characters there.
 """
 
 from __future__ import annotations
@@ -56,6 +56,7 @@ class _HostPort(CanNode):
 
     name = "host"
     tx_queue = TX_QUEUE
+    tx_fifo = True  # the firmware's ring buffer: the host's frames go out in the order it sent them
 
     def __init__(self) -> None:
         self.inbox: list[CanFrame] = []
