@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import struct
 
+import canopen
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
@@ -17,6 +18,7 @@ from acquisition.codecs import slcan
 from acquisition.codecs.can import CanFrame, stuff_bits
 from acquisition.devices.bus_budget import can_frame_bits, can_frame_exact_bits
 from acquisition.devices.can_budget import popup_can_load
+from acquisition.devices.popup_boards import BoardFrames
 from models.robot import load_robot
 from twin.can_bus import CanBus, CanNode
 from twin.emulators import slcan_adapter as A
@@ -99,21 +101,22 @@ def _configure(node: int) -> bytes:
     return b"".join(lines)
 
 
-def _read_until(rig: Rig, adapter: A.SlcanAdapter, t: float, until: float) -> tuple[float, int]:
+def _read_until(rig: Rig, adapter: A.SlcanAdapter, t: float, until: float) -> tuple[float, list[CanFrame]]:
     """The host reading the adapter every millisecond (USB CDC: its receive FIFO never overruns) from ``t``
-    to ``until``: (``until``, the lines read)."""
-    lines = 0
+    to ``until``: (``until``, the frames read)."""
+    buffer, frames = bytearray(), []
     while t < until:
         t = min(until, t + 1e-3)
         rig.advance(t)
-        lines += adapter.poll(t).count(b"\r")
-    return t, lines
+        buffer += adapter.poll(t)
+        frames += [slcan.parse_frame(line) for line in slcan.split_lines(buffer)]
+    return t, frames
 
 
 def _popup_bus(sync_hz: float, seconds: float, settle_s: float = 0.15) -> tuple[Rig, A.SlcanAdapter, dict]:
     """POPUP's rig in simulated time with a host that opens the adapter, configures and starts the drives,
     then sends one SYNC and a target RPDO per drive every 1/``sync_hz`` for ``seconds``; the bus's counters
-    over those seconds (and what reached the host)."""
+    over those seconds, and the frames that reached the host (``received``)."""
     rig = Rig(load_robot("popup"))
     adapter = rig.emulators["can_bus"]
     ids = sorted(rig.drives)
@@ -125,15 +128,15 @@ def _popup_bus(sync_hz: float, seconds: float, settle_s: float = 0.15) -> tuple[
     adapter.feed(slcan.encode_frame(CanFrame(0x000, bytes([0x01, 0]))), t)  # NMT: start every node
     t = _read_until(rig, adapter, t, settle_s)[0]
     before = dict(vars(rig.can_bus.counters))
-    received = 0
+    received: list[CanFrame] = []
     period = 1.0 / sync_hz
     targets = b"".join(slcan.encode_frame(CanFrame(0x300 + n, b"\0\0\0\0")) for n in ids)
     k, end = 0, t + seconds
     while t < end:
         adapter.feed(b"t0800\r" + targets, t)
         k += 1
-        t, lines = _read_until(rig, adapter, t, settle_s + k * period)
-        received += lines
+        t, frames = _read_until(rig, adapter, t, settle_s + k * period)
+        received += frames
     c = rig.can_bus.counters
     over = {key: getattr(c, key) - before[key] for key in before if key != "max_wait_s"}
     return rig, adapter, {**over, "seconds": seconds, "received": received, "max_wait_s": c.max_wait_s}
@@ -175,6 +178,19 @@ def test_a_sync_rate_above_the_bus_delays_and_loses_frames_and_counts_them():
     flags = int(adapter.feed(b"F\r", rig.world.t)[1:3], 16)
     assert flags & A.TX_FULL and flags & A.ARBITRATION_LOST
     assert adapter.feed(b"F\r", rig.world.t) == b"F00\r"  # read, the latched flags clear
+    # the boards' lost frames are holes in the sample numbers the recorder numbers their samples by
+    boards = BoardFrames({"main_board": 0x10, "link1_board": 0x11, "link2_board": 0x12},
+                         {"main_board": 0.1, "link1_board": 0.01, "link2_board": 0.01})  # fmt: skip
+    network = canopen.Network()
+    boards.attach(network)
+    for frame in got["received"]:
+        network.notify(frame.can_id, bytearray(frame.data), 0.0)
+    seqs: dict[str, list[int]] = {}
+    for sample in boards.take():
+        seqs.setdefault(sample.message, []).append(sample.seq)
+    holes = sum(s[-1] - s[0] + 1 - len(s) for s in seqs.values())
+    lost_by_boards = sum(n for name, n in dropped.items() if "board" in name)
+    assert lost_by_boards > 0 and lost_by_boards - 3 * len(seqs) <= holes <= lost_by_boards
     # what arbitration favours still gets through: every drive's TPDO1 (0x181–0x183) each SYNC it saw
     syncs = got["seconds"] * sync_hz
     assert got["frames"] > 0.9 * syncs * 4
