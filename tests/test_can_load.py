@@ -15,7 +15,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from acquisition.codecs import slcan
-from acquisition.codecs.can import CanFrame, stuff_bits
+from acquisition.codecs.can import CanFrame, crc15, stuff_bits
 from acquisition.devices.bus_budget import can_frame_bits, can_frame_exact_bits
 from acquisition.devices.can_budget import popup_can_load
 from acquisition.devices.popup_boards import BoardFrames
@@ -38,6 +38,13 @@ def test_a_frames_exact_bits_never_exceed_the_worst_case(frame):
     exact = can_frame_exact_bits(frame)
     assert can_frame_bits(len(frame.data), frame.extended, worst_case=False) <= exact
     assert exact <= can_frame_bits(len(frame.data), frame.extended)
+
+
+def test_the_crc_is_can_s_crc15_by_its_catalogued_check_value():
+    """The CRC RevEng catalogue's CRC-15/CAN (poly 0x4599, init 0, no reflection, no xor): check 0x059E,
+    the CRC of the ASCII bytes "123456789"."""
+    bits = [(byte >> (7 - k)) & 1 for byte in b"123456789" for k in range(8)]
+    assert crc15(bits) == 0x059E
 
 
 @pytest.mark.parametrize("n", range(9))
