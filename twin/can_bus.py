@@ -37,8 +37,9 @@ class CanNode:
     name = "node"
     silent = False  # a node without power or cut off: it neither sends nor receives
     # frames waiting to be sent at most (ASSUMED: a CAN controller's three transmit mailboxes, as in the
-    # STM32 bxCAN of most drives' and boards' microcontrollers, with no software queue behind them)
-    tx_queue = 3
+    # STM32 bxCAN, and a short firmware queue in front of them, as CANopen stacks keep one transmit buffer
+    # per message a node sends: SDO reply, TPDOs, heartbeat, EMCY)
+    tx_queue = 8
     # its frames contend lowest identifier first (False: the mailboxes' priority mode) or in the order they
     # were queued (True: a firmware FIFO, as a USB-CAN adapter's; its own frames wait behind each other)
     tx_fifo = False
