@@ -8,10 +8,10 @@ load is measured, not estimated.
 
 Frames offered while the bus is busy wait in their node's transmit queue, which is finite (``tx_queue``
 frames: a CAN controller's mailboxes, sent lowest identifier first, or an adapter's firmware buffer, sent
-in order: ``tx_fifo``). A bus offered more than it can
-carry (over 100 % load) therefore delays frames, the highest identifiers longest, and once a node's queue is
-full the frames it offers next are lost: counted by the bus (``lost``, ``dropped`` per node) and told to the
-node (``tx_dropped``), as a controller's transmit-overflow flag does. Frames that waited behind others and
+in order: ``tx_fifo``). A bus offered more than it can carry (over 100 % load) therefore delays frames, the
+highest identifiers longest, and once a node's queue is full the frames it offers next are lost: counted by
+the bus (``lost``, ``dropped`` per node) and told to the node (``tx_dropped``), as a controller's
+transmit-overflow flag does. Frames that waited behind others and
 lost arbitration are counted too (``delayed``, ``arbitration_lost``), as is the longest wait. ``bus_off``
 stands for a bus that carries nothing (a short, a missing terminator, a controller in bus-off): frames
 offered then are lost, and the nodes see nothing.
@@ -144,8 +144,8 @@ class CanBus:
             self._deliver(winner[3], winner[4], start, end)
 
     def _arbitrate(self) -> tuple[float, tuple]:
-        """When the next frame starts and which one it is: of the frames ready when the bus is next free, the
-        lowest identifier (then the first offered)."""
+        """When the next frame starts and which one it is: of the frames ready when the bus is next free (of a
+        FIFO node, its oldest only), the lowest identifier (then the first offered)."""
         start = max(self.free_at, self._pending[0][0])
         heads: dict[int, int] = {}  # a FIFO node's oldest frame: only it may contend
         for p in self._pending:

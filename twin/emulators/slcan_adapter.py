@@ -9,11 +9,13 @@ a mismatched adapter sees only errors, so it passes nothing either way (as a rea
 
 The adapter queues the host's frames for the bus in order (``TX_QUEUE`` frames, as the CANable 2.0
 firmware's transmit ring buffer): on a bus too loaded to take them a frame waits there, and one sent while
-the queue is full is refused (BEL, which python-can ignores) and counted. Received frames wait in a receive
-FIFO until they go to the host; more than ``RX_FIFO`` between two deliveries overrun it. ``F`` reads the
-Lawicel status flags latched since the last ``F`` (and clears them, as the SJA1000's interrupt register
-behind the Lawicel CANUSB does): ``counters`` keeps the totals. The serial side is USB CDC: no baud limits
-it, each received frame costs ``bus_budget.slcan_line_bytes`` characters there.
+the queue is full is refused (BEL, ASSUMED: what the firmware answers a frame it cannot queue; python-can
+ignores it) and counted. Received frames wait in a receive FIFO until they go to the host; more than
+``RX_FIFO`` between two deliveries overrun it. ``F`` reads the Lawicel status flags latched since the last
+``F`` (and clears them, as the SJA1000's interrupt register behind the Lawicel CANUSB does): ``counters``
+keeps the totals. python-can never sends ``F`` (its slcan interface reads no status), so the bits are the
+Lawicel manual's, for a tool or a lab that asks. The serial side is USB CDC: no baud limits it, each
+received frame costs ``bus_budget.slcan_line_bytes`` characters there.
 """
 
 from __future__ import annotations
