@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 
+import can
 import numpy as np
 import pytest
 
@@ -93,6 +94,27 @@ def test_a_lost_heartbeat_is_detected(drives, popup_rig, fault):
     with pytest.raises(DriveLostError, match="sent no heartbeat"):
         _cycles(drives, 200)
     assert time.monotonic() - t0 < 1.5  # three 100 ms periods, and the time to notice
+
+
+def test_a_flooded_bus_loses_the_hosts_excess_frames_counted_and_the_drives_still_answer(
+    drives, popup_rig, real_time
+):
+    """The host sends frames faster than 1 Mbit/s carries (about 8,700 of 8 bytes a second): the adapter's
+    64-frame queue fills, what it cannot take is refused and counted, the bus runs full; the host's own
+    SYNCs wait behind its flood (the adapter's queue is a FIFO), and python-can and canopen go on."""
+    drives.enable()
+    run_dir = popup_rig[0]
+    before = send_control(run_dir, {"op": "can"})
+    flood = can.Message(arbitration_id=0x7F0, data=bytes(8), is_extended_id=False)  # no node listens
+    for _ in range(3000):
+        drives.network.bus.send(flood)
+    cycles = _cycles(drives, 30)
+    after = send_control(run_dir, {"op": "can"})
+    assert after["dropped"].get("host", 0) > before["dropped"].get("host", 0)
+    assert after["lost"] > before["lost"] and after["delayed"] > before["delayed"]
+    answered = np.array([c.answered for c in cycles]).all(axis=1)
+    real_time()
+    assert answered[-10:].mean() >= 0.8, "the flood over, the drives answer the SYNCs again"
 
 
 def test_goals_that_are_not_angles_never_reach_the_bus(drives):

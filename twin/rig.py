@@ -17,6 +17,7 @@ housekeeping wake-up (see ``PtyHost``): an idle rig costs almost nothing, a busy
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import math
@@ -145,9 +146,10 @@ class Rig:
                 if code not in FAULTS:
                     raise ValueError(f"fault code {code:#06x} not one of {[hex(c) for c in FAULTS]}")
                 drive.fault(code, now)
-        c = self.can_bus.counters
-        return {"ok": True, "bitrate": self.can_bus.bitrate, "frames": c.frames, "bits": c.bits,
-                "busy_s": c.busy_s, "lost": c.lost, "t": now, "bus_off": self.can_bus.bus_off}  # fmt: skip
+        counters = dataclasses.asdict(self.can_bus.counters)  # frames, bits, busy_s, lost, delayed, …
+        dropped = dict(self.can_bus.dropped)  # per node: frames lost on its full transmit queue
+        return {"ok": True, "bitrate": self.can_bus.bitrate, **counters, "dropped": dropped, "t": now,
+                "bus_off": self.can_bus.bus_off}  # fmt: skip
 
 
 def _flag(cmd: dict, key: str) -> bool:

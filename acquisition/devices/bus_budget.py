@@ -29,6 +29,8 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from models.robot import DeviceSpec, RobotDescription
 
+from acquisition.codecs.can import CanFrame, frame_bits
+
 BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit
 USB_PACKET_BYTES = 62  # an FTDI full-speed bulk packet: 64 bytes less its 2 modem-status bytes
 FTDI_DEFAULT_LATENCY_S = 0.016  # the latency timer as the driver sets it (16 ms)
@@ -149,6 +151,16 @@ def can_frame_bits(n_data: int, extended: bool = False, worst_case: bool = True)
     base, stuffed = (67, 54) if extended else (47, 34)
     stuff = (stuffed + 8 * n_data - 1) // 4 if worst_case else 0
     return base + 8 * n_data + stuff
+
+
+def can_frame_exact_bits(frame: CanFrame) -> int:
+    """Bits ``frame`` occupies on the bus as a controller sends it: its own bits (SOF, identifier, RTR, IDE,
+    r0, DLC, data, CRC-15 of polynomial 0x4599), the stuff bits they need, then CRC delimiter, ACK, EOF and
+    the interframe space (``codecs.can.frame_bits``, which the twin's bus times frames by). Never above
+    ``can_frame_bits(len(frame.data))``: that bound counts a stuff bit every four bits, a pattern the fixed
+    IDE and r0 bits and the CRC do not let a real frame keep (over all 2,048 identifiers of a frame without
+    data the most is 53 bits, against the bound's 55)."""
+    return frame_bits(frame)
 
 
 def can_bus_load(frames_per_s: dict[int, float], bitrate: int, worst_case: bool = True) -> float:

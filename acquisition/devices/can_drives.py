@@ -43,6 +43,10 @@ EDS = CAN_DIR / "popup_drive.eds"
 PROFILE_402 = 0x0192  # low word of the device type 0x1000
 SDO_TIMEOUT_S = 1.0  # canopen waits 0.3 s for an SDO answer: a busy host, not reading its port for longer,
 # made a powered drive look absent while the bus was set up (seen in a CI run: "host not reading")
+# the PDOs the driver maps (object indices): TPDO1 statusword + position and TPDO2 velocity + torque on
+# every SYNC; RPDO1 the controlword, RPDO2 the target position (one per SYNC while the joints move)
+TPDO_MAP = {1: (0x6041, 0x6064), 2: (0x606C, 0x6077)}
+RPDO_MAP = {1: (0x6040,), 2: (0x607A,)}
 HEARTBEAT_MISSES = 3  # periods without a heartbeat before a drive counts as lost
 FAULT_RESET_DONE = (
     -1
@@ -189,8 +193,8 @@ class CanDrives(Device):
     def _map_pdos(node: canopen.BaseNode402) -> None:
         node.tpdo.read(from_od=True)
         node.rpdo.read(from_od=True)
-        mappings = {node.tpdo[1]: (0x6041, 0x6064), node.tpdo[2]: (0x606C, 0x6077),
-                    node.rpdo[1]: (0x6040,), node.rpdo[2]: (0x607A,)}  # fmt: skip
+        mappings = {**{node.tpdo[n]: objects for n, objects in TPDO_MAP.items()},
+                    **{node.rpdo[n]: objects for n, objects in RPDO_MAP.items()}}  # fmt: skip
         for pdo, objects in mappings.items():
             pdo.clear()
             for index in objects:

@@ -6,11 +6,22 @@ and answers CR, or BEL for what the adapter refuses (a frame while closed or lis
 a malformed line). Open, it puts the host's frames on the bus (``z``/``Z`` when accepted) and sends every
 frame the bus carries to the host as a frame line. The bus's bit rate must match the one the host set:
 a mismatched adapter sees only errors, so it passes nothing either way (as a real one on a wrong-rate bus).
+
+The adapter queues the host's frames for the bus in order (``TX_QUEUE`` frames, as the CANable 2.0
+firmware's transmit ring buffer): on a bus too loaded to take them a frame waits there, and one sent while
+the queue is full is refused (BEL, ASSUMED: what the firmware answers a frame it cannot queue; python-can
+ignores it) and counted. Received frames wait in a receive FIFO until they go to the host; more than
+``RX_FIFO`` between two deliveries overrun it. ``F`` reads the Lawicel status flags latched since the last
+``F`` (and clears them, as the SJA1000's interrupt register behind the Lawicel CANUSB does): ``counters``
+keeps the totals. python-can never sends ``F`` (its slcan interface reads no status), so the bits are the
+Lawicel manual's, for a tool or a lab that asks. The serial side is USB CDC: no baud limits it, each
+received frame costs ``bus_budget.slcan_line_bytes`` characters there.
 """
 
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 from acquisition.codecs import slcan
 from acquisition.codecs.can import CanFrame
@@ -23,19 +34,55 @@ log = logging.getLogger(__name__)
 VERSION = b"V1013"  # hardware 1.0, software 1.3 (Lawicel format)
 SERIAL = b"NVSL1"
 MAX_LINE = 64  # longer input without a CR is dropped (an adapter's command buffer)
+TX_QUEUE = 64  # frames: the CANable 2.0 firmware's transmit buffer (canable2-fw inc/can.h, TXQUEUE_LEN)
+RX_FIFO = 64  # frames received and not yet sent to the host (ASSUMED: the same size as the transmit side)
+
+# Lawicel status flags (``F``; CANUSB manual): bit 0 receive FIFO full, 1 transmit FIFO full, 2 error
+# warning, 3 data overrun, 5 error passive, 6 arbitration lost, 7 bus error
+RX_FULL, TX_FULL, ERROR_WARNING, DATA_OVERRUN = 0x01, 0x02, 0x04, 0x08
+ERROR_PASSIVE, ARBITRATION_LOST, BUS_ERROR = 0x20, 0x40, 0x80
+
+
+@dataclass
+class AdapterCounters:
+    """What went wrong at the adapter since it powered up: the host's frames refused on a full transmit
+    queue, received frames lost to a receive-FIFO overrun, arbitrations its frames lost."""
+
+    tx_dropped: int = 0
+    rx_overrun: int = 0
+    arbitration_lost: int = 0
 
 
 class _HostPort(CanNode):
     """The adapter's controller on the bus: what it receives goes to the host."""
 
     name = "host"
+    tx_queue = TX_QUEUE
+    tx_fifo = True  # the firmware's ring buffer: the host's frames go out in the order it sent them
 
     def __init__(self) -> None:
         self.inbox: list[CanFrame] = []
+        self.listening = False
+        self.counters = AdapterCounters()
+        self.flags = 0  # latched Lawicel status flags
 
     def receive(self, frame: CanFrame, t: float) -> list[tuple[float, CanFrame]]:
+        if not self.listening:  # closed, or at another bit rate: its controller takes nothing
+            return []
+        if len(self.inbox) >= RX_FIFO:
+            self.counters.rx_overrun += 1
+            self.flags |= RX_FULL | DATA_OVERRUN
+            return []
         self.inbox.append(frame)
         return []
+
+    def tx_dropped(self, frame: CanFrame, t: float) -> None:
+        self.counters.tx_dropped += 1
+        self.flags |= TX_FULL
+
+    def lost_arbitration(self, frame: CanFrame, t: float) -> None:
+        self.counters.arbitration_lost += 1
+        self.flags |= ARBITRATION_LOST
 
 
 class SlcanAdapter(Emulator):
@@ -78,16 +125,17 @@ class SlcanAdapter(Emulator):
                 return slcan.BEL  # no bit rate set: a Lawicel adapter refuses to open
             self.open, self.listen_only = True, op == b"L"
             self.port.inbox.clear()  # nothing received while closed is kept
+            self.port.listening = self._rate_matches()
             return slcan.CR
         if op == b"C" and len(line) == 1:
-            self.open = self.listen_only = False
+            self.open = self.listen_only = self.port.listening = False
             return slcan.CR
         if op == b"V":
             return VERSION + slcan.CR
         if op == b"N":
             return SERIAL + slcan.CR
         if op == b"F":
-            return b"F%02X" % (0x20 if self.bus.bus_off else 0) + slcan.CR  # bit 5: bus error (passive/off)
+            return b"F%02X" % self.status_flags() + slcan.CR
         return slcan.BEL
 
     def _transmit(self, line: bytes, now_s: float) -> bytes:
@@ -98,8 +146,20 @@ class SlcanAdapter(Emulator):
         except CodecError as exc:
             log.debug("slcan adapter: %s", exc)
             return slcan.BEL
-        self.bus.offer(self.port, now_s, frame)
+        if not self.bus.offer(self.port, now_s, frame):
+            return slcan.BEL  # the transmit queue is full: refused, counted
         return b"Z\r" if frame.extended else b"z\r"
+
+    def status_flags(self) -> int:
+        """The Lawicel status flags latched since they were last read (then cleared); a bus-off bus shows
+        error passive and bus error for as long as it lasts."""
+        flags, self.port.flags = self.port.flags, 0
+        return flags | (ERROR_PASSIVE | BUS_ERROR if self.bus.bus_off else 0)
+
+    @property
+    def counters(self) -> AdapterCounters:
+        """The adapter's error counters (totals since power-up)."""
+        return self.port.counters
 
     def _rate_matches(self) -> bool:
         return self.bitrate == self.bus.bitrate
@@ -121,6 +181,6 @@ class SlcanAdapter(Emulator):
     def reset_link(self) -> None:
         """Unplugged and plugged back: the adapter powered up again, closed, with no bit rate."""
         self._rx.clear()
-        self.open = self.listen_only = False
+        self.open = self.listen_only = self.port.listening = False
         self.bitrate = None
         self.port.inbox.clear()
