@@ -7,7 +7,8 @@ For each case the robot description is copied with the servo bus at that baud an
 serves it (``twin.rig``, the wire-true pty host), and the project's servo driver reads it back to back (asking
 for more than the ceiling: the recorder itself refuses a rate above it) for ``--seconds``. Printed per case:
 asked / ceiling (``bus_budget.servo_bus_ceiling_hz``) / reached / reached ÷ ceiling, and the machine's load
-average. Exit status 1 if a reached rate is above its ceiling or below 85 % of it.
+average; then POPUP's CAN bus load at its configured rates, frame kind by frame kind. Exit status 1 if a
+reached rate is above its ceiling or below 85 % of it, or the CAN bus's worst-case load is above 100 %.
 """
 
 from __future__ import annotations
@@ -59,11 +60,21 @@ def reached_hz(robot: RobotDescription, seconds: float) -> float:
 
 
 def can_bus_load_lines() -> list[str]:
-    """POPUP's CAN bus load at its configured rates.
+    """POPUP's CAN bus load at its configured rates (``can_budget.popup_can_load``: each frame kind's bits,
+    stuff bits at their most and as the frames' actual bits give them, against the bus's bit rate)."""
+    from acquisition.devices.can_budget import popup_can_load
 
-    INTEGRATION POINT (issue 31, "can" part): print the CAN bus load of POPUP's configured rates here, from
-    the function the CAN bus work provides; nothing is printed until it is joined."""
-    return []
+    load = popup_can_load(load_robot("popup"))
+    lines = [f"\nPOPUP CAN bus at {load['bitrate'] / 1e3:.0f} kbit/s, SYNC {load['sync_hz']:g} Hz:",
+             f"{'frame':<24} {'bytes':>5} {'frames/s':>9} {'load worst':>10} {'typical':>8}"]  # fmt: skip
+    for row in load["rows"]:
+        lines.append(f"{row['frame']:<24} {row['bytes']:>5} {row['frames_per_s']:>9.1f} "
+                     f"{row['load_worst']:>10.2%} {row['load_typical']:>8.2%}")  # fmt: skip
+    total = load["total"]
+    lines.append(f"{'total':<24} {'':>5} {total['frames_per_s']:>9.1f} {total['load_worst']:>10.2%} "
+                 f"{total['load_typical']:>8.2%}   (limit 100 %; the adapter sends the host "
+                 f"{total['slcan_bytes_per_s'] / 1e3:.1f} kB/s of slcan lines)")  # fmt: skip
+    return lines
 
 
 def main() -> int:
@@ -88,6 +99,9 @@ def main() -> int:
             print(f"{'servo_bus':<12} " + " ".join(f"{c:>9}" for c in cells) + ("  FAIL" if bad else ""))
     for line in can_bus_load_lines():
         print(line)
+    from acquisition.devices.can_budget import popup_can_load
+
+    failed |= popup_can_load(load_robot("popup"))["total"]["load_worst"] > 1.0
     load = os.getloadavg()
     print(f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} on {os.cpu_count()} cores")
     return 1 if failed else 0
