@@ -297,9 +297,6 @@ class HostLinkDescription(Part):
     latency_s: NonNegFloat
     jitter_s: NonNegFloat
     kind: Literal["exponential", "uniform"] = "uniform"
-    latency_timer_s: NonNegFloat = (
-        0.016  # the USB adapter's latency timer (wire engineer's: replaced at merge)
-    )
 
 
 class DeviceSpec(Part):
@@ -312,9 +309,6 @@ class DeviceSpec(Part):
     rate_hz: PositiveFloat | None = None
     baud: int = Field(default=1_000_000, gt=0)
     ids: dict[str, int] = Field(default_factory=dict)
-    return_delay_s: NonNegFloat | None = (
-        None  # a servo's Return Delay Time (wire engineer's: replaced at merge)
-    )
     bus: str | None = None  # a device on another device's bus (a CAN board): that device's port reaches it
     link: str | None = None  # a link board: the link it sits on
     clock: ClockDescription

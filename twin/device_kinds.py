@@ -13,7 +13,6 @@ from typing import TYPE_CHECKING
 from acquisition.codecs import dynamixel as dx
 from acquisition.codecs import popup_boards
 from acquisition.codecs.board_lines import MAX_SET_PA
-from acquisition.devices.bus_budget import DYNAMIXEL_BAUDS
 from acquisition.devices.kinds import device_of, kind_of, resolve
 from models.robot import CAN_DIR, DeviceSpec
 from twin import sensors, streams
@@ -39,12 +38,9 @@ def servo_bus_emulator(rig: Rig, name: str, spec: DeviceSpec) -> Emulator:
     hardware = TwinServos(
         rig, {dxl_id: rig.robot.actuated_joints.index(joint) for joint, dxl_id in spec.ids.items()}, name
     )
-    bus = DynamixelBusEmulator(sorted(spec.ids.values()), hardware, factory=rig.factory)
-    for table in bus.servos:  # by serial: factory-fresh servos all answer ID 1
-        joint = hardware.joints[table.serial]
-        if not rig.factory:  # as the lab set them (wire engineer's: replaced at merge)
-            table.set(dx.BAUD_RATE, {b: c for c, b in DYNAMIXEL_BAUDS.items()}.get(spec.baud, 3))
-            table.set(dx.RETURN_DELAY_TIME, round((spec.return_delay_s or 0.0) / 2e-6))
+    bus = DynamixelBusEmulator(sorted(spec.ids.values()), hardware)
+    for dxl_id, table in bus.tables.items():
+        joint = hardware.joints[dxl_id]
         table.set(
             dx.GOAL_POSITION, int(sensors.encoder_counts(rig.world.state.out_pos[0, joint], hardware.zero))
         )

@@ -25,7 +25,6 @@ import selectors
 import signal
 import socket
 import struct
-import termios
 import time
 import tty
 from collections.abc import Callable
@@ -320,8 +319,6 @@ class PtyHost:
         if data:
             if port.watch is not None:
                 self._serve_opens()  # an open queued before these bytes resets the device first
-            if hasattr(port.emulator, "client_baud"):  # (wire engineer's: replaced at merge)
-                port.emulator.client_baud = _client_baud(port.master)
             port.write(port.emulator.feed(data, self.now()))
 
     def _serve_opens(self) -> None:
@@ -385,18 +382,6 @@ def _drain(sock: socket.socket) -> None:
             pass
     except BlockingIOError:
         pass
-
-
-_BAUDS = {getattr(termios, f"B{n}"): n for n in (9600, 57600, 115200, 1000000, 2000000, 3000000, 4000000)}
-
-
-def _client_baud(fd: int) -> int | None:
-    """The baud the client set on its end of the pty (None: one without a termios constant).
-    (wire engineer's: replaced at merge)"""
-    try:
-        return _BAUDS.get(termios.tcgetattr(fd)[5])
-    except termios.error:
-        return None
 
 
 def send_control(run_dir: Path, command: dict, timeout_s: float = 5.0) -> dict:

@@ -50,12 +50,10 @@ class Rig:
         q0: np.ndarray | None = None,
         pressure_pa: np.ndarray | None = None,
         valve_open: np.ndarray | None = None,
-        factory: bool = False,
     ) -> None:
         """The arm at ``q0`` (rad; default the home pose), its links at ``pressure_pa`` (default the operating
         maximum) with the valves ``valve_open`` (default open: regulated)."""
         self.robot = robot
-        self.factory = factory  # every device as it comes out of the box
         home = np.deg2rad([0.0, 30.0, -60.0]) if q0 is None else q0
         self.world = World(robot, batch=1, seed=seed, q0=home, pressure_pa=pressure_pa)
         if valve_open is not None:
@@ -107,8 +105,6 @@ class Rig:
         if op == "coil":  # the tracker coil leaves (inside=false) or re-enters the field volume
             self.coil.force_out = not _flag(cmd, "inside")
             return {"ok": True}
-        if op == "servos":  # only these joints' servos connected to their bus (new servos, one at a time)
-            return self._plug_servos(cmd)
         if op == "can":  # the CAN bus's faults and counters
             return self._can_control(cmd)
         if op == "state":
@@ -118,22 +114,6 @@ class Rig:
                     "pressure_pa": st.p_link[0].tolist(), "goal_q": cmd.goal[0].tolist(),
                     "pressure_set_pa": cmd.pressure_set[0].tolist()}  # fmt: skip
         raise ValueError(f"unknown command {op!r}")
-
-    def _plug_servos(self, cmd: dict) -> dict:
-        """``{"op": "servos", "connected": ["q3", ...]}``: the servos of these joints on the bus, the others'
-        cables out (a servo is known to its bus by its described ID, whatever ID it has been given)."""
-        joints = cmd.get("connected")
-        for name, spec in self.robot.devices.items():
-            bus = self.emulators.get(name)
-            if not spec.ids or not hasattr(bus, "plug"):
-                continue
-            if not isinstance(joints, list) or not set(joints) <= set(spec.ids):
-                raise ValueError(
-                    f"servos: 'connected' must list joints of {sorted(spec.ids)}, got {joints!r}"
-                )
-            bus.plug({spec.ids[j] for j in joints})
-            return {"ok": True}
-        raise ValueError(f"{self.robot.name} has no servo bus")
 
     def _can_control(self, cmd: dict) -> dict:
         """``{"op": "can", "bus_off": bool}``, ``{"op": "can", "node": id, "power": bool}`` (a drive loses its
@@ -174,29 +154,15 @@ def _flag(cmd: dict, key: str) -> bool:
     return value
 
 
-def serve_rig(
-    robot: RobotDescription, run_dir: Path, seed: int = 0, start: dict | None = None, factory: bool = False
-) -> None:
+def serve_rig(robot: RobotDescription, run_dir: Path, seed: int = 0, start: dict | None = None) -> None:
     """Run the rig until SIGTERM/SIGINT; ``start``: Rig's ``q0``, ``pressure_pa``, ``valve_open`` (see
-    :func:`bench_start`); ``factory``: every device as it comes out of the box."""
+    :func:`bench_start`)."""
     numba.set_num_threads(1)  # one robot: worker threads would only steal the client's core
-    rig = Rig(robot, seed=seed, factory=factory, **(start or {}))
-    _latency_timers(robot, run_dir, factory)
+    rig = Rig(robot, seed=seed, **(start or {}))
     host = PtyHost(run_dir, rig.emulators, tick=rig.advance, control=rig.control)  # tick: see PtyHost
     settle_heap()
     log.info("rig for %s serving %s in %s", robot.name, ", ".join(rig.emulators), run_dir)
     host.serve_forever()
-
-
-def _latency_timers(robot: RobotDescription, run_dir: Path, factory: bool) -> None:
-    """Each emulated USB adapter's latency timer as sysfs shows it (ms): 16 from the factory, else the
-    description's (wire engineer's: replaced at merge)."""
-    for name, spec in robot.devices.items():
-        if spec.bus is None and spec.driver == "dynamixel":
-            folder = run_dir / "sysfs" / "bus" / "usb-serial" / "devices" / name
-            folder.mkdir(parents=True, exist_ok=True)
-            ms = 16 if factory else max(1, round(spec.host_link.latency_timer_s * 1e3))
-            (folder / "latency_timer").write_text(f"{ms}\n")
 
 
 def bench_start(robot: RobotDescription, start: dict) -> dict:
@@ -229,7 +195,6 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--robot", default="vsl")
     parser.add_argument("--run-dir", type=Path, required=True)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--factory", action="store_true", help="every device as it comes out of the box")
     parser.add_argument("--parent-pid", type=int, help="end (in order) when this process dies")
     parser.add_argument(
         "--start", type=Path, help="the bench's start: JSON with q_rad, pressure_pa, valve_open"
@@ -249,7 +214,7 @@ def main(argv: list[str] | None = None) -> None:
             start = bench_start(robot, json.loads(args.start.read_text()))
         except (OSError, ValueError) as exc:
             parser.error(f"--start {args.start}: {exc}")
-    serve_rig(robot, args.run_dir, args.seed, start, factory=args.factory)
+    serve_rig(robot, args.run_dir, args.seed, start)
 
 
 if __name__ == "__main__":

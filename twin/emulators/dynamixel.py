@@ -35,13 +35,6 @@ PACKET_TIMEOUT_S = 0.1  # a half-received packet older than this is dropped (the
 _REPLY_ALL, _REPLY_READ = 2, 1  # Status Return Level
 
 
-def dx_baud(table: ControlTable) -> int:
-    """The baud a servo's Baud Rate item sets (wire engineer's: replaced at merge)."""
-    from acquisition.devices.bus_budget import DYNAMIXEL_BAUDS
-
-    return DYNAMIXEL_BAUDS.get(table.get(dx.BAUD_RATE), 0)
-
-
 class ServoHardware(Protocol):
     """What stands behind the control tables; ``dxl_id`` is the servo's ``serial`` (its first ID)."""
 
@@ -58,17 +51,8 @@ class DynamixelBusEmulator(Emulator):
 
     name = "servo_bus"
 
-    def __init__(self, ids: list[int], hardware: ServoHardware, factory: bool = False) -> None:
+    def __init__(self, ids: list[int], hardware: ServoHardware) -> None:
         self.servos = [ControlTable(i) for i in ids]
-        if factory:  # as they come out of the box (wire engineer's: replaced at merge)
-            for table in self.servos:
-                table.set(dx.ID, 1)
-                table.set(dx.BAUD_RATE, 1)
-                table.set(dx.RETURN_DELAY_TIME, 250)
-        self.unplugged: set[int] = set()  # serials of servos whose cable is out (``plug``)
-        self.client_baud: int | None = (
-            None  # the host's baud: servos at another hear nothing (wire engineer's)
-        )
         self.hardware = hardware
         self.reader = dx.PacketReader()
         self._last_rx_s = 0.0
@@ -94,16 +78,9 @@ class DynamixelBusEmulator(Emulator):
         """Which servos answer which ID (a servo set to Protocol 1.0 no longer understands any)."""
         self._by_id: dict[int, list[ControlTable]] = {}
         for table in self.servos:
-            heard = self.client_baud is None or dx_baud(table) == self.client_baud
-            if table.get(dx.PROTOCOL_VERSION) == 2 and table.serial not in self.unplugged and heard:
+            if table.get(dx.PROTOCOL_VERSION) == 2:
                 self._by_id.setdefault(table.dxl_id, []).append(table)
         self.tables = {i: tables[0] for i, tables in self._by_id.items()}
-
-    def plug(self, serials: set[int]) -> None:
-        """Only the servos of ``serials`` on the bus (the others' cables out): how a lab gives new servos
-        their IDs, one servo connected at a time."""
-        self.unplugged = {t.serial for t in self.servos} - set(serials)
-        self._index()
 
     def reset_link(self) -> None:
         self.reader.reset()
@@ -112,8 +89,6 @@ class DynamixelBusEmulator(Emulator):
         if self.reader.pending() and now_s - self._last_rx_s > PACKET_TIMEOUT_S:
             self.reader.reset()  # the rest of a cut packet never came (a corrupted LEN, a reset host)
         self._last_rx_s = now_s
-        if self.client_baud is not None:
-            self._index()
         out = bytearray()
         for packet in self.reader.feed(data):
             if isinstance(packet, dx.PacketError):
