@@ -297,6 +297,10 @@ class HostLinkDescription(Part):
     latency_s: NonNegFloat
     jitter_s: NonNegFloat
     kind: Literal["exponential", "uniform"] = "uniform"
+    # the USB-serial adapter's latency timer as the lab set it (an FTDI's: 16 ms as the driver sets it, 1 ms
+    # once a udev rule sets it); 0: no latency timer (a USB CDC device such as an Uno's 16U2 or an slcan
+    # adapter forwards each transfer at once)
+    latency_timer_s: NonNegFloat = 0.016
 
 
 class DeviceSpec(Part):
@@ -308,6 +312,7 @@ class DeviceSpec(Part):
     port: str = "auto"
     rate_hz: PositiveFloat | None = None
     baud: int = Field(default=1_000_000, gt=0)
+    return_delay_s: NonNegFloat = 0.0  # a Dynamixel's Return Delay Time as the lab set it (factory: 500 µs)
     ids: dict[str, int] = Field(default_factory=dict)
     bus: str | None = None  # a device on another device's bus (a CAN board): that device's port reaches it
     link: str | None = None  # a link board: the link it sits on

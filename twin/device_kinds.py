@@ -31,16 +31,17 @@ Streams = dict[str, streams.Stream]
 
 # ------------------------------------------------------------------------------------------- emulators
 def servo_bus_emulator(rig: Rig, name: str, spec: DeviceSpec) -> Emulator:
-    """The Dynamixel bus: an XM430 per id of ``spec.ids``, its goal where its joint is (torque-on does not
-    jump)."""
+    """The Dynamixel bus: an XM430 per id of ``spec.ids`` at the description's baud and return delay (or as
+    they come out of the box on a factory rig), its goal where its joint is (torque-on does not jump)."""
     from twin.emulators.dynamixel import DynamixelBusEmulator
 
     hardware = TwinServos(
         rig, {dxl_id: rig.robot.actuated_joints.index(joint) for joint, dxl_id in spec.ids.items()}, name
     )
-    bus = DynamixelBusEmulator(sorted(spec.ids.values()), hardware)
-    for dxl_id, table in bus.tables.items():
-        joint = hardware.joints[dxl_id]
+    bus = DynamixelBusEmulator(sorted(spec.ids.values()), hardware, factory=rig.factory, baud=spec.baud,
+                               return_delay_s=spec.return_delay_s)  # fmt: skip
+    for table in bus.servos:
+        joint = hardware.joints[table.serial]
         table.set(
             dx.GOAL_POSITION, int(sensors.encoder_counts(rig.world.state.out_pos[0, joint], hardware.zero))
         )
@@ -51,16 +52,22 @@ def pressure_board_emulator(rig: Rig, name: str, spec: DeviceSpec) -> Emulator:
     """The pressure board's firmware; its set-point limit is the regulators' range (VSL 3 bar)."""
     from twin.emulators.board_firmware import PressureBoardEmulator
 
-    return PressureBoardEmulator(
+    board = PressureBoardEmulator(
         TwinPressure(rig), max_set_pa=min(int(rig.robot.pneumatics.regulator_max_pa), MAX_SET_PA)
     )
+    board.baud = spec.baud  # the firmware's fixed rate
+    return board
 
 
 def stepper_board_emulator(rig: Rig, name: str, spec: DeviceSpec) -> Emulator | None:
     """The stepper board's firmware (a description without a stepper section has nothing to serve)."""
     from twin.emulators.board_firmware import StepperBoardEmulator
 
-    return StepperBoardEmulator(TwinStepper(rig, name)) if rig.robot.stepper is not None else None
+    if rig.robot.stepper is None:
+        return None
+    board = StepperBoardEmulator(TwinStepper(rig, name))
+    board.baud = spec.baud  # the firmware's fixed rate
+    return board
 
 
 def aurora_emulator(rig: Rig, name: str, spec: DeviceSpec) -> Emulator:

@@ -50,10 +50,13 @@ class Rig:
         q0: np.ndarray | None = None,
         pressure_pa: np.ndarray | None = None,
         valve_open: np.ndarray | None = None,
+        factory: bool = False,
     ) -> None:
         """The arm at ``q0`` (rad; default the home pose), its links at ``pressure_pa`` (default the operating
-        maximum) with the valves ``valve_open`` (default open: regulated)."""
+        maximum) with the valves ``valve_open`` (default open: regulated); its devices as the description
+        configures them, or as they come out of the box (``factory``)."""
         self.robot = robot
+        self.factory = factory
         home = np.deg2rad([0.0, 30.0, -60.0]) if q0 is None else q0
         self.world = World(robot, batch=1, seed=seed, q0=home, pressure_pa=pressure_pa)
         if valve_open is not None:

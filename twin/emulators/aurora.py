@@ -8,8 +8,12 @@ are built from it with :mod:`acquisition.codecs.ndi`. Error codes are NDI's (as 
 Deviations from a real Aurora, on purpose: ``INIT`` is answered at any time and puts the tool back to its
 power-up state (it stands in for the serial break + ``RESET`` a pty cannot carry, so a client that reopens
 the port finds the tool to initialize again); ``GETINFO`` answers ``ERROR01`` (the probe then falls back to
-``VER:0``, as with older Aurora firmware; UNVERIFIED which firmware supports GETINFO); baud changes (COMM)
-are acknowledged and ignored.
+``VER:0``, as with older Aurora firmware; UNVERIFIED which firmware supports GETINFO).
+
+The serial line: 9,600 baud after power-up and ``RESET`` until ``COMM`` sets another rate, which
+takes effect after its ``OKAY`` (sent at the old rate). The first open of the port stands for the break
+ndicapi sends when its 9,600-baud probe goes unanswered (a pty cannot carry a break): the device is back at
+9,600 baud, as the break's reset leaves it.
 """
 
 from __future__ import annotations
@@ -28,6 +32,9 @@ log = logging.getLogger(__name__)
 
 TOOL_HANDLE = 0x0A
 PORT_OCCUPIED, PORT_INITIALIZED, PORT_ENABLED, PORT_OUT_OF_VOLUME = 0x01, 0x10, 0x20, 0x40
+POWER_UP_BAUD = 9_600
+COMM_BAUDS = {"0": 9_600, "1": 14_400, "2": 19_200, "3": 38_400, "4": 57_600, "5": 115_200, "6": 921_600,
+              "7": 1_228_739, "A": 230_400}  # fmt: skip  # COMM's first digit (reference/devices.md)
 ERR_INVALID_COMMAND, ERR_BAD_CRC, ERR_PARAM_COUNT, ERR_BAD_HANDLE = 0x01, 0x04, 0x07, 0x08
 ERR_BAD_MODE, ERR_NOT_INITIALIZED = 0x0C, 0x0E
 _MAX_LINE = 1024
@@ -74,16 +81,19 @@ class AuroraEmulator(Emulator):
     anything else BX."""
 
     name = "tracker"
+    resets_on_open = True  # the open stands for ndicapi's break: 9,600 baud again (see the module's doc)
 
     def __init__(self, source: Callable[[float], TrackerSample], firmware_rev: str = "008") -> None:
         self.source = source
         self.firmware_rev = firmware_rev
         self._buffer = b""
+        self.baud = POWER_UP_BAUD
         self._power_up()
 
     # state
     def _power_up(self) -> None:
-        """Power-up state: tool occupied, not initialized, not enabled, not tracking."""
+        """Power-up state: tool occupied, not initialized, not enabled, not tracking (the baud: see
+        ``_cmd_reset``)."""
         self.initialized = False
         self.enabled = False
         self.tracking = False
@@ -91,6 +101,11 @@ class AuroraEmulator(Emulator):
     def reset_link(self) -> None:
         """Drop half-received input after a replug."""
         self._buffer = b""
+
+    def port_opened(self, now_s: float) -> None:
+        """A client opened the port: it will probe at 9,600 baud and break the device back there."""
+        self._buffer = b""
+        self.baud = POWER_UP_BAUD
 
     def _port_status(self) -> int:
         """PHSR/TX port status bits for the tool (occupied, initialized, enabled)."""
@@ -139,11 +154,20 @@ class AuroraEmulator(Emulator):
         return ndi.format_reply("OKAY")
 
     def _cmd_reset(self, params: str, now_s: float) -> bytes:
+        """A reset is a power-up: 9,600 baud after its reply (INIT keeps the rate: it initializes the
+        system, not the serial line)."""
         self._power_up()
-        return ndi.format_reply("RESET")
+        reply = ndi.format_reply("RESET")
+        self.baud = POWER_UP_BAUD
+        return reply
 
     def _cmd_comm(self, params: str, now_s: float) -> bytes:
-        return ndi.format_reply("OKAY")
+        baud = COMM_BAUDS.get(params[:1].upper())
+        if baud is None:
+            return ndi.error_reply(ERR_PARAM_COUNT)
+        reply = ndi.format_reply("OKAY")  # at the old rate: the host's ``feed_at`` timed it so
+        self.baud = baud
+        return reply
 
     def _cmd_getinfo(self, params: str, now_s: float) -> bytes:
         return ndi.error_reply(ERR_INVALID_COMMAND)

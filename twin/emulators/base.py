@@ -17,6 +17,7 @@ class Emulator:
     """Base of the emulators; ``now_s`` is the rig's clock (seconds since it started)."""
 
     name = "device"
+    baud: int | None = None  # the device's UART baud (its firmware's); None: any (a USB CDC device)
 
     def feed(self, data: bytes, now_s: float) -> bytes:
         raise NotImplementedError
@@ -32,6 +33,22 @@ class Emulator:
         if type(self).poll is Emulator.poll:
             return None
         return now_s + LEGACY_POLL_S
+
+    def device_baud(self) -> int | None:
+        """The baud the device's UART runs at now (None: any baud works, as on a USB CDC device)."""
+        return self.baud
+
+    def feed_at(self, data: bytes, now_s: float, baud: int | None) -> bytes:
+        """``feed``, the bytes having been sent at ``baud`` (None: unknown, taken as the device's). At
+        another baud than its own the device's UART sees framing errors and never a command: no reply."""
+        device = self.device_baud()
+        if baud is not None and device is not None and baud != device:
+            return b""
+        return self.feed(data, now_s)
+
+    def response_s(self) -> float:
+        """The device's response time before the reply the last ``feed`` returned (default: none)."""
+        return 0.0
 
     resets_on_open = False  # an Arduino whose DTR line resets it: the pty host watches its port's opens
 

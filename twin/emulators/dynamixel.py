@@ -16,6 +16,13 @@ fails its CRC is dropped without a reply: a real servo stays silent (a bad-CRC p
 Dynamixel2Arduino issue #93; ROBOTIS's own slave code drops it) although Protocol 2.0 defines a CRC Error
 number. A new ID (address 7) is acknowledged from the old one (dynamixel-workbench's ``changeID`` relies on
 that ack, and the SDK discards a reply from another ID); the servo answers at the new ID afterwards.
+
+The wire: each servo's UART runs at its Baud Rate (address 8) and hears only a host at that baud
+(``feed_at``); a new Baud Rate, like a new ID, takes effect after the status that acknowledges it. Each
+status goes after its servo's Return Delay Time (address 9, 2 µs units): ``response_s`` is their sum for the
+last reply, which the pty host adds to the bytes' time on the wire. ``factory=True`` builds the bus as it
+comes out of the box (every servo ID 1, 57,600 baud, Return Delay Time 250); two servos answering one ID
+talk over each other, as on a real bus: the host gets one garbled status (a CRC error) instead of two.
 """
 
 from __future__ import annotations
@@ -26,6 +33,12 @@ from typing import Protocol
 import numpy as np
 
 from acquisition.codecs import dynamixel as dx
+from acquisition.devices.bus_budget import (
+    DYNAMIXEL_BAUDS,
+    DYNAMIXEL_FACTORY_BAUD,
+    DYNAMIXEL_FACTORY_RETURN_DELAY,
+    DYNAMIXEL_RETURN_DELAY_UNIT_S,
+)
 from twin.emulators.base import Emulator
 from twin.emulators.xm430_table import ControlTable
 
@@ -33,6 +46,31 @@ __all__ = ["ControlTable", "DynamixelBusEmulator", "ServoHardware", "SimpleServo
 
 PACKET_TIMEOUT_S = 0.1  # a half-received packet older than this is dropped (the servo's parser resets)
 _REPLY_ALL, _REPLY_READ = 2, 1  # Status Return Level
+_BAUD_CODES = {baud: code for code, baud in DYNAMIXEL_BAUDS.items()}
+
+
+def baud_code(baud: int) -> int:
+    """The Baud Rate item's code for ``baud`` (a ValueError for a baud an XM430 cannot run at)."""
+    if baud not in _BAUD_CODES:
+        raise ValueError(f"an XM430 runs at {sorted(_BAUD_CODES)} baud, not {baud}")
+    return _BAUD_CODES[baud]
+
+
+def return_delay_units(return_delay_s: float) -> int:
+    """The Return Delay Time item (2 µs units, 0–254) nearest ``return_delay_s``."""
+    units = round(return_delay_s / DYNAMIXEL_RETURN_DELAY_UNIT_S)
+    if not 0 <= units <= 254:
+        raise ValueError(f"a Return Delay Time of {return_delay_s} s is outside 0–508 µs")
+    return units
+
+
+def _status_ids(reply: bytes) -> list[int]:
+    """The IDs of the status packets ``reply`` holds, in order (LEN counts the stuffed bytes)."""
+    ids, k = [], 0
+    while k + 7 <= len(reply):
+        ids.append(reply[k + 4])
+        k += 7 + int.from_bytes(reply[k + 5 : k + 7], "little")
+    return ids
 
 
 class ServoHardware(Protocol):
@@ -46,16 +84,25 @@ class ServoHardware(Protocol):
 
 
 class DynamixelBusEmulator(Emulator):
-    """Servos on one bus; ``ids`` are the servos present. ``tables`` maps each servo's present ID to its
-    table (rebuilt when the host changes an ID)."""
+    """Servos on one bus; ``ids`` are the servos present (each one's ``serial``). ``tables`` maps each
+    servo's present ID to its table (rebuilt when the host changes an ID). The tables hold ``baud`` and
+    ``return_delay_s`` (the robot description's), or the factory's with ``factory``."""
 
     name = "servo_bus"
 
-    def __init__(self, ids: list[int], hardware: ServoHardware) -> None:
+    def __init__(self, ids: list[int], hardware: ServoHardware, factory: bool = False,
+                 baud: int = 1_000_000, return_delay_s: float = 0.0) -> None:  # fmt: skip
         self.servos = [ControlTable(i) for i in ids]
+        for table in self.servos:
+            table.set(dx.ID, 1 if factory else table.serial)
+            table.set(dx.BAUD_RATE, baud_code(DYNAMIXEL_FACTORY_BAUD if factory else baud))
+            delay = DYNAMIXEL_FACTORY_RETURN_DELAY if factory else return_delay_units(return_delay_s)
+            table.set(dx.RETURN_DELAY_TIME, delay)
         self.hardware = hardware
         self.reader = dx.PacketReader()
         self._last_rx_s = 0.0
+        self._hearing: int | None = None  # the baud the host sends at (None: every servo hears)
+        self._response_s = 0.0
         self._registered: dict[int, tuple[int, bytes]] = {}  # serial → Reg Write waiting for Action
         self._index()
         self._handlers = {
@@ -77,25 +124,63 @@ class DynamixelBusEmulator(Emulator):
     def _index(self) -> None:
         """Which servos answer which ID (a servo set to Protocol 1.0 no longer understands any)."""
         self._by_id: dict[int, list[ControlTable]] = {}
+        self.tables = {}
         for table in self.servos:
             if table.get(dx.PROTOCOL_VERSION) == 2:
-                self._by_id.setdefault(table.dxl_id, []).append(table)
-        self.tables = {i: tables[0] for i, tables in self._by_id.items()}
+                self.tables.setdefault(table.dxl_id, table)
+                if self._hearing is None or self.servo_baud(table) == self._hearing:
+                    self._by_id.setdefault(table.dxl_id, []).append(table)
+
+    @staticmethod
+    def servo_baud(table: ControlTable) -> int:
+        """The baud ``table``'s servo runs at now."""
+        return DYNAMIXEL_BAUDS[table.get(dx.BAUD_RATE)]
+
+    def device_baud(self) -> int:
+        """The baud the bus's servos run at (the first servo's, where a half-configured bus differs)."""
+        return self.servo_baud(self.servos[0])
+
+    def response_s(self) -> float:
+        """The Return Delay Times of the statuses of the last reply, summed (each servo waits its own)."""
+        return self._response_s
 
     def reset_link(self) -> None:
         self.reader.reset()
+
+    def feed_at(self, data: bytes, now_s: float, baud: int | None) -> bytes:
+        """Only the servos at ``baud`` hear the host (the others see framing errors)."""
+        if baud != self._hearing:
+            self._hearing = baud
+            self._index()
+        return self.feed(data, now_s)
 
     def feed(self, data: bytes, now_s: float) -> bytes:
         if self.reader.pending() and now_s - self._last_rx_s > PACKET_TIMEOUT_S:
             self.reader.reset()  # the rest of a cut packet never came (a corrupted LEN, a reset host)
         self._last_rx_s = now_s
+        self._response_s = 0.0
         out = bytearray()
         for packet in self.reader.feed(data):
             if isinstance(packet, dx.PacketError):
                 continue  # a servo cannot trust the ID of a corrupted packet: it stays silent
             if packet.inst != dx.STATUS:
-                out += self._execute(packet, now_s)
+                delays = {i: [t.get(dx.RETURN_DELAY_TIME) for t in ts] for i, ts in self._by_id.items()}
+                out += self._answered(self._execute(packet, now_s), delays)
         return bytes(out)
+
+    def _answered(self, reply: bytes, delays: dict[int, list[int]]) -> bytes:
+        """``reply`` as the bus carries it: each status after its servo's Return Delay Time (``delays``: by
+        ID, as the packet found the servos); servos sharing an ID talk over each other, and the host gets
+        the first status with a broken CRC in place of theirs."""
+        ids = _status_ids(reply)
+        for i in ids:
+            units = delays.get(i, [0])
+            self._response_s += max(units) * DYNAMIXEL_RETURN_DELAY_UNIT_S
+        clashes = [i for i in set(ids) if len(delays.get(i, ())) > 1]
+        if not clashes:
+            return reply
+        end = 7 + int.from_bytes(reply[5:7], "little")  # one status survives, garbled: a CRC error
+        return reply[: end - 1] + bytes([reply[end - 1] ^ 0xFF])
 
     # ------------------------------------------------------------------------------------ dispatch
     def _execute(self, p: dx.Packet, now_s: float) -> bytes:
@@ -126,12 +211,11 @@ class DynamixelBusEmulator(Emulator):
         return error | table.alert, data
 
     def _write_bytes(self, table: ControlTable, address: int, data: bytes, now_s: float) -> int:
-        old_id = table.dxl_id
         error = table.write(address, data)
         if error:
             return error
-        if table.dxl_id != old_id or address <= dx.PROTOCOL_VERSION[0] < address + len(data):
-            self._index()
+        if address <= dx.PROTOCOL_VERSION[0]:
+            self._index()  # a new ID, Baud Rate or protocol: heard from the next packet on
         self.hardware.apply(table.serial, table, now_s)
         return 0
 
