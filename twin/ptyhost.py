@@ -12,6 +12,11 @@ resets when its port opens (an Arduino: DTR), the host watches the slave's ``/de
 the clients that hold it open, calls ``emulator.port_opened(now)`` when the first one opens it, and drops
 that emulator's output while nobody has the port open (as the USB bridge of a closed port does). Where
 inotify is missing the ports are served as before, without the reset.
+
+The wire (``twin.wire``): a device with a UART (``Emulator.device_baud``) hears only a client at its baud
+(read from the pty, ``feed_at``), and each reply or streamed output is queued until the wire and the USB
+adapter would have delivered it (the request's and the reply's bytes at that baud, the device's response
+time, the adapter's latency timer, behind the replies before it); the select loop writes it when due.
 """
 
 from __future__ import annotations
@@ -27,10 +32,12 @@ import socket
 import struct
 import time
 import tty
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 
 from twin.emulators.base import Emulator, Faults
+from twin.wire import LatencyTimer, Wire, client_baud, latency_timer_path
 
 log = logging.getLogger(__name__)
 PORTS_FILE = "ports.json"
@@ -94,9 +101,12 @@ class OpenWatch:
 class _Port:
     """One emulator on one pty (re-created on replug)."""
 
-    def __init__(self, name: str, emulator: Emulator, run_dir: Path, watch: OpenWatch | None = None) -> None:
+    def __init__(self, name: str, emulator: Emulator, run_dir: Path, watch: OpenWatch | None = None,
+                 latency: LatencyTimer | None = None) -> None:  # fmt: skip
         self.name = name
         self.emulator = emulator
+        self.wire = Wire(latency)
+        self.queue: deque[tuple[float, bytes]] = deque()  # (due, bytes): output the wire still carries
         self.link = run_dir / name
         self.faults = Faults()
         self.master = -1
@@ -133,6 +143,7 @@ class _Port:
                 os.close(fd)
         self.master = self.slave = -1
         self._unsent = b""
+        self.queue.clear()
 
     def opened_or_closed(self, mask: int, now_s: float) -> None:
         """An inotify event on the slave: the first open resets the device (DTR rises)."""
@@ -142,6 +153,27 @@ class _Port:
                 self.emulator.port_opened(now_s)
         if mask & _IN_CLOSE:
             self.clients = max(0, self.clients - 1)
+
+    def send(self, data: bytes, now_s: float, baud: int | None, request: int = 0) -> None:
+        """Queue the device's ``data`` (its answer to a ``request``-byte command, or unprompted output) for
+        when the wire delivers it to a client at ``baud``; nothing where the device runs at another."""
+        if not data:
+            return
+        device = self.emulator.device_baud()
+        if device is not None and baud is not None and baud != device and not request:
+            return  # streamed bytes at another baud: framing errors, nothing the client can use
+        wire_baud = None if device is None else (baud or device)
+        response = self.emulator.response_s() if request else 0.0
+        begin = 0
+        for due, end in self.wire.schedule(now_s, wire_baud, request, response, len(data)):
+            self.queue.append((due, data[begin:end]))
+            begin = end
+
+    def deliver(self, now_s: float) -> float | None:
+        """Write the queued output due by ``now_s``; when the next is due (None: nothing queued)."""
+        while self.queue and self.queue[0][0] <= now_s:
+            self.write(self.queue.popleft()[1])
+        return self.queue[0][0] if self.queue else None
 
     def write(self, data: bytes) -> None:
         if not data or self.master < 0:
@@ -201,12 +233,23 @@ class PtyHost:
         tick: Callable[[float], None] | None = None,
         control: Callable[[dict], dict] | None = None,
         housekeeping_s: float = 0.05,
+        latency_timers: dict[str, float] | None = None,
     ) -> None:
+        """``latency_timers``: each device's USB adapter latency timer (s; a device missing, or at 0, or
+        without a UART has none), kept in ``twin.wire.latency_timer_path(run_dir, device)``."""
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         wants_watch = any(emu.resets_on_open for emu in emulators.values())
         self._watch = OpenWatch.create() if wants_watch else None
-        self.ports = {name: _Port(name, emu, self.run_dir, self._watch) for name, emu in emulators.items()}
+        timers = {
+            name: LatencyTimer(latency_timer_path(self.run_dir, name), seconds)
+            for name, seconds in (latency_timers or {}).items()
+            if seconds > 0 and name in emulators and emulators[name].device_baud() is not None
+        }
+        self.ports = {
+            name: _Port(name, emu, self.run_dir, self._watch, timers.get(name))
+            for name, emu in emulators.items()
+        }
         self.tick = tick
         self.control = control
         self.housekeeping_s = housekeeping_s
@@ -290,10 +333,12 @@ class PtyHost:
             emulator = port.emulator
             due = emulator.next_output_s(now)
             if due is not None and due <= now:
-                port.write(emulator.poll(now))
+                port.send(emulator.poll(now), now, client_baud(port.master))
                 due = emulator.next_output_s(now)
-            if due is not None and (earliest is None or due < earliest):
-                earliest = due
+            queued = port.deliver(now)
+            for when in (due, queued):
+                if when is not None and (earliest is None or when < earliest):
+                    earliest = when
         return earliest
 
     def _sync_registrations(self, sel: selectors.BaseSelector, registered: dict[str, int]) -> None:
@@ -319,7 +364,9 @@ class PtyHost:
         if data:
             if port.watch is not None:
                 self._serve_opens()  # an open queued before these bytes resets the device first
-            port.write(port.emulator.feed(data, self.now()))
+            now, baud = self.now(), client_baud(port.master)
+            port.send(port.emulator.feed_at(data, now, baud), now, baud, request=len(data))
+            port.deliver(self.now())
 
     def _serve_opens(self) -> None:
         """Pass the ports' opens and closes (inotify) to their emulators."""

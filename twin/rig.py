@@ -25,6 +25,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from acquisition.devices.bus_budget import FTDI_DEFAULT_LATENCY_S
 from acquisition.devices.kinds import device_kinds, resolve
 from acquisition.processes import RT_PRIORITY, die_with_parent, elevate, settle_heap
 from models.robot import RobotDescription, load_robot
@@ -157,12 +158,17 @@ def _flag(cmd: dict, key: str) -> bool:
     return value
 
 
-def serve_rig(robot: RobotDescription, run_dir: Path, seed: int = 0, start: dict | None = None) -> None:
+def serve_rig(robot: RobotDescription, run_dir: Path, seed: int = 0, start: dict | None = None,
+              factory: bool = False) -> None:  # fmt: skip
     """Run the rig until SIGTERM/SIGINT; ``start``: Rig's ``q0``, ``pressure_pa``, ``valve_open`` (see
-    :func:`bench_start`)."""
+    :func:`bench_start`); ``factory``: the devices as they come out of the box, behind adapters at the
+    driver's latency timer (16 ms), rather than as the description configures them."""
     numba.set_num_threads(1)  # one robot: worker threads would only steal the client's core
-    rig = Rig(robot, seed=seed, **(start or {}))
-    host = PtyHost(run_dir, rig.emulators, tick=rig.advance, control=rig.control)  # tick: see PtyHost
+    rig = Rig(robot, seed=seed, factory=factory, **(start or {}))
+    timers = {name: robot.devices[name].host_link.latency_timer_s for name in rig.emulators}
+    if factory:  # an FTDI adapter at its driver's timer (a USB CDC device, at 0, has none)
+        timers = {name: FTDI_DEFAULT_LATENCY_S if s > 0 else 0.0 for name, s in timers.items()}
+    host = PtyHost(run_dir, rig.emulators, tick=rig.advance, control=rig.control, latency_timers=timers)
     settle_heap()
     log.info("rig for %s serving %s in %s", robot.name, ", ".join(rig.emulators), run_dir)
     host.serve_forever()
@@ -202,6 +208,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument(
         "--start", type=Path, help="the bench's start: JSON with q_rad, pressure_pa, valve_open"
     )
+    parser.add_argument("--factory", action="store_true", help="the devices as they come out of the box")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     if args.parent_pid is not None:  # a rig started for one recording dies with it, even by SIGKILL
@@ -217,7 +224,7 @@ def main(argv: list[str] | None = None) -> None:
             start = bench_start(robot, json.loads(args.start.read_text()))
         except (OSError, ValueError) as exc:
             parser.error(f"--start {args.start}: {exc}")
-    serve_rig(robot, args.run_dir, args.seed, start)
+    serve_rig(robot, args.run_dir, args.seed, start, factory=args.factory)
 
 
 if __name__ == "__main__":
