@@ -24,6 +24,7 @@ from acquisition.bringup.probes import (
 from acquisition.bringup.scan import DRIVER_OF
 from acquisition.devices.bus_budget import (
     DYNAMIXEL_BAUDS,
+    DYNAMIXEL_FACTORY_RETURN_DELAY,
     DYNAMIXEL_RETURN_DELAY_UNIT_S,
     SerialLink,
     ceiling_line,
@@ -102,36 +103,42 @@ def check_latency_timer(name: str, spec: DeviceSpec, port: str, sysfs_root: Path
 def check_servos(name: str, spec: DeviceSpec, port: str, latency_s: float, configure: str) -> list[Finding]:
     """A Dynamixel bus: reachable at the description's baud, IDs, Return Delay Time, the bus budget."""
     wanted_ids = sorted(spec.ids.values())
-    servos = find_servos(port, dynamixel_bauds(spec.baud), max(wanted_ids), every_baud=True)
-    if not servos:
+    bus = find_servos(port, dynamixel_bauds(spec.baud), max(wanted_ids), every_baud=True)
+    if not bus.bauds:
         bauds = ", ".join(f"{b:,}" for b in DYNAMIXEL_BAUDS.values())
         return [Finding(name, False, f"no servo answers at any baud ({bauds})",
                         "check the servos' power and cable; `vslab devices scan`")]  # fmt: skip
     out = []
-    at_baud = [s for s in servos if s.baud == spec.baud]
-    others = sorted({s.baud for s in servos} - {spec.baud})
+    others = [b for b in bus.bauds if b != spec.baud]
     if others:
         out.append(Finding(name, False, f"servos answer at {', '.join(f'{b:,}' for b in others)} baud, the "
                                         f"description says {spec.baud:,}", configure))  # fmt: skip
     else:
         out.append(Finding(name, True, f"servos answer at {spec.baud:,} baud"))
-    found_ids = sorted(s.dxl_id for s in servos)
-    if found_ids != wanted_ids:
-        out.append(Finding(name, False, f"servo IDs {found_ids}, the description says {wanted_ids} (new "
+    found_ids = sorted(s.dxl_id for s in bus.servos)
+    if bus.garbled:
+        out.append(Finding(name, False, "servos answer over each other: more than one has the same ID (new "
                                         "servos all have ID 1)", configure))  # fmt: skip
+    elif found_ids != wanted_ids:
+        out.append(
+            Finding(name, False, f"servo IDs {found_ids}, the description says {wanted_ids}", configure)
+        )
     else:
         out.append(Finding(name, True, f"servo IDs {found_ids}"))
-    settings = servo_settings(port, servos)
+    settings = servo_settings(port, list(bus.servos))
     delays = sorted({v["return_delay"] for v in settings.values() if v["return_delay"] is not None})
-    if spec.return_delay_s is not None:
-        want = return_delay_units(spec.return_delay_s)
-        if delays != [want]:
-            out.append(Finding(name, False, f"Return Delay Time {delays} (2 µs units), the description says "
-                                            f"{want}", configure))  # fmt: skip
-        else:
-            out.append(Finding(name, True, f"Return Delay Time {want}"))
-    out.append(check_budget(name, spec, at_baud[0].baud if at_baud else servos[0].baud, max(delays or [0]),
-                            latency_s))  # fmt: skip
+    want = return_delay_units(spec.return_delay_s)
+    if bus.garbled:  # a read collides as the ping did: what new servos hold
+        delays = [DYNAMIXEL_FACTORY_RETURN_DELAY]
+        out.append(Finding(name, False, f"Return Delay Time unreadable while servos share an ID (new servos: "
+                                        f"{delays[0]}), the description says {want}", configure))  # fmt: skip
+    elif delays != [want]:
+        out.append(Finding(name, False, f"Return Delay Time {delays} (2 µs units), the description says "
+                                        f"{want}", configure))  # fmt: skip
+    else:
+        out.append(Finding(name, True, f"Return Delay Time {want}"))
+    baud = spec.baud if spec.baud in bus.bauds else bus.bauds[0]
+    out.append(check_budget(name, spec, baud, max(delays or [0]), latency_s))
     return out
 
 

@@ -18,7 +18,7 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import serial
-from dynamixel_sdk import COMM_SUCCESS, PacketHandler, PortHandler
+from dynamixel_sdk import COMM_RX_TIMEOUT, COMM_SUCCESS, PacketHandler, PortHandler
 
 from acquisition.codecs import board_lines as bp
 from acquisition.codecs import dynamixel as dx
@@ -130,28 +130,45 @@ def dynamixel_port(port: str) -> Iterator[_BudgetedPort]:
         handler.closePort()
 
 
-def ping_servos(handler: _BudgetedPort, baud: int, max_id: int) -> list[Servo]:
-    """The servos that answer a broadcast ping at ``baud`` (none: an empty list)."""
+def ping_servos(handler: _BudgetedPort, baud: int, max_id: int) -> list[Servo] | None:
+    """The servos that answer a broadcast ping at ``baud`` (none: an empty list); None when replies came
+    but garbled: servos sharing an ID answer over each other (new servos all have ID 1)."""
     if not handler.setBaudRate(baud):
         return []
     handler.budget_ms = ping_budget_s(baud, max_id) * 1e3
     found, result = PacketHandler(2.0).broadcastPing(handler)
-    if result != COMM_SUCCESS and not found:
-        return []
+    if not found:
+        return [] if result in (COMM_SUCCESS, COMM_RX_TIMEOUT) else None
     return [Servo(i, baud, model) for i, (model, _firmware) in sorted(found.items())]
 
 
-def find_servos(port: str, bauds: list[int], max_id: int, every_baud: bool = False) -> list[Servo]:
+@dataclass(frozen=True)
+class BusScan:
+    """The servos found on a bus, and the bauds at which replies came garbled (servos sharing an ID)."""
+
+    servos: tuple[Servo, ...]
+    garbled: tuple[int, ...] = ()
+
+    @property
+    def bauds(self) -> list[int]:
+        """Every baud something answered at."""
+        return sorted({s.baud for s in self.servos} | set(self.garbled))
+
+
+def find_servos(port: str, bauds: list[int], max_id: int, every_baud: bool = False) -> BusScan:
     """Servos on ``port``: a broadcast ping at each of ``bauds`` in turn, stopping at the first that answers
     unless ``every_baud`` (servos of one bus may have been set to different bauds)."""
     servos: list[Servo] = []
+    garbled: list[int] = []
     with dynamixel_port(port) as handler:
         for baud in bauds:
             found = ping_servos(handler, baud, max_id)
-            servos += found
-            if found and not every_baud:
+            if found is None:
+                garbled.append(baud)
+            servos += found or []
+            if (found is None or found) and not every_baud:
                 break
-    return servos
+    return BusScan(tuple(servos), tuple(garbled))
 
 
 def read_byte(handler: _BudgetedPort, servo: Servo, item: tuple[int, int]) -> int | None:
@@ -244,10 +261,12 @@ def probe_slcan(port: str) -> Answer | None:
 def identify(port: str, max_id: int = 8) -> Answer | None:
     """What answers on ``port``: a Dynamixel bus (every baud, the factory one first), an
     slcan adapter, an Aurora, one of our boards; None for silence. OSError when the port cannot be opened."""
-    servos = find_servos(port, dynamixel_bauds(), max_id)
-    if servos:
-        ids = ", ".join(str(s.dxl_id) for s in servos)
-        return Answer("dynamixel", servos[0].baud, f"servo IDs {ids}", tuple(servos))
+    bus = find_servos(port, dynamixel_bauds(), max_id)
+    if bus.servos:
+        ids = ", ".join(str(s.dxl_id) for s in bus.servos)
+        return Answer("dynamixel", bus.servos[0].baud, f"servo IDs {ids}", bus.servos)
+    if bus.garbled:
+        return Answer("dynamixel", bus.garbled[0], "servos answering over each other (sharing an ID)")
     for probe in (probe_slcan, probe_aurora, probe_board):
         if (answer := probe(port)) is not None:
             return answer

@@ -72,8 +72,8 @@ def assign_order(spec: DeviceSpec) -> list[str]:
 
 
 def all_servos(port: str, max_id: int) -> list[Servo]:
-    """Every servo on the bus, at every baud."""
-    return find_servos(port, dynamixel_bauds(), max_id, every_baud=True)
+    """Every servo on the bus, at every baud (those sharing an ID answer garbled: not among them)."""
+    return list(find_servos(port, dynamixel_bauds(), max_id, every_baud=True).servos)
 
 
 def read_row(port: str, joint: str, servo: Servo, want: dict[str, int]) -> ServoRow:
@@ -83,7 +83,10 @@ def read_row(port: str, joint: str, servo: Servo, want: dict[str, int]) -> Servo
 
 def assigned_rows(port: str, spec: DeviceSpec) -> list[ServoRow] | None:
     """Each joint's row when every described ID answers exactly once (the IDs are set), else None."""
-    servos = all_servos(port, max(spec.ids.values()))
+    bus = find_servos(port, dynamixel_bauds(), max(spec.ids.values()), every_baud=True)
+    if bus.garbled:
+        return None
+    servos = bus.servos
     by_id: dict[int, list[Servo]] = {}
     for s in servos:
         by_id.setdefault(s.dxl_id, []).append(s)
@@ -135,4 +138,4 @@ def write_row(port: str, row: ServoRow) -> str | None:
 
 def ping_servos_at(handler, dxl_id: int, baud: int) -> bool:
     """Whether servo ``dxl_id`` answers a ping at ``baud``."""
-    return any(s.dxl_id == dxl_id for s in ping_servos(handler, baud, dxl_id))
+    return any(s.dxl_id == dxl_id for s in ping_servos(handler, baud, dxl_id) or [])
