@@ -38,20 +38,17 @@ def _rig_dir(given: Path | None) -> Path | None:
 
 def _port_map(desc, ports: Path | None) -> dict[str, str]:
     """The ports to check: ``--ports`` (a ports file or a rig's run directory), else the lab's running rig."""
-    from acquisition.recorder.setup import SetupError, ports_file
+    from acquisition.recorder.setup import SetupError, checked_ports, ports_file
 
     where = ports or _rig_dir(None)
     if where is None:
         _error("say where the devices are: --ports FILE (`vslab devices scan --out ports.json` writes one)")
     if where.is_dir():
         where = where / "ports.json"
-    try:
-        port_map = ports_file(where)
+    try:  # each entry a device of desc and a serial port this user may open
+        return checked_ports(desc, ports_file(where), f"--ports {where}")
     except SetupError as exc:
         _error(str(exc))
-    if foreign := sorted(set(port_map) - set(desc.devices)):
-        _error(f"--ports {where}: {', '.join(foreign)}: {desc.name} has no such device")
-    return port_map
 
 
 @devices_app.command()

@@ -21,7 +21,7 @@ from acquisition.bringup.probes import (
     probe_slcan,
     servo_settings,
 )
-from acquisition.bringup.scan import DRIVER_OF
+from acquisition.bringup.scan import DRIVER_OF, BringupError
 from acquisition.devices.bus_budget import (
     DYNAMIXEL_BAUDS,
     DYNAMIXEL_FACTORY_RETURN_DELAY,
@@ -105,6 +105,7 @@ def check_servos(name: str, spec: DeviceSpec, port: str, latency_s: float, confi
     wanted_ids = sorted(spec.ids.values())
     bus = find_servos(port, dynamixel_bauds(spec.baud), max(wanted_ids), every_baud=True)
     if not bus.bauds:
+        foreign_device(name, spec, port)
         bauds = ", ".join(f"{b:,}" for b in DYNAMIXEL_BAUDS.values())
         return [Finding(name, False, f"no servo answers at any baud ({bauds})",
                         "check the servos' power and cable; `vslab devices scan`")]  # fmt: skip
@@ -152,18 +153,35 @@ def check_budget(name: str, spec: DeviceSpec, baud: int, return_delay: int, late
     return Finding(name, True, f"bus budget: {rate:g} Hz of at most {ceiling:.0f} Hz {where}")
 
 
+def foreign_device(name: str, spec: DeviceSpec, port: str) -> None:
+    """Raise BringupError when another kind of device than ``spec``'s answers on ``port`` (a ports file
+    naming the wrong port): nothing this device's checks could say is about it."""
+    probes = [p for d, p in (("ndi_aurora", probe_aurora), ("popup_can", probe_slcan)) if d != spec.driver]
+    if spec.driver == "dynamixel" or not spec.driver.startswith("vslab_"):
+        probes.append(probe_board)
+    for probe in probes:
+        if (answer := probe(port)) is not None:
+            raise BringupError(wrong_port(name, port, answer.ident, spec.driver))
+
+
+def wrong_port(name: str, port: str, ident: str, driver: str) -> str:
+    """The line for a port where another device answers."""
+    return (f"{name}: {port}: {ident} answers there, not a {driver}: the ports file names another device's "
+            "port (`vslab devices scan --out ports.json`)")  # fmt: skip
+
+
 def check_line_device(name: str, spec: DeviceSpec, port: str) -> Finding:
     """An Aurora, a board or an slcan adapter answers as the device the description names."""
     probe = {"ndi_aurora": probe_aurora, "popup_can": probe_slcan}.get(spec.driver)
     answer = probe(port) if probe else probe_board(port, spec.baud)
     if answer is None:
+        foreign_device(name, spec, port)
         return Finding(
             name, False, f"{port}: no {spec.driver} answers", "`vslab devices scan` finds where it is"
         )
     kind = answer.ident.split(" ")[0] if answer.kind == "board" else answer.kind
     if DRIVER_OF.get(kind) != spec.driver:
-        return Finding(name, False, f"{port}: a {answer.ident} answers, not a {spec.driver}",
-                       "`vslab devices scan` finds where each device is")  # fmt: skip
+        raise BringupError(wrong_port(name, port, answer.ident, spec.driver))
     return Finding(name, True, f"{answer.ident} answers at {answer.baud:,} baud")
 
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 from dynamixel_sdk import COMM_SUCCESS, PacketHandler
 
-from acquisition.bringup.doctor import return_delay_units
+from acquisition.bringup.doctor import foreign_device, return_delay_units
 from acquisition.bringup.probes import (
     Servo,
     dynamixel_bauds,
@@ -84,6 +84,10 @@ def read_row(port: str, joint: str, servo: Servo, want: dict[str, int]) -> Servo
 def assigned_rows(port: str, spec: DeviceSpec) -> list[ServoRow] | None:
     """Each joint's row when every described ID answers exactly once (the IDs are set), else None."""
     bus = find_servos(port, dynamixel_bauds(), max(spec.ids.values()), every_baud=True)
+    if not bus.bauds:
+        foreign_device("servo bus", spec, port)
+        raise BringupError(f"{port}: no servo answers at any baud (is this the servo bus's port? is the bus "
+                           "powered?); `vslab devices scan` finds each device's port")  # fmt: skip
     if bus.garbled:
         return None
     servos = bus.servos
