@@ -48,6 +48,7 @@ SLCAN_RESPONSE_S = 0.01  # UNVERIFIED: a CANable-class adapter answers ``V`` wit
 # status header 4 + ID + LEN 2 + INST + ERR + 1 + CRC 2
 _READ1_BYTES = (14, 12)
 _PING_BYTES = (10, 14)
+STATUS_HEADER = b"\xff\xff\xfd\x00"  # every Protocol 2.0 packet starts so
 
 
 def dynamixel_bauds(first: int | None = None) -> list[int]:
@@ -106,6 +107,12 @@ class _BudgetedPort(PortHandler):
     def __init__(self, port_name: str) -> None:
         super().__init__(port_name)
         self.budget_ms = 1000.0
+        self.received = bytearray()  # what the last exchange read: a status header, or another device's bytes
+
+    def readPort(self, length):
+        data = super().readPort(length)
+        self.received += data
+        return data
 
     def setPacketTimeout(self, packet_length):  # the SDK's names
         super().setPacketTimeout(packet_length)
@@ -136,9 +143,11 @@ def ping_servos(handler: _BudgetedPort, baud: int, max_id: int) -> list[Servo] |
     if not handler.setBaudRate(baud):
         return []
     handler.budget_ms = ping_budget_s(baud, max_id) * 1e3
+    handler.received.clear()
     found, result = PacketHandler(2.0).broadcastPing(handler)
-    if not found:
-        return [] if result in (COMM_SUCCESS, COMM_RX_TIMEOUT) else None
+    if not found:  # bytes with a status header that fail their CRC: statuses on top of each other
+        garbled = result not in (COMM_SUCCESS, COMM_RX_TIMEOUT) and STATUS_HEADER in handler.received
+        return None if garbled else []
     return [Servo(i, baud, model) for i, (model, _firmware) in sorted(found.items())]
 
 
