@@ -34,7 +34,7 @@ from acquisition.errors import CodecError
 
 log = logging.getLogger(__name__)
 
-HOST_SLACK_S = 0.05  # a busy host's delay between bytes arriving and a probe reading them
+HOST_SLACK_S = 0.25  # a busy host's delay between bytes arriving and a probe reading them (every core busy)
 PING_SLOT_S = 0.003  # dynamixel-sdk's broadcast-ping allowance per ID (3 ms × MAX_ID in broadcastPing)
 MAX_RETURN_DELAY_S = 254 * DYNAMIXEL_RETURN_DELAY_UNIT_S  # the slowest a servo may be told to answer
 AURORA_RESET_BAUD = 9_600  # the Aurora after power-up or reset (reference: devices.md)

@@ -126,7 +126,7 @@ def write_row(port: str, row: ServoRow) -> str | None:
             ("return_delay", dx.RETURN_DELAY_TIME, "Return Delay Time"), ("id", dx.ID, "ID"),
             ("baud_code", dx.BAUD_RATE, "Baud Rate")) if k in changes]  # fmt: skip
         for item, value, label in steps:
-            result, error = packet.write1ByteTxRx(handler, dxl_id, item[0], value)
+            result, error = _write_byte(packet, handler, dxl_id, item, value, baud)
             if result != COMM_SUCCESS or error:
                 why = ERROR_NAMES.get(error & 0x7F, packet.getTxRxResult(result)) if error else (
                     packet.getTxRxResult(result))  # fmt: skip
@@ -138,6 +138,19 @@ def write_row(port: str, row: ServoRow) -> str | None:
             return f"{row.joint}: no answer from ID {dxl_id} at {new_baud:,} baud after the writes"
     log.info("%s: servo set to %s", row.joint, row.want)
     return None
+
+
+def _write_byte(packet: PacketHandler, handler, dxl_id: int, item: tuple[int, int], value: int, baud: int
+                ) -> tuple[int, int]:  # fmt: skip
+    """Write one byte, once more if its status was lost (a busy host): (result, error). A lost status of a
+    new ID or baud may mean the write took: the servo answering at its new ID, or (a baud) the ping at the
+    new baud that follows, says so."""
+    result, error = packet.write1ByteTxRx(handler, dxl_id, item[0], value)
+    if result == COMM_SUCCESS or error:
+        return result, error
+    if item == dx.BAUD_RATE or (item == dx.ID and ping_servos_at(handler, value, baud)):
+        return COMM_SUCCESS, 0
+    return packet.write1ByteTxRx(handler, dxl_id, item[0], value)
 
 
 def ping_servos_at(handler, dxl_id: int, baud: int) -> bool:
