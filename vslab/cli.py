@@ -110,12 +110,15 @@ def rig(
     ] = False,
 ) -> None:
     """Run the twin in real time behind emulators of the robot's devices (until Ctrl-C / SIGTERM)."""
+    from acquisition.processes import RT_PRIORITY, elevate
     from twin.rig import serve_rig
 
     desc = _robot(robot)
     where = run_dir or local_lab("rig (without --run-dir)").rigs
     if not options().quiet:
         console.print(f"rig for {desc.name}: ports in {where / 'ports.json'} (Ctrl-C stops)")
+    # as `python -m twin.rig`: the rig stands in for hardware, which a busy computer does not slow down
+    elevate(fifo_priority=RT_PRIORITY + 1)
     serve_rig(desc, where, seed=seed, factory=factory)
 
 
