@@ -169,3 +169,24 @@ def test_a_foreign_device_on_the_port_is_one_error_line(factory_rig, tmp_path, c
         result.output.strip().splitlines()[-1]
     ]
     assert "AURORA Rev 008 answers there, not a dynamixel" in text
+
+
+def test_the_latency_timer_is_read_under_the_sysfs_root_given(tmp_path, vsl):
+    """An FTDI adapter's timer as Linux shows it (``<root>/bus/usb-serial/devices/ttyUSB0/latency_timer``):
+    16 ms against a description that says 1 ms is a problem whose fix is the udev rule; 1 ms is well; a port
+    without the file (a USB CDC device) has no timer to set."""
+    from acquisition.bringup.doctor import UDEV_RULE, check_latency_timer
+
+    bus = vsl.devices["servo_bus"]
+    spec = bus.model_copy(update={"host_link": bus.host_link.model_copy(update={"latency_timer_s": 0.001})})
+    timer = tmp_path / "bus/usb-serial/devices/ttyUSB0/latency_timer"
+    timer.parent.mkdir(parents=True)
+    timer.write_text("16\n")
+    finding, seconds = check_latency_timer("servo_bus", spec, "/dev/ttyUSB0", tmp_path)
+    assert not finding.ok and seconds == pytest.approx(0.016)
+    assert UDEV_RULE in finding.fix and f"echo 1 | sudo tee {timer}" in finding.fix
+    timer.write_text("1\n")
+    finding, seconds = check_latency_timer("servo_bus", spec, "/dev/ttyUSB0", tmp_path)
+    assert finding.ok and seconds == pytest.approx(0.001)
+    finding, seconds = check_latency_timer("servo_bus", spec, "/dev/ttyACM0", tmp_path)
+    assert finding.ok and seconds == 0.0 and "not an FTDI adapter" in finding.what
