@@ -27,7 +27,7 @@ from acquisition.bringup.probes import (
 )
 from acquisition.bringup.scan import BringupError
 from acquisition.codecs import dynamixel as dx
-from acquisition.devices.bus_budget import DYNAMIXEL_BAUDS, DYNAMIXEL_FACTORY_RETURN_DELAY
+from acquisition.devices.bus_budget import DYNAMIXEL_BAUDS
 from models.robot import DeviceSpec
 
 log = logging.getLogger(__name__)
@@ -57,11 +57,7 @@ def wanted(spec: DeviceSpec, joint: str) -> dict[str, int]:
     if spec.baud not in BAUD_CODE:
         raise BringupError(f"the servo bus's baud {spec.baud:,} is not a Dynamixel baud "
                            f"({', '.join(f'{b:,}' for b in BAUD_CODE)})")  # fmt: skip
-    delay = (
-        DYNAMIXEL_FACTORY_RETURN_DELAY
-        if spec.return_delay_s is None
-        else return_delay_units(spec.return_delay_s)
-    )
+    delay = return_delay_units(spec.return_delay_s)
     return {"id": spec.ids[joint], "baud_code": BAUD_CODE[spec.baud], "return_delay": delay}
 
 
