@@ -39,6 +39,8 @@ LAYERS = ("models", "acquisition", "twin", "pipeline", "analysis", "vslab")
 ACQUISITION_RANK = {  # by the longest dotted prefix under acquisition/
     "errors": 0, "code_version": 0, "processes": 0, "storage": 1, "schemas": 2, "codecs": 2, "devices": 3,
     "command_guard": 3, "safety": 4, "recorder": 5, "plans": 6,
+    # bringing devices up (issue 31): probes over the codecs and the bus budget, below the recorder
+    "bringup": 4,
     # the device-kind registry (issue 30): a leaf that names drivers, sources and emulators by strings,
     # imported when used; the schemas and the pipeline consult it
     "devices.kinds": 0,

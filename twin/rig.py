@@ -110,6 +110,8 @@ class Rig:
         if op == "coil":  # the tracker coil leaves (inside=false) or re-enters the field volume
             self.coil.force_out = not _flag(cmd, "inside")
             return {"ok": True}
+        if op == "servos":  # only these joints' servos connected to their bus (new servos, one at a time)
+            return self._plug_servos(cmd)
         if op == "can":  # the CAN bus's faults and counters
             return self._can_control(cmd)
         if op == "state":
@@ -119,6 +121,20 @@ class Rig:
                     "pressure_pa": st.p_link[0].tolist(), "goal_q": cmd.goal[0].tolist(),
                     "pressure_set_pa": cmd.pressure_set[0].tolist()}  # fmt: skip
         raise ValueError(f"unknown command {op!r}")
+
+    def _plug_servos(self, cmd: dict) -> dict:
+        """``{"op": "servos", "connected": ["q3", ...]}``: the servos of these joints on the bus, the others'
+        cables out (a servo is known to its bus by its described ID, whatever ID it has been given)."""
+        joints = cmd.get("connected")
+        for name, spec in self.robot.devices.items():
+            bus = self.emulators.get(name)
+            if not spec.ids or not hasattr(bus, "plug"):
+                continue
+            if not isinstance(joints, list) or not set(joints) <= set(spec.ids):
+                raise ValueError(f"servos: 'connected' lists joints of {sorted(spec.ids)}, got {joints!r}")
+            bus.plug({spec.ids[j] for j in joints})
+            return {"ok": True}
+        raise ValueError(f"{self.robot.name} has no servo bus")
 
     def _can_control(self, cmd: dict) -> dict:
         """``{"op": "can", "bus_off": bool}``, ``{"op": "can", "node": id, "power": bool}`` (a drive loses its

@@ -14,6 +14,7 @@ from rich.table import Table
 from models.robot import CONFIG_DIR, RobotDescriptionError
 from vslab import (
     cluster_cmds,  # noqa: F401  (registers cluster on the app)
+    devices_cmds,  # noqa: F401  (registers devices on the app)
     models_cmds,  # noqa: F401  (registers train and models on the app)
     recording,  # noqa: F401  (registers record and run on the app)
     sessions_cmds,  # noqa: F401  (registers sessions on the app)
@@ -103,15 +104,22 @@ def rig(
     robot: Annotated[str, typer.Option(help="Robot description.")] = "vsl",
     run_dir: Annotated[Path | None, typer.Option(help="Where ports.json and the port links go.")] = None,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    factory: Annotated[
+        bool,
+        typer.Option("--factory", help="Every device as it comes out of the box (a lab's first session)."),
+    ] = False,
 ) -> None:
     """Run the twin in real time behind emulators of the robot's devices (until Ctrl-C / SIGTERM)."""
+    from acquisition.processes import RT_PRIORITY, elevate
     from twin.rig import serve_rig
 
     desc = _robot(robot)
     where = run_dir or local_lab("rig (without --run-dir)").rigs
     if not options().quiet:
         console.print(f"rig for {desc.name}: ports in {where / 'ports.json'} (Ctrl-C stops)")
-    serve_rig(desc, where, seed=seed)
+    # as `python -m twin.rig`: the rig stands in for hardware, which a busy computer does not slow down
+    elevate(fifo_priority=RT_PRIORITY + 1)
+    serve_rig(desc, where, seed=seed, factory=factory)
 
 
 @app.command()

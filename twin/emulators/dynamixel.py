@@ -102,6 +102,7 @@ class DynamixelBusEmulator(Emulator):
         self.reader = dx.PacketReader()
         self._last_rx_s = 0.0
         self._hearing: int | None = None  # the baud the host sends at (None: every servo hears)
+        self.unplugged: set[int] = set()  # serials of servos whose cable is out (``plug``)
         self._response_s = 0.0
         self._registered: dict[int, tuple[int, bytes]] = {}  # serial → Reg Write waiting for Action
         self._index()
@@ -128,7 +129,8 @@ class DynamixelBusEmulator(Emulator):
         for table in self.servos:
             if table.get(dx.PROTOCOL_VERSION) == 2:
                 self.tables.setdefault(table.dxl_id, table)
-                if self._hearing is None or self.servo_baud(table) == self._hearing:
+                heard = self._hearing is None or self.servo_baud(table) == self._hearing
+                if heard and table.serial not in self.unplugged:
                     self._by_id.setdefault(table.dxl_id, []).append(table)
 
     @staticmethod
@@ -143,6 +145,12 @@ class DynamixelBusEmulator(Emulator):
     def response_s(self) -> float:
         """The Return Delay Times of the statuses of the last reply, summed (each servo waits its own)."""
         return self._response_s
+
+    def plug(self, serials: set[int]) -> None:
+        """Only the servos of ``serials`` on the bus, the others' cables out: how a lab gives new servos
+        (all ID 1) their IDs, connecting one servo at a time."""
+        self.unplugged = {t.serial for t in self.servos} - set(serials)
+        self._index()
 
     def reset_link(self) -> None:
         self.reader.reset()
