@@ -37,7 +37,8 @@ RateOption = Annotated[
 
 
 def _rates(pairs: list[str] | None, desc) -> dict[str, float]:
-    """``--rate servo_bus=1000`` → {"servo_bus": 1000.0}, each checked against the robot's devices."""
+    """``--rate servo_bus=1000`` → {"servo_bus": 1000.0}, each checked against the robot's devices, and
+    every device's rate against what its link carries (``bus_budget.rate_refusal``)."""
     out = {}
     for pair in pairs or []:
         name, sep, value = pair.partition("=")
@@ -53,6 +54,11 @@ def _rates(pairs: list[str] | None, desc) -> dict[str, float]:
                 f"--rate {pair}: {desc.name} has no device {name!r} (its devices: {', '.join(desc.devices)})"
             )
         out[name] = hz
+    from acquisition.devices.bus_budget import rate_refusal
+
+    for name in desc.devices:  # before the rig or any device is started: a rate the wire cannot carry
+        if (refusal := rate_refusal(desc, name, out.get(name))) is not None:
+            _error(refusal)
     return out
 
 

@@ -68,6 +68,7 @@ DYNAMIXEL = DeviceKind(
     timeline={T.SERVO_STATE: ("servo_", ("position", "velocity", "current"))},
     polled=frozenset({T.SERVO_STATE}),
     emulator=f"{_TWIN}:servo_bus_emulator",
+    ceiling="acquisition.devices.bus_budget:servo_bus_ceiling_hz",
     streams=((0, f"{_TWIN}:servo_streams"),),
     rows=((0, f"{_ROWS}:servo_rows"),),
 )
@@ -100,6 +101,7 @@ AURORA = DeviceKind(
     topics=_tracker_topics,
     stamps={T.TRACKER: "frame"},
     emulator=f"{_TWIN}:aurora_emulator",
+    ceiling="acquisition.devices.bus_budget:tracker_ceiling_hz",
     streams=((3, f"{_TWIN}:tracker_streams"),),
     rows=((5, f"{_ROWS}:tracker_rows"),),
 )

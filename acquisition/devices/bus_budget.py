@@ -24,6 +24,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from models.robot import DeviceSpec, RobotDescription
 
 BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit
 USB_PACKET_BYTES = 62  # an FTDI full-speed bulk packet: 64 bytes less its 2 modem-status bytes
@@ -33,6 +37,9 @@ DYNAMIXEL_FACTORY_RETURN_DELAY = 250  # 500 µs
 DYNAMIXEL_BAUDS = {0: 9_600, 1: 57_600, 2: 115_200, 3: 1_000_000, 4: 2_000_000, 5: 3_000_000, 6: 4_000_000,
                    7: 4_500_000}  # fmt: skip  # the control table's Baud Rate (address 8) codes
 DYNAMIXEL_FACTORY_BAUD = 57_600
+SERVO_BLOCK_BYTES = 16  # the servo driver's Sync Read block: Realtime Tick (120) … Present Position (135)
+AURORA_POLLS_PER_FRAME = 2.5  # the recorder polls the Aurora a little faster than its frames
+AURORA_TX_REQUEST_BYTES = 12  # "TX:0801" + 4 hex CRC + CR
 
 
 @dataclass(frozen=True)
@@ -87,6 +94,49 @@ def servo_ceiling_hz(link: SerialLink, n_servos: int, length: int, return_delay:
     cycle = servo_read_s(link, n_servos, length, return_delay)
     cycle += goal_writes_per_read * link.wire_s(sync_write_bytes(n_servos, goal_length))
     return 1.0 / cycle
+
+
+def aurora_tx_reply_bytes(n_tools: int) -> int:
+    """Bytes of an Aurora's ``TX:0801`` reply for ``n_tools`` tools: the handle count (2), per tool its
+    handle (2), quaternion (4 × 6), position (3 × 7), error (6), port status (8) and frame (8), then LF,
+    system status (4), CRC (4) and CR."""
+    return 2 + 69 * n_tools + 1 + 4 + 4 + 1
+
+
+def reply_timeout_s(latency_timer_s: float, floor_s: float = 0.01) -> float:
+    """How long a driver should wait for a reply behind an adapter with this latency timer: twice the timer
+    plus 2 ms as dynamixel-sdk allows, never under ``floor_s`` (a shorter wait times out on every reply
+    the timer holds, and the late reply then answers the next request)."""
+    return max(floor_s, 2 * latency_timer_s + 0.002)
+
+
+# ---------------------------------------------------------------------------- a description's devices
+def servo_bus_ceiling_hz(spec: DeviceSpec) -> float:
+    """The most Sync Reads per second of the servo driver's block a described servo bus carries."""
+    link = SerialLink(spec.baud, spec.host_link.latency_timer_s)
+    delay = round(spec.return_delay_s / DYNAMIXEL_RETURN_DELAY_UNIT_S)
+    return servo_ceiling_hz(link, len(spec.ids), SERVO_BLOCK_BYTES, delay)
+
+
+def tracker_ceiling_hz(spec: DeviceSpec) -> float:
+    """The highest frame rate a described Aurora can be recorded at: its polls (``AURORA_POLLS_PER_FRAME``
+    per frame, one ``TX`` each, at the baud COMM set) take the link's whole time."""
+    link = SerialLink(spec.baud, spec.host_link.latency_timer_s)
+    poll_s = link.exchange_s(AURORA_TX_REQUEST_BYTES, [aurora_tx_reply_bytes(max(1, len(spec.ids)))])
+    return 1.0 / (poll_s * AURORA_POLLS_PER_FRAME)
+
+
+def rate_refusal(robot: RobotDescription, name: str, rate_hz: float | None = None) -> str | None:
+    """Why device ``name`` cannot be read at ``rate_hz`` (default: its description's), in one line
+    (:func:`ceiling_line`), or None where its link carries that rate or its kind names no ceiling."""
+    from acquisition.devices.kinds import kind_of, resolve
+
+    kind, spec = kind_of(robot, name), robot.devices[name]
+    asked = rate_hz if rate_hz is not None else spec.rate_hz
+    if kind.ceiling is None or asked is None:
+        return None
+    ceiling = resolve(kind.ceiling)(spec)
+    return ceiling_line(f"{name} ({spec.driver})", asked, ceiling) if asked > ceiling else None
 
 
 # -------------------------------------------------------------------------------------------------- CAN

@@ -72,7 +72,9 @@ class DeviceKind:
     ``stamps``: topic → the payload field holding the device's own clock (the pipeline fits it to host
     time); ``timeline``: topic → (column prefix, fields) the timeline interpolates at the tracker's frames;
     ``polled``: the topics the host polls (sampled on the host's clock); ``role``: what the device does for
-    the robot ("joints", "pressure", "stepper", "tracker", "link"; None: nothing the models know of).
+    the robot ("joints", "pressure", "stepper", "tracker", "link"; None: nothing the models know of);
+    ``ceiling``: ``"module:attribute"`` of ``(spec) → Hz``, the highest ``rate_hz`` the device's link
+    carries (:mod:`acquisition.devices.bus_budget`; None: no ceiling below the device's own rate).
     """
 
     name: str
@@ -86,6 +88,7 @@ class DeviceKind:
     streams: tuple[tuple[float, str], ...] = ()
     rows: tuple[tuple[float, str], ...] = ()
     check: Callable[[RobotDescription, str, DeviceSpec], None] | None = None
+    ceiling: str | None = None
 
     def topics_of(self, robot: RobotDescription, name: str) -> dict[str, Any]:
         """The topics device ``name`` of ``robot`` writes (topic → message)."""

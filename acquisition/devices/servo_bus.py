@@ -33,6 +33,7 @@ from dynamixel_sdk import (
 
 from acquisition.codecs import dynamixel as dx
 from acquisition.devices.base import Device, host_now_ns
+from acquisition.devices.bus_budget import SERVO_BLOCK_BYTES
 from acquisition.devices.servo_errors import ServoHardwareAlert, ServoStatusError, status_error
 from acquisition.errors import (
     DeviceDisconnectedError,
@@ -45,7 +46,7 @@ __all__ = ["ServoBus", "ServoHardwareAlert", "ServoState", "ServoStatusError"]
 
 log = logging.getLogger(__name__)
 
-_BLOCK_START, _BLOCK_LEN = dx.REALTIME_TICK[0], 16  # 120 … 135
+_BLOCK_START, _BLOCK_LEN = dx.REALTIME_TICK[0], SERVO_BLOCK_BYTES  # 120 … 135
 _BLOCK = struct.Struct("<HBBhhii")  # tick, moving, moving status, PWM, current, velocity, position
 assert _BLOCK.size == _BLOCK_LEN
 

@@ -37,6 +37,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from acquisition.devices.bus_budget import rate_refusal
 from acquisition.errors import AcquisitionError
 from acquisition.recorder.daemon import EVENT_BYTES, push_event
 from acquisition.recorder.layout import SUPERVISOR, DeviceEntry, Layout
@@ -135,6 +136,8 @@ class Recorder:
         for name, port in ports.items():
             if name not in robot.devices:
                 continue
+            if (refusal := rate_refusal(robot, name, rates.get(name))) is not None:
+                raise RecorderError(refusal)  # before any device is opened: the wire cannot carry it
             try:
                 source = make_source(robot, name, port, rates.get(name))
             except ValueError as exc:

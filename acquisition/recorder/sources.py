@@ -23,6 +23,7 @@ import numpy as np
 
 from acquisition.devices.base import host_now_ns
 from acquisition.devices.boards import PressureBoard, StepperBoard
+from acquisition.devices.bus_budget import AURORA_POLLS_PER_FRAME, reply_timeout_s
 from acquisition.devices.servo_bus import ServoBus
 from acquisition.devices.tracker import Tracker
 from acquisition.recorder.source_base import SEQ_MODULO, Row, Source, make_source
@@ -44,8 +45,9 @@ class ServoSource(Source):
     def __init__(self, robot, name, spec, port, rate_hz) -> None:
         super().__init__(robot, name, spec, port, rate_hz)
         self.bus = ServoBus(
-            port, ids=list(spec.ids.values()), baud=spec.baud, zero_count=robot.servo.zero_count
-        )
+            port, ids=list(spec.ids.values()), baud=spec.baud, zero_count=robot.servo.zero_count,
+            reply_timeout_s=reply_timeout_s(spec.host_link.latency_timer_s),  # the adapter holds replies
+        )  # fmt: skip
         self.joints = list(spec.ids)  # joint names in the bus's id order (the goals' order)
         self.position: np.ndarray | None = None  # the last position read: where a hold holds
 
@@ -178,7 +180,7 @@ class TrackerSource(Source):
 
     driver = "ndi_aurora"
     sampled_topics = (T.TRACKER,)
-    POLLS_PER_FRAME = 2.5
+    POLLS_PER_FRAME = AURORA_POLLS_PER_FRAME  # the link's budget counts the same polls
 
     def __init__(self, robot, name, spec, port, rate_hz) -> None:
         super().__init__(robot, name, spec, port, rate_hz)
