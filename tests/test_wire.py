@@ -14,7 +14,14 @@ import tty
 
 import pytest
 import serial
-from dynamixel_sdk import COMM_RX_TIMEOUT, COMM_SUCCESS, GroupSyncRead, PacketHandler, PortHandler
+from dynamixel_sdk import (
+    COMM_RX_CORRUPT,
+    COMM_RX_TIMEOUT,
+    COMM_SUCCESS,
+    GroupSyncRead,
+    PacketHandler,
+    PortHandler,
+)
 from typer.testing import CliRunner
 
 from acquisition.codecs import dynamixel as dx
@@ -229,3 +236,17 @@ def test_record_at_a_rate_above_the_ceiling_is_one_error_line_and_exit_2(tmp_pat
     assert len(lines) == 1 and lines[0].startswith("error: servo_bus (dynamixel): 1000 Hz asked"), lines
     assert "latency timer" in lines[0]
     assert not (tmp_path / "lab" / "rig").exists() or not any((tmp_path / "lab" / "rig").iterdir())
+
+
+def test_a_factory_rig_has_its_servos_at_57600_both_at_id_1_behind_a_16_ms_adapter(host_factory, tmp_path):
+    """``python -m twin.rig --factory``: nothing answers at the lab's 1 Mbaud; at 57,600 the two ID-1 servos
+    answer a ping together and the SDK sees a corrupt reply, as on a new bus; the adapter timers at 16 ms."""
+    with host_factory(module="twin.rig", extra=("--robot", "vsl", "--factory")) as ports:
+        assert latency_timer_path(tmp_path / "run", "servo_bus").read_text().strip() == "16"
+        handler, packet = _sdk(ports["servo_bus"], 1_000_000)
+        try:
+            assert packet.ping(handler, 1)[1] == COMM_RX_TIMEOUT
+            assert handler.setBaudRate(57_600)
+            assert packet.ping(handler, 1)[1] == COMM_RX_CORRUPT
+        finally:
+            handler.closePort()
