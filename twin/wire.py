@@ -8,8 +8,8 @@ never before the end of the reply before it (one wire).
 The client's baud is read from the pty master with ``TCGETS2`` (Linux ``struct termios2``). Checked on
 Linux 6.18 with pyserial 3.5: ``termios.tcgetattr`` on the master or the slave shows what the client set (the
 slave's settings; a pty pair shares them), but only as a ``Bxxx`` code, and a rate without one (250,000, set
-with ``BOTHER``) reads as ``BOTHER`` alone; ``TCGETS2`` on the master gives the rate itself in ``c_ospeed`` for
-standard rates (9,600, 57,600, 1,000,000, 4,000,000) and ``BOTHER`` rates (250,000, 1,234,567) alike.
+with ``BOTHER``) reads as ``BOTHER`` alone; ``TCGETS2`` on the master gives the rate itself in ``c_ospeed``
+for standard rates (9,600, 57,600, 1,000,000, 4,000,000) and ``BOTHER`` rates (250,000, 1,234,567) alike.
 
 The adapter's latency timer is a file, as Linux's ``ftdi_sio`` exposes it: ``<run_dir>/sysfs/bus/usb-serial/
 devices/<device>/latency_timer`` (milliseconds, text), written by the rig from the description and read each
