@@ -58,6 +58,14 @@ def _vslab(lab: Path, *args: str | Path, stdin: str | None = None):
     return runner.invoke(app, ["--lab", str(lab), *map(str, args)], input=stdin)
 
 
+def _latency_timers_at_1_ms(run_dir: Path) -> None:
+    """What the udev rule does to every FTDI adapter when it is plugged in (the rig's: in its run dir)."""
+    timers = list(run_dir.glob("sysfs/bus/usb-serial/devices/*/latency_timer"))
+    assert {t.parent.name for t in timers} >= {"servo_bus"}
+    for timer in timers:
+        timer.write_text("1\n")
+
+
 def _bring_up(lab: Path, robot: Path, run_dir: Path) -> Path:
     """Scan, configure and set the latency timer (each step idempotent): the ports file."""
     ports = lab.parent / "ports.json"
@@ -66,7 +74,7 @@ def _bring_up(lab: Path, robot: Path, run_dir: Path) -> Path:
                       "--out", str(ports)).exit_code == 0  # fmt: skip
     done = _vslab(lab, "devices", "configure", "--robot", str(robot), "--ports", str(ports), "--yes")
     assert done.exit_code == 0, done.output
-    (run_dir / "sysfs/bus/usb-serial/devices/servo_bus/latency_timer").write_text("1\n")
+    _latency_timers_at_1_ms(run_dir)
     return ports
 
 
@@ -101,8 +109,8 @@ def test_from_factory_devices_to_a_recorded_session(factory_rig):
     again = _vslab(lab, "devices", "doctor", "--robot", str(robot), "--ports", str(ports))
     assert again.exit_code == 1  # the latency timer is left
     assert "latency timer 16 ms" in again.output and "servo IDs [1, 2]" in again.output
-    # 4. the adapter's latency timer at 1 ms (what the udev rule does): all well
-    (run_dir / "sysfs/bus/usb-serial/devices/servo_bus/latency_timer").write_text("1\n")
+    # 4. every FTDI adapter's latency timer at 1 ms (what the udev rule does): all well
+    _latency_timers_at_1_ms(run_dir)
     well = _vslab(lab, "devices", "doctor", "--robot", str(robot), "--ports", str(ports))
     assert well.exit_code == 0, well.output
     assert "all well" in well.output
