@@ -34,8 +34,8 @@ def test_quick_main_job_makes_every_figure_and_the_report(tmp_path):
     assert "POPUP Table 1" in page and "Real-time sessions" in page
     timings = json.loads((report.parent / "timings.json").read_text())
     assert set(timings) == {
-        "real-time session on the rig", "simulated campaign, Experiment 1, POPUP tests", "datasets",
-        "training", "Experiment 2 with the trained inverse model", "figures and report",
+        "real-time session on the rig", "POPUP tests", "campaign", "Experiment 1", "training",
+        "Experiment 2 with the trained inverse model", "figures and report",
         "unmodelled effects: every model beside the floor",
     }  # fmt: skip
     assert "unmodelled effects: forward models" in page and "unmodelled effects: inverse models" in page
