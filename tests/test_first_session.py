@@ -30,6 +30,8 @@ devices:
     host_link: {latency_timer_s: 0.001}
 """
 SERVO_RATE_HZ = 200
+RATES_HZ = {"/servo/state": SERVO_RATE_HZ, "/pressure/measured": 250, "/stepper/state": 100,
+            "/tracker/pose": 40}  # fmt: skip
 runner = CliRunner()
 
 
@@ -120,11 +122,16 @@ def test_from_factory_devices_to_a_recorded_session(factory_rig):
     rec = _vslab(lab, "record", "--robot", str(robot), "--ports", str(ports), "--duration", "3",
                  "--session", "first")  # fmt: skip
     assert rec.exit_code == 0, rec.output
-    for topic in ("/servo/state", "/pressure/measured", "/stepper/state"):
+    for topic in ("/servo/state", "/pressure/measured", "/stepper/state", "/tracker/pose"):
         assert f"{topic}: " not in rec.output, rec.output  # a "lost" line names its topic
+    counters = json.loads((lab / "sessions" / "first" / "session.json").read_text())["counters"]
+    for topic, rate in RATES_HZ.items():
+        c = counters[topic]
+        assert c["lost"] == 0 and c["gaps"] == 0 and c["expected"] == c["written"], (topic, c)
+        assert (c["written"] - 1) / ((c["last_ns"] - c["first_ns"]) / 1e9) == pytest.approx(rate, rel=0.01)
+        assert c["written"] >= rate * 3 * 0.95, (topic, c)  # the 3 s asked, at least
     servo_row = next(line for line in rec.output.splitlines() if "/servo/state" in line)
-    received = int(servo_row.split("│")[3].replace(",", ""))
-    assert received >= 0.8 * SERVO_RATE_HZ * 3
+    assert servo_row.split("│")[7].strip() == f"{SERVO_RATE_HZ}"  # the table's rate is the stream's own
 
 
 @pytest.mark.slow

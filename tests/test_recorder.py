@@ -101,6 +101,10 @@ def test_a_session_meets_its_rates_loses_nothing_and_its_file_agrees(
         assert c["expected"] == c["received"] == c["written"] == f["messages"] == f["expected"], (topic, c, f)
         assert f["rate_hz"] == pytest.approx(rate, rel=0.01), topic
         assert f["messages"] >= rate * (seconds - 1.5), (topic, f)  # all along, after the connections
+    # every stream ends when the recording stops: the tracker's polls (2.5 a frame, 9 ms each) fill its
+    # slots, and its daemon still hears the stop command at once (it was SIGTERMed 5 s later)
+    ends = [card["counters"][topic]["last_ns"] for topic in RATES]
+    assert (max(ends) - min(ends)) / 1e9 < 0.5, ends
     (part,) = readable_parts(tmp_path / "s")
     ros2_agrees(part)
 

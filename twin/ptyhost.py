@@ -159,6 +159,12 @@ class _Port:
         when the wire delivers it to a client at ``baud``; nothing where the device runs at another."""
         if not data:
             return
+        if self.faults.corrupt_replies > 0:
+            # one bit flipped in the reply's last checksum byte (the Dynamixel CRC's low byte, NDI's and the
+            # boards' last hex digit): the client reads the whole reply and finds it corrupt. A flip in a
+            # header or terminator would cost the client its reply timeout instead; this fault is not that.
+            self.faults.corrupt_replies -= 1
+            data = data[:-2] + bytes([data[-2] ^ 0x01]) + data[-1:]
         device = self.emulator.device_baud()
         if device is not None and baud is not None and baud != device and not request:
             return  # streamed bytes at another baud: framing errors, nothing the client can use
@@ -183,10 +189,6 @@ class _Port:
         if self.faults.drop_replies > 0:
             self.faults.drop_replies -= 1
             return
-        if self.faults.corrupt_replies > 0:
-            self.faults.corrupt_replies -= 1
-            middle = len(data) // 2
-            data = data[:middle] + bytes([data[middle] ^ 0x5A]) + data[middle + 1 :]
         # a device whose host does not read drops whole replies (its output buffer overflows), never the
         # end of one: what a full pty took in part is finished before anything newer goes out
         if self._unsent:

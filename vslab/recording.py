@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import time
 from pathlib import Path
@@ -92,12 +93,15 @@ def _record_for(rec, duration: float) -> float:
 
     with recording(rec), Live(console=console, refresh_per_second=2, transient=True) as counters:
         start = time.monotonic()
+        before = (start, rec.snapshot())
         try:
             while (duration <= 0 or time.monotonic() - start < duration) and rec.write_error is None:
                 left = start + duration - time.monotonic() if duration > 0 else 0.5
                 time.sleep(min(0.5, max(0.0, left)))
                 if not options().quiet:
-                    counters.update(_counter_table(rec.snapshot(), time.monotonic() - start))
+                    now = (time.monotonic(), rec.snapshot())
+                    counters.update(_counter_table(now[1], now[0] - start, before=before, now_s=now[0]))
+                    before = now
         except KeyboardInterrupt:
             pass
         return time.monotonic() - start
@@ -159,8 +163,18 @@ def record(
     except AcquisitionError as exc:  # a port, the rig, the session folder, the recorder: one line
         _error(str(exc))
     if not options().quiet and rec.final is not None:
-        console.print(_counter_table(rec.final, recorded_s, title=f"recorded {recorded_s:.1f} s"))
+        console.print(_counter_table(_with_spans(rec), recorded_s, title=f"recorded {recorded_s:.1f} s"))
     _finish(rec)
+
+
+def _with_spans(rec) -> dict:
+    """The final account, each stream with its first and last written sample from the session's card."""
+    try:
+        written = json.loads((rec.directory / "session.json").read_text())["counters"]
+    except (OSError, ValueError, KeyError):  # no card (the writer failed): the counts alone
+        return rec.final
+    spans = {t: {k: written.get(t, {}).get(k) for k in ("first_ns", "last_ns")} for t in rec.final}
+    return {t: {**c, **spans[t]} for t, c in rec.final.items()}
 
 
 @app.command()
@@ -241,11 +255,24 @@ def _live_view(desc, host: str, port: int):
     return server
 
 
-def _counter_table(snapshot: dict, elapsed: float, title: str = "") -> Table:
+def _counter_table(snapshot: dict, elapsed: float, title: str = "", before: tuple | None = None,
+                   now_s: float = 0.0) -> Table:  # fmt: skip
+    """The streams' accounts. The rate is each stream's own: over its first to last written sample in a
+    final account (streams start when their device first answers, seconds apart), else over the last
+    refresh (``before``: the time and snapshot then)."""
     table = Table("topic", "expected", "received", "lost", "written", "dropped", "rate Hz",
                   title=title or f"recording {elapsed:.0f} s")  # fmt: skip
     for topic, c in sorted(snapshot.items()):
-        rate = c["received"] / elapsed if elapsed > 0 else 0.0
+        rate = _stream_rate(c, before[1].get(topic) if before else None, now_s - before[0] if before else 0.0)
         counts = [f"{c[k]:,}" for k in ("expected", "received", "lost", "written", "dropped")]
         table.add_row(topic, *counts, f"{rate:.0f}")
     return table
+
+
+def _stream_rate(c: dict, earlier: dict | None, window_s: float) -> float:
+    """Samples per second of one stream: written over its own span, or received over the window."""
+    if c.get("first_ns") is not None and c.get("last_ns") is not None and c["last_ns"] > c["first_ns"]:
+        return (c["written"] - 1) / ((c["last_ns"] - c["first_ns"]) / 1e9)
+    if earlier is not None and window_s > 0:
+        return (c["received"] - earlier["received"]) / window_s
+    return 0.0

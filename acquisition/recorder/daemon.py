@@ -113,6 +113,9 @@ class Daemon:
             due = self.layout.t0_ns + self.next_slot * self.period_ns
             self._wait(min(IDLE_S, (due - now) / 1e9))
             return
+        self._wait(0.0)  # a device whose exchanges fill its slots never leaves time to wait: commands now
+        if self.stopping or self.terminating:
+            return
         if slot_now - self.next_slot > self.max_lag:  # too far behind: those slots are lost
             self.next_slot = slot_now
         slot, self.next_slot = self.next_slot, self.next_slot + 1

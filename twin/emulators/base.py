@@ -63,6 +63,6 @@ class Emulator:
 class Faults:
     """Faults a test can ask for, applied by the pty host to one device's replies."""
 
-    corrupt_replies: int = 0  # flip one byte in each of the next N replies
+    corrupt_replies: int = 0  # one bit flipped in the checksum of each of the next N replies
     drop_replies: int = 0  # swallow the next N replies
     unplugged: bool = False  # the port is gone
