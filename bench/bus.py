@@ -6,9 +6,17 @@ behind an adapter whose latency timer is 16 ms (the driver's default) or 1 ms (a
 For each case the robot description is copied with the servo bus at that baud and latency timer, a rig
 serves it (``twin.rig``, the wire-true pty host), and the project's servo driver reads it back to back (asking
 for more than the ceiling: the recorder itself refuses a rate above it) for ``--seconds``. Printed per case:
-asked / ceiling (``bus_budget.servo_bus_ceiling_hz``) / reached / reached ÷ ceiling, and the machine's load
-average; then POPUP's CAN bus load at its configured rates, frame kind by frame kind. Exit status 1 if a
-reached rate is above its ceiling or below 85 % of it, or the CAN bus's worst-case load is above 100 %.
+asked / ceiling (``bus_budget.servo_bus_ceiling_hz``) / reached / reached ÷ ceiling, the driver's own CPU
+time per read ("host ms": dynamixel-sdk's packets in Python, in series with the wire) and reached ÷ (the
+ceiling's cycle plus that time), and the machine's load average; then POPUP's CAN bus load at its configured
+rates, frame kind by frame kind. Exit status 1 if a reached rate is above its ceiling, or below 85 % of the
+ceiling with the host's own time added (the rig's part: its wake-ups and scheduling), or the CAN bus's
+worst-case load is above 100 %.
+
+Where the wire's cycle is short (1 ms latency timer at 1 M or 4 M baud: 1.7 / 1.2 ms), the host's own time
+per read (≈ 0.15 ms of Python here, plus two wake-ups of ≈ 0.06 ms on this VM) is 15-25 % of it: a lab's
+computer pays it too, so the driver reaches 79-87 % of the wire's ceiling there; the rig's own lateness
+(replies written late, requests read late) is what the 85 % bound holds to.
 """
 
 from __future__ import annotations
@@ -41,8 +49,9 @@ def servo_case(robot: RobotDescription, baud: int, latency_timer_s: float) -> Ro
     return robot.model_copy(update={"devices": devices})
 
 
-def reached_hz(robot: RobotDescription, seconds: float) -> float:
-    """Sync Reads per second of the servo driver, back to back, against a rig of ``robot``."""
+def reached_hz(robot: RobotDescription, seconds: float) -> tuple[float, float]:
+    """Sync Reads per second of the servo driver, back to back, against a rig of ``robot``, and the CPU
+    seconds the driver's own process spent per read (the SDK's packets in Python: in series with the wire)."""
     spec = robot.devices["servo_bus"]
     with tempfile.TemporaryDirectory(prefix="bus-") as tmp, rig_process(robot, Path(tmp)) as proc:
         ports = rig_ports(Path(tmp), proc)
@@ -52,11 +61,11 @@ def reached_hz(robot: RobotDescription, seconds: float) -> float:
         ) as bus:
             for _ in range(5):  # the first reads step the twin from its start
                 bus.read_state()
-            n, start = 0, time.monotonic()
+            n, start, cpu = 0, time.monotonic(), time.process_time()
             while time.monotonic() - start < seconds:
                 bus.read_state()
                 n += 1
-            return n / (time.monotonic() - start)
+            return n / (time.monotonic() - start), (time.process_time() - cpu) / n
 
 
 def can_bus_load_lines() -> list[str]:
@@ -84,18 +93,18 @@ def main() -> int:
     args = parser.parse_args()
     robot = load_robot(args.robot)
     failed = False
-    print(
-        f"{'device':<12} {'baud':>9} {'timer ms':>8} {'asked':>8} {'ceiling':>8} {'reached':>8} {'÷ ceil':>7}"
-    )
+    print(f"{'device':<12} " + " ".join(f"{c:>9}" for c in (
+        "baud", "timer ms", "asked", "ceiling", "reached", "÷ ceil", "host ms", "÷ w/host")))  # fmt: skip
     for baud in BAUDS:
         for latency in LATENCY_TIMERS_S:
             case = servo_case(robot, baud, latency)
             ceiling = servo_bus_ceiling_hz(case.devices["servo_bus"])
-            reached = reached_hz(case, args.seconds)
-            ratio = reached / ceiling
-            bad = ratio > 1.0 or ratio < LOWEST_FRACTION
+            reached, host_s = reached_hz(case, args.seconds)
+            with_host = 1.0 / (1.0 / ceiling + host_s)  # the wire's cycle plus the driver's own time
+            bad = reached > ceiling or reached < LOWEST_FRACTION * with_host
             failed |= bad
-            cells = (baud, f"{latency * 1e3:.0f}", "max", f"{ceiling:.1f}", f"{reached:.1f}", f"{ratio:.3f}")
+            ratios = (f"{reached / ceiling:.3f}", f"{host_s * 1e3:.3f}", f"{reached / with_host:.3f}")
+            cells = (baud, f"{latency * 1e3:.0f}", "max", f"{ceiling:.1f}", f"{reached:.1f}", *ratios)
             print(f"{'servo_bus':<12} " + " ".join(f"{c:>9}" for c in cells) + ("  FAIL" if bad else ""))
     for line in can_bus_load_lines():
         print(line)

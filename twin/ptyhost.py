@@ -98,6 +98,18 @@ class OpenWatch:
         os.close(self.fd)
 
 
+# A sleeping process wakes this late on this kind of machine (a VM's timer: 55 µs at the 10th percentile,
+# 75 µs median, 137 µs at the 90th, measured under SCHED_FIFO). Output due sooner is waited for spinning, so
+# the wire's time is what the client sees and not the host's wake-up on top of it (never earlier: the spin
+# ends at the due time).
+WAKE_LATENCY_S = 100e-6
+
+
+def _spin_until(now, due_s: float) -> None:
+    while now() < due_s:
+        pass
+
+
 class _Port:
     """One emulator on one pty (re-created on replug)."""
 
@@ -297,8 +309,12 @@ class PtyHost:
                     next_tick = now + self.housekeeping_s
                 wake_at = next_tick
                 due = self._emit_due(now)
-                if due is not None:
-                    wake_at = min(wake_at, due)
+                if due is not None and due < wake_at:
+                    wake_at = due
+                    if due - self.now() < WAKE_LATENCY_S:  # too close to sleep: the wake-up would be late
+                        _spin_until(self.now, due)
+                        continue
+                    wake_at = due - WAKE_LATENCY_S  # wake early; the last stretch above, spinning
                 for key, _ in sel.select(timeout=max(0.0, wake_at - self.now())):
                     kind, obj = key.data
                     if kind == "port":
