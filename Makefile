@@ -27,7 +27,7 @@ test-under-load: $(BIN)/.installed
 	$(BIN)/python bench/load.py -- $(BIN)/python -m pytest
 
 bench: $(BIN)/.installed
-	$(BIN)/python bench/twin.py
+	$(BIN)/python bench/twin_kernel.py
 	$(BIN)/python bench/devices.py
 	$(BIN)/python bench/record.py
 	$(BIN)/python bench/rig.py
@@ -35,6 +35,7 @@ bench: $(BIN)/.installed
 	$(BIN)/python bench/simulate.py
 	$(BIN)/python bench/ingest.py
 	$(BIN)/python bench/can_bus.py
+	$(BIN)/python bench/bus.py
 
 lint format: $(BIN)/.installed
 	$(BIN)/ruff check --fix .

@@ -8,10 +8,12 @@ serves it (``twin.rig``, the wire-true pty host), and the project's servo driver
 for more than the ceiling: the recorder itself refuses a rate above it) for ``--seconds``. Printed per case:
 asked / ceiling (``bus_budget.servo_bus_ceiling_hz``) / reached / reached ÷ ceiling, the driver's own CPU
 time per read ("host ms": dynamixel-sdk's packets in Python, in series with the wire) and reached ÷ (the
-ceiling's cycle plus that time), and the machine's load average; then POPUP's CAN bus load at its configured
-rates, frame kind by frame kind. Exit status 1 if a reached rate is above its ceiling, or below 85 % of the
-ceiling with the host's own time added (the rig's part: its wake-ups and scheduling), or the CAN bus's
-worst-case load is above 100 %.
+ceiling's cycle plus that time), and the machine's load average. Then the tracker's TX polls per second
+(ceiling: ``tracker_ceiling_hz`` × the polls a frame) at the described baud behind a 16 ms and a 1 ms
+timer, and POPUP's CAN bus load at its configured rates, frame kind by frame kind. Exit status 1 if a
+reached rate is above its ceiling, or below 85 % of it (the servo bus: of the ceiling with the driver's own
+time added, which leaves the rig's part: its wake-ups and scheduling), or the CAN bus's worst-case load is
+above 100 %.
 
 Where the wire's cycle is short (1 ms latency timer at 1 M or 4 M baud: 1.7 / 1.2 ms), the host's own time
 per read (≈ 0.15 ms of Python here, plus two wake-ups of ≈ 0.06 ms on this VM) is 15-25 % of it: a lab's
@@ -30,7 +32,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from acquisition.devices.bus_budget import reply_timeout_s, servo_bus_ceiling_hz
+from acquisition.devices.bus_budget import (
+    AURORA_POLLS_PER_FRAME,
+    reply_timeout_s,
+    servo_bus_ceiling_hz,
+    tracker_ceiling_hz,
+)
 from acquisition.devices.servo_bus import ServoBus
 from models.robot import RobotDescription, load_robot
 from twin.rig_process import rig_ports, rig_process
@@ -66,6 +73,29 @@ def reached_hz(robot: RobotDescription, seconds: float) -> tuple[float, float]:
                 bus.read_state()
                 n += 1
             return n / (time.monotonic() - start), (time.process_time() - cpu) / n
+
+
+def tracker_case(robot: RobotDescription, latency_timer_s: float) -> RobotDescription:
+    """``robot`` with its tracker's adapter at a ``latency_timer_s`` timer."""
+    spec = robot.devices["tracker"]
+    link = spec.host_link.model_copy(update={"latency_timer_s": latency_timer_s})
+    return robot.model_copy(update={"devices": {**robot.devices, "tracker": spec.model_copy(
+        update={"host_link": link})}})  # fmt: skip
+
+
+def tracker_polls_hz(robot: RobotDescription, seconds: float) -> float:
+    """TX polls per second of the tracker driver (scikit-surgerynditracker), back to back, on a rig."""
+    from acquisition.devices.tracker import Tracker
+
+    with tempfile.TemporaryDirectory(prefix="bus-") as tmp, rig_process(robot, Path(tmp)) as proc:
+        with Tracker(rig_ports(Path(tmp), proc)["tracker"]) as tracker:
+            for _ in range(3):
+                tracker.read_all()
+            n, start = 0, time.monotonic()
+            while time.monotonic() - start < seconds:
+                tracker.read_all()
+                n += 1
+            return n / (time.monotonic() - start)
 
 
 def can_bus_load_lines() -> list[str]:
@@ -106,6 +136,16 @@ def main() -> int:
             ratios = (f"{reached / ceiling:.3f}", f"{host_s * 1e3:.3f}", f"{reached / with_host:.3f}")
             cells = (baud, f"{latency * 1e3:.0f}", "max", f"{ceiling:.1f}", f"{reached:.1f}", *ratios)
             print(f"{'servo_bus':<12} " + " ".join(f"{c:>9}" for c in cells) + ("  FAIL" if bad else ""))
+    for latency in LATENCY_TIMERS_S:  # the Aurora at the baud COMM sets (115,200): its TX polls
+        case = tracker_case(robot, latency)
+        spec = case.devices["tracker"]
+        ceiling = tracker_ceiling_hz(spec) * AURORA_POLLS_PER_FRAME
+        reached = tracker_polls_hz(case, args.seconds)
+        bad = reached > ceiling or reached < LOWEST_FRACTION * ceiling
+        failed |= bad
+        cells = (spec.baud, f"{latency * 1e3:.0f}", "max", f"{ceiling:.1f}", f"{reached:.1f}",
+                 f"{reached / ceiling:.3f}")  # fmt: skip
+        print(f"{'tracker TX':<12} " + " ".join(f"{c:>9}" for c in cells) + ("  FAIL" if bad else ""))
     for line in can_bus_load_lines():
         print(line)
     from acquisition.devices.can_budget import popup_can_load

@@ -1,9 +1,9 @@
 """POPUP's CAN bus on the rig: frames per second through slcan, the PDO loop rate achieved, the bus load.
 
-    python -P bench/can_bus.py [--seconds 10] [--rate 100 200 500]
+    python bench/can_bus.py [--seconds 10] [--rate 100 200 500]
 
-(Not bench/can.py: a script of that name would shadow python-can's ``can`` package; ``-P`` keeps bench/
-off the import path, where bench/twin.py would shadow the ``twin`` package.)
+(Not bench/can.py: a script of that name would shadow python-can's ``can`` package, as a bench script
+named after any package it imports would.)
 
 Starts the POPUP rig (its own process, as on the bench), opens the three CiA 402 drives with python-can's
 slcan interface and canopen, enables them and runs the PDO loop at each SYNC rate: every cycle one SYNC, the

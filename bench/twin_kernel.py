@@ -2,7 +2,7 @@
 
 Targets (issue 2): ≥ 50× real time for one robot on one core, ≥ 2000× aggregate for a batch of 256.
 The physics runs at 1 kHz; robots of a batch run in parallel threads (numba prange) on the machine's cores.
-Usage: python bench/twin.py [--seconds S] [--robot vsl|popup|vsl_rigid]
+Usage: python bench/twin_kernel.py [--seconds S] [--robot vsl|popup|vsl_rigid]
 """
 
 from __future__ import annotations
