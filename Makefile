@@ -1,12 +1,13 @@
 # Two commands on a fresh machine (only Python ≥ 3.11 needed):
 #   make demo   — create .venv, install everything, run the main job end to end on the twin
 #   make test   — create .venv if needed, run the whole test suite (CI runs exactly this)
+#   make check  — lint and the fast tier (every test not marked slow): what to run while working
 PYTHON ?= python3
 VENV   ?= .venv
 BIN     = $(VENV)/bin
 LAB    ?= lab
 
-.PHONY: demo test test-under-load lint format bench clean
+.PHONY: demo test check test-under-load lint format bench loop clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -22,6 +23,11 @@ test: $(BIN)/.installed
 	$(BIN)/ruff format --check .
 	$(BIN)/python -m pytest
 
+check: $(BIN)/.installed
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/python -m pytest -m "not slow"
+
 # the whole suite with every core busy (a CPU-bound process per core): real-time tests must hold there too
 test-under-load: $(BIN)/.installed
 	$(BIN)/python bench/load.py -- $(BIN)/python -m pytest
@@ -36,6 +42,10 @@ bench: $(BIN)/.installed
 	$(BIN)/python bench/ingest.py
 	$(BIN)/python bench/can_bus.py
 	$(BIN)/python bench/bus.py
+
+# the lab's loop against its goals: main job, campaign, cold build, ingest, the suite (takes ~40 min)
+loop: $(BIN)/.installed
+	$(BIN)/python bench/loop.py
 
 lint format: $(BIN)/.installed
 	$(BIN)/ruff check --fix .

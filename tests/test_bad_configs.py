@@ -293,6 +293,7 @@ PORTS = [
 ]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["record", "run"])
 @pytest.mark.parametrize(("ports", "says"), PORTS, ids=[p.split("/")[-1] for p, _ in PORTS])
 def test_bad_ports(tmp_path, inputs, command, ports, says):
@@ -315,6 +316,7 @@ BELOW = "{min: [250, -80, -150], max: [300, 80, -100]}"  # reachable, below the 
     ],
     ids=["pressure", "low-pressure", "workspace", "wrinkling"],
 )
+@pytest.mark.slow
 def test_an_unsafe_plan_is_refused_before_anything_starts(tmp_path, inputs, where, args, says):
     error = _refused(
         tmp_path, inputs, ["run", *args, "--plan", "0", *where], "safety limit(s): refused, nothing"

@@ -144,6 +144,7 @@ ARGS = {
 
 
 # ------------------------------------------------------------------------------------------ the matrix
+@pytest.mark.slow
 @pytest.mark.parametrize("command", COMMANDS)
 @pytest.mark.parametrize("damage", list(DAMAGE))
 def test_a_damaged_model_gets_one_clear_line(good_lab, tmp_path, damage, command):
@@ -297,6 +298,7 @@ def test_a_card_edited_by_hand_is_caught_even_when_it_stays_valid_json(good_lab,
     assert model_store.load_card(path)["version"] == INVERSE[1]
 
 
+@pytest.mark.slow
 def test_train_refuses_to_count_a_damaged_version_as_trained(tmp_path, campaign_dataset):
     """`vslab train` skips the versions it has; one whose files were damaged is an error naming the file,
     not an "existing" model (it would never be trained again)."""

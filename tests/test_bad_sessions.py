@@ -168,6 +168,7 @@ def _nothing_half_written(lab: Path) -> None:
 
 
 # ------------------------------------------------------------------------------------------ the matrix
+@pytest.mark.slow
 @pytest.mark.parametrize("command", COMMANDS)
 @pytest.mark.parametrize("damage", list(DAMAGE))
 def test_a_bad_session_gets_one_clear_line(good, shared, tmp_path, damage, command):

@@ -234,6 +234,7 @@ def _until(predicate, timeout_s: float = 3.0, every_s: float = 0.02):
     raise AssertionError("condition not met in time")
 
 
+@pytest.mark.slow
 def test_pressure_board_streams_towards_the_set_point(host_factory):
     with host_factory(PRESSURE) as ports, PressureBoard(ports["pressure_board"]) as board:
         assert board.identity.board == "PRESSURE"
@@ -260,6 +261,7 @@ def test_pressure_board_streams_towards_the_set_point(host_factory):
     assert all(b.micros > a.micros for a, b in itertools.pairwise(samples))
 
 
+@pytest.mark.slow
 def test_stepper_board_move_reaches_target(host_factory):
     with host_factory(STEPPER) as ports, StepperBoard(ports["stepper_board"]) as board:
         assert board.identity.board == "STEPPER"
@@ -274,6 +276,7 @@ def test_stepper_board_move_reaches_target(host_factory):
     assert [s.position_steps for s in streamed] == sorted(s.position_steps for s in streamed)
 
 
+@pytest.mark.slow
 def test_wrong_board_on_the_port_is_not_found(host_factory):
     with host_factory(STEPPER) as ports:
         with pytest.raises(DeviceNotFoundError, match="not a PRESSURE board"):
@@ -299,6 +302,7 @@ def _read_for(port: serial.Serial, seconds: float) -> list[tuple[float, bytes]]:
     return lines
 
 
+@pytest.mark.slow
 def test_reopening_the_port_resets_the_board_like_an_uno(host_factory):
     with host_factory(PRESSURE) as ports:
         path = ports["pressure_board"]
@@ -330,6 +334,7 @@ def test_reopening_the_port_resets_the_board_like_an_uno(host_factory):
     assert after[-1].valves == 0 and abs(after[-1].counts[0] - 4000) < 40, "valves released, 0 Pa"
 
 
+@pytest.mark.slow
 def test_driver_errors_name_the_board_the_command_and_the_reply(host_factory):
     with host_factory(PRESSURE) as ports, PressureBoard(ports["pressure_board"]) as board:
         path = ports["pressure_board"]

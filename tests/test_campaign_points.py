@@ -70,6 +70,7 @@ def _default_campaign():
     return robots["vsl"], plans
 
 
+@pytest.mark.slow
 def test_default_campaign_stays_inside_the_box_under_predicted_sag():
     """Every plan of the default campaign passes the safety check: the tip, sagging under payload and
     pressure as the twin's statics predict, stays inside the box at every point and on every move."""
@@ -84,6 +85,7 @@ def _drives_in_turn(plan: Plan) -> Plan:
     return dataclasses.replace(plan, goal_speed=np.where(plan.goal_speed > 0, 1.0, plan.goal_speed))
 
 
+@pytest.mark.slow
 def test_a_plan_whose_move_leaves_the_box_is_refused_naming_the_point():
     """With its drives arriving one by one, a default campaign bench passes through a corner below the box
     (z ≈ −52 mm predicted; the twin went to −51 to −58 mm): refused before it runs, the violation's line
@@ -101,6 +103,7 @@ def test_a_plan_whose_move_leaves_the_box_is_refused_naming_the_point():
         checker.require_safe(_drives_in_turn(plan))
 
 
+@pytest.mark.slow
 def test_the_worst_move_of_the_default_campaign_completes_on_the_twin(tmp_path):
     """The move that dipped out of the box (drives in turn) runs to the end on the twin with the campaign's
     synchronised drives: no safety stop, the tip's lowest point inside the box."""

@@ -46,6 +46,7 @@ def _collect(boards: BoardFrames, seconds: float) -> list:
     return out + boards.take()
 
 
+@pytest.mark.slow
 def test_board_frames_arrive_numbered_at_their_rates(bus, real_time):
     _, boards = bus
     boards.take()
@@ -69,6 +70,7 @@ def test_board_frames_arrive_numbered_at_their_rates(bus, real_time):
     assert np.linalg.norm(np.mean(accel, axis=0)) == pytest.approx(9.81, abs=0.5)  # on average: gravity
 
 
+@pytest.mark.slow
 def test_the_main_board_regulates_to_the_commanded_set_points(bus, popup_rig):
     run_dir, _ = popup_rig
     _, boards = bus

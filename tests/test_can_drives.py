@@ -47,6 +47,7 @@ def _cycles(drives: CanDrives, n: int, goals=None) -> list:
     return out
 
 
+@pytest.mark.slow
 def test_drives_enable_and_follow_target_positions(drives):
     cycles = drives.enable()
     assert cycles and (cycles[-1].statusword & 0x6F == 0x27).all()  # OPERATION ENABLED
@@ -85,6 +86,7 @@ def test_an_injected_drive_fault_arrives_as_an_emcy(drives, popup_rig):
     assert (cycles[-1].statusword & 0x6F == 0x27).all()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", [{"node": 2, "power": False}, {"bus_off": True}])
 def test_a_lost_heartbeat_is_detected(drives, popup_rig, fault):
     drives.enable()

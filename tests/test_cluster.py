@@ -49,6 +49,7 @@ def _lab(tmp_path, campaign_dataset, name: str):
     return lab
 
 
+@pytest.mark.slow
 def test_a_build_on_the_cluster_is_the_local_build(tmp_path, campaign_dataset, cluster):
     src, version, _ = campaign_dataset
     lab = _lab(tmp_path, campaign_dataset, "remote")
@@ -71,6 +72,7 @@ def _weights(lab, results) -> dict[str, dict]:
     }
 
 
+@pytest.mark.slow
 def test_a_grid_on_the_cluster_trains_the_local_weights_even_when_a_worker_dies(
     tmp_path, campaign_dataset, cluster
 ):
@@ -98,6 +100,7 @@ def test_a_grid_on_the_cluster_trains_the_local_weights_even_when_a_worker_dies(
         assert all(tensors[k].equal(b[version][k]) for k in tensors), f"{version}: weights differ"
 
 
+@pytest.mark.slow
 def test_no_scheduler_is_one_clear_error(tmp_path, campaign_dataset):
     with pytest.raises(ClusterError, match=r"no Dask scheduler answers at 'tcp://127.0.0.1:9' within 1 s"):
         with cluster_executor("tcp://127.0.0.1:9", timeout_s=1):
@@ -119,6 +122,7 @@ def test_no_scheduler_is_one_clear_error(tmp_path, campaign_dataset):
     assert done.exit_code == 2 and "--workers and --cluster" in done.output
 
 
+@pytest.mark.slow
 def test_vslab_cluster_local_serves_until_ctrl_c():
     command = [
         sys.executable,
@@ -147,6 +151,7 @@ def test_vslab_cluster_local_serves_until_ctrl_c():
         proc.wait()
 
 
+@pytest.mark.slow
 def test_a_scheduler_that_is_not_there_is_one_line_within_seconds(tmp_path, campaign_dataset):
     """Nothing on the port (bound and closed), and a port that accepts but never speaks: each one `error:`
     line naming the address, well within a minute (old code: the second hung for ever in Dask's handshake)."""

@@ -112,6 +112,7 @@ class _Network:
         return q_ik if self.calls == 1 else np.asarray([self.bad], float)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", ["nan", "huge", "out of range"])
 def test_a_compensator_gone_wrong_stops_the_plan_and_nothing_reaches_the_servos(host_factory, tmp_path, vsl,
                                                                                 case):  # fmt: skip
@@ -133,6 +134,7 @@ def test_a_compensator_gone_wrong_stops_the_plan_and_nothing_reaches_the_servos(
     assert any(e.kind == EventKind.SAFETY_STOP and e.label == "command" for e in events)
 
 
+@pytest.mark.slow
 def test_the_daemon_refuses_what_the_python_api_sends_and_the_runner_would_stop(host_factory, tmp_path, vsl):
     with host_factory(**RIG) as ports:
         with Recorder(vsl, ports, tmp_path / "s", "s") as rec:

@@ -103,6 +103,7 @@ def _flip_all(path: Path, lo: int, hi: int, scratch: Path) -> tuple[int, int]:
     return caught, harmless
 
 
+@pytest.mark.slow
 def test_flips_in_a_compressed_chunk_are_caught_and_named(recorded, tmp_path):
     part = _part(recorded)
     _, chunks = _chunks(part)
@@ -111,6 +112,7 @@ def test_flips_in_a_compressed_chunk_are_caught_and_named(recorded, tmp_path):
     assert caught + harmless == FLIPS and caught >= FLIPS * 3 // 4, (caught, harmless)
 
 
+@pytest.mark.slow
 def test_flips_in_an_uncompressed_chunk_are_all_caught(recorded, tmp_path):
     plain = tmp_path / "plain.mcap"
     _uncompressed_copy(_part(recorded), plain)
@@ -126,6 +128,7 @@ def test_flips_in_an_uncompressed_chunk_are_all_caught(recorded, tmp_path):
     assert (caught, harmless) == (FLIPS, 0)  # a CRC32 catches every single-bit error
 
 
+@pytest.mark.slow
 def test_flips_in_a_chunk_s_message_index_are_caught_or_harmless(recorded, tmp_path):
     """The message indexes lie outside the chunk's CRC: each entry is checked against the record it names."""
     part = _part(recorded)
@@ -174,6 +177,7 @@ def _said(done: subprocess.CompletedProcess) -> list[str]:
     return (done.stdout + done.stderr).strip().splitlines()
 
 
+@pytest.mark.slow
 def test_every_command_names_a_damaged_chunk(recorded, tmp_path):
     lab = tmp_path / "lab"
     session, offset = _damaged_session(recorded, lab)
@@ -194,6 +198,7 @@ def test_every_command_names_a_damaged_chunk(recorded, tmp_path):
     assert session.name in warnings[0] and where in warnings[0] and "messages lost" in warnings[0]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rate", ["inf", "nan", "0", "-1", "1e9"])
 def test_export_refuses_a_rate_out_of_bounds_in_one_line(recorded, tmp_path, rate):
     lab = tmp_path / "lab"

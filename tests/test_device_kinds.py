@@ -71,6 +71,7 @@ def _rows_of(source, topics: set[str], timeout_s: float = 10.0) -> dict[str, obj
     return seen
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind_name", kinds.registered())
 def test_every_kind_keeps_its_contract_on_its_emulator(kind_name, rigs):
     """A kind resolves; on the rig its recording source (or its bus's) opens and reads samples of its
@@ -162,6 +163,7 @@ def test_a_kind_from_outside_the_project_is_found_by_its_entry_point_or_its_modu
     assert "/loadcell/force" in T.session_topics(toy_kind)
 
 
+@pytest.mark.slow
 def test_a_kind_from_outside_the_project_is_recorded_on_the_rig(toy_kind, tmp_path):
     """The load cell's description extends the VSL robot; the rig serves it, the recorder's daemon (another
     process) records it: its topic is in the file, sampled at its rate, reading the payload's weight."""

@@ -146,6 +146,7 @@ def test_use_before_fit_raises_not_fitted(case, data):
         case.use(case.make(), data)
 
 
+@pytest.mark.slow
 def test_fit_learns_underscored_attributes_and_is_deterministic(fitted):
     est, first, second = fitted
     learned = est.fitted_attributes()

@@ -80,6 +80,7 @@ def _bring_up(lab: Path, robot: Path, run_dir: Path) -> Path:
     return ports
 
 
+@pytest.mark.slow
 def test_from_factory_devices_to_a_recorded_session(factory_rig):
     lab, robot, run_dir = factory_rig
     ports = lab.parent / "ports.json"
@@ -170,6 +171,7 @@ def test_broken_input_is_one_error_line(tmp_path, args, says):
     assert lines[-1].startswith("error:") and says in " ".join(result.output.split())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["doctor", "configure"])
 def test_a_foreign_device_on_the_port_is_one_error_line(factory_rig, tmp_path, command):
     """The servo bus's entry naming the tracker's port: the Aurora answers there, said in one line."""

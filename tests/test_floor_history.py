@@ -27,6 +27,8 @@ from pipeline.in_loop import InverseModelCompensator
 from pipeline.model_store import load_card
 from vslab.cli import app
 
+pytestmark = pytest.mark.slow  # module fixtures of seconds each: the whole module is slow-tier
+
 runner = CliRunner()
 
 

@@ -186,6 +186,7 @@ def test_a_vsl_session_exports_with_the_tracker_placed_by_a_dataset(tmp_path, ca
     np.testing.assert_allclose(_matrix(tracker.transform), placement, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_export_refuses_what_it_cannot_export_in_one_line(tmp_path, campaign_dataset):
     lab, _, _ = campaign_dataset
     session = sorted((lab / "sessions").iterdir())[0].name

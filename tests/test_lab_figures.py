@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from acquisition.recorder.sessions import SessionStore
 from acquisition.recorder.writer import SessionWriter
@@ -15,6 +16,7 @@ from pipeline.lab import Lab
 from pipeline.session_index import sessions_of
 
 
+@pytest.mark.slow
 def test_figures_and_report_of_a_lab_with_only_a_campaign(campaign_dataset, tmp_path):
     shared, version, _ = campaign_dataset
     lab = tmp_path / "lab"  # its own models; the shared fixture's datasets (read only)

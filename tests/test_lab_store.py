@@ -187,6 +187,7 @@ def test_publish_keeps_what_another_writer_published_first(s3):
     assert (final / "a.txt").read_text() == "first"
 
 
+@pytest.mark.slow
 def test_store_errors_are_one_line(s3, tmp_path):
     line = _one_error_line(_vslab(s3, "--lab", "s3://no-such-bucket/lab", "sessions", "list"))
     assert "the bucket 'no-such-bucket' does not exist" in line
@@ -202,6 +203,7 @@ def test_store_errors_are_one_line(s3, tmp_path):
         check_store(lab_path("s3://no-such-bucket/x"))
 
 
+@pytest.mark.slow
 def test_a_store_that_is_not_there_is_one_line_within_seconds(s3):
     """Nothing on the port (bound and closed), and a port that accepts but never answers, with botocore's and
     s3fs's own retries (no AWS_MAX_ATTEMPTS): one line naming the address, well within a minute (old code:
@@ -216,6 +218,7 @@ def test_a_store_that_is_not_there_is_one_line_within_seconds(s3):
             assert elapsed < 30, f"{elapsed:.1f} s to say the store at 127.0.0.1:{port} is not there"
 
 
+@pytest.mark.slow
 def test_local_sessions_are_uploaded_whole_and_never_replaced(s3, tmp_path, campaign_dataset):
     src, _, _ = campaign_dataset
     session = sorted((src / "sessions").iterdir())[0]
@@ -280,6 +283,7 @@ def test_a_damaged_session_on_the_store_is_named_by_its_store_path(s3, campaign_
     assert "vslab-fetch" not in result["error"] and "not an MCAP file" in result["error"]
 
 
+@pytest.mark.slow
 def test_sessions_of_another_robot_on_the_store_are_refused_by_their_store_path(s3, tmp_path):
     """A store's twin sessions are checked through copies of their cards: a rerun with another robot is one
     line naming the store's sessions folder (not the local folder the run writes into), and nothing more."""

@@ -187,6 +187,7 @@ def test_decimation_caps_each_topic_at_max_rate(robot):
     assert np.max(np.bincount((times - times[0]) // 10_000_000)) == 1  # never two in one 10 ms bucket
 
 
+@pytest.mark.slow
 def test_a_recording_shown_live_keeps_the_file_whole(host_factory, tmp_path, robot, real_time):
     """The rig recorded with a viewer subscribed: the view gets the file's bytes at ≤ 100 Hz, the file all."""
     from acquisition.recorder.recorder import Recorder

@@ -48,6 +48,7 @@ def _cli(lab, *args, env=None):
     return subprocess.run(command, capture_output=True, text=True, timeout=300, env=env)
 
 
+@pytest.mark.slow
 def test_every_model_version_becomes_one_run_and_exporting_again_adds_none(lab, tmp_path):
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     done = _cli(lab, "models", "export-mlflow", "--tracking-uri", uri)
@@ -91,6 +92,7 @@ def test_every_model_version_becomes_one_run_and_exporting_again_adds_none(lab, 
                                                                   card["dataset"]["version"])  # fmt: skip
 
 
+@pytest.mark.slow
 def test_an_interrupted_export_is_replaced_not_duplicated(lab, tmp_path):
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     client = mlflow.MlflowClient(tracking_uri=uri)
@@ -103,6 +105,7 @@ def test_an_interrupted_export_is_replaced_not_duplicated(lab, tmp_path):
     assert len(runs) == 1 and runs[0].info.run_id != half.info.run_id and runs[0].info.status == "FINISHED"
 
 
+@pytest.mark.slow
 def test_the_default_store_lives_in_the_lab_and_errors_are_one_line(lab, tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     done = _cli(lab, "models", "export-mlflow", env=env)
@@ -129,6 +132,7 @@ def _one_error_line(done: subprocess.CompletedProcess) -> str:
     return said[0]
 
 
+@pytest.mark.slow
 def test_an_mlflow_server_that_is_not_there_is_one_line_within_seconds(lab):
     uri = f"http://127.0.0.1:{_free_port()}"
     start = time.monotonic()
@@ -173,6 +177,7 @@ def _read_only(folder):
         subprocess.run(undo, check=True)
 
 
+@pytest.mark.slow
 def test_a_read_only_lab_is_one_line_naming_the_folder(lab, tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
     mine = tmp_path / "lab"

@@ -240,6 +240,7 @@ def test_the_main_jobs_grid_tags_the_networks_the_figures_and_experiment2_find()
     assert sorted(m["tag"] for m in grid["models"] if "tag" in m) == sorted(LAB_TAGS)
 
 
+@pytest.mark.slow
 def test_cli_train_list_show_compare(lab):
     from vslab.cli import app
 

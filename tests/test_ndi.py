@@ -166,6 +166,7 @@ def _check_demo_frames(frames: list[TrackerFrame]) -> None:
         assert f.port_status & aurora.PORT_OUT_OF_VOLUME
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("factory", ["demo_emulator", "demo_emulator_bx"])
 def test_tracker_reads_demo_circle(host_factory, factory):
     with host_factory(f"tracker=twin.emulators.aurora:{factory}") as ports:

@@ -71,6 +71,7 @@ def table(impact_dir, curves):
     return pt.table1(static_k, pt.impact_parameters(_sessions(impact_dir)))
 
 
+@pytest.mark.slow
 def test_table1_recovers_the_twins_link2(table, link2):
     kpa = table["pressure_kpa"].to_numpy()
     assert kpa.tolist() == IMPACT["pressures_kpa"]
@@ -113,6 +114,7 @@ def _perturbed_popup(path, k_factor, c_factor):
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("k_factor", "c_factor"), PERTURBED)
 def test_table1_recovers_perturbed_twins(tmp_path, k_factor, c_factor):
     """Table 1 by the paper's procedure on twins whose link 2 is not the paper's: f_s within 1 %, ζ 5 %,
@@ -188,6 +190,7 @@ def _noise_bound(arm_m: float, hold_s: float, runs: int, k: float = 4.0) -> floa
     return k * tracker.noise_m / (arm_m * np.sqrt(n)) * np.sqrt(1.0 / runs + 1.0)
 
 
+@pytest.mark.slow
 def test_static_curves_follow_the_link_model(hysteresis_curves, link2):
     """The mean curves are the quasi-static link model's (elastic below M_w, softening and a hysteresis loop
     above it) over the same load history, averaged over the 3 runs."""

@@ -18,6 +18,8 @@ from acquisition.schemas.fast_read import read_fixed_topics
 from models import prbm
 from twin.runner import SIM_EPOCH_NS, session_id, simulate_experiment
 
+pytestmark = pytest.mark.slow  # module fixtures of seconds each: the whole module is slow-tier
+
 SEED = 3
 REDUCED = {
     "popup_static": {"pressures_kpa": [30], "repetitions": 2, "settle_s": 1.5, "hold_s": 0.5},

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from analysis.popup_reach import TASK, figures_12_13, figures_15_16, reach
 from models.robot import load_robot
@@ -28,6 +29,7 @@ def test_reach_follows_the_law_and_the_soft_arm_sags_more_along_the_way(tmp_path
     assert all(p.stat().st_size > 5000 for p in out["png"])
 
 
+@pytest.mark.slow
 def test_visual_servoing_lands_the_soft_arm_on_the_target(tmp_path):
     """With the tip measured on the soft arm (a camera at the end-effector), the same RBM Jacobian brings the
     soft arm to the target; controlled as rigid, it misses by the link sag."""

@@ -86,6 +86,7 @@ def test_a_drive_fault_or_a_silent_drive_stops_a_popup_plan(host_factory, tmp_pa
     assert session_info(tmp_path / "s").status == "complete"
 
 
+@pytest.mark.slow
 def test_a_deployment_refuses_to_start_on_an_arm_that_is_not_set_up_for_it(host_factory, tmp_path, popup):
     """A deployment begins with its links stowed and moves no joint before they are inflated: on the rig as
     it boots (home pose, links at 90 kPa) it refuses to start, says what differs, and sends nothing."""

@@ -8,6 +8,7 @@ import json
 import time
 
 import psutil
+import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -33,6 +34,7 @@ texts = st.text(st.characters(min_codepoint=0x20, max_codepoint=0x7E), max_size=
 values = numbers | texts | st.lists(numbers | texts, max_size=4).map(lambda v: "[" + ", ".join(v) + "]")
 
 
+@pytest.mark.slow
 @settings(derandomize=True, deadline=None, max_examples=40, suppress_health_check=[HealthCheck.too_slow])
 @given(st.sampled_from(KEYS), values)
 def test_any_set_value_ends_in_a_plan_or_one_error_line(tmp_path_factory, key, value):

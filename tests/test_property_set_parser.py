@@ -12,6 +12,7 @@ import json
 import math
 import re
 
+import pytest
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
@@ -54,6 +55,7 @@ def _same(a, b) -> bool:
     return type(a) is type(b) and a == b
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(st.lists(st.text(max_size=40), max_size=4))
 @example(["points"])
@@ -79,12 +81,14 @@ def test_any_strings_parse_or_raise_the_documented_error(pairs):
     assert all(_plain(v) for v in parsed.values())
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(names, values)
 def test_json_values_round_trip(key, value):
     assert _same(parse_set([f"{key}={json.dumps(value)}"]), {key: value})
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(names, st.integers() | st.floats(allow_nan=False, allow_infinity=False) | st.booleans())
 def test_numbers_and_booleans_as_typed_round_trip(key, value):

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import os
 
+import pytest
+
 from twin.emulators.base import Emulator
 from twin.ptyhost import _Port
 
@@ -23,6 +25,7 @@ def _read_all(fd: int) -> bytes:
         out += chunk
 
 
+@pytest.mark.slow
 def test_a_host_that_does_not_read_loses_whole_replies_never_half_of_one(tmp_path):
     port = _Port("can_bus", Emulator(), tmp_path)
     try:

@@ -82,6 +82,7 @@ def _events(directory: Path) -> list[tuple[int, Event]]:
     return [e for part in readable_parts(directory) for e in read_events(part)]
 
 
+@pytest.mark.slow
 def test_a_session_meets_its_rates_loses_nothing_and_its_file_agrees(
     host_factory, tmp_path, vsl, ros2_agrees, real_time
 ):
@@ -109,6 +110,7 @@ def test_a_session_meets_its_rates_loses_nothing_and_its_file_agrees(
     ros2_agrees(part)
 
 
+@pytest.mark.slow
 def test_rate_override_sets_the_servo_poll_rate(host_factory, tmp_path, vsl, real_time):
     """``rates=`` (``vslab record --rate servo_bus=250``) polls the bus at that rate, not the description's
     400 Hz. (How fast the bus can be polled is bench/bus.py's to measure. 500 Hz, asked here while the rig
@@ -136,6 +138,7 @@ def _plug_pressure_board_back(run_dir: Path, rec: Recorder) -> None:
     time.sleep(0.5)
 
 
+@pytest.mark.slow
 def test_an_unplugged_device_is_a_marked_gap_counted_lost_and_the_others_keep_recording(
     host_factory, tmp_path, vsl, real_time
 ):
@@ -161,6 +164,7 @@ def test_an_unplugged_device_is_a_marked_gap_counted_lost_and_the_others_keep_re
         assert account[topic]["expected"] == card[topic]["expected"], topic
 
 
+@pytest.mark.slow
 def test_a_device_absent_when_the_recording_starts_counts_its_wait_as_lost(
     host_factory, tmp_path, vsl, real_time
 ):
@@ -179,6 +183,7 @@ def test_a_device_absent_when_the_recording_starts_counts_its_wait_as_lost(
     assert _card(tmp_path / "s")["counters"][T.SERVO_STATE]["lost"] == 0
 
 
+@pytest.mark.slow
 def test_corrupted_replies_are_retried_in_place(host_factory, tmp_path, vsl, real_time):
     """A few corrupted Sync Read replies: retried within their slot, no reconnection, no gap."""
     with host_factory(**RIG) as ports, Recorder(vsl, ports, tmp_path / "s", "corrupt") as rec:
@@ -192,6 +197,7 @@ def test_corrupted_replies_are_retried_in_place(host_factory, tmp_path, vsl, rea
     assert not [e for _, e in _events(tmp_path / "s") if e.kind == EventKind.DEVICE_GAP_START]
 
 
+@pytest.mark.slow
 def test_a_killed_daemon_is_restarted_within_a_second_and_only_its_stream_has_a_gap(
     host_factory, tmp_path, vsl, real_time
 ):
@@ -224,6 +230,7 @@ def test_a_killed_daemon_is_restarted_within_a_second_and_only_its_stream_has_a_
         assert rec.final[topic]["lost"] == 0, topic
 
 
+@pytest.mark.slow
 def test_a_killed_writer_is_restarted_and_loses_at_most_a_fifth_of_a_second(
     host_factory, tmp_path, vsl, real_time
 ):
@@ -254,6 +261,7 @@ def _record_cli(lab: Path, session: str, *args: str) -> subprocess.Popen:
     return subprocess.Popen([*cli, "record", "--session", session, *args], cwd=ROOT, **quiet)
 
 
+@pytest.mark.slow
 def test_a_killed_supervisor_leaves_no_process_and_a_whole_file(tmp_path, vsl):
     """`vslab record --rig` killed with SIGKILL: every daemon, the writer and the rig end by themselves
     within a second; the writer closes the session (whole, not torn) with ≤ 0.2 s lost per stream."""
@@ -282,6 +290,7 @@ def test_a_killed_supervisor_leaves_no_process_and_a_whole_file(tmp_path, vsl):
     assert not list(Path("/dev/shm").glob(f"vslab-{proc.pid}-*"))
 
 
+@pytest.mark.slow
 def test_a_failing_live_view_never_stops_the_recording(host_factory, tmp_path, vsl, caplog, real_time):
     class Broken:
         def publish(self, *args):

@@ -77,6 +77,7 @@ def _readable(part: Path, scratch: Path) -> Path:
 
 
 # --------------------------------------------------------------------------------------- imports
+@pytest.mark.slow
 @pytest.mark.parametrize("module", RECORDER_MODULES)
 def test_each_recorder_module_imports_alone(module):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -118,6 +119,7 @@ def test_a_session_writer_on_a_full_disk_ends_the_session_readable(mount):
     assert card["status"] == "failed" and "No space left on device" in card["failure"]
 
 
+@pytest.mark.slow
 def test_a_recording_that_fills_the_disk_fails_in_words_and_keeps_what_it_wrote(mount, tmp_path):
     """`vslab record --rig` on a small file system: one error line, exit 2; every part readable (or
     recovered), no empty part; the samples written before the disk filled all in the parts; session.json
@@ -165,6 +167,7 @@ def _runs_in(pid: str, lab: Path) -> bool:
         return False
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", [["record", "--duration", "1"], ["run", "popup_deploy"]])
 def test_ports_with_rig_is_refused_not_ignored(tmp_path, command):
     ports = tmp_path / "ports.json"

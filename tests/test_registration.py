@@ -85,6 +85,8 @@ def _errors(registration, truth) -> tuple[float, float]:
     return np.degrees(rotation_angle(est.rotation @ r_true.T)), np.linalg.norm(est.translation - t_true) * 1e3
 
 
+@pytest.mark.slow
+@pytest.mark.slow
 def test_registration_recovers_the_tracker_placement(campaign):
     points, robot, truth = campaign
     assert len(points) == 300

@@ -21,6 +21,7 @@ def _wait_until_settled(bus, goal, seconds=4.0):
     return state
 
 
+@pytest.mark.slow
 def test_servo_bus_drives_the_twin_in_real_time(host_factory, tmp_path):
     robot = load_robot("vsl")
     ids = [robot.devices["servo_bus"].ids[q] for q in ("q2", "q3")]
@@ -53,6 +54,7 @@ def test_rig_stops_cleanly_on_sigterm(host_factory):
     # the fixture asserts exit code 0 after SIGTERM
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", [{"op": "nope"}, {"op": "payload"}])
 def test_bad_control_commands_get_an_error_reply(host_factory, tmp_path, command):
     with host_factory(**RIG):
@@ -60,6 +62,7 @@ def test_bad_control_commands_get_an_error_reply(host_factory, tmp_path, command
         assert reply["ok"] is False and reply["error"]
 
 
+@pytest.mark.slow
 def test_pressure_board_regulates_the_twin_and_streams_on_its_own_clock(host_factory, tmp_path):
     from acquisition.devices.boards import PressureBoard
     from twin import streams
@@ -88,6 +91,7 @@ def test_pressure_board_regulates_the_twin_and_streams_on_its_own_clock(host_fac
         assert np.all(np.diff(micros) > 0)
 
 
+@pytest.mark.slow
 def test_stepper_board_turns_j1_of_the_twin(host_factory, tmp_path):
     from acquisition.devices.boards import StepperBoard
 
@@ -104,6 +108,7 @@ def test_stepper_board_turns_j1_of_the_twin(host_factory, tmp_path):
         assert q1 == pytest.approx(target * robot.stepper.rad_per_microstep, abs=1e-9)
 
 
+@pytest.mark.slow
 def test_unplugged_pressure_board_is_reported_and_reconnects(host_factory, tmp_path):
     from acquisition.devices.boards import PressureBoard
     from acquisition.errors import DeviceDisconnectedError, DeviceError, DeviceNotFoundError
@@ -131,6 +136,7 @@ def test_unplugged_pressure_board_is_reported_and_reconnects(host_factory, tmp_p
         assert board.read_samples(), "streaming again after the replug, same process"
 
 
+@pytest.mark.slow
 def test_tracker_frames_follow_the_twins_tip_and_missing_is_nan(host_factory, tmp_path):
     from acquisition.devices.tracker import Tracker
     from twin import streams
@@ -159,6 +165,7 @@ def test_tracker_frames_follow_the_twins_tip_and_missing_is_nan(host_factory, tm
         assert not trk.read().missing
 
 
+@pytest.mark.slow
 def test_unplugged_tracker_is_reported_and_reconnects(host_factory, tmp_path):
     from acquisition.devices.tracker import Tracker
     from acquisition.errors import DeviceDisconnectedError, DeviceNotFoundError

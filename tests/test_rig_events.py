@@ -194,6 +194,7 @@ def live_rig(tmp_path_factory):
         yield run_dir, ports, pid
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not os.path.exists("/proc/self/stat"), reason="reads the rig's CPU time from /proc")
 def test_an_idle_rig_sleeps(live_rig):
     _, _, pid = live_rig
@@ -213,6 +214,7 @@ def test_control_commands_see_the_present(live_rig):
     assert t2 - t1 == pytest.approx(w2 - w1, abs=0.02), "the twin is brought up to now before a command"
 
 
+@pytest.mark.slow
 def test_streamed_lines_at_the_boards_rate_with_consecutive_seq(live_rig, real_time):
     from acquisition.devices.boards import PressureBoard, StepperBoard
 

@@ -39,6 +39,7 @@ def _plan(name="test/rt"):
     return b.build()
 
 
+@pytest.mark.slow
 def test_plan_runs_on_the_rig_and_is_recorded_as_sent(host_factory, tmp_path, vsl, ros2_agrees, real_time):
     plan = _plan()
     with host_factory(**RIG) as ports:
@@ -87,6 +88,7 @@ def test_plan_runs_on_the_rig_and_is_recorded_as_sent(host_factory, tmp_path, vs
     np.testing.assert_allclose((data[T.SERVO_GOAL].log_time - start) / 1e9, expected, atol=0.05)
 
 
+@pytest.mark.slow
 def test_watchdog_stops_the_plan_and_holds_the_arm(host_factory, tmp_path, vsl, monkeypatch, real_time):
     """The tip leaves a (tightened) workspace box while the plan runs: SAFETY_STOP, the servos hold where they
     are (the plan's later goals are never sent), and the session closes complete."""
@@ -113,6 +115,7 @@ def test_watchdog_stops_the_plan_and_holds_the_arm(host_factory, tmp_path, vsl, 
     assert session_info(tmp_path / "s").status == "complete"
 
 
+@pytest.mark.slow
 def test_a_bench_that_never_settles_stops_the_plan(host_factory, tmp_path, vsl):
     """A settle waits for the bench; one that does not come within settle_timeout_s (here shorter than the
     window the bench must be still for) is a safe stop that says what was still moving."""
@@ -154,6 +157,7 @@ def test_ctrl_c_on_vslab_run_is_a_safe_stop(tmp_path):
     assert len(read_fixed_topics(part)[T.SERVO_GOAL]) >= 1
 
 
+@pytest.mark.slow
 def test_compensated_goals_are_sent_and_recorded(host_factory, tmp_path, vsl):
     """A compensator in the real-time loop (the grey-box static one here; a saved inverse network plugs
     in the same way): the goals sent are its commands for the measured pressures, not the plan's IK goals."""

@@ -34,6 +34,7 @@ def test_static_moments_match_the_twin_kernel(name, q0, pressure):
     assert np.abs(delta - trace.delta[0, -1]).max() <= delta_h * 1.05
 
 
+@pytest.mark.slow
 def test_the_seed_protocols_are_safe(vsl):
     rigid = load_robot("vsl_rigid")
     plans = experiments.experiment1(

@@ -39,6 +39,7 @@ def twin_pair(tmp_path_factory):
     return plans, params, root, robot
 
 
+@pytest.mark.slow
 def test_static_points_average_to_the_true_tip(twin_pair):
     """Each averaged tip lies within 4 σ/√n of the true tip, where the truth is the mean of the noise-free
     tracker over the plan's own hold window (plan time, not the events or this module's windowing): a wrong

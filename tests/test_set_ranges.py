@@ -29,6 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
         ("popup_static", {"pressures_kpa": list(range(101))}, "at most 100 values"),
     ],
 )
+@pytest.mark.slow
 def test_values_that_would_never_end_are_refused(experiment, overrides, says):
     """Before the fix: an OverflowError, a plan of 1e300 s, or minutes of building."""
     with pytest.raises(ExperimentError) as refused:
@@ -62,6 +63,7 @@ NICE_AT_EXIT = (
     ],
     ids=["simulate", "build", "train"],
 )
+@pytest.mark.slow
 def test_batch_commands_check_their_arguments_before_lowering_their_priority(tmp_path, args):
     """A typo is refused at the caller's priority (at nice 19 on a busy machine it took minutes)."""
     env = {**os.environ, "VSLAB_BATCH_NICE": "19", "PYTHONPATH": str(ROOT)}

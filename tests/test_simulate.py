@@ -359,6 +359,7 @@ def test_simulate_protocol_campaign(tmp_path):
     assert sorted(settled) == list(range(6))
 
 
+@pytest.mark.slow
 def test_campaign_runs_to_the_end_within_the_safety_limits(tmp_path):
     """Every random point of the campaign (commanded targets down to 20 mm, links sagging below them) stays
     inside the robot's limits: no bench is stopped, all the bench-seconds are simulated."""

@@ -59,6 +59,7 @@ def test_the_joint_transforms_compose_to_the_chain(name):
     np.testing.assert_allclose(composed, chain.fk(q, delta), atol=1e-12)
 
 
+@pytest.mark.slow
 def test_a_robot_of_anyone_s_file_becomes_a_urdf_on_the_command_line(tmp_path):
     out = tmp_path / "vsl.urdf"
     cli = [sys.executable, "-m", "vslab.cli", "--lab", str(tmp_path / "lab")]

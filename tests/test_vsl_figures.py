@@ -21,6 +21,8 @@ from pipeline.lab import Lab
 from pipeline.train import TrainConfig, train
 from twin.runner import simulate_experiment
 
+pytestmark = pytest.mark.slow  # module fixtures of seconds each: the whole module is slow-tier
+
 N = 50  # resampled points per path: small, the check is exact
 SMALL = {"repetitions": 2, "points_per_segment": 20, "settle_s": 1.0, "rest_s": 0.5, "speed_m_s": 0.1}
 

@@ -1,0 +1,164 @@
+"""The lab's loop, figure by figure, beside its goal (issue 32), with the machine's load average.
+
+    python bench/loop.py [--only main,second,campaign,ingest,build,check,test] [--points N] [--benches B]
+
+- main: `vslab demo` (the main job, what `make demo` runs) on a new lab, wall seconds; second: the same
+  command again on that lab (goal: nothing recomputed that has not changed).
+- campaign: the paper-size campaign (17,568 points on 128 benches) simulated into MCAP sessions.
+- ingest: ``pipeline.ingest.ingest_session`` over those sessions (messages per second, page cache warm).
+- build: the cold build of that campaign into its dataset (every stage, both cores).
+- check / test: `make check` and `make test` on a fresh clone of this repository (the clone's own virtual
+  environment included in `make test`'s time, as CI pays it); `make check` runs after, in that clone.
+
+Each figure is printed as it is measured, then a table of all with their goals. Exit status 1 if a measured
+figure misses its goal.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures as cf
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+# figure → (goal, unit, higher is better)
+GOALS = {
+    "main": (240.0, "s", False),
+    "second": (20.0, "s", False),
+    "campaign": (20.0, "s", False),
+    "build": (10.0, "s", False),
+    "ingest": (3e6, "msg/s", True),
+    "test": (600.0, "s", False),
+    "check": (120.0, "s", False),
+}
+WHAT = {
+    "main": "main job, `vslab demo`",
+    "second": "a second `vslab demo`, same lab",
+    "campaign": "campaign simulated (17,568 points)",
+    "ingest": "ingest fast path",
+    "build": "cold build of that campaign",
+    "test": "fresh-clone `make test`, in all",
+    "check": "`make check` (the fast tier)",
+}
+
+
+def _load() -> str:
+    one, five, fifteen = os.getloadavg()
+    return f"{one:.2f} {five:.2f} {fifteen:.2f}"
+
+
+def _timed(cmd: list[str], cwd: Path, log: Path) -> float:
+    """Wall seconds of ``cmd``, its output in ``log``; raises if it fails."""
+    start = time.perf_counter()
+    with open(log, "w") as out:
+        code = subprocess.call(cmd, cwd=cwd, stdout=out, stderr=subprocess.STDOUT)
+    if code:
+        raise SystemExit(f"{' '.join(cmd)} failed with {code}: see {log}")
+    return time.perf_counter() - start
+
+
+def main_job(tmp: Path, figures: dict, only: set[str]) -> None:
+    lab = tmp / "lab"
+    cmd = [sys.executable, "-m", "vslab.cli", "--lab", str(lab), "demo"]
+    if "main" in only or "second" in only:
+        figures["main"] = _timed(cmd, ROOT, tmp / "main.log")
+        _report("main", figures)
+    if "second" in only:
+        figures["second"] = _timed(cmd, ROOT, tmp / "second.log")
+        _report("second", figures)
+
+
+def campaign(tmp: Path, figures: dict, only: set[str], points: int, benches: int) -> None:
+    from acquisition.recorder.sessions import SessionStore
+    from pipeline.build import build
+    from pipeline.ingest import ingest_session
+    from pipeline.lab import Lab
+    from twin.runner import simulate_experiment
+
+    lab = tmp / "campaign"
+    start = time.perf_counter()
+    simulate_experiment("campaign", SessionStore(lab / "sessions"), benches=benches,
+                        overrides={"points": points})  # fmt: skip
+    figures["campaign"] = time.perf_counter() - start
+    _report("campaign", figures)
+    sessions = sorted(d for d in (lab / "sessions").iterdir() if d.is_dir())
+    if "ingest" in only:
+        messages, start = 0, time.perf_counter()
+        for directory in sessions:
+            tables = ingest_session(directory)
+            messages += sum(len(df) for df in tables.streams.values()) + len(tables.events)
+        figures["ingest"] = messages / (time.perf_counter() - start)
+        _report("ingest", figures)
+    if "build" in only:
+        with cf.ProcessPoolExecutor(os.cpu_count() or 1) as pool:
+            start = time.perf_counter()
+            build(sessions, Lab(lab), "campaign", {}, executor=pool)
+            figures["build"] = time.perf_counter() - start
+        _report("build", figures)
+
+
+def suite(tmp: Path, figures: dict, only: set[str]) -> None:
+    """`make test`, then `make check`, on a fresh clone with ../shared beside it (as CI has it)."""
+    clone = tmp / "ci" / "main"
+    subprocess.run(["git", "clone", "-q", str(ROOT), str(clone)], check=True)
+    (tmp / "ci" / "shared").symlink_to(ROOT.parent / "shared")
+    if "test" in only:
+        figures["test"] = _timed(["make", "test"], clone, tmp / "test.log")
+        _report("test", figures)
+    if "check" in only:
+        if "test" not in only:
+            _timed(["make", ".venv/bin/.installed"], clone, tmp / "install.log")
+        figures["check"] = _timed(["make", "check"], clone, tmp / "check.log")
+        _report("check", figures)
+
+
+def _verdict(name: str, value: float) -> tuple[str, bool]:
+    goal, unit, higher = GOALS[name]
+    ok = value >= goal if higher else value <= goal
+    shown = f"{value / 1e6:.2f} M {unit}" if unit == "msg/s" else f"{value:.1f} {unit}"
+    target = f"≥ {goal / 1e6:.0f} M {unit}" if unit == "msg/s" else f"≤ {goal:.0f} {unit}"
+    return f"{WHAT[name]:<38} {shown:>14}   goal {target:<12} {'ok' if ok else 'MISSED'}", ok
+
+
+def _report(name: str, figures: dict) -> None:
+    print(_verdict(name, figures[name])[0] + f"   (load {_load()})", flush=True)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--only", default=",".join(GOALS), help="comma-separated figures (default: all)")
+    parser.add_argument("--points", type=int, default=17568, help="campaign points (the paper's n = 17568)")
+    parser.add_argument("--benches", type=int, default=128, help="campaign sessions (twin benches)")
+    args = parser.parse_args()
+    only = {name.strip() for name in args.only.split(",") if name.strip()}
+    if unknown := only - set(GOALS):
+        parser.error(f"unknown figure(s) {sorted(unknown)}: choose from {', '.join(GOALS)}")
+    print(f"bench/loop.py on {os.cpu_count()} cores, load average at the start {_load()}", flush=True)
+    figures: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="loop-") as name:
+        tmp = Path(name)
+        if only & {"campaign", "ingest", "build"}:
+            campaign(tmp, figures, only, args.points, args.benches)
+        if only & {"main", "second"}:
+            main_job(tmp, figures, only)
+        if only & {"test", "check"}:
+            suite(tmp, figures, only)
+    print(f"\nfigure{'':<33} {'measured':>14}   goal             (load average at the end {_load()})")
+    missed = False
+    for name in GOALS:
+        if name in figures:
+            line, ok = _verdict(name, figures[name])
+            missed |= not ok
+            print(line)
+    return 1 if missed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
