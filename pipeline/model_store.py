@@ -268,7 +268,10 @@ def tag(root: Path, name: str, version: str) -> str:
                          "'-' or '_')")  # fmt: skip
     path = find(root, version)
     check_model(path)
-    current = tags(root) | {name: path.name}
+    before = tags(root)
+    current = before | {name: path.name}
+    if current == before:  # already so: the file stays as it is (what the figures read has not changed)
+        return path.name
     text = json.dumps(dict(sorted(current.items())), indent=1) + "\n"
     if is_local(root):
         tmp = root / f".{TAGS_FILE}.tmp"

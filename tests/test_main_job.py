@@ -59,3 +59,12 @@ def test_quick_main_job_makes_every_figure_and_the_report(tmp_path):
     assert len(rig) == 1 and rig[0] not in sessions_of(
         SessionStore(sessions), "experiment1", runner="simulated"
     )
+    # a second run reuses every step's work; the figures read nothing new, so they stay as they were drawn
+    drawn = (figures / "fig5.png").stat().st_mtime_ns
+    again: list[str] = []
+    assert lab_job.run(Lab(tmp_path / "lab"), quick=True, say=again.append) == report
+    assert any("the figures and the report stay" in line for line in again), again
+    assert (figures / "fig5.png").stat().st_mtime_ns == drawn
+    inputs = lab_job.figure_inputs(Lab(tmp_path / "lab"))
+    assert inputs == json.loads((report.parent / lab_job.FIGURE_INPUTS).read_text())
+    assert any(path.startswith("models/") for path, *_ in inputs["files"])  # what a retrained model changes

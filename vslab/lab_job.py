@@ -96,13 +96,41 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     done("unmodelled effects: every model beside the floor")
 
     step("figures and report")
+    inputs, stamp = figure_inputs(lab), lab.report / FIGURE_INPUTS
+    if inputs is not None and stamp.exists() and json.loads(stamp.read_text()) == inputs:
+        say("  nothing they read has changed since they were made: the figures and the report stay")
+        done("figures and report")
+        return lab.report / "index.html"
     results = all_figures(lab)
     done("figures and report")
     report = lab_report(lab, results, timings)
     (lab.report / "timings.json").write_text(json.dumps(timings, indent=1))
+    if inputs is not None:
+        stamp.write_text(json.dumps(inputs))
     for what, why in results.missing.items():
         say(f"  not made: {what}: {why}")
     return report
+
+
+FIGURE_INPUTS = "inputs.json"  # in the report's folder: what the figures and report were made from
+_FIGURE_STORES = ("sessions", "datasets", "models", "comparisons", "unmodelled")  # what the figures read
+
+
+def figure_inputs(lab: Lab) -> dict | None:
+    """What the figures and the report are made from: every file of the stores they read (path, size,
+    modification time) and the code that draws them. Equal twice: nothing to redraw. None on a lab that is
+    not a local folder (a store's listing costs more than the drawing it saves)."""
+    if not lab.is_local:
+        return None
+    from acquisition.code_version import code_version
+
+    files = []
+    for store in _FIGURE_STORES:
+        for path in sorted((lab.root / store).rglob("*")):
+            if path.is_file() and "cache" not in path.relative_to(lab.root).parts:
+                stat = path.stat()
+                files.append([path.relative_to(lab.root).as_posix(), stat.st_size, stat.st_mtime_ns])
+    return {"code": code_version("analysis.lab_figures", "vslab.lab_job"), "files": files}
 
 
 class MainJobError(CommandLineError):
