@@ -29,6 +29,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 UNMODELLED_ROBOT = "vsl_unmodelled"  # the twin with its unmodelled effects (issue 19)
+STUDY_LAB = "unmodelled"  # the lab inside the main job's where the study works: lab.study(STUDY_LAB)
 # the campaign on that twin and its repeat; --quick: fewer points, shorter training and Experiment 1 on the
 # same twin (the paths the history-aware hybrid learns from)
 STUDY = {"points": 3000, "train": {}, "paths": {"repetitions": 2}}
@@ -53,7 +54,7 @@ def unmodelled_study(lab: Lab, seed: int, points: int, train: dict, paths: dict,
     )
 
     robot = UNMODELLED_ROBOT
-    study = lab.study("unmodelled")
+    study = lab.study(STUDY_LAB)
     versions = {"training": json.dumps(train, sort_keys=True), "paths": json.dumps(paths, sort_keys=True)}
     data = {}
     for order in ("drawn", "shuffled"):  # not reversed: creep would make a point's two visits anti-correlated

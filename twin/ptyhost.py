@@ -310,7 +310,6 @@ class PtyHost:
                 wake_at = next_tick
                 due = self._emit_due(now)
                 if due is not None and due < wake_at:
-                    wake_at = due
                     if due - self.now() < WAKE_LATENCY_S:  # too close to sleep: the wake-up would be late
                         _spin_until(self.now, due)
                         continue

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from pipeline.lab import Lab
 from pipeline.model_store import INVERSE
-from pipeline.unmodelled import STUDY, STUDY_QUICK
+from pipeline.unmodelled import STUDY, STUDY_LAB, STUDY_QUICK
 from vslab.app import CommandLineError
 
 QUICK = {"campaign": {"points": 4000}, "experiment1": {"repetitions": 3}}  # --quick: a smaller lab
@@ -113,7 +113,6 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
 
 
 FIGURE_INPUTS = "inputs.json"  # in the report's folder: what the figures and report were made from
-_FIGURE_STORES = ("sessions", "datasets", "models", "comparisons", "unmodelled")  # what the figures read
 
 
 def figure_inputs(lab: Lab) -> dict | None:
@@ -124,9 +123,10 @@ def figure_inputs(lab: Lab) -> dict | None:
         return None
     from acquisition.code_version import code_version
 
+    stores = (lab.sessions, lab.datasets, lab.models, lab.comparisons, lab.study(STUDY_LAB))  # what they read
     files = []
-    for store in _FIGURE_STORES:
-        for path in sorted((lab.root / store).rglob("*")):
+    for store in stores:
+        for path in sorted(store.root.rglob("*")):
             if path.is_file() and "cache" not in path.relative_to(lab.root).parts:
                 stat = path.stat()
                 files.append([path.relative_to(lab.root).as_posix(), stat.st_size, stat.st_mtime_ns])

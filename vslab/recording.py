@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import json
 import math
 import time
 from pathlib import Path
@@ -93,15 +92,17 @@ def _record_for(rec, duration: float) -> float:
 
     with recording(rec), Live(console=console, refresh_per_second=2, transient=True) as counters:
         start = time.monotonic()
-        before = (start, rec.snapshot())
+        earlier, earlier_s = rec.snapshot(), start
         try:
             while (duration <= 0 or time.monotonic() - start < duration) and rec.write_error is None:
                 left = start + duration - time.monotonic() if duration > 0 else 0.5
                 time.sleep(min(0.5, max(0.0, left)))
                 if not options().quiet:
-                    now = (time.monotonic(), rec.snapshot())
-                    counters.update(_counter_table(now[1], now[0] - start, before=before, now_s=now[0]))
-                    before = now
+                    now, now_s = rec.snapshot(), time.monotonic()
+                    counters.update(
+                        _counter_table(now, now_s - start, earlier=earlier, window_s=now_s - earlier_s)
+                    )
+                    earlier, earlier_s = now, now_s
         except KeyboardInterrupt:
             pass
         return time.monotonic() - start
@@ -169,9 +170,11 @@ def record(
 
 def _with_spans(rec) -> dict:
     """The final account, each stream with its first and last written sample from the session's card."""
+    from acquisition.schemas.session_files import SessionError, read_card
+
     try:
-        written = json.loads((rec.directory / "session.json").read_text())["counters"]
-    except (OSError, ValueError, KeyError):  # no card (the writer failed): the counts alone
+        written = read_card(rec.directory)["counters"]
+    except (SessionError, KeyError):  # no card (the writer failed): the counts alone
         return rec.final
     spans = {t: {k: written.get(t, {}).get(k) for k in ("first_ns", "last_ns")} for t in rec.final}
     return {t: {**c, **spans[t]} for t, c in rec.final.items()}
@@ -255,15 +258,15 @@ def _live_view(desc, host: str, port: int):
     return server
 
 
-def _counter_table(snapshot: dict, elapsed: float, title: str = "", before: tuple | None = None,
-                   now_s: float = 0.0) -> Table:  # fmt: skip
+def _counter_table(snapshot: dict, elapsed: float, title: str = "", earlier: dict | None = None,
+                   window_s: float = 0.0) -> Table:  # fmt: skip
     """The streams' accounts. The rate is each stream's own: over its first to last written sample in a
     final account (streams start when their device first answers, seconds apart), else over the last
-    refresh (``before``: the time and snapshot then)."""
+    ``window_s`` (``earlier``: the snapshot then)."""
     table = Table("topic", "expected", "received", "lost", "written", "dropped", "rate Hz",
                   title=title or f"recording {elapsed:.0f} s")  # fmt: skip
     for topic, c in sorted(snapshot.items()):
-        rate = _stream_rate(c, before[1].get(topic) if before else None, now_s - before[0] if before else 0.0)
+        rate = _stream_rate(c, (earlier or {}).get(topic), window_s)
         counts = [f"{c[k]:,}" for k in ("expected", "received", "lost", "written", "dropped")]
         table.add_row(topic, *counts, f"{rate:.0f}")
     return table
