@@ -20,9 +20,9 @@ MCAP_MODULES = {"acquisition/schemas/mcap_reader.py", "acquisition/schemas/mcap_
 PACKAGES = ("acquisition", "twin", "pipeline", "analysis", "models", "vslab")
 
 
-def _write(path: Path, n: int = 1000, chunk_size: int = 4096) -> None:
+def _write(path: Path, n: int = 1000, chunk_size: int = 4096, compress_in=None) -> None:
     with open(path, "wb") as f:
-        w = BatchMcapWriter(f, chunk_size=chunk_size)
+        w = BatchMcapWriter(f, chunk_size=chunk_size, compress_in=compress_in)
         w.start(profile="ros2", library="test")
         schema = w.register_schema("t/msg/Fixed", "ros2msg", b"int64 x")
         fixed = w.register_channel("/fixed", "cdr", schema)
@@ -55,6 +55,17 @@ def test_what_the_batch_writer_writes_reads_back_by_chunk_and_by_index(tmp_path)
         assert dict(mcap_reader.metadata_records(f)) == {"vslab.session": {"session_id": "s"}}
         spans = mcap_reader.topic_spans(f)
         assert spans["/fixed"] == (1000, 5, 999_005) and spans["/other"] == (3, 10, 12)
+
+
+def test_chunks_compressed_in_threads_make_the_same_file_byte_for_byte(tmp_path):
+    from concurrent.futures import ThreadPoolExecutor
+
+    _write(tmp_path / "here.mcap", n=20_000)
+    with ThreadPoolExecutor(2) as pool:
+        _write(tmp_path / "threads.mcap", n=20_000, compress_in=pool)
+    here, threads = (tmp_path / "here.mcap").read_bytes(), (tmp_path / "threads.mcap").read_bytes()
+    assert here.count(b"t/msg/Fixed") == 2 and len(here) > 100_000  # many chunks: several in flight at once
+    assert threads == here
 
 
 def test_a_message_of_the_wrong_size_is_refused(tmp_path):

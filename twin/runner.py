@@ -2,17 +2,19 @@
 
 Every plan of a batch runs on its own bench of one ``World`` (same robot description, its own device clocks
 and noise), stepped together. Commands are applied every ``block_s`` of simulated time (what the plan holds
-at that instant); every ``window_s`` the window's true trace is read through the device models and written
-as the same topics the real-time recorder writes, one session per plan, with host times offset by a fixed
-epoch. Benches whose plan has ended hold still and write nothing more.
+at that instant); every ``window_s`` the window's true trace is read through the device models, and every
+``write_s`` what was read is written as the same topics the real-time recorder writes, one session per plan,
+with host times offset by a fixed epoch. Benches whose plan has ended hold still and write nothing more.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +30,7 @@ from acquisition.schemas import topics as T
 from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.session_card import SESSION_CARD
 from models.robot import RobotDescription
+from twin.buffered_writer import BufferedSessionWriter
 from twin.identity import IDENTITY, differences, recorded_identity, refuse, session_identity
 from twin.kernel import Trace
 from twin.streams import servo_current_a
@@ -136,6 +139,7 @@ def simulate(
     seed: int = 0,
     block_s: float = 0.01,
     window_s: float = 1.0,
+    write_s: float = 10.0,
     servo_rate_hz: float = 500.0,
     progress: Callable[[float], None] | None = None,
     compensators: list[Compensator | None] | None = None,
@@ -185,6 +189,7 @@ def simulate(
     durations = np.array([p.duration_s for p in plans])
     event_t = [np.array([t for t, _ in p.events]) for p in plans]
     writers = []
+    compress_in = ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="compress")  # beside the loop
     sim_now = [0.0]  # the writers' clock: simulated seconds, so a session's bytes (its chunks) never depend
     # on how fast this machine ran it, and the same seed gives the same files
     for r, (p, c) in enumerate(zip(plans, compensators, strict=True)):
@@ -196,10 +201,11 @@ def simulate(
                           metadata={"plan": p.name, "runner": "simulated", "seed": str(seed),
                                     "parameters": p.parameters, TWIN_TRUTH: twin_truth(world, r),
                                     IDENTITY: session_identity(p, robot, seed, c)},
-                          flush_s=30.0, clock=lambda: sim_now[0])  # fmt: skip
+                          flush_s=30.0, clock=lambda: sim_now[0], standard_batch_s=write_s,
+                          compress_in=compress_in)  # fmt: skip
         w.open()
         w.event(Event(EventKind.SESSION_START, label=p.name), SIM_EPOCH_NS)
-        writers.append(w)
+        writers.append(BufferedSessionWriter(w, write_s))
     topics = writers[0].topics
     last_goal = np.full(len(plans), -1)
     last_pressure = np.full(len(plans), -1)
@@ -269,13 +275,18 @@ def simulate(
                     w.event(stops[r][1], SIM_EPOCH_NS + round(stops[r][0] * 1e9))
                     messages += 1
             t0 = sim_now[0] = t1
+            for w in writers:
+                w.flush_if_due(t0)
             if progress:
                 progress(min(1.0, t0 / end))
         for w, p, d in zip(writers, plans, durations, strict=True):
             w.event(Event(EventKind.SESSION_END, label=p.name), SIM_EPOCH_NS + round(d * 1e9))
     finally:
-        for w, d in zip(writers, durations, strict=True):
-            w.close("refused" if d <= 0 else "complete")  # refused at t = 0: nothing of the plan ran
+        try:
+            for w, d in zip(writers, durations, strict=True):
+                w.close("refused" if d <= 0 else "complete")  # refused at t = 0: nothing of the plan ran
+        finally:
+            compress_in.shutdown(cancel_futures=True)
     wall = time.perf_counter() - start
     return SimReport([session_id(p) for p in plans], skipped, float(durations.sum()), wall, messages, stopped)
 
@@ -386,8 +397,8 @@ def _taps_by_block(plans: list[Plan], tb: np.ndarray, block_s: float) -> np.ndar
     return out
 
 
-def _write_commands(w: SessionWriter, topics, cmds: dict, tb: np.ndarray, last_goal, last_pressure, r: int,
-                    servo_joints: list[int]) -> int:  # fmt: skip
+def _write_commands(w: BufferedSessionWriter, topics, cmds: dict, tb: np.ndarray, last_goal, last_pressure,
+                    r: int, servo_joints: list[int]) -> int:  # fmt: skip
     """Servo goals and pressure commands at the blocks where the plan changed them."""
     n = 0
     gi = cmds["goal_index"]

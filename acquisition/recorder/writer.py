@@ -20,6 +20,7 @@ import logging
 import os
 import platform
 import time
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -114,12 +115,15 @@ class SessionWriter:
         clock=time.monotonic,
         resume: bool = False,
         standard_topics: bool = True,  # the arm for Foxglove (/tf, /joint_states, …; the URDF attached)
+        standard_batch_s: float = 0.5,  # the standard topics made this many seconds of samples at a time
+        compress_in: Executor | None = None,  # threads that compress its chunks (BatchMcapWriter's)
     ) -> None:
         self.directory = Path(directory)
         self.robot = robot
         self.session_id = session_id
         self.topics = session_topics(robot) if topics is None else topics
         self.chunk_size = chunk_size
+        self.compress_in = compress_in
         self.flush_s = flush_s
         self.rotation = rotation or RotationPolicy()
         self.clock = clock
@@ -143,7 +147,10 @@ class SessionWriter:
         self._last_flush = clock()
         self._sequence: dict[str, int] = dict.fromkeys(self.topics, 0)
         self._scene = Scene(robot) if standard_topics else None
-        self._stream = SceneStream(self._scene) if self._scene is not None else None
+        # a writer fed in batches of standard_batch_s waits that long twice for a stepper's reports
+        self._stream = (SceneStream(self._scene, batch_s=standard_batch_s,
+                                    max_wait_s=max(2.0, 2 * standard_batch_s))
+                        if self._scene is not None else None)  # fmt: skip
         self._last_ns = 0  # the latest log time written
         self.failure: str | None = None  # why the session stopped being written (then nothing more is)
 
@@ -259,7 +266,9 @@ class SessionWriter:
         path = self.directory / f"{self.session_id}_{len(self.parts):03d}.mcap"
         f = open(path, "xb", buffering=0)  # unbuffered: a failed write leaves nothing pending (see _fail)
         self.parts.append(path)
-        self._part = _Part(path, f, BatchMcapWriter(f, chunk_size=self.chunk_size))
+        self._part = _Part(
+            path, f, BatchMcapWriter(f, chunk_size=self.chunk_size, compress_in=self.compress_in)
+        )
         writer = self._part.writer
         writer.start(profile=PROFILE, library=f"vslab {self.metadata['vslab_version']}")
         part = self._part

@@ -17,8 +17,11 @@ from __future__ import annotations
 
 import copy
 import struct
+import threading
 import zlib
+from collections import deque
 from collections.abc import Iterable
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field
 from typing import BinaryIO
 
@@ -47,6 +50,17 @@ from acquisition.schemas.mcap_reader import MAGIC, Channel, Message, Metadata, R
 MCAP_LIBRARY_VERSION = __version__  # the mcap package's, recorded in each session
 _RECORD_PREFIX = 1 + 8  # opcode + length
 _MESSAGE_FIXED = 2 + 4 + 8 + 8  # channel id, sequence, log time, publish time
+
+
+_MAX_COMPRESSING = 4  # chunks of one file compressing at once (in ``compress_in``): ~4 MB held
+_compressors = threading.local()  # a ZstdCompressor may not be used by two threads at once: one a thread
+
+
+def _compressed(level: int, data: bytes) -> tuple[bytes, int]:
+    """A chunk's zstd frame and the crc32 of its uncompressed bytes."""
+    by_level = _compressors.__dict__.setdefault("by_level", {})
+    compressor = by_level.get(level) or by_level.setdefault(level, zstandard.ZstdCompressor(level=level))
+    return compressor.compress(data), zlib.crc32(data)
 
 
 def message_record_dtype(payload_size: int) -> np.dtype:
@@ -78,10 +92,16 @@ class BatchMcapWriter:
     """``start`` → ``register_schema``/``register_channel`` → ``add_batch``/``add_message``/``add_metadata``
     (``flush`` any time) → ``finish``. Not thread-safe: one writer thread per file."""
 
-    def __init__(self, stream: BinaryIO, chunk_size: int = 1 << 20, compression_level: int = 3) -> None:
+    def __init__(self, stream: BinaryIO, chunk_size: int = 1 << 20, compression_level: int = 3,
+                 compress_in: Executor | None = None) -> None:  # fmt: skip
+        """``compress_in``: threads to compress chunks in while the caller goes on (zstd and crc32 let go of
+        the GIL); chunks are still written in their order, each before any later record, so the file is
+        byte for byte the one written without them."""
         self.stream = stream
         self.chunk_size = chunk_size
-        self._compressor = zstandard.ZstdCompressor(level=compression_level)
+        self.compression_level = compression_level
+        self._compress_in = compress_in
+        self._compressing: deque[tuple[_OpenChunk, int, Future]] = deque()  # in the order written
         self._chunk = _OpenChunk()
         self._schemas: dict[int, Schema] = {}
         self._channels: dict[int, Channel] = {}
@@ -104,7 +124,9 @@ class BatchMcapWriter:
 
     # ------------------------------------------------------------------------------- plain records
     def _write_record(self, record) -> int:
-        """Serialise one record straight to the stream; returns its offset."""
+        """Serialise one record straight to the stream (after every chunk still compressing); returns its
+        offset."""
+        self._write_compressed(wait_all=True)
         builder = RecordBuilder()
         record.write(builder)
         offset = self.stream.tell()
@@ -207,13 +229,35 @@ class BatchMcapWriter:
         chunk = self._chunk
         if not chunk.blocks:
             return
+        self._chunk = _OpenChunk()
+        self._stats.chunk_count += 1
         data = b"".join(chunk.blocks)
-        compressed = self._compressor.compress(data)
+        if self._compress_in is None:
+            self._write_chunk(chunk, len(data), *_compressed(self.compression_level, data))
+            return
+        self._compressing.append(
+            (chunk, len(data), self._compress_in.submit(_compressed, self.compression_level, data))
+        )
+        self._write_compressed(wait_all=False)
+
+    def _write_compressed(self, wait_all: bool) -> None:
+        """Write the compressed chunks in their order: those done (all of them with ``wait_all``, and the
+        oldest while more than ``_MAX_COMPRESSING`` wait, so memory stays bounded)."""
+        queue = self._compressing
+        while queue and (wait_all or len(queue) > _MAX_COMPRESSING or queue[0][2].done()):
+            chunk, size, future = queue.popleft()
+            self._write_chunk(chunk, size, *future.result())
+
+    def _write_chunk(self, chunk: _OpenChunk, uncompressed_size: int, compressed: bytes, crc: int) -> None:
+        """The chunk record, its message indexes and its entry in the chunk index."""
         record = Chunk(
-            message_start_time=chunk.start, message_end_time=chunk.end, uncompressed_size=len(data),
-            uncompressed_crc=zlib.crc32(data), compression="zstd", data=compressed,
+            message_start_time=chunk.start, message_end_time=chunk.end, uncompressed_size=uncompressed_size,
+            uncompressed_crc=crc, compression="zstd", data=compressed,
         )  # fmt: skip
-        chunk_offset = self._write_record(record)
+        builder = RecordBuilder()
+        record.write(builder)
+        chunk_offset = self.stream.tell()
+        self._put(builder.end())
         chunk_length = self.stream.tell() - chunk_offset
         index_start = self.stream.tell()
         index_offsets = {}
@@ -230,15 +274,14 @@ class BatchMcapWriter:
                 message_start_time=chunk.start, message_end_time=chunk.end, chunk_start_offset=chunk_offset,
                 chunk_length=chunk_length, message_index_offsets=index_offsets,
                 message_index_length=self.stream.tell() - index_start, compression="zstd",
-                compressed_size=len(compressed), uncompressed_size=len(data),
+                compressed_size=len(compressed), uncompressed_size=uncompressed_size,
             )
         )  # fmt: skip
-        self._stats.chunk_count += 1
-        self._chunk = _OpenChunk()
 
     def flush(self) -> None:
         """Close the open chunk and push everything to the OS (no fsync): the file is whole records now."""
         self._finalize_chunk()
+        self._write_compressed(wait_all=True)
         self.stream.flush()
         self._good = (
             self.stream.tell(), len(self._chunk_indexes), len(self._metadata_indexes),
@@ -251,6 +294,9 @@ class BatchMcapWriter:
         that could not be written: the file then ends at the last flush, torn but whole up to it."""
         offset, chunks, metadata, attachments, stats = self._good
         self._chunk = _OpenChunk()
+        for _, _, future in self._compressing:  # chunks after the last flush: dropped with the rest
+            future.cancel()
+        self._compressing.clear()
         del self._chunk_indexes[chunks:], self._metadata_indexes[metadata:]
         del self._attachment_indexes[attachments:]
         self._stats = copy.deepcopy(stats)

@@ -201,7 +201,7 @@ class SceneStream:
             self._stepper = (
                 _Rows(log_time, rows)
                 if self._stepper is None
-                else self._stepper.tail(log_time, rows, self.stepper_history)
+                else self._stepper.tail(log_time, rows, self._stepper_kept(log_time))
             )
         elif topic == self.joint_topic:
             keep = self._decimate(log_time)
@@ -218,6 +218,17 @@ class SceneStream:
         if not self.has_stepper:
             return self._place(None)
         return self._place(int(self._stepper.log_time[-1]) if self._stepper is not None else None, newest)
+
+    def _stepper_kept(self, log_time: np.ndarray) -> int | None:
+        """How many stepper reports to keep: ``stepper_history``, and at least those that hold the pending
+        joint samples' angles (from the last report before the oldest of them on)."""
+        if self.stepper_history is None or not self._pending:
+            return self.stepper_history
+        oldest = min(int(p.log_time.min()) for p in self._pending)
+        times = np.concatenate([self._stepper.log_time, log_time])
+        return max(
+            self.stepper_history, len(times) - max(0, int(np.searchsorted(times, oldest, "right")) - 1)
+        )
 
     def finish(self) -> list[Batch]:
         """Whatever is still held back: joint samples placed with the stepper's latest report, frames."""
