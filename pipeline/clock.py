@@ -127,11 +127,19 @@ def window_minima(x: np.ndarray, z: np.ndarray, width: float) -> tuple[np.ndarra
     half the usual samples (the session's ragged last one) is left out: its minimum waited longer, and on a
     short session that lifted one end of the line by a jitter's worth (−80 ppm on 5–8 s)."""
     group = np.floor((x - x.min()) / width).astype(np.int64)
-    order = np.lexsort((z, group))
-    starts = np.flatnonzero(np.r_[True, group[order][1:] != group[order][:-1]])
-    counts = np.diff(np.r_[starts, order.size])
+    if np.all(group[1:] >= group[:-1]) and np.isfinite(z).all():  # in time order (as fits get them): linear
+        starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+        counts = np.diff(np.r_[starts, group.size])
+        lowest = np.repeat(np.minimum.reduceat(z, starts), counts)
+        at = np.flatnonzero(z == lowest)  # every sample at its window's minimum; the first of each window:
+        mins = at[np.r_[True, group[at][1:] != group[at][:-1]]]
+    else:
+        order = np.lexsort((z, group))
+        starts = np.flatnonzero(np.r_[True, group[order][1:] != group[order][:-1]])
+        counts = np.diff(np.r_[starts, order.size])
+        mins = order[starts]
     full = counts >= 0.5 * np.median(counts)
-    first = order[starts[full] if full.sum() >= 2 else starts]
+    first = mins[full] if full.sum() >= 2 else mins
     return x[first], z[first]
 
 

@@ -1,6 +1,6 @@
 """Ingest: a session directory's MCAP parts → one table per topic (see ``pipeline.tables``).
 
-Fixed-layout topics take the chunk-speed path (``read_topics``: whole chunks viewed as structured
+Fixed-layout topics take the chunk-speed path (``read_open_topics``: whole chunks viewed as structured
 arrays, turned into columns without a per-message loop). Any other topic is decoded message by message by
 ``acquisition.schemas.dynamic`` (correct, not fast; mcap-ros2-support is the tests' oracle for it, not a
 dependency). A torn part (killed recorder, no summary) is read in memory up to the tear, with a warning; the
@@ -13,6 +13,7 @@ import logging
 from collections.abc import Collection, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import pandas as pd
@@ -21,7 +22,7 @@ from pydantic import ValidationError
 from acquisition.schemas.cdr import FixedMessage, SchemaError
 from acquisition.schemas.dynamic import DynamicMessage
 from acquisition.schemas.events import Event
-from acquisition.schemas.fast_read import read_topics
+from acquisition.schemas.fast_read import read_open_topics
 from acquisition.schemas.mcap_reader import (
     MAGIC,
     READ_ERRORS,
@@ -139,42 +140,46 @@ def _read_part(path: Path, generic_topics: set[str], report: StageReport) -> _Pa
         if head != MAGIC:
             what = "not an MCAP file (no MCAP magic)" if head else "empty file (0 bytes)"
             raise IngestError(path, f"{what}: move it out of the session folder")
-        summary = read_summary(f)
-        if summary is None:
-            return _read_torn(path, generic_topics, report)
-        part = _Part()
-        fixed, generic = set(), set()
-        for channel in summary.channels.values():
-            schema = summary.schemas.get(channel.schema_id)
-            part.topics.add(channel.topic)
-            if channel.topic == EVENTS or channel.topic in STANDARD_TOPICS:  # derived: read what was measured
-                continue
-            message = _fixed_message(schema, channel.message_encoding)
-            if message is not None and channel.topic not in generic_topics:
-                fixed.add(channel.topic)
+        return _read_open(f, path, generic_topics, report)
+
+
+def _read_open(f: BinaryIO, path: Path, generic_topics: set[str], report: StageReport) -> _Part:
+    summary = read_summary(f)
+    if summary is None:
+        return _read_torn(path, generic_topics, report)
+    part = _Part()
+    fixed, generic = set(), set()
+    for channel in summary.channels.values():
+        schema = summary.schemas.get(channel.schema_id)
+        part.topics.add(channel.topic)
+        if channel.topic == EVENTS or channel.topic in STANDARD_TOPICS:  # derived: read what was measured
+            continue
+        message = _fixed_message(schema, channel.message_encoding)
+        if message is not None and channel.topic not in generic_topics:
+            fixed.add(channel.topic)
+        else:
+            generic.add(channel.topic)
+    damaged: list[ChunkDamage] = []  # chunks failing their CRC or index: left out, said below
+    try:
+        for name, metadata in metadata_records(f, summary):
+            if name == SESSION_METADATA:
+                part.metadata = metadata
+        # one pass over the chunks: fixed topics at chunk speed, the others message by message
+        data, messages = read_open_topics(f, summary, path, sorted(fixed), generic | {EVENTS}, damaged)
+        for topic, d in data.items():
+            part.fixed[topic] = [(d.message, d.log_time, d.publish_time, d.rows)]
+        decoders = _Decoders()
+        wanted = {cid: c for cid, c in summary.channels.items() if c.topic in generic | {EVENTS}}
+        for cid, log_time, publish_time, payload in messages:
+            channel = wanted[cid]
+            if channel.topic == EVENTS:
+                part.events.append((log_time, Event.decode(payload)))
             else:
-                generic.add(channel.topic)
-        damaged: list[ChunkDamage] = []  # chunks failing their CRC or index: left out, said below
-        try:
-            for name, metadata in metadata_records(f):
-                if name == SESSION_METADATA:
-                    part.metadata = metadata
-            # one pass over the chunks: fixed topics at chunk speed, the others message by message
-            data, messages = read_topics(path, sorted(fixed), generic | {EVENTS}, damaged)
-            for topic, d in data.items():
-                part.fixed[topic] = [(d.message, d.log_time, d.publish_time, d.rows)]
-            decoders = _Decoders()
-            wanted = {cid: c for cid, c in summary.channels.items() if c.topic in generic | {EVENTS}}
-            for cid, log_time, publish_time, payload in messages:
-                channel = wanted[cid]
-                if channel.topic == EVENTS:
-                    part.events.append((log_time, Event.decode(payload)))
-                else:
-                    schema = summary.schemas.get(channel.schema_id)
-                    row = _decode_generic(decoders, schema, channel, log_time, publish_time, payload)
-                    part.generic.setdefault(channel.topic, []).append(row)
-        except (SchemaError, *READ_ERRORS) as exc:
-            raise IngestError(path, f"unreadable ({first_line(exc)}); truncated or corrupt?") from exc
+                schema = summary.schemas.get(channel.schema_id)
+                row = _decode_generic(decoders, schema, channel, log_time, publish_time, payload)
+                part.generic.setdefault(channel.topic, []).append(row)
+    except (SchemaError, *READ_ERRORS) as exc:
+        raise IngestError(path, f"unreadable ({first_line(exc)}); truncated or corrupt?") from exc
     _report_damage(path, summary, damaged, report)
     return part
 

@@ -138,3 +138,27 @@ def test_short_twin_session_says_so_in_its_report_and_aligns_its_servo(short_syn
         poll = np.ceil(start / POLL_S - 1e-6) * POLL_S
         got = df["t"].to_numpy() + (session.t0_ns - truth["host_epoch_ns"]) * 1e-9
         assert np.abs(got - poll).max() <= 1e-3
+
+
+def test_window_minima_in_time_order_are_those_of_a_sort():
+    """The linear pass for samples in time order picks what sorting every window by z picks: each window's
+    lowest point (the earliest of equals), the ragged windows left out; shuffled input takes the sort."""
+    from pipeline.clock import window_minima
+
+    def by_sorting(x, z, width):
+        group = np.floor((x - x.min()) / width).astype(np.int64)
+        order = np.lexsort((z, group))
+        starts = np.flatnonzero(np.r_[True, group[order][1:] != group[order][:-1]])
+        counts = np.diff(np.r_[starts, order.size])
+        full = counts >= 0.5 * np.median(counts)
+        first = order[starts[full] if full.sum() >= 2 else starts]
+        return x[first], z[first]
+
+    rng = np.random.default_rng(4)
+    for n in (2, 3, 50, 5_000):
+        for _ in range(10):
+            x = np.sort(rng.uniform(0.0, n / 100, n))
+            z = np.round(rng.normal(size=n), 1)  # ties inside a window
+            for xs in (x, rng.permutation(x)):
+                got, want = window_minima(xs, z, 1.0), by_sorting(xs, z, 1.0)
+                assert all(np.array_equal(a, b) for a, b in zip(got, want, strict=True))

@@ -53,6 +53,7 @@ def test_what_the_batch_writer_writes_reads_back_by_chunk_and_by_index(tmp_path)
         other = sorted(mcap_reader.indexed_messages(f, summary, {ids["/other"]}), key=lambda m: m[1])
         assert [(m[1], m[2], m[3]) for m in other] == [(10, 20, b"x"), (11, 21, b"xx"), (12, 22, b"xxx")]
         assert dict(mcap_reader.metadata_records(f)) == {"vslab.session": {"session_id": "s"}}
+        assert dict(mcap_reader.metadata_records(f, summary)) == {"vslab.session": {"session_id": "s"}}
         spans = mcap_reader.topic_spans(f)
         assert spans["/fixed"] == (1000, 5, 999_005) and spans["/other"] == (3, 10, 12)
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -56,23 +57,35 @@ def read_topics(
         summary = mcap_reader.read_summary(f)
         if summary is None:
             raise SchemaError(f"{path}: no readable summary (a torn file? run `vslab sessions recover`)")
-        wanted: dict[int, tuple[str, FixedMessage]] = {}
-        for cid, channel in summary.channels.items():
-            schema = summary.schemas.get(channel.schema_id)
-            if (topics is not None and channel.topic not in topics) or schema is None:
-                continue
-            message = parse_fixed_message(schema.name, schema.data.decode())
-            if message is not None and channel.message_encoding == "cdr":
-                wanted[cid] = (channel.topic, message)
-        other_ids = {cid for cid, c in summary.channels.items() if c.topic in others and cid not in wanted}
-        try:
-            parts, rest = mcap_reader.chunk_messages(
-                f, summary, {cid: m.size for cid, (_, m) in wanted.items()}, other_ids, damaged
-            )
-        except mcap_reader.DamagedChunkError as exc:
-            raise mcap_reader.DamagedChunkError(exc.damage, summary, path) from exc
-        except SchemaError as exc:
-            raise SchemaError(f"{path}: {exc}") from exc
+        return read_open_topics(f, summary, path, topics, others, damaged)
+
+
+def read_open_topics(
+    f: BinaryIO,
+    summary: mcap_reader.Summary,
+    path: Path,
+    topics: list[str] | None,
+    others: set[str],
+    damaged: list[mcap_reader.ChunkDamage] | None = None,
+) -> tuple[dict[str, TopicData], list[tuple[int, int, int, bytes]]]:
+    """``read_topics`` of a file already open at ``path`` whose ``summary`` was read (nothing read twice)."""
+    wanted: dict[int, tuple[str, FixedMessage]] = {}
+    for cid, channel in summary.channels.items():
+        schema = summary.schemas.get(channel.schema_id)
+        if (topics is not None and channel.topic not in topics) or schema is None:
+            continue
+        message = parse_fixed_message(schema.name, schema.data.decode())
+        if message is not None and channel.message_encoding == "cdr":
+            wanted[cid] = (channel.topic, message)
+    other_ids = {cid for cid, c in summary.channels.items() if c.topic in others and cid not in wanted}
+    try:
+        parts, rest = mcap_reader.chunk_messages(
+            f, summary, {cid: m.size for cid, (_, m) in wanted.items()}, other_ids, damaged
+        )
+    except mcap_reader.DamagedChunkError as exc:
+        raise mcap_reader.DamagedChunkError(exc.damage, summary, path) from exc
+    except SchemaError as exc:
+        raise SchemaError(f"{path}: {exc}") from exc
     out = {}
     for cid, (topic, message) in wanted.items():
         chunks = parts[cid]
@@ -83,9 +96,10 @@ def read_topics(
         else:
             log_time = publish = np.zeros(0, np.int64)
             payload = np.zeros((0, message.size), np.uint8)
-        order = np.argsort(log_time, kind="stable")
-        rows = payload[order].reshape(-1).view(message.dtype)
-        out[topic] = TopicData(topic, message, log_time[order], publish[order], rows)
+        if len(log_time) > 1 and not np.all(log_time[1:] >= log_time[:-1]):  # chunks overlap in time
+            order = np.argsort(log_time, kind="stable")
+            log_time, publish, payload = log_time[order], publish[order], payload[order]
+        out[topic] = TopicData(topic, message, log_time, publish, payload.reshape(-1).view(message.dtype))
     return out, rest
 
 

@@ -93,11 +93,20 @@ def read_summary(f: BinaryIO) -> Summary | None:
         return None
 
 
-def metadata_records(f: BinaryIO) -> Iterator[tuple[str, dict[str, str]]]:
-    """(name, map) of every metadata record, through the summary's metadata index."""
-    f.seek(0)
-    for m in make_reader(f, validate_crcs=True).iter_metadata():
-        yield m.name, dict(m.metadata)
+def metadata_records(f: BinaryIO, summary: Summary | None = None) -> Iterator[tuple[str, dict[str, str]]]:
+    """(name, map) of every metadata record, through the summary's metadata index (``summary``: the file's,
+    read already)."""
+    if summary is None:
+        f.seek(0)
+        for m in make_reader(f, validate_crcs=True).iter_metadata():
+            yield m.name, dict(m.metadata)
+        return
+    for index in summary.metadata_indexes:
+        f.seek(index.offset)
+        record = next(StreamReader(f, skip_magic=True).records)
+        if not isinstance(record, Metadata):
+            raise McapError(f"the metadata index points at a {type(record).__name__} record")
+        yield record.name, dict(record.metadata)
 
 
 def topic_messages(f: BinaryIO, topics: list[str]) -> Iterator[tuple[int, bytes]]:
@@ -195,7 +204,7 @@ def _message_heads(records: np.ndarray, cid: int, pairs: np.ndarray, size: int =
     if len(at) and (at.min() < 0 or at.max() + width > len(records)):
         return f"the message index of channel {cid} points outside the chunk"
     dtype = np.dtype([*_HEAD_FIELDS, ("payload", "u1", (size,))]) if size else MESSAGE_HEAD
-    heads = records[at[:, None] + np.arange(width)].reshape(-1).view(dtype)
+    heads = _gathered(records, at, width).reshape(-1).view(dtype)
     if (
         np.any(heads["opcode"] != _MESSAGE_OPCODE)
         or np.any(heads["channel"] != cid)
@@ -203,6 +212,20 @@ def _message_heads(records: np.ndarray, cid: int, pairs: np.ndarray, size: int =
     ):
         return f"the message index of channel {cid} does not match the chunk's records"
     return heads
+
+
+def _gathered(records: np.ndarray, at: np.ndarray, width: int) -> np.ndarray:
+    """The ``width`` bytes at each offset ``at`` of ``records``, as an (n, width) array. A writer lays a
+    batch of one channel's messages end to end, so the offsets run in steps of ``width``: each run is copied
+    as one block (memory speed); offsets that seldom run so are gathered with one fancy index."""
+    runs = np.flatnonzero(np.diff(at) != width) + 1
+    if len(runs) > len(at) // 16:
+        return records[at[:, None] + np.arange(width)]
+    out = np.empty((len(at), width), np.uint8)
+    for lo, hi in zip(np.r_[0, runs].tolist(), np.r_[runs, len(at)].tolist(), strict=True):
+        start = int(at[lo])
+        out[lo:hi] = records[start : start + (hi - lo) * width].reshape(hi - lo, width)
+    return out
 
 
 def _damage(f: BinaryIO, ci, reason: str) -> ChunkDamage:
