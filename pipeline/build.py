@@ -171,7 +171,7 @@ def _session_stages(directory: Path, parameters: dict, cache: StageCache) -> dic
         record = json.loads((cache.path("session", key) / RECORD).read_text())
         damaged = record["report"]["values"].get(DAMAGED_CHUNKS, [])
         return done | {"cached": True, "damaged": damaged}
-    s = ingest_session(directory)
+    s = ingest_session(directory, content=content)
     s = clean(s, **parameters["clean"])
     s, timeline = sync(s)
     still = Stillness(**parameters["segment"])

@@ -77,7 +77,7 @@ def clean_stream(topic: str, df: pd.DataFrame, report: StageReport, robot: Robot
     a device clock of ``robot`` stamps it."""
     sequence = next((c for c in SEQUENCE_COLUMNS if c in df.columns), None)
     payload = [c for c in df.columns if c not in HOST_COLUMNS and c != DEVICE_TICKS]
-    duplicated = df.duplicated(subset=payload).to_numpy() if payload and len(df) else np.zeros(len(df), bool)
+    duplicated = _duplicated(df, payload, sequence) if payload and len(df) else np.zeros(len(df), bool)
     report.remove(topic, DUPLICATE, int(duplicated.sum()))
     df = df[~duplicated]
     late = 0
@@ -93,6 +93,19 @@ def clean_stream(topic: str, df: pd.DataFrame, report: StageReport, robot: Robot
         df = df.assign(**{DEVICE_TICKS: device_ticks(df, field, robot.devices[device].clock)})
     report.values[f"clean/{topic}"] = {"out_of_order": late, "rows": len(df)}
     return df
+
+
+def _duplicated(df: pd.DataFrame, payload: list[str], sequence: str | None) -> np.ndarray:
+    """``df.duplicated(subset=payload)``: rows equal to an earlier one in every payload column. Two such rows
+    share their sequence number, so only rows whose number recurs are compared (most streams: none)."""
+    if sequence is None or sequence not in payload:
+        return df.duplicated(subset=payload).to_numpy()
+    _, inverse, counts = np.unique(df[sequence].to_numpy(), return_inverse=True, return_counts=True)
+    recurs = counts[inverse.reshape(-1)] > 1
+    out = np.zeros(len(df), bool)
+    if recurs.any():
+        out[recurs] = df[recurs].duplicated(subset=payload).to_numpy()
+    return out
 
 
 def clean_tracker(

@@ -78,9 +78,11 @@ def content_hash(parts: Iterable[Path]) -> str:
     return file_hash(parts)
 
 
-def ingest_session(directory: Path, generic_topics: Collection[str] = ()) -> SessionTables:
+def ingest_session(directory: Path, generic_topics: Collection[str] = (), content: str | None = None
+                   ) -> SessionTables:  # fmt: skip
     """Every part of the session in ``directory`` as tables. Topics in ``generic_topics`` are decoded by the
-    generic (message by message) path even when the fast path could read them (for checks and comparisons)."""
+    generic (message by message) path even when the fast path could read them (for checks and comparisons).
+    ``content``: the parts' ``content_hash`` where the caller has it already (not read again)."""
     directory = as_path(directory)
     if not directory.is_dir():
         raise IngestError(directory, "not a session directory")
@@ -112,7 +114,7 @@ def ingest_session(directory: Path, generic_topics: Collection[str] = ()) -> Ses
         streams=streams,
         events=events,
         report=report,
-        content_hash=content_hash(parts),
+        content_hash=content or content_hash(parts),
     )
 
 

@@ -146,3 +146,19 @@ def test_tracker_frames_wrap(wrap_at):
     out = clean(_session({T.TRACKER: df}))
     assert out.report.removed_total() == 0
     assert np.all(np.diff(out.streams[T.TRACKER]["device_ticks"].to_numpy()) == 1)
+
+
+def test_duplicates_found_through_the_sequence_are_pandas_duplicates():
+    """Rows are compared only where their sequence number recurs: the same rows as pandas' ``duplicated``
+    over every payload column (a resent frame, a wrapped counter, a number reused with other values)."""
+    from pipeline.clean import _duplicated
+
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        n = int(rng.integers(1, 400))
+        df = pd.DataFrame({"seq": rng.integers(0, n, n), "value": rng.integers(0, 3, n).astype(float),
+                           "log_time": np.arange(n)})  # fmt: skip
+        payload = ["seq", "value"]
+        want = df.duplicated(subset=payload).to_numpy()
+        assert np.array_equal(_duplicated(df, payload, "seq"), want)
+        assert np.array_equal(_duplicated(df, payload, None), want)
