@@ -87,27 +87,36 @@ def test_each_recorder_module_imports_alone(module):
 
 
 # ------------------------------------------------------------------------------------- full disk
-def test_a_session_writer_on_a_full_disk_ends_the_session_readable(mount):
+@pytest.mark.parametrize("threads", [False, True], ids=["compressed-here", "compressed-in-threads"])
+def test_a_session_writer_on_a_full_disk_ends_the_session_readable(mount, threads):
     """The writer itself: writes until the disk is full, then one WriteFailed; what was flushed is all in
-    the part, which is whole (summary) and ends with an event saying why; the card says failed."""
+    the part, which is whole (summary) and ends with an event saying why; the card says failed. Also when
+    its chunks compress in threads (the simulated runner's writers)."""
+    from concurrent.futures import ThreadPoolExecutor
+
     directory = mount("256k") / "s"
     robot = load_robot("vsl")
     message = T.session_topics(robot)[T.SERVO_STATE].message
     rng = np.random.default_rng(1)
     flushed, t = 0, 0
-    writer = SessionWriter(directory, robot, "s", flush_s=float("inf"), standard_topics=False)
+    pool = ThreadPoolExecutor(2) if threads else None
+    writer = SessionWriter(directory, robot, "s", flush_s=float("inf"), standard_topics=False,
+                           chunk_size=16_384, compress_in=pool)  # fmt: skip
     writer.open()
     with pytest.raises(WriteFailed, match="No space left"):
-        for _ in range(10_000):
+        for k in range(10_000):
             rows = message.empty(200)
             rows.view(np.uint8)[:] = rng.integers(0, 256, rows.nbytes, dtype=np.uint8)  # incompressible
             writer.write(T.SERVO_STATE, np.arange(t, t + 200) * 1_000_000, rows)
             t += 200
-            writer.flush()
-            flushed = t
+            if k % 4 == 3:  # chunks closed (and compressing) between flushes
+                writer.flush()
+                flushed = t
     with pytest.raises(WriteFailed):  # nothing more is written once it failed
         writer.write(T.SERVO_STATE, np.array([t * 1_000_000]), message.empty(1))
     writer.close()
+    if pool is not None:
+        pool.shutdown()
     assert flushed > 0, "the disk filled before anything was written: make the file system bigger"
     assert [p.name for p in directory.glob("*.mcap")] == ["s_000.mcap"]
     part = directory / "s_000.mcap"
