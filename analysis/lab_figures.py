@@ -33,6 +33,28 @@ class Results:
     texts: dict[str, str] = field(default_factory=dict)  # table key → what the section says about it
 
 
+FIGURE_INPUTS = "inputs.json"  # in the report's folder: what the figures and report were made from
+
+
+def figure_inputs(lab: Lab) -> dict | None:
+    """What the figures and the report are made from: every file of the stores they read (path, size,
+    modification time) and the code that draws them. Equal twice: nothing to redraw. None on a lab that is
+    not a local folder (a store's listing costs more than the drawing it saves)."""
+    if not lab.is_local:
+        return None
+    from acquisition.code_version import code_version
+    from pipeline.unmodelled import STUDY_LAB
+
+    stores = (lab.sessions, lab.datasets, lab.models, lab.comparisons, lab.study(STUDY_LAB))  # what they read
+    files = []
+    for store in stores:
+        for path in sorted(store.root.rglob("*")):
+            if path.is_file() and "cache" not in path.relative_to(lab.root).parts:
+                stat = path.stat()
+                files.append([path.relative_to(lab.root).as_posix(), stat.st_size, stat.st_mtime_ns])
+    return {"code": code_version("analysis.lab_figures"), "files": files}
+
+
 def tagged_model(lab: Lab, tag: str) -> tuple[str, LabPath] | None:
     """(version, directory) of the model the store's ``tag`` names (``pipeline.model_store.LAB_TAGS``: the
     main job's), or None where no such tag is set."""

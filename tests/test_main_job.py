@@ -8,6 +8,7 @@ import json
 import pytest
 
 from acquisition.recorder.sessions import SessionStore
+from analysis import lab_figures
 from pipeline.lab import Lab
 from pipeline.session_index import sessions_of
 from vslab import lab_job
@@ -65,6 +66,6 @@ def test_quick_main_job_makes_every_figure_and_the_report(tmp_path):
     assert lab_job.run(Lab(tmp_path / "lab"), quick=True, say=again.append) == report
     assert any("the figures and the report stay" in line for line in again), again
     assert (figures / "fig5.png").stat().st_mtime_ns == drawn
-    inputs = lab_job.figure_inputs(Lab(tmp_path / "lab"))
-    assert inputs == json.loads((report.parent / lab_job.FIGURE_INPUTS).read_text())
+    inputs = lab_figures.figure_inputs(Lab(tmp_path / "lab"))
+    assert inputs == json.loads((report.parent / lab_figures.FIGURE_INPUTS).read_text())
     assert any(path.startswith("models/") for path, *_ in inputs["files"])  # what a retrained model changes

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from pipeline.lab import Lab
 from pipeline.model_store import INVERSE
-from pipeline.unmodelled import STUDY, STUDY_LAB, STUDY_QUICK
+from pipeline.unmodelled import STUDY, STUDY_QUICK
 from vslab.app import CommandLineError
 
 QUICK = {"campaign": {"points": 4000}, "experiment1": {"repetitions": 3}}  # --quick: a smaller lab
@@ -37,7 +37,7 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     """Run every step into ``lab``; returns the report's path. ``batch_priority``: this process runs the
     steps after the real-time session at a batch priority (the CLI's choice; a caller that goes on with other
     work, a test run, keeps its own)."""
-    from analysis.lab_figures import all_figures, lab_report
+    from analysis.lab_figures import FIGURE_INPUTS, all_figures, figure_inputs, lab_report
     from analysis.vsl_paths import path_errors
     from pipeline.grid import load_grid, run_grid
     from pipeline.in_loop import stored_compensators
@@ -110,27 +110,6 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     for what, why in results.missing.items():
         say(f"  not made: {what}: {why}")
     return report
-
-
-FIGURE_INPUTS = "inputs.json"  # in the report's folder: what the figures and report were made from
-
-
-def figure_inputs(lab: Lab) -> dict | None:
-    """What the figures and the report are made from: every file of the stores they read (path, size,
-    modification time) and the code that draws them. Equal twice: nothing to redraw. None on a lab that is
-    not a local folder (a store's listing costs more than the drawing it saves)."""
-    if not lab.is_local:
-        return None
-    from acquisition.code_version import code_version
-
-    stores = (lab.sessions, lab.datasets, lab.models, lab.comparisons, lab.study(STUDY_LAB))  # what they read
-    files = []
-    for store in stores:
-        for path in sorted(store.root.rglob("*")):
-            if path.is_file() and "cache" not in path.relative_to(lab.root).parts:
-                stat = path.stat()
-                files.append([path.relative_to(lab.root).as_posix(), stat.st_size, stat.st_mtime_ns])
-    return {"code": code_version("analysis.lab_figures", "vslab.lab_job"), "files": files}
 
 
 class MainJobError(CommandLineError):
