@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 
-from acquisition.command_guard import CommandGuard, CommandRefused
 from acquisition.plans.compensation import Compensator, compensator_for
 from acquisition.plans.plan import Plan
 from acquisition.recorder.sessions import SessionStore
@@ -32,9 +31,7 @@ from acquisition.schemas.session_card import SESSION_CARD
 from models.robot import RobotDescription
 from twin.buffered_writer import BufferedSessionWriter
 from twin.identity import IDENTITY, differences, recorded_identity, refuse, session_identity
-from twin.kernel import Trace
-from twin.streams import servo_current_a
-from twin.topics import stream_rows
+from twin.stepping import Compensation, Stepper, Window
 from twin.world import World
 
 log = logging.getLogger(__name__)
@@ -123,15 +120,6 @@ def reusable(plans: list[Plan], robot: RobotDescription, sessions_dir: Path, see
     return done
 
 
-def _concat(traces: list[Trace]) -> Trace:
-    return Trace(
-        **{
-            f.name: np.concatenate([getattr(tr, f.name) for tr in traces], axis=0 if f.name == "t" else 1)
-            for f in dataclasses.fields(Trace)
-        }
-    )
-
-
 def simulate(
     plans: list[Plan],
     robot: RobotDescription,
@@ -180,7 +168,6 @@ def simulate(
         pressure_pa=np.stack([f["pressure_pa"][0] for f in first]),
         payload_kg=np.array([f["payload_kg"][0] for f in first]),
     )  # fmt: skip
-    default_speed = world.commands.profile_vel.copy()
     servo_joints = [i for i, j in enumerate(robot.joints) if j.drive != "stepper"]
     steps_per_block = max(1, round(block_s / world.dt))
     block_s = steps_per_block * world.dt
@@ -209,72 +196,17 @@ def simulate(
     topics = writers[0].topics
     last_goal = np.full(len(plans), -1)
     last_pressure = np.full(len(plans), -1)
-    compensation = _Compensation(robot, plans, compensators, block_s)
+    stepper = Stepper(world, plans, Compensation(robot, plans, compensators, block_s), safety, topics,
+                       durations, steps_per_block, blocks_per_window, servo_rate_hz)  # fmt: skip
     messages = 0
-    stopped: dict[str, str] = {}
-    t0 = 0.0
     try:
+        t0 = 0.0
         while t0 < end - 1e-12:
-            tb = t0 + block_s * np.arange(blocks_per_window)
-            cmds = [p.at(tb) for p in plans]
-            goal = np.stack([c["goal_q"] for c in cmds], axis=1)  # (nb, B, A)
-            speed = np.stack([c["goal_speed"] for c in cmds], axis=1)
-            speed = np.where(speed > 0, speed, default_speed[None])
-            pressure = np.stack([c["pressure_pa"] for c in cmds], axis=1)
-            valves = np.stack([c["valve_open"] for c in cmds], axis=1)
-            payload = np.stack([c["payload_kg"] for c in cmds], axis=1)
-            taps = _taps_by_block(plans, tb, block_s)  # (nb, B) angular impulses, N·m·s
-            goal_index = np.stack([c["goal_index"] for c in cmds], axis=1)
-            traces = []
-            for b in range(blocks_per_window):
-                compensation.apply(world, goal_index[b], goal[b], float(tb[b]))  # in place: what is sent
-                world.command_joints(goal[b], profile_vel=speed[b])
-                world.command_pressure(pressure[b])
-                world.set_valves(valves[b])
-                world.set_payload(payload[b])
-                if taps[b].any():
-                    world.tap(taps[b])
-                traces.append(world.step(steps_per_block))
-                compensation.observe(world)
-            trace = _concat(traces)
-            t1 = float(trace.t[-1])
-            for r, c in enumerate(cmds):
-                c["goal_q"] = goal[:, r]  # the goals as sent (compensated where a compensator is set)
-            stops = _safety_stops(safety, plans, trace, payload, durations) if safety else {}
-            refused = compensation.take_refusals()
-            for r, (t_refused, event) in refused.items():
-                if t_refused <= durations[r] and (r not in stops or t_refused <= stops[r][0]):
-                    stops[r] = (t_refused, event)
-            for r, (t_stop, event) in stops.items():
-                durations[r] = t_stop  # the bench's session ends at the stop
-                stopped[session_id(plans[r])] = f"{event.label}: {event.text}"
-            rows = stream_rows(robot, topics, world.read(trace, servo_rate_hz), valves[-1])
+            window = stepper.step(t0)
             for r, (p, w) in enumerate(zip(plans, writers, strict=True)):
-                if t0 >= durations[r] and r not in stops:  # a stop at t = 0 still writes its events
-                    continue
-                messages += _write_commands(w, topics, cmds[r], tb, last_goal, last_pressure, r, servo_joints)
-                for topic, (robot_idx, host_ns, topic_rows) in rows.items():
-                    lo, hi = np.searchsorted(robot_idx, [r, r + 1])
-                    sel = slice(lo, hi)
-                    if t1 > durations[r]:  # the plan ends in this window: nothing after its end
-                        sel = lo + np.flatnonzero(host_ns[lo:hi] <= durations[r] * 1e9)
-                    w.write(topic, SIM_EPOCH_NS + host_ns[sel], topic_rows[sel])
-                    messages += len(topic_rows[sel])
-                e_lo = np.searchsorted(event_t[r], t0, side="left")
-                e_hi = np.searchsorted(
-                    event_t[r], min(t1, durations[r]), "right" if t1 >= durations[r] else "left"
-                )
-                for t_event, event in p.events[e_lo:e_hi]:
-                    w.event(event, SIM_EPOCH_NS + round(t_event * 1e9))
-                    messages += 1
-                if r in refused and stops.get(r) == refused[r]:
-                    w.event(Event(EventKind.COMMAND_REFUSED, label="compensator", text=refused[r][1].text),
-                            SIM_EPOCH_NS + round(refused[r][0] * 1e9))  # fmt: skip
-                    messages += 1
-                if r in stops:
-                    w.event(stops[r][1], SIM_EPOCH_NS + round(stops[r][0] * 1e9))
-                    messages += 1
-            t0 = sim_now[0] = t1
+                messages += _write_window(w, topics, window, r, p, event_t[r], last_goal, last_pressure,
+                                          servo_joints)  # fmt: skip
+            t0 = sim_now[0] = window.t1
             for w in writers:
                 w.flush_if_due(t0)
             if progress:
@@ -288,113 +220,41 @@ def simulate(
         finally:
             compress_in.shutdown(cancel_futures=True)
     wall = time.perf_counter() - start
-    return SimReport([session_id(p) for p in plans], skipped, float(durations.sum()), wall, messages, stopped)
+    return SimReport([session_id(p) for p in plans], skipped, float(durations.sum()), wall, messages,
+                     {session_id(plans[r]): why for r, why in stepper.stopped.items()})  # fmt: skip
 
 
-class _Compensation:
-    """Per bench: the command sent for the active set-point, computed once when the set-point changes from
-    the bench's link pressures and its joint currents low-passed over ``current_filter_s`` (the currents of a
-    servo stepping along a path carry its accelerations; the compensators are fitted on settled currents)."""
-
-    def __init__(self, robot: RobotDescription, plans: list[Plan], compensators: list[Compensator | None],
-                 block_s: float, current_filter_s: float = 0.2):  # fmt: skip
-        self.robot = robot
-        self.benches = [r for r, c in enumerate(compensators) if c is not None]
-        self.compensators = compensators
-        self.index = np.full(len(plans), -1)
-        self.command = np.zeros((len(plans), len(robot.actuated_joints)))
-        self.alpha = min(1.0, block_s / current_filter_s)
-        self.current: np.ndarray | None = None
-        self.guard = CommandGuard(robot)
-        self.halted: set[int] = set()
-        self.refusals: dict[int, tuple[float, Event]] = {}
-
-    def observe(self, world: World) -> None:
-        """Update the low-passed currents after a block (an exponential moving average)."""
-        if not self.benches:
-            return
-        now = servo_current_a(self.robot.servo, world.state.torque, world.state.out_vel)
-        self.current = now if self.current is None else self.current + self.alpha * (now - self.current)
-
-    def apply(self, world: World, goal_index: np.ndarray, goal: np.ndarray, t: float) -> None:
-        """Replace the compensated benches' goals (B, A) in place; a refused command holds the bench where
-        it is (kept for :meth:`take_refusals`)."""
-        if not self.benches:
-            return
-        if self.current is None:
-            self.observe(world)
-        for r in self.benches:
-            if goal_index[r] != self.index[r]:
-                self.index[r] = goal_index[r]
-                if r in self.halted:
-                    continue
-                try:
-                    out = np.asarray(self.compensators[r](
-                        goal[r][None], world.state.p_link[r][None], self.current[r][None], t_s=t
-                    ), float)  # fmt: skip
-                    if out.shape != (1, goal.shape[1]):
-                        raise CommandRefused(
-                            f"the compensator returned shape {out.shape} for one set of goals"
-                        )
-                    self.command[r] = self.guard.joint_goals(out[0])
-                except CommandRefused as exc:
-                    self.halted.add(r)
-                    self.command[r] = world.state.out_pos[r]  # hold where it is
-                    self.refusals[r] = (
-                        t,
-                        Event(EventKind.SAFETY_STOP, label="command", text=f"refused: {exc}"),
-                    )
-            goal[r] = self.command[r]
-
-    def take_refusals(self) -> dict[int, tuple[float, Event]]:
-        """The benches whose compensator gave a refused command since the last call: (time, stop event)."""
-        out, self.refusals = self.refusals, {}
-        return out
-
-
-def _safety_stops(
-    safety: SafetyChecker, plans: list[Plan], trace: Trace, payload: np.ndarray,
-    durations: np.ndarray, rate_hz: float = 20.0,
-) -> dict[int, tuple[float, Event]]:  # fmt: skip
-    """The first limit each running bench broke in this window (true state sampled at ``rate_hz``);
-    ``payload``: every block's (nb, B)."""
-    steps_per_block = len(trace.t) // payload.shape[0]
-    step = max(1, round(1.0 / (rate_hz * (trace.t[1] - trace.t[0])))) if len(trace.t) > 1 else 1
-    idx = np.arange(step - 1, len(trace.t), step)
-    benches, n = trace.q.shape[0], len(idx)
-
-    def flat(x: np.ndarray) -> np.ndarray:  # (B, steps, k) at the sampled steps → (B·n, k)
-        return x[:, idx].reshape(benches * n, -1)
-
-    def per_block(x: np.ndarray) -> np.ndarray:  # (nb, B, k) at the sampled steps' blocks → (B·n, k)
-        return np.swapaxes(x[idx // steps_per_block], 0, 1).reshape(benches * n, -1)
-
-    allow = np.array([bool(p.parameters.get("allow_wrinkling")) for p in plans])
-    stowed = np.concatenate([safety.stowed(plan, trace.t[idx]) for plan in plans])
-    violations = safety.check_state(
-        np.tile(trace.t[idx], benches), flat(trace.q), flat(trace.pressure),
-        per_block(payload[..., None])[:, 0], flat(trace.delta),
-        allow_wrinkling=np.repeat(allow, n), every=True, stowed=stowed,
-    )  # fmt: skip
-    stops: dict[int, tuple[float, Event]] = {}
-    for v in violations:
-        r = v.sample // n
-        if v.t_s > durations[r] or r in stops:
-            continue
-        stops[r] = (v.t_s, Event(EventKind.SAFETY_STOP, label=v.limit, text=v.detail))
-    return stops
-
-
-def _taps_by_block(plans: list[Plan], tb: np.ndarray, block_s: float) -> np.ndarray:
-    """The plans' tap impulses summed into the blocks starting at ``tb`` (a tap acts at its block's start)."""
-    out = np.zeros((len(tb), len(plans)))
-    for r, p in enumerate(plans):
-        t = p.tap_t
-        sel = (t >= tb[0] - 1e-9) & (t < tb[-1] + block_s - 1e-9)
-        if sel.any():
-            k = np.clip(np.searchsorted(tb, t[sel] + 1e-9, side="right") - 1, 0, len(tb) - 1)
-            np.add.at(out[:, r], k, p.tap_impulse_nms[sel])
-    return out
+def _write_window(w: BufferedSessionWriter, topics: dict, window: Window, r: int, plan: Plan,
+                  event_t: np.ndarray, last_goal: np.ndarray, last_pressure: np.ndarray,
+                  servo_joints: list[int]) -> int:  # fmt: skip
+    """Bench ``r``'s messages of a stepped window: its commands, device rows and events, nothing after its
+    session's end; returns how many."""
+    t0, t1, stops, refused, end = window.t0, window.t1, window.stops, window.refused, window.durations[r]
+    if t0 >= end and r not in stops:  # a stop at t = 0 still writes its events
+        return 0
+    messages = _write_commands(
+        w, topics, window.cmds[r], window.tb, last_goal, last_pressure, r, servo_joints
+    )
+    for topic, (robot_idx, host_ns, topic_rows) in window.rows.items():
+        lo, hi = np.searchsorted(robot_idx, [r, r + 1])
+        sel = slice(lo, hi)
+        if t1 > end:  # the plan ends in this window: nothing after its end
+            sel = lo + np.flatnonzero(host_ns[lo:hi] <= end * 1e9)
+        w.write(topic, SIM_EPOCH_NS + host_ns[sel], topic_rows[sel])
+        messages += len(topic_rows[sel])
+    e_lo = np.searchsorted(event_t, t0, side="left")
+    e_hi = np.searchsorted(event_t, min(t1, end), "right" if t1 >= end else "left")
+    for t_event, event in plan.events[e_lo:e_hi]:
+        w.event(event, SIM_EPOCH_NS + round(t_event * 1e9))
+        messages += 1
+    if r in refused and stops.get(r) == refused[r]:
+        w.event(Event(EventKind.COMMAND_REFUSED, label="compensator", text=refused[r][1].text),
+                SIM_EPOCH_NS + round(refused[r][0] * 1e9))  # fmt: skip
+        messages += 1
+    if r in stops:
+        w.event(stops[r][1], SIM_EPOCH_NS + round(stops[r][0] * 1e9))
+        messages += 1
+    return messages
 
 
 def _write_commands(w: BufferedSessionWriter, topics, cmds: dict, tb: np.ndarray, last_goal, last_pressure,
