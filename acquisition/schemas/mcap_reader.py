@@ -10,7 +10,9 @@ body, a Message body is channel id (2), sequence (4), log time (8), publish time
 
 from __future__ import annotations
 
+import io
 import struct
+import threading
 import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -20,7 +22,18 @@ import numpy as np
 import zstandard
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
-from mcap.records import Channel, Footer, Header, Message, Metadata, Schema
+from mcap.records import (
+    AttachmentIndex,
+    Channel,
+    ChunkIndex,
+    Footer,
+    Header,
+    Message,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+)
 from mcap.stream_reader import StreamReader
 from mcap.summary import Summary
 
@@ -84,12 +97,32 @@ def read_magic(f: BinaryIO) -> bytes:
     return head
 
 
+_FOOTER_RECORD = RECORD_PREFIX + 8 + 8 + 4  # summary start, summary offset start, CRC
+
+
 def read_summary(f: BinaryIO) -> Summary | None:
-    """The summary section, or None where the file has none (torn) or it cannot be read."""
-    f.seek(0)
+    """The summary section, or None where the file has none (torn) or it cannot be read. The footer and
+    then the whole summary are read in one piece each (the mcap package's reader asks the file for every
+    field: thousands of small reads for a long session's chunk indexes)."""
     try:
-        return make_reader(f).get_summary()
-    except READ_ERRORS:
+        f.seek(-(_FOOTER_RECORD + len(MAGIC)), 2)
+        footer = next(StreamReader(io.BytesIO(f.read()), skip_magic=True).records)
+        if not isinstance(footer, Footer) or footer.summary_start == 0:
+            return None
+        f.seek(footer.summary_start)
+        summary = Summary()
+        for record in StreamReader(io.BytesIO(f.read()), skip_magic=True).records:
+            if isinstance(record, Footer):
+                return summary
+            if isinstance(record, Statistics):
+                summary.statistics = record
+            elif isinstance(record, (Schema, Channel)):
+                (summary.schemas if isinstance(record, Schema) else summary.channels)[record.id] = record
+            elif isinstance(record, (ChunkIndex, AttachmentIndex, MetadataIndex)):
+                {ChunkIndex: summary.chunk_indexes, AttachmentIndex: summary.attachment_indexes,
+                 MetadataIndex: summary.metadata_indexes}[type(record)].append(record)  # fmt: skip
+        return None  # no footer after the summary: not a whole file
+    except (*READ_ERRORS, StopIteration):
         return None
 
 
@@ -116,11 +149,20 @@ def topic_messages(f: BinaryIO, topics: list[str]) -> Iterator[tuple[int, bytes]
         yield m.log_time, m.data
 
 
+_decompressors = threading.local()  # one zstd context a thread (making one costs more than a small chunk)
+
+
+def _zstd_decompressor() -> zstandard.ZstdDecompressor:
+    _decompressors.zstd = zstandard.ZstdDecompressor()
+    return _decompressors.zstd
+
+
 def _decompress(compression: str, data: bytes, size: int) -> bytes:
     if compression == "":
         return data
     if compression == "zstd":
-        return zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+        decompressor = getattr(_decompressors, "zstd", None) or _zstd_decompressor()
+        return decompressor.decompress(data, max_output_size=size)
     if compression == "lz4":
         import lz4.frame
 
@@ -222,7 +264,7 @@ def _gathered(records: np.ndarray, at: np.ndarray, width: int) -> np.ndarray:
     if len(runs) > len(at) // 16:
         return records[at[:, None] + np.arange(width)]
     out = np.empty((len(at), width), np.uint8)
-    for lo, hi in zip(np.r_[0, runs].tolist(), np.r_[runs, len(at)].tolist(), strict=True):
+    for lo, hi in zip([0, *runs.tolist()], [*runs.tolist(), len(at)], strict=True):
         start = int(at[lo])
         out[lo:hi] = records[start : start + (hi - lo) * width].reshape(hi - lo, width)
     return out
