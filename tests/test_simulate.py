@@ -422,3 +422,25 @@ def test_writes_gathered_over_seconds_are_the_same_messages(vsl, tmp_path):
         assert {"/tf", "/joint_states", T.SERVO_STATE, T.TRACKER} <= each.keys()
         assert len(each["/tf"]) > 1200  # 50 Hz over the plan
         assert gathered == each
+
+
+def test_an_interrupted_batch_leaves_no_session_complete(vsl, tmp_path):
+    """A run stopped part-way (Ctrl-C, a failed write) closes its sessions readable but not complete, so the
+    next run simulates them again instead of taking a cut-short session for the plan's."""
+    from acquisition.recorder.sessions import read_card
+
+    plans = _short_plans(vsl, seconds=3.5)
+
+    def stop(fraction: float) -> None:
+        if fraction < 1.0:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        simulate(plans, vsl, tmp_path, seed=2, progress=stop)
+    for p in plans:
+        card = read_card(tmp_path / session_id(p))
+        assert card["status"] == "interrupted"
+        assert session_info(tmp_path / session_id(p)).torn == []  # its part is whole, as far as it went
+    again = simulate(plans, vsl, tmp_path, seed=2)
+    assert again.sessions == [session_id(p) for p in plans] and again.skipped == []
+    assert all(read_card(tmp_path / session_id(p))["status"] == "complete" for p in plans)

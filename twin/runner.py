@@ -198,7 +198,7 @@ def simulate(
     last_pressure = np.full(len(plans), -1)
     stepper = Stepper(world, plans, Compensation(robot, plans, compensators, block_s), safety, topics,
                        durations, steps_per_block, blocks_per_window, servo_rate_hz)  # fmt: skip
-    messages = 0
+    messages, finished = 0, False
     try:
         t0 = 0.0
         while t0 < end - 1e-12:
@@ -213,10 +213,12 @@ def simulate(
                 progress(min(1.0, t0 / end))
         for w, p, d in zip(writers, plans, durations, strict=True):
             w.event(Event(EventKind.SESSION_END, label=p.name), SIM_EPOCH_NS + round(d * 1e9))
+        finished = True
     finally:
         try:
-            for w, d in zip(writers, durations, strict=True):
-                w.close("refused" if d <= 0 else "complete")  # refused at t = 0: nothing of the plan ran
+            for w, d in zip(writers, durations, strict=True):  # refused at t = 0: nothing of the plan ran;
+                # a run stopped part-way (interrupt, failed write) completes none: the next runs them again
+                w.close(("refused" if d <= 0 else "complete") if finished else "interrupted")
         finally:
             compress_in.shutdown(cancel_futures=True)
     wall = time.perf_counter() - start

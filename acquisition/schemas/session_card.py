@@ -23,9 +23,10 @@ SCHEMA_VERSION = 2
 SESSION_CARD = "session.json"  # beside the parts
 SESSION_METADATA = "vslab.session"  # the metadata record in every part
 COUNTERS_METADATA = "vslab.counters"  # the final stream counters, in the last part
-# A card's status: recording (or torn), complete, or refused (a simulated plan refused at its start: its
-# session holds the COMMAND_REFUSED / SAFETY_STOP events and nothing ran; a rerun runs it again)
-STATUSES = ("recording", "complete", "refused")
+# A card's status: recording (or torn), complete, refused (a simulated plan refused at its start: its
+# session holds the COMMAND_REFUSED / SAFETY_STOP events and nothing ran; a rerun runs it again) or
+# interrupted (a simulated batch stopped part-way: whole as far as it went, never taken for its plan's)
+STATUSES = ("recording", "complete", "refused", "interrupted")
 RECOVERED_SUFFIX = ".recovered.mcap"  # a torn part's mended copy, beside it (`vslab sessions recover`)
 
 
