@@ -42,7 +42,7 @@ def figure_inputs(lab: Lab) -> dict | None:
     not a local folder (a store's listing costs more than the drawing it saves)."""
     if not lab.is_local:
         return None
-    from acquisition.code_version import code_version
+    from pipeline.cache import code_version
     from pipeline.unmodelled import STUDY_LAB
 
     stores = (lab.sessions, lab.datasets, lab.models, lab.comparisons, lab.study(STUDY_LAB))  # what they read

@@ -378,7 +378,7 @@ def test_campaign_runs_to_the_end_within_the_safety_limits(tmp_path):
 def test_same_seed_gives_the_same_bytes_however_fast_the_machine_ran(vsl, tmp_path, monkeypatch):
     """A dataset's version is a hash of its sessions' bytes, so the writer's chunks must not depend on
     wall time (under load the runs flushed at other points, and the same campaign gave another version)."""
-    from twin import runner as sim_runner
+    from twin import session_writers as sim_runner
 
     writers = []
 

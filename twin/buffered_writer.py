@@ -53,7 +53,8 @@ class BufferedSessionWriter:
         """Write the rest and close the session (``SessionWriter.close``); a session whose writing failed is
         closed as failed, what was gathered lost with it."""
         try:
-            self.flush()
+            if self.writer.failure is None:  # a failed writer takes nothing more
+                self.flush()
         finally:
             self.writer.close(status)
 

@@ -11,10 +11,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import os
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,20 +21,17 @@ import numpy as np
 from acquisition.plans.compensation import Compensator, compensator_for
 from acquisition.plans.plan import Plan
 from acquisition.recorder.sessions import SessionStore
-from acquisition.recorder.writer import SessionWriter
 from acquisition.safety import SafetyChecker
-from acquisition.schemas import topics as T
-from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.session_card import SESSION_CARD
+from acquisition.schemas.topics import session_topics
 from models.robot import RobotDescription
-from twin.buffered_writer import BufferedSessionWriter
 from twin.identity import IDENTITY, differences, recorded_identity, refuse, session_identity
-from twin.stepping import Compensation, Stepper, Window
+from twin.session_writers import SIM_EPOCH_NS, BatchWriters, SessionSpec
+from twin.stepping import Compensation, Stepper
 from twin.world import World
 
 log = logging.getLogger(__name__)
 
-SIM_EPOCH_NS = 1_767_225_600 * 10**9  # 2026-01-01T00:00:00Z: simulated sessions start here on the host clock
 SIM_PREFIX = "sim-"  # the id of every simulated session starts so (a real-time one never does)
 
 
@@ -168,126 +163,37 @@ def simulate(
         pressure_pa=np.stack([f["pressure_pa"][0] for f in first]),
         payload_kg=np.array([f["payload_kg"][0] for f in first]),
     )  # fmt: skip
-    servo_joints = [i for i, j in enumerate(robot.joints) if j.drive != "stepper"]
     steps_per_block = max(1, round(block_s / world.dt))
     block_s = steps_per_block * world.dt
     blocks_per_window = max(1, round(window_s / block_s))
     end = max(p.duration_s for p in plans)
     durations = np.array([p.duration_s for p in plans])
-    event_t = [np.array([t for t, _ in p.events]) for p in plans]
-    writers = []
-    compress_in = ThreadPoolExecutor(os.cpu_count() or 1, thread_name_prefix="compress")  # beside the loop
-    sim_now = [0.0]  # the writers' clock: simulated seconds, so a session's bytes (its chunks) never depend
-    # on how fast this machine ran it, and the same seed gives the same files
-    for r, (p, c) in enumerate(zip(plans, compensators, strict=True)):
-        directory = sessions_dir / session_id(p)
-        if directory.exists():  # an incomplete earlier try: start it again
-            for old in directory.glob("*"):
-                old.unlink()
-        w = SessionWriter(directory, robot, session_id(p), experiment=p.parameters.get("experiment", p.name),
-                          metadata={"plan": p.name, "runner": "simulated", "seed": str(seed),
-                                    "parameters": p.parameters, TWIN_TRUTH: twin_truth(world, r),
-                                    IDENTITY: session_identity(p, robot, seed, c)},
-                          flush_s=30.0, clock=lambda: sim_now[0], standard_batch_s=write_s,
-                          compress_in=compress_in)  # fmt: skip
-        w.open()
-        w.event(Event(EventKind.SESSION_START, label=p.name), SIM_EPOCH_NS)
-        writers.append(BufferedSessionWriter(w, write_s))
-    topics = writers[0].topics
-    last_goal = np.full(len(plans), -1)
-    last_pressure = np.full(len(plans), -1)
-    stepper = Stepper(world, plans, Compensation(robot, plans, compensators, block_s), safety, topics,
-                       durations, steps_per_block, blocks_per_window, servo_rate_hz)  # fmt: skip
-    messages, finished = 0, False
+    specs = [
+        SessionSpec(sessions_dir / session_id(p), session_id(p), p.parameters.get("experiment", p.name),
+                    {"plan": p.name, "runner": "simulated", "seed": str(seed), "parameters": p.parameters,
+                     TWIN_TRUTH: twin_truth(world, r), IDENTITY: session_identity(p, robot, seed, c)},
+                    (p.name, SIM_EPOCH_NS))
+        for r, (p, c) in enumerate(zip(plans, compensators, strict=True))
+    ]  # fmt: skip
+    batch = BatchWriters(robot, plans, specs, write_s)
+    compensation = Compensation(robot, plans, compensators, block_s)
+    stepper = Stepper(world, plans, compensation, safety, session_topics(robot), durations, steps_per_block,
+                      blocks_per_window, servo_rate_hz)  # fmt: skip
+    finished = False
     try:
         t0 = 0.0
         while t0 < end - 1e-12:
             window = stepper.step(t0)
-            for r, (p, w) in enumerate(zip(plans, writers, strict=True)):
-                messages += _write_window(w, topics, window, r, p, event_t[r], last_goal, last_pressure,
-                                          servo_joints)  # fmt: skip
-            t0 = sim_now[0] = window.t1
-            for w in writers:
-                w.flush_if_due(t0)
+            batch.write_window(window)
+            t0 = window.t1
             if progress:
                 progress(min(1.0, t0 / end))
-        for w, p, d in zip(writers, plans, durations, strict=True):
-            w.event(Event(EventKind.SESSION_END, label=p.name), SIM_EPOCH_NS + round(d * 1e9))
         finished = True
     finally:
-        try:
-            for w, d in zip(writers, durations, strict=True):  # refused at t = 0: nothing of the plan ran;
-                # a run stopped part-way (interrupt, failed write) completes none: the next runs them again
-                w.close(("refused" if d <= 0 else "complete") if finished else "interrupted")
-        finally:
-            compress_in.shutdown(cancel_futures=True)
+        messages = batch.end(durations, finished)
     wall = time.perf_counter() - start
     return SimReport([session_id(p) for p in plans], skipped, float(durations.sum()), wall, messages,
                      {session_id(plans[r]): why for r, why in stepper.stopped.items()})  # fmt: skip
-
-
-def _write_window(w: BufferedSessionWriter, topics: dict, window: Window, r: int, plan: Plan,
-                  event_t: np.ndarray, last_goal: np.ndarray, last_pressure: np.ndarray,
-                  servo_joints: list[int]) -> int:  # fmt: skip
-    """Bench ``r``'s messages of a stepped window: its commands, device rows and events, nothing after its
-    session's end; returns how many."""
-    t0, t1, stops, refused, end = window.t0, window.t1, window.stops, window.refused, window.durations[r]
-    if t0 >= end and r not in stops:  # a stop at t = 0 still writes its events
-        return 0
-    messages = _write_commands(
-        w, topics, window.cmds[r], window.tb, last_goal, last_pressure, r, servo_joints
-    )
-    for topic, (robot_idx, host_ns, topic_rows) in window.rows.items():
-        lo, hi = np.searchsorted(robot_idx, [r, r + 1])
-        sel = slice(lo, hi)
-        if t1 > end:  # the plan ends in this window: nothing after its end
-            sel = lo + np.flatnonzero(host_ns[lo:hi] <= end * 1e9)
-        w.write(topic, SIM_EPOCH_NS + host_ns[sel], topic_rows[sel])
-        messages += len(topic_rows[sel])
-    e_lo = np.searchsorted(event_t, t0, side="left")
-    e_hi = np.searchsorted(event_t, min(t1, end), "right" if t1 >= end else "left")
-    for t_event, event in plan.events[e_lo:e_hi]:
-        w.event(event, SIM_EPOCH_NS + round(t_event * 1e9))
-        messages += 1
-    if r in refused and stops.get(r) == refused[r]:
-        w.event(Event(EventKind.COMMAND_REFUSED, label="compensator", text=refused[r][1].text),
-                SIM_EPOCH_NS + round(refused[r][0] * 1e9))  # fmt: skip
-        messages += 1
-    if r in stops:
-        w.event(stops[r][1], SIM_EPOCH_NS + round(stops[r][0] * 1e9))
-        messages += 1
-    return messages
-
-
-def _write_commands(w: BufferedSessionWriter, topics, cmds: dict, tb: np.ndarray, last_goal, last_pressure,
-                    r: int, servo_joints: list[int]) -> int:  # fmt: skip
-    """Servo goals and pressure commands at the blocks where the plan changed them."""
-    n = 0
-    gi = cmds["goal_index"]
-    new = np.flatnonzero(np.diff(np.concatenate([[last_goal[r]], gi])) != 0)
-    if len(new):
-        msg = topics[T.SERVO_GOAL].message
-        rows = msg.pack(
-            {
-                "seq": gi[new],
-                "position": cmds["goal_q"][new][:, servo_joints],
-                "profile_velocity": cmds["goal_speed"][new][:, servo_joints],
-                "profile_acceleration": np.zeros((len(new), len(servo_joints))),
-            }
-        )
-        w.write(T.SERVO_GOAL, SIM_EPOCH_NS + np.rint(tb[new] * 1e9).astype(np.int64), rows)
-        last_goal[r] = gi[-1]
-        n += len(new)
-    pi = cmds["pressure_index"]
-    new = np.flatnonzero(np.diff(np.concatenate([[last_pressure[r]], pi])) != 0)
-    if len(new):
-        rows = topics[T.PRESSURE_COMMAND].message.pack(
-            {"seq": pi[new], "setpoint": cmds["pressure_pa"][new], "valve_open": cmds["valve_open"][new]}
-        )
-        w.write(T.PRESSURE_COMMAND, SIM_EPOCH_NS + np.rint(tb[new] * 1e9).astype(np.int64), rows)
-        last_pressure[r] = pi[-1]
-        n += len(new)
-    return n
 
 
 def simulate_experiment(

@@ -29,7 +29,9 @@ class Window:
     t0: float
     t1: float
     tb: np.ndarray  # the blocks' start times
-    cmds: list[dict]  # each plan's commands at the blocks (the goals as sent)
+    commands: dict[str, np.ndarray]  # the plans' commands at the blocks, (blocks, benches, ...): goal_index,
+    # goal_q (the goals as sent: compensated where a compensator is set), goal_speed, pressure_index,
+    # pressure_pa, valve_open
     rows: dict  # topic → (bench index, host ns, rows) of every device stream
     stops: dict[int, tuple[float, Event]]  # bench → (time, event) of a stop in this window
     refused: dict[int, tuple[float, Event]]  # bench → (time, stop event) of a refused compensator command
@@ -56,8 +58,8 @@ class Stepper:
         tb = t0 + self.block_s * np.arange(self.blocks_per_window)
         cmds = [p.at(tb) for p in plans]
         goal = np.stack([c["goal_q"] for c in cmds], axis=1)  # (nb, B, A)
-        speed = np.stack([c["goal_speed"] for c in cmds], axis=1)
-        speed = np.where(speed > 0, speed, self.default_speed[None])
+        goal_speed = np.stack([c["goal_speed"] for c in cmds], axis=1)
+        speed = np.where(goal_speed > 0, goal_speed, self.default_speed[None])
         pressure = np.stack([c["pressure_pa"] for c in cmds], axis=1)
         valves = np.stack([c["valve_open"] for c in cmds], axis=1)
         payload = np.stack([c["payload_kg"] for c in cmds], axis=1)
@@ -75,8 +77,6 @@ class Stepper:
             traces.append(world.step(self.steps_per_block))
             compensation.observe(world)
         trace = concat_traces(traces)
-        for r, c in enumerate(cmds):
-            c["goal_q"] = goal[:, r]  # the goals as sent (compensated where a compensator is set)
         stops = safety_stops(self.safety, plans, trace, payload, durations) if self.safety else {}
         refused = compensation.take_refusals()
         for r, (t_refused, event) in refused.items():
@@ -86,7 +86,10 @@ class Stepper:
             durations[r] = t_stop  # the bench's session ends at the stop
             self.stopped[r] = f"{event.label}: {event.text}"
         rows = stream_rows(world.robot, self.topics, world.read(trace, self.servo_rate_hz), valves[-1])
-        return Window(t0, float(trace.t[-1]), tb, cmds, rows, stops, refused, durations.copy())
+        commands = {"goal_index": goal_index, "goal_q": goal, "goal_speed": goal_speed,
+                    "pressure_pa": pressure, "valve_open": valves,
+                    "pressure_index": np.stack([c["pressure_index"] for c in cmds], axis=1)}  # fmt: skip
+        return Window(t0, float(trace.t[-1]), tb, commands, rows, stops, refused, durations.copy())
 
 
 class Compensation:
