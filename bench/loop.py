@@ -1,6 +1,7 @@
 """The lab's loop, figure by figure, beside its goal (issue 32), with the machine's load average.
 
     python bench/loop.py [--only main,second,campaign,ingest,build,check,test] [--points N] [--benches B]
+                         [--profile]
 
 - main: `vslab demo` (the main job, what `make demo` runs) on a new lab, wall seconds; second: the same
   command again on that lab (goal: nothing recomputed that has not changed).
@@ -11,7 +12,8 @@
   environment included in `make test`'s time, as CI pays it); `make check` runs after, in that clone.
 
 Each figure is printed as it is measured, then a table of all with their goals. Exit status 1 if a measured
-figure misses its goal.
+figure misses its goal. ``--profile``: the campaign, ingest and build also run under cProfile (timed apart
+from the figures) and the functions that took the most time are printed: where each step's time goes.
 """
 
 from __future__ import annotations
@@ -75,9 +77,22 @@ def main_job(tmp: Path, figures: dict, only: set[str]) -> None:
         _report("second", figures)
 
 
-def campaign(tmp: Path, figures: dict, only: set[str], points: int, benches: int) -> None:
+def profiled(what: str, step) -> None:
+    """Run ``step()`` under cProfile and print the functions that took the most time, inside and in all."""
+    import cProfile
+    import pstats
+
+    profile = cProfile.Profile()
+    profile.runcall(step)
+    print(f"\n--- cProfile of {what} (a second run, not the figure's) ---", flush=True)
+    for order in ("tottime", "cumulative"):
+        pstats.Stats(profile).strip_dirs().sort_stats(order).print_stats(12)
+
+
+def campaign(tmp: Path, figures: dict, only: set[str], points: int, benches: int,
+             profile: bool = False) -> None:  # fmt: skip
     from acquisition.recorder.sessions import SessionStore
-    from pipeline.build import build
+    from pipeline.build import InlineExecutor, build
     from pipeline.lab import Lab
     from twin.runner import simulate_experiment
 
@@ -87,17 +102,29 @@ def campaign(tmp: Path, figures: dict, only: set[str], points: int, benches: int
                         overrides={"points": points})  # fmt: skip
     figures["campaign"] = time.perf_counter() - start
     _report("campaign", figures)
+    again = SessionStore(tmp / "profiled" / "sessions")
+    if profile:
+        profiled("the campaign", lambda: simulate_experiment("campaign", again, benches=benches,
+                                                             overrides={"points": points}))  # fmt: skip
     sessions = sorted(d for d in (lab / "sessions").iterdir() if d.is_dir())
+    fast_path = runpy.run_path(str(ROOT / "bench" / "ingest.py"))["fast_path"]
     if "ingest" in only:  # bench/ingest.py's measure: ingest_session timed alone, session by session
-        messages, ingest_s, _ = runpy.run_path(str(ROOT / "bench" / "ingest.py"))["fast_path"](sessions)
+        messages, ingest_s, _ = fast_path(sessions)
         figures["ingest"] = messages / ingest_s
         _report("ingest", figures)
+        if profile:
+            profiled("the ingest", lambda: fast_path(sessions))
     if "build" in only:
         with cf.ProcessPoolExecutor(os.cpu_count() or 1) as pool:
             start = time.perf_counter()
             build(sessions, Lab(lab), "campaign", {}, executor=pool)
             figures["build"] = time.perf_counter() - start
         _report("build", figures)
+        if profile:  # one process: the workers' stages are where the build's time goes
+            inline, other = InlineExecutor(), Lab(tmp / "profiled")
+            profiled(
+                "the build, in one process", lambda: build(sessions, other, "campaign", {}, executor=inline)
+            )
 
 
 def suite(tmp: Path, figures: dict, only: set[str]) -> None:
@@ -132,6 +159,7 @@ def main() -> int:
     parser.add_argument("--only", default=",".join(GOALS), help="comma-separated figures (default: all)")
     parser.add_argument("--points", type=int, default=17568, help="campaign points (the paper's n = 17568)")
     parser.add_argument("--benches", type=int, default=128, help="campaign sessions (twin benches)")
+    parser.add_argument("--profile", action="store_true", help="also profile the campaign, ingest and build")
     args = parser.parse_args()
     only = {name.strip() for name in args.only.split(",") if name.strip()}
     if unknown := only - set(GOALS):
@@ -142,7 +170,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="loop-") as name:
         tmp = Path(name)
         if only & {"campaign", "ingest", "build"}:
-            campaign(tmp, figures, only, args.points, args.benches)
+            campaign(tmp, figures, only, args.points, args.benches, args.profile)
         if only & {"main", "second"}:
             main_job(tmp, figures, only)
         if only & {"test", "check"}:
