@@ -37,21 +37,22 @@ FIGURE_INPUTS = "inputs.json"  # in the report's folder: what the figures and re
 
 
 def figure_inputs(lab: Lab) -> dict | None:
-    """What the figures and the report are made from: every file of the stores they read (path, size,
-    modification time) and the code that draws them. Equal twice: nothing to redraw. None on a lab that is
-    not a local folder (a store's listing costs more than the drawing it saves)."""
+    """What the figures and the report are made from: every file of the lab (path, size, modification
+    time) but its caches and what they write themselves, and the code that draws them. Equal twice: nothing
+    to redraw. None on a lab that is not a local folder (a store's listing costs more than the drawing it
+    saves)."""
     if not lab.is_local:
         return None
     from pipeline.cache import code_version
-    from pipeline.unmodelled import STUDY_LAB
 
-    stores = (lab.sessions, lab.datasets, lab.models, lab.comparisons, lab.study(STUDY_LAB))  # what they read
+    theirs = (Path(lab.figures), Path(lab.report))
     files = []
-    for store in stores:
-        for path in sorted(store.root.rglob("*")):
-            if path.is_file() and "cache" not in path.relative_to(lab.root).parts:
-                stat = path.stat()
-                files.append([path.relative_to(lab.root).as_posix(), stat.st_size, stat.st_mtime_ns])
+    for path in sorted(Path(lab.root).rglob("*")):
+        if "cache" in path.relative_to(lab.root).parts or any(path.is_relative_to(d) for d in theirs):
+            continue
+        if path.is_file():
+            stat = path.stat()
+            files.append([path.relative_to(lab.root).as_posix(), stat.st_size, stat.st_mtime_ns])
     return {"code": code_version("analysis.lab_figures"), "files": files}
 
 
