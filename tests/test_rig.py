@@ -216,3 +216,34 @@ def test_a_broken_start_file_is_one_line_and_exit_2(tmp_path):
     )  # fmt: skip
     assert done.returncode == 2 and "Traceback" not in done.stderr
     assert "q_rad must be 3 finite numbers, got [0, 1]" in done.stderr.splitlines()[-1]
+
+
+def test_a_rig_in_a_folder_deeper_than_a_socket_address_starts_and_answers(tmp_path, vsl):
+    """A socket's address holds ~107 bytes; a lab in a deep folder (a long home, pytest-xdist's
+    temporary folders) put the rig's control socket past it, and the rig died at its start. It binds in a
+    private temporary folder, linked from the run directory, and removes both when it stops."""
+    from twin.ptyhost import CONTROL_SOCKET
+    from twin.rig_process import rig_ports, rig_process
+
+    deep = tmp_path / ("a-lab-in-a-deep-folder-" * 6) / "rig" / "rig-experiment1-curve"
+    assert len(str(deep / CONTROL_SOCKET).encode()) > 108
+    with rig_process(vsl, deep) as proc:
+        ports = rig_ports(deep, proc)
+        socket_file = (deep / CONTROL_SOCKET).resolve()
+        state = send_control(deep, {"op": "state"})
+    assert set(ports) >= {"servo_bus", "tracker"} and state["ok"] and len(state["q"]) == 3
+    assert not (deep / CONTROL_SOCKET).is_symlink() and not socket_file.parent.exists()
+
+
+def test_a_rig_that_dies_before_its_ports_says_so(tmp_path):
+    """A rig process that exits before it publishes its ports is named as stopped with its exit status (the
+    wait's TimeoutError, an OSError, was taken for a broken ports file: "not a rig's ports file")."""
+    import subprocess
+    import sys
+
+    from twin.rig_process import RigError, rig_ports
+
+    proc = subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"])
+    proc.wait()
+    with pytest.raises(RigError, match=r"the rig stopped \(exit status 3\) before it published its ports"):
+        rig_ports(tmp_path, proc)

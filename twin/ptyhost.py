@@ -30,6 +30,7 @@ import selectors
 import signal
 import socket
 import struct
+import tempfile
 import time
 import tty
 from collections import deque
@@ -279,10 +280,21 @@ class PtyHost:
     def serve_forever(self) -> None:
         signal.signal(signal.SIGTERM, self.stop)
         signal.signal(signal.SIGINT, self.stop)
-        sock_path = self.run_dir / CONTROL_SOCKET
-        sock_path.unlink(missing_ok=True)
+        link = self.run_dir / CONTROL_SOCKET  # what clients open: a link to the socket itself
+        link.unlink(missing_ok=True)
+        # a socket's address holds ~107 bytes: a lab in a deep folder would not fit, so the socket lives in a
+        # private folder of the system's temporary one, and the run directory links to it
+        sock_dir = Path(tempfile.mkdtemp(prefix="vslab-rig-"))
+        sock_path = sock_dir / CONTROL_SOCKET
         server = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-        server.bind(str(sock_path))
+        try:
+            server.bind(str(sock_path))
+            link.symlink_to(sock_path)
+        except OSError:
+            server.close()
+            sock_path.unlink(missing_ok=True)
+            sock_dir.rmdir()
+            raise
         server.listen()
         server.setblocking(False)
         wake_r, wake_w = socket.socketpair()  # a signal writes here, so select returns at once
@@ -335,7 +347,9 @@ class PtyHost:
                 if not port.faults.unplugged:
                     port.unplug()
             (self.run_dir / PORTS_FILE).unlink(missing_ok=True)
+            link.unlink(missing_ok=True)
             sock_path.unlink(missing_ok=True)
+            sock_dir.rmdir()
             if self._watch is not None:
                 self._watch.close()
             server.close()
@@ -452,7 +466,7 @@ def send_control(run_dir: Path, command: dict, timeout_s: float = 5.0) -> dict:
     """Send one command to a running host and return its answer."""
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
         sock.settimeout(timeout_s)
-        sock.connect(str(Path(run_dir) / CONTROL_SOCKET))
+        sock.connect(str((Path(run_dir) / CONTROL_SOCKET).resolve()))  # the socket the run directory links to
         sock.sendall(json.dumps(command).encode() + b"\n")
         data = b""
         while not data.endswith(b"\n"):

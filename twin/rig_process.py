@@ -86,16 +86,16 @@ def rig_ports(run_dir: Path, proc: subprocess.Popen | None = None) -> dict[str, 
     while True:
         try:
             return wait_for_ports(run_dir, timeout_s=0.5)
-        except (ValueError, KeyError, OSError) as exc:  # a ports.json being replaced, or not the rig's
-            if time.monotonic() > deadline:
-                raise RigError(f"{run_dir / PORTS_FILE}: not a rig's ports file ({exc})") from None
-        except TimeoutError:
+        except TimeoutError:  # first: a TimeoutError is an OSError, and a rig that died must say so
             if proc is not None and proc.poll() is not None:
                 raise RigError(f"the rig stopped (exit status {proc.returncode}) before it published its "
                                "ports") from None  # fmt: skip
             if time.monotonic() > deadline:
                 running = "" if proc is not None else " (is the rig running? `vslab rig`)"
                 raise RigError(f"no rig published its ports in {run_dir}{running}") from None
+        except (ValueError, KeyError, OSError) as exc:  # a ports.json being replaced, or not the rig's
+            if time.monotonic() > deadline:
+                raise RigError(f"{run_dir / PORTS_FILE}: not a rig's ports file ({exc})") from None
 
 
 def rig_controls(run_dir: Path) -> tuple[Callable[[float], object], Callable[[float], object]]:
