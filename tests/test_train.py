@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -87,3 +88,41 @@ def test_trained_ensemble_has_a_spread(campaign_dataset):
     x = data[list(FORWARD_INPUTS)].to_numpy(float)[:50]
     std = model.predict_std(x)
     assert std.shape == (50, 3) and np.all(std > 0)
+
+
+def test_a_large_net_gets_the_same_weights_on_every_core_as_on_one(campaign_dataset):
+    """A grid trains each large net alone on every core (``pipeline.grid._rounds``) while its version does not
+    name a thread count: the weights must not depend on it (deterministic algorithms, the same seed)."""
+    from pipeline.grid import HEAVY_WEIGHTS, net_weights
+
+    _, _, data = campaign_dataset
+    net = NetConfig("forward", (256, 256, 256), True, 1, "large")
+    assert net_weights(net) >= HEAVY_WEIGHTS
+    config = TrainConfig(net, max_epochs=4, patience=4, seed=3)
+    one, every = (train(data, config, threads=t).model.state_dict() for t in (1, max(2, os.cpu_count() or 1)))
+    assert all(torch.equal(one[k], every[k]) for k in one)
+
+
+def test_a_grid_trains_the_small_nets_side_by_side_then_each_large_one_alone():
+    import concurrent.futures as cf
+
+    from pipeline.build import InlineExecutor
+    from pipeline.grid import _rounds
+
+    def job(name: str) -> dict:
+        return {"name": name, "config": TrainConfig(preset("forward", name)).to_dict()}
+
+    todo = [job("small-residual"), job("paper"), job("ensemble-small-residual"), job("residual")]
+    rounds = list(_rounds(todo, None, None, None))
+    cores = os.cpu_count() or 1
+    assert [[j["name"] for j in jobs] for jobs, _, _ in rounds] == [
+        ["small-residual", "ensemble-small-residual"], ["paper"], ["residual"]]  # fmt: skip
+    assert rounds[0][2] == 1 and all(t == cores and isinstance(e, InlineExecutor) for _, e, t in rounds[1:])
+    for _, executor, _ in rounds:
+        executor.shutdown()
+    given = InlineExecutor()  # an executor, a worker or a thread count given: every job at once, as asked
+    assert [(len(j), e, t) for j, e, t in _rounds(todo, given, None, 1)] == [(4, given, 1)]
+    ((jobs, pool, threads),) = _rounds(todo, None, 2, None)
+    assert len(jobs) == 4 and threads == max(1, cores // 2)
+    assert isinstance(pool, cf.ProcessPoolExecutor)
+    pool.shutdown()
