@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
+import json
 import os
 import runpy
 import subprocess
@@ -72,6 +73,8 @@ def main_job(tmp: Path, figures: dict, only: set[str]) -> None:
     cmd = [sys.executable, "-m", "vslab.cli", "--lab", str(lab), "demo"]
     figures["main"] = _timed(cmd, ROOT, tmp / "main.log")  # a second run needs a first
     _report("main", figures)
+    steps = json.loads((lab / "report" / "timings.json").read_text())  # where the main job's time went
+    print("  " + ", ".join(f"{step} {s:.1f} s" for step, s in steps.items()), flush=True)
     if "second" in only:
         figures["second"] = _timed(cmd, ROOT, tmp / "second.log")
         _report("second", figures)
