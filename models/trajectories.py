@@ -7,6 +7,7 @@ and joint velocities q̇ = J⁻¹(q) ẋ (N, 3), which the paper's Move(q, q̇) 
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -210,14 +211,31 @@ def velocity_law_reach(
 
 def distance_to_path(points: ArrayLike, path: ArrayLike, chunk: int = 4096) -> Array:
     """(n,) distance from each point (n, 3) to the polyline ``path`` (m, 3): the minimum over its segments
-    of the point-to-segment distance (seed 000's path error: measured point to the desired path)."""
+    of the point-to-segment distance (seed 000's path error: measured point to the desired path).
+
+    Only the segments that can be nearest are measured (a point is no nearer to the path than to its nearest
+    vertex, and a segment within that distance has its middle within it plus half the segment's length), the
+    same products for each (point, segment) as measuring every segment: the same distances, bit for bit, in
+    a fraction of the time (258k points of Experiment 1 against an 801-vertex path: 13.9 s measuring all)."""
+    from scipy.spatial import cKDTree
+
     p = np.atleast_2d(np.asarray(points, dtype=float))
-    a = np.asarray(path, dtype=float)[:-1]
-    seg = np.asarray(path, dtype=float)[1:] - a
+    vertices = np.asarray(path, dtype=float)
+    a, seg = vertices[:-1], vertices[1:] - vertices[:-1]
     length2 = np.maximum((seg**2).sum(axis=1), 1e-300)
+    middles = cKDTree(a + seg / 2)
+    half = float(np.sqrt(length2).max()) / 2
+    bound, _ = cKDTree(vertices).query(p)
     out = np.empty(len(p))
-    for start in range(0, len(p), chunk):  # bounded memory: chunk × segments at a time
-        rel = p[start : start + chunk, None, :] - a[None]
-        s = np.clip((rel * seg[None]).sum(axis=2) / length2, 0.0, 1.0)
-        out[start : start + chunk] = np.sqrt(((rel - s[..., None] * seg[None]) ** 2).sum(axis=2)).min(axis=1)
+    for start in range(0, len(p), chunk):  # bounded memory: a chunk's candidate pairs at a time
+        stop = min(start + chunk, len(p))
+        reach = (bound[start:stop] + half) * (1 + 1e-9) + 1e-12  # rounding: never leave the nearest out
+        near = middles.query_ball_point(p[start:stop], reach, return_sorted=False)
+        counts = np.fromiter(map(len, near), dtype=np.intp, count=len(near))
+        j = np.fromiter(itertools.chain.from_iterable(near), dtype=np.intp, count=int(counts.sum()))
+        i = np.repeat(np.arange(start, stop), counts)
+        rel = p[i] - a[j]
+        s = np.clip((rel * seg[j]).sum(axis=1) / length2[j], 0.0, 1.0)
+        d = np.sqrt(((rel - s[:, None] * seg[j]) ** 2).sum(axis=1))
+        out[start:stop] = np.minimum.reduceat(d, np.cumsum(counts) - counts)
     return out

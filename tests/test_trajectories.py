@@ -139,3 +139,30 @@ def test_distance_to_path_is_point_to_segment():
     )
     many = np.random.default_rng(0).uniform(-1, 2, size=(10_000, 3))
     np.testing.assert_allclose(distance_to_path(many, path, chunk=333), distance_to_path(many, path))
+
+
+def _every_segment(points: np.ndarray, path: np.ndarray) -> np.ndarray:
+    """The distance measured against every segment (what :func:`distance_to_path` prunes), as it was."""
+    a, seg = path[:-1], path[1:] - path[:-1]
+    length2 = np.maximum((seg**2).sum(axis=1), 1e-300)
+    rel = points[:, None, :] - a[None]
+    s = np.clip((rel * seg[None]).sum(axis=2) / length2, 0.0, 1.0)
+    return np.sqrt(((rel - s[..., None] * seg[None]) ** 2).sum(axis=2)).min(axis=1)
+
+
+@pytest.mark.parametrize("trajectory", ["linear", "curve", "square"])
+def test_distance_to_path_measures_only_the_segments_that_can_be_nearest_and_agrees_bit_for_bit(trajectory):
+    """Measured tips scattered about the desired path (near it, far from it, beyond its ends, on a vertex):
+    the pruned distances are the all-segments distances exactly."""
+    from analysis.vsl_paths import desired_path
+
+    path = desired_path(trajectory)
+    rng = np.random.default_rng(3)
+    on = path[rng.integers(0, len(path), 3000)]
+    points = np.concatenate([
+        on + rng.normal(scale=1e-3, size=on.shape),   # a good tracking error
+        on + rng.normal(scale=3e-2, size=on.shape),   # a bad one
+        rng.uniform(-0.5, 0.5, size=(500, 3)),        # anywhere
+        path[:50], path[-1:] + 0.1,                   # on the vertices, beyond the end
+    ])  # fmt: skip
+    np.testing.assert_array_equal(distance_to_path(points, path, chunk=700), _every_segment(points, path))
