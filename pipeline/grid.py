@@ -256,7 +256,7 @@ def _rounds(todo: list[dict], executor: cf.Executor | None, workers: int | None,
     thread count: every job at once, as asked. Otherwise the small nets first, side by side on one core each
     (a small net waits on torch's per-operation overhead, which threads do not share out), then each large
     net alone on every core (measured on 2 cores: the paper's net 1.9× faster on two threads than on one,
-    the same weights bit for bit; the grid's four lab nets 65 → ~35 s)."""
+    the same weights bit for bit; the quick main job's four nets 65 → 41 s)."""
     cores = os.cpu_count() or 1
     if executor is not None or workers or threads:
         workers = workers or max(1, min(len(todo), cores))
