@@ -38,7 +38,13 @@ def train(
         list[str] | None,
         typer.Option("--set", help="Override: a grid key (seeds=[0,1]) or a training field (max_epochs=5)."),
     ] = None,
-    workers: Annotated[int, typer.Option(help="Parallel training processes (0: one per core).")] = 0,
+    workers: Annotated[
+        int,
+        typer.Option(
+            help="Parallel training processes, each net on cores / N threads (0: the small nets one "
+            "per core, then each large net alone on every core)."
+        ),
+    ] = 0,
     cluster: Annotated[
         str | None,
         typer.Option(
@@ -57,7 +63,7 @@ def train(
     from pipeline.grid import expand, load_grid, run_grid
 
     if workers < 0:
-        _error(f"--workers must be ≥ 0 (0: one per core), got {workers}")
+        _error(f"--workers must be ≥ 0 (0: the small nets one per core, the large ones alone), got {workers}")
     overrides = _overrides(set_ or [])
     try:
         spec = load_grid(grid, overrides)
