@@ -262,12 +262,14 @@ def _rounds(todo: list[dict], executor: cf.Executor | None, workers: int | None,
         workers = workers or max(1, min(len(todo), cores))
         yield todo, executor or _pool(workers, len(todo)), threads or max(1, cores // workers)
         return
-    small = [j for j in todo if net_weights(TrainConfig.from_dict(j["config"]).net) < HEAVY_WEIGHTS]
+    small, large = [], []
+    for job in todo:
+        heavy = net_weights(TrainConfig.from_dict(job["config"]).net) >= HEAVY_WEIGHTS
+        (large if heavy else small).append(job)
     if small:
         yield small, _pool(min(len(small), cores), len(small)), 1
-    for job in todo:
-        if job not in small:
-            yield [job], InlineExecutor(), cores
+    for job in large:
+        yield [job], InlineExecutor(), cores
 
 
 def _pool(workers: int, jobs: int) -> cf.Executor:
