@@ -34,31 +34,49 @@ def interpolate(t_src: np.ndarray, values: np.ndarray, t_query: np.ndarray, max_
     NaN outside [t_src[0], t_src[-1]] and between samples more than ``max_gap_s`` apart."""
     t_src, t_query = np.asarray(t_src, dtype=float), np.asarray(t_query, dtype=float)
     values = np.asarray(values, dtype=float).reshape(len(t_src), -1)
-    out = np.full((t_query.size, values.shape[1]), np.nan)
+    return _interpolated(values, t_query.size, _brackets(t_src, t_query, max_gap_s))
+
+
+def _brackets(t_src: np.ndarray, t_query: np.ndarray, max_gap_s: float):
+    """Where each query falls among the samples (left, right, weight, usable): shared by every column
+    sampled at ``t_src`` (None: fewer than 2 samples)."""
     if t_src.size < 2:
-        return out
+        return None
     right = np.clip(np.searchsorted(t_src, t_query, side="right"), 1, t_src.size - 1)
     left = right - 1
     span = t_src[right] - t_src[left]
     weight = np.divide(t_query - t_src[left], span, out=np.zeros_like(span), where=span > 0)
     ok = (t_query >= t_src[0]) & (t_query <= t_src[-1]) & ((span <= max_gap_s) | (t_query == t_src[left]))
-    out[ok] = values[left[ok]] * (1.0 - weight[ok, None]) + values[right[ok]] * weight[ok, None]
+    return left[ok], right[ok], weight[ok, None], ok
+
+
+def _interpolated(values: np.ndarray, m: int, brackets) -> np.ndarray:
+    out = np.full((m, values.shape[1]), np.nan)
+    if brackets is not None:
+        left, right, weight, ok = brackets
+        out[ok] = values[left] * (1.0 - weight) + values[right] * weight
     return out
 
 
 def resample(t_query: np.ndarray, series: Mapping[str, tuple[np.ndarray, np.ndarray]],
              gap_periods: float = 3.0) -> pd.DataFrame:  # fmt: skip
     """Columns ``series[name] = (t, values (n,) or (n, k))`` interpolated at ``t_query``: one column
-    ``name`` (k = 1) or ``name_<i>``. A gap is longer than ``gap_periods`` median sample periods."""
-    out: dict[str, np.ndarray] = {"t": np.asarray(t_query, dtype=float)}
+    ``name`` (k = 1) or ``name_<i>``. A gap is longer than ``gap_periods`` median sample periods. Series
+    given the same ``t`` array (one stream's fields) share its ordering and interpolation weights."""
+    t_query = np.asarray(t_query, dtype=float)
+    out: dict[str, np.ndarray] = {"t": t_query}
+    shared: dict[int, tuple] = {}  # id(t) → (order, brackets), for the series sampled at that t
     for name, (t, values) in series.items():
-        t, values = np.asarray(t, dtype=float), np.asarray(values, dtype=float)
+        if id(t) not in shared:
+            times = np.asarray(t, dtype=float)
+            order = np.argsort(times, kind="stable")
+            times = times[order]
+            period = float(np.median(np.diff(times))) if times.size > 1 else 0.0
+            shared[id(t)] = order, _brackets(times, t_query, gap_periods * period)
+        order, brackets = shared[id(t)]
+        values = np.asarray(values, dtype=float)
         scalar = values.ndim == 1
-        values = values.reshape(len(t), -1)
-        order = np.argsort(t, kind="stable")
-        t, values = t[order], values[order]
-        period = float(np.median(np.diff(t))) if t.size > 1 else 0.0
-        got = interpolate(t, values, t_query, gap_periods * period)
+        got = _interpolated(values.reshape(len(order), -1)[order], t_query.size, brackets)
         if scalar:
             out[name] = got[:, 0]
         else:
@@ -111,9 +129,10 @@ def timeline(session: SessionTables, gap_periods: float = 3.0) -> pd.DataFrame:
         df = session.streams.get(topic)
         if df is None or "t" not in df.columns or not len(df):
             continue
+        t = df["t"].to_numpy()  # one array for the stream's fields: resample orders and brackets it once
         for name in fields:
             try:
-                series[prefix + name] = (df["t"].to_numpy(), columns(df, name))
+                series[prefix + name] = (t, columns(df, name))
             except KeyError:
                 continue
     frame_t = tracker["t"].to_numpy(dtype=float)

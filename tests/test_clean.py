@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
+from numpy.lib.stride_tricks import sliding_window_view
 
 from acquisition.schemas import topics as T
 from models.robot import load_robot
@@ -17,6 +18,7 @@ from pipeline.clean import (
     clean_stream,
     hampel_outliers,
     unwrap_ticks,
+    window_medians,
 )
 from pipeline.tables import EVENT_COLUMNS, SessionTables, StageReport
 
@@ -138,6 +140,46 @@ def test_hampel_flags_spikes_not_noise():
     quantised = np.repeat([0.0, 1.0, 0.0, 2.0], 50)
     assert not hampel_outliers(quantised).any()
     assert not hampel_outliers(np.ones(5)).any()  # shorter than a window
+
+
+@pytest.mark.parametrize("window", [3, 4, 5, 6, 7, 8, 9, 15, 16, 21])
+def test_window_medians_are_numpys_medians(window):
+    """The sorting network gives np.median's values bit for bit: noise, ties, steps, signed zeros."""
+    rng = np.random.default_rng(window)
+    for x in (rng.normal(size=3000), np.round(rng.normal(size=3000), 1), rng.integers(-1, 2, 3000) * 0.0,
+              np.repeat(rng.normal(size=300), 10)):  # fmt: skip
+        windows = sliding_window_view(x, window)
+        want = np.median(windows, axis=1)
+        got = window_medians(list(windows.T))
+        assert got.dtype == np.float64 and got.shape == want.shape
+        np.testing.assert_array_equal(got, want)
+
+
+def _hampel_by_numpy(x: np.ndarray, window: int, sigmas: float) -> np.ndarray:
+    """The Hampel filter written with np.median over every window (the definition the fast one must match)."""
+    n = len(x)
+    windows = sliding_window_view(x, window)
+    median = np.median(windows, axis=1)
+    mad = np.median(np.abs(windows - median[:, None]), axis=1)
+    at = np.clip(np.arange(n) - window // 2, 0, n - window)
+    residual = np.abs(x - median[at])
+    steps = np.abs(np.diff(x))
+    steps = steps[steps > 0]
+    finite = residual[np.isfinite(residual)]
+    noise = 1.4826 * float(np.median(finite)) if finite.size else 0.0
+    scale = np.maximum(1.4826 * mad[at], max(noise, float(steps.min()) if steps.size else 0.0))
+    with np.errstate(invalid="ignore"):
+        return residual > sigmas * scale
+
+
+@pytest.mark.parametrize("window", [5, 7, 8, 31])
+def test_hampel_equals_its_definition_with_nans(window):
+    rng = np.random.default_rng(1)
+    x = rng.normal(0, 1e-3, 5000)
+    x[rng.choice(5000, 30, replace=False)] += 0.02
+    x[rng.choice(5000, 12, replace=False)] = np.nan  # a NaN makes its windows' medians NaN
+    x[100], x[102] = np.nan, 0.05  # a spike beside a NaN: its window has no median, so no verdict
+    np.testing.assert_array_equal(hampel_outliers(x, window, 4.0), _hampel_by_numpy(x, window, 4.0))
 
 
 @pytest.mark.parametrize("wrap_at", [3, 390])
