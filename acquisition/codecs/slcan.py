@@ -6,7 +6,8 @@ close, ``V``/``N`` version and serial number, ``F`` status flags) and frames: ``
 ``TIIIIIIIILDD…`` (extended), ``rIIIL`` / ``RIIIIIIIIL`` (remote requests): uppercase hex, the DLC one
 decimal digit. The adapter answers CR for OK and BEL for an error; a transmitted frame is acknowledged
 ``z`` (standard) or ``Z`` (extended). Received frames come as the same frame lines. This module only
-encodes and parses; the adapter's emulator and the twin's bus use it, the driver uses python-can's own.
+encodes and parses; the adapter's emulator and the twin's bus use it, the driver uses python-can's own
+(read in bulk: ``acquisition.devices.slcan_bus``).
 """
 
 from __future__ import annotations

@@ -29,6 +29,7 @@ import numpy as np
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from acquisition.devices.base import Device, host_now_ns
+from acquisition.devices.slcan_bus import SlcanBus
 from acquisition.errors import (
     DeviceDisconnectedError,
     DeviceNotFoundError,
@@ -141,8 +142,13 @@ class CanDrives(Device):
     def _open(self) -> None:
         self.network = canopen.Network()
         try:
-            self.network.connect(interface=self.interface, channel=self.port, bitrate=self.bitrate,
-                                 sleep_after_open=self.sleep_after_open_s)  # fmt: skip
+            if self.interface == "slcan":  # python-can's, reading the adapter in bulk (see slcan_bus)
+                self.network.bus = SlcanBus(channel=self.port, bitrate=self.bitrate,
+                                            sleep_after_open=self.sleep_after_open_s)  # fmt: skip
+                self.network.connect()
+            else:
+                self.network.connect(interface=self.interface, channel=self.port, bitrate=self.bitrate,
+                                     sleep_after_open=self.sleep_after_open_s)  # fmt: skip
         except (can.CanError, ValueError) as exc:
             raise DeviceNotFoundError(
                 f"{self.kind} on {self.port}: cannot open the CAN adapter ({exc})"
