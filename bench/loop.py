@@ -3,8 +3,10 @@
     python bench/loop.py [--only main,second,campaign,ingest,build,check,test] [--points N] [--benches B]
                          [--profile]
 
-- main: `vslab demo` (the main job, what `make demo` runs) on a new lab, wall seconds; second: the same
-  command again on that lab (goal: nothing recomputed that has not changed).
+- main: `vslab demo` (the main job, what `make demo` runs) on a new lab, wall seconds, its steps, and its
+  physical floor: the arithmetic of the networks it trained (from their cards) at this machine's measured
+  float32 matmul rate; second: the same command again on that lab (goal: nothing recomputed that has not
+  changed).
 - campaign: the paper-size campaign (17,568 points on 128 benches) simulated into MCAP sessions.
 - ingest: ``pipeline.ingest.ingest_session`` over those sessions (messages per second, page cache warm).
 - build: the cold build of that campaign into its dataset (every stage, both cores).
@@ -75,9 +77,46 @@ def main_job(tmp: Path, figures: dict, only: set[str]) -> None:
     _report("main", figures)
     steps = json.loads((lab / "report" / "timings.json").read_text())  # where the main job's time went
     print("  " + ", ".join(f"{step} {s:.1f} s" for step, s in steps.items()), flush=True)
+    flops, nets = training_flops(lab)
+    rate = matmul_rate()
+    floor = flops / rate
+    print(f"  its {nets} networks' training arithmetic: {flops / 1e12:.1f} Tflop ≥ {floor:.0f} s at this "
+          f"machine's {rate / 1e9:.0f} Gflop/s (float32 matmul on every core, measured); the goal leaves "
+          f"{GOALS['main'][0] - floor:.0f} s for everything else", flush=True)  # fmt: skip
     if "second" in only:
         figures["second"] = _timed(cmd, ROOT, tmp / "second.log")
         _report("second", figures)
+
+
+def training_flops(lab: Path) -> tuple[float, int]:
+    """(floating-point operations, networks) of the training of every network saved in ``lab`` (its studies'
+    included), from their cards: per epoch run, 6 per weight per training row (forward 2, backward 4) and 2
+    per weight per validation row. A lower bound: activations, the optimiser and Python are left out."""
+    from pipeline.grid import net_weights
+    from pipeline.train import TrainConfig
+
+    total, nets = 0.0, 0
+    for path in lab.glob("**/models/*/*/card.json"):
+        card = json.loads(path.read_text())
+        if "train_config" not in card:
+            continue
+        weights = net_weights(TrainConfig.from_dict(card["train_config"]).net)
+        total += len(card["curves"]) * (6 * card["n_train"] + 2 * card["n_val"]) * weights
+        nets += 1
+    return total, nets
+
+
+def matmul_rate(seconds: float = 1.0) -> float:
+    """This machine's float32 matrix-multiply rate on every core (flop/s): 1024² products for ``seconds``."""
+    import torch
+
+    a, b = torch.randn(1024, 1024), torch.randn(1024, 1024)
+    torch.mm(a, b)
+    done, start = 0, time.perf_counter()
+    while time.perf_counter() - start < seconds:
+        torch.mm(a, b)
+        done += 1
+    return done * 2 * 1024**3 / (time.perf_counter() - start)
 
 
 def profiled(what: str, step) -> None:
