@@ -145,7 +145,8 @@ def window_medians(columns: list[np.ndarray]) -> np.ndarray:
     """Row-wise median of the equal-length ``columns`` (one array per place in a window), equal to
     ``np.median(np.stack(columns, axis=1), axis=1)`` bit for bit where no row holds a NaN. Short windows are
     sorted by a network of element-wise min/max over whole columns (odd-even transposition: ``w`` passes),
-    ~10× faster than ``np.median``'s per-row partition for the Hampel filter's 7-sample windows."""
+    ~4× faster than ``np.median``'s per-row partition for the Hampel filter's 7-sample windows (7.4 → 1.9 ms
+    on 66,000 samples)."""
     w = len(columns)
     if w > SORTED_WINDOW_MAX:
         return np.median(np.stack(columns, axis=1), axis=1)
