@@ -2,8 +2,10 @@
 
 A job's model version is known before it trains (:func:`pipeline.model_store.model_version`), so a job whose
 version exists is skipped: running the same grid twice trains nothing the second time. Jobs run on any
-``concurrent.futures.Executor`` (local processes by default, each with cores / workers torch threads; a
-distributed engine's executor with shared lab storage) through the top-level function :func:`train_job`.
+``concurrent.futures.Executor`` through the top-level function :func:`train_job`: by default the small nets
+in local processes of one torch thread each, then each large net in this process on every core
+(:func:`_rounds`); given workers, threads or an executor (a distributed engine's, with shared lab storage),
+every job at once as asked.
 """
 
 from __future__ import annotations
