@@ -38,7 +38,7 @@ def _line(can_id: int, data: bytes) -> bytes:
 def test_frames_sent_at_once_come_out_one_by_one_in_order(adapter):
     bus, master = adapter
     sent = [(0x180 + k, bytes([k] * (k % 9))) for k in range(40)]
-    os.write(master, b"".join(_line(i, d) for i, d in sent) + b"T1234567831122\r")
+    os.write(master, b"".join(_line(i, d) for i, d in sent) + b"T1234567821122\r")
     got = [bus.recv(timeout=1.0) for _ in range(41)]
     assert [(m.arbitration_id, bytes(m.data)) for m in got[:40]] == sent
     assert (
@@ -63,6 +63,18 @@ def test_an_error_reply_is_a_line_and_the_next_frame_follows(adapter):
     os.write(master, b"\a" + _line(0x181, b"\x01\x02"))
     assert bus._read(1.0) == "\a"
     assert bus.recv(timeout=1.0).arbitration_id == 0x181
+
+
+def test_a_garbled_line_is_dropped_with_a_warning_and_reading_goes_on(adapter, caplog):
+    """A byte flipped on the serial link (slcan has no checksum): that line never becomes a frame, and the
+    frames around it arrive (python-can's own reader raised, or kept failing on a non-ASCII byte)."""
+    bus, master = adapter
+    good = _line(0x181, b"\xaa\xbb")
+    for garbled in (good[:2] + b"\xc8" + good[3:], good[:6] + b"G" + good[7:], b"t18125\r"):
+        os.write(master, _line(0x180, b"\x01") + garbled + good)
+        assert [bus.recv(timeout=1.0).arbitration_id for _ in range(2)] == [0x180, 0x181]
+    assert bus.recv(timeout=0.05) is None
+    assert sum("garbled" in r.message for r in caplog.records) == 3
 
 
 def test_reading_the_bus_in_bulk_costs_little_cpu(adapter):

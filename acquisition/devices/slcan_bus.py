@@ -10,12 +10,14 @@ pinned python-can reads in bulk.
 
 :class:`SlcanBus` is ``slcanBus`` with ``_read`` replaced: wait in one ``select`` until bytes arrive (or the
 caller's timeout passes), take every byte waiting, and hand out one line (a frame or a command's reply, up to
-its CR, or BEL for an error) at a time, the rest kept for the next call. Everything else (opening, bitrate,
-writing, parsing a line into a ``can.Message``) is python-can's own.
+its CR, or BEL for an error) at a time, the rest kept for the next call; a frame line that does not parse
+(slcan has no checksum: a byte garbled on the link) is dropped with a warning. Everything else (opening,
+bitrate, writing, parsing a line into a ``can.Message``) is python-can's own.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import select
 import time
@@ -23,7 +25,13 @@ import time
 from can.exceptions import CanOperationError
 from can.interfaces.slcan import slcanBus
 
+from acquisition.codecs.slcan import FRAME_STARTS, parse_frame
+from acquisition.errors import CodecError
+
+log = logging.getLogger(__name__)
+
 _TERMINATORS = (slcanBus._OK[0], slcanBus._ERROR[0])  # CR ends a line, BEL is the adapter's error reply
+_FRAME_STARTS = {bytes([c]) for c in FRAME_STARTS}
 
 
 class SlcanBus(slcanBus):
@@ -64,12 +72,22 @@ class SlcanBus(slcanBus):
             return None  # the timeout passed with no line complete (what came of one is kept)
 
     def _line(self) -> str | None:
-        """The first complete line of the buffer, taken out of it; None while none is complete."""
+        """The first complete line of the buffer, taken out of it; None while none is complete. A frame line
+        that does not parse (a byte garbled on the serial link: slcan carries no checksum) is dropped with a
+        warning, never handed on: python-can would raise on it in its reading thread and stop canopen's
+        reception, or, undecodable, keep it in its buffer and fail every read after."""
         buffer = self._buffer
-        ends = [i for i in (buffer.find(t) for t in _TERMINATORS) if i >= 0]
-        if not ends:
-            return None
-        end = min(ends) + 1
-        line = bytes(buffer[:end]).decode()
-        del buffer[:end]
-        return line
+        while True:
+            ends = [i for i in (buffer.find(t) for t in _TERMINATORS) if i >= 0]
+            if not ends:
+                return None
+            end = min(ends) + 1
+            raw = bytes(buffer[:end])
+            del buffer[:end]
+            if raw[:1] in _FRAME_STARTS:
+                try:
+                    parse_frame(raw[:-1])
+                except CodecError as exc:
+                    log.warning("%s: dropped a garbled line from the adapter (%s)", self.channel_info, exc)
+                    continue
+            return raw.decode("ascii", errors="replace")
