@@ -65,29 +65,44 @@ STOLEN_MS: dict[str, float] = {}  # per session: CPU time the hypervisor took wh
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     """``recorded(name)``: the session of :data:`SESSIONS` run with ``vslab run … --rig`` into the module's
-    lab (each recorded once, when a test first needs it); ``recorded.lab`` is the lab."""
+    lab (each recorded once, when a test first needs it); ``recorded.together(*names)`` records those not yet
+    recorded side by side, each on a rig of its own; ``recorded.lab`` is the lab."""
     lab = tmp_path_factory.mktemp("popup-rt") / "lab"
     done: dict[str, object] = {}
 
-    def session(name: str):
-        if name not in done:
-            experiment, plan, settings = SESSIONS[name]
-            done[name] = _run(lab, experiment, plan, settings, name)
-        return done[name]
+    def together(*names: str) -> list:
+        running = {name: _start(lab, name) for name in names if name not in done}
+        try:
+            for name, started in running.items():
+                done[name] = _finish(lab, name, *started)
+        finally:  # one failed: the others do not outlive the test
+            for run, _ in running.values():
+                if run.poll() is None:
+                    run.kill()
+                    run.wait()
+        return [done[name] for name in names]
 
-    session.lab = lab
+    def session(name: str):
+        return together(name)[0]
+
+    session.together, session.lab = together, lab
     return session
 
 
-def _run(lab, experiment: str, plan: int, settings: list[str], session: str):
+def _start(lab, session: str) -> tuple[subprocess.Popen, float]:
+    experiment, plan, settings = SESSIONS[session]
     cli = [sys.executable, "-m", "vslab.cli", "--lab", str(lab), "--quiet"]
     tests = ("popup_static", "popup_impact")
     pressures = [f"pressures_kpa=[{', '.join(map(str, PRESSURES_KPA))}]"] if experiment in tests else []
     sets = [arg for s in (*pressures, *settings) for arg in ("--set", s)]
     command = [*cli, "run", experiment, "--plan", str(plan), *sets, "--rig", "--session", session]
     stolen_s = cpu_stolen_s()
-    done = subprocess.run(command, capture_output=True, text=True, timeout=300)
-    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), stolen_s
+
+
+def _finish(lab, session: str, run: subprocess.Popen, stolen_s: float):
+    out, err = run.communicate(timeout=300)
+    assert run.returncode == 0, out[-2000:] + err[-2000:]
     assert session_info(lab / "sessions" / session).status == "complete"
     STOLEN_MS[session] = (cpu_stolen_s() - stolen_s) * 1e3  # said with a failure of the datasets test
     return lab / "sessions" / session
@@ -95,7 +110,10 @@ def _run(lab, experiment: str, plan: int, settings: list[str], session: str):
 
 @pytest.mark.slow
 def test_table1_from_real_time_link_tests(recorded):
-    impact = [recorded(f"impact-{kpa}") for kpa in PRESSURES_KPA]
+    # the taps on two rigs at once (each impact found in its accelerometer, however late its event); the
+    # static tests one at a time: side by side with a busy process on each core, two rigs starved of CPU
+    # read k̂ 6 % low (one at a time they hold under that load)
+    impact = recorded.together(*(f"impact-{kpa}" for kpa in PRESSURES_KPA))
     static = [recorded(f"static-{kpa}") for kpa in PRESSURES_KPA]
     table = pt.table1(pt.static_stiffness(pt.link_static_curves(static)), pt.impact_parameters(impact))
     assert table["pressure_kpa"].tolist() == list(PRESSURES_KPA)
