@@ -15,17 +15,26 @@ $(BIN)/.installed: pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	touch $@
 
+# The project's own modules byte-compiled (only those changed since): pip compiles what it installs, but an
+# editable install leaves the project's sources to the interpreter, and where PYTHONDONTWRITEBYTECODE is set
+# (as on this project's machines) every process compiled every module it imported again: ~0.15 s of each
+# command, daemon and rig the suite starts (`vslab --help` 0.6 → 0.44 s). A stale file is still recompiled.
+COMPILE = $(BIN)/python -m compileall -q -j 0 acquisition analysis models pipeline twin vslab > /dev/null
+
 demo: $(BIN)/.installed
+	$(COMPILE)
 	$(BIN)/vslab --lab $(LAB) demo
 
 test: $(BIN)/.installed
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(COMPILE)
 	$(BIN)/python -m pytest
 
 check: $(BIN)/.installed
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
+	$(COMPILE)
 	$(BIN)/python -m pytest -m "not slow"
 
 # the whole suite with every core busy (a CPU-bound process per core): real-time tests must hold there too
