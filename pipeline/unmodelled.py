@@ -52,15 +52,22 @@ def unmodelled_study(lab: Lab, seed: int, points: int, train: dict, paths: dict,
         save_compared,
         save_comparison,
     )
+    from twin.runner import simulate_side_by_side
 
     robot = UNMODELLED_ROBOT
     study = lab.study(STUDY_LAB)
     versions = {"training": json.dumps(train, sort_keys=True), "paths": json.dumps(paths, sort_keys=True)}
+    orders = ("drawn", "shuffled")  # not reversed: creep would make a point's two visits anti-correlated
+    campaigns = {order: {"points": points, "robot": robot, "visit_order": order} for order in orders}
+    simulate_side_by_side(  # both campaigns and the paths of Experiment 1 (path_rows), two at a time
+        [("campaign", study.study(order).sessions, campaigns[order]) for order in orders]
+        + [("experiment1", study.study("experiment1").sessions, _paths_overrides(paths))],
+        seed=seed,
+    )
     data = {}
-    for order in ("drawn", "shuffled"):  # not reversed: creep would make a point's two visits anti-correlated
+    for order in orders:
         part = study.study(order)
-        overrides = {"points": points, "robot": robot, "visit_order": order}
-        report = simulated_dataset(part, "campaign", seed=seed, overrides=overrides)
+        report = simulated_dataset(part, "campaign", seed=seed, overrides=campaigns[order])
         versions[f"campaign ({order})"] = report.version
         data[order] = part.datasets.load("campaign", report.version)[0]
     path = lab.comparisons.path(UNMODELLED)
@@ -114,12 +121,17 @@ def path_rows(study: Lab, seed: int, campaign_version: str, paths: dict) -> pd.D
     followed = {"experiment1/" + p.name.removeprefix("experiment2/").rsplit("/", 1)[0] for p in plans}
     sessions = study.study("experiment1").sessions
     drawn = study.study("drawn")
-    overrides = paths | {"robot": UNMODELLED_ROBOT, "rigid_arm": False}
+    overrides = _paths_overrides(paths)
     report = simulated_dataset(drawn, "experiment1", seed=seed, overrides=overrides, sessions=sessions,
                                registration_from=f"campaign@{campaign_version}")  # fmt: skip
     rows = drawn.datasets.load("experiment1", report.version)[0]
     rows = rows[~rows["plan"].isin(followed)]  # not the cells Experiment 2 is scored on
     return set_point_ends(with_history(rows, PATHS))
+
+
+def _paths_overrides(paths: dict) -> dict:
+    """Experiment 1's overrides for the paths the history-aware model learns from (``paths``: the study's)."""
+    return paths | {"robot": UNMODELLED_ROBOT, "rigid_arm": False}
 
 
 def experiment2_rows(study: Lab, name: str, seed: int, campaign_version: str, commands: list[str],

@@ -35,7 +35,7 @@ def test_quick_main_job_makes_every_figure_and_the_report(tmp_path):
     assert "POPUP Table 1" in page and "Real-time sessions" in page
     timings = json.loads((report.parent / "timings.json").read_text())
     assert set(timings) == {
-        "real-time session on the rig", "POPUP tests", "campaign", "Experiment 1", "training",
+        "real-time session on the rig", lab_job.SIMULATIONS, "campaign", "Experiment 1", "training",
         "Experiment 2 with the trained inverse model", "figures and report",
         "unmodelled effects: every model beside the floor",
     }  # fmt: skip

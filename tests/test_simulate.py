@@ -17,7 +17,7 @@ from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
 from models import trajectories
 from models.robot import load_robot
-from twin.runner import SIM_EPOCH_NS, session_id, simulate, simulate_experiment
+from twin.runner import SIM_EPOCH_NS, session_id, simulate, simulate_experiment, simulate_side_by_side
 from twin.streams import tracker_spec
 from twin.world import World
 
@@ -444,3 +444,69 @@ def test_an_interrupted_batch_leaves_no_session_complete(vsl, tmp_path):
     again = simulate(plans, vsl, tmp_path, seed=2)
     assert again.sessions == [session_id(p) for p in plans] and again.skipped == []
     assert all(read_card(tmp_path / session_id(p))["status"] == "complete" for p in plans)
+
+
+def test_experiments_side_by_side_write_what_one_after_another_writes(tmp_path):
+    """Two experiments simulated at once in two worker processes (each kernel on one thread) write every
+    session byte for byte as one experiment after the other in this process (two kernel threads) does."""
+    runs = [("campaign", {"points": 24}), ("popup_impact", {"pressures_kpa": [10, 50], "taps": 1})]
+    for name, overrides in runs:
+        simulate_experiment(name, SessionStore(tmp_path / "a"), seed=3, overrides=overrides)
+    store = SessionStore(tmp_path / "b")
+    reports = simulate_side_by_side([(name, store, overrides) for name, overrides in runs], seed=3)
+    written = sorted(s for r in reports for batch in r for s in batch.sessions)
+    names = sorted(p.name for p in (tmp_path / "a").iterdir())
+    assert written == names and len(names) >= 3
+    for name in names:  # every file, the MCAP parts and session.json
+        a, b = (sorted((tmp_path / store_name / name).iterdir()) for store_name in "ab")
+        assert [f.name for f in a] == [f.name for f in b] and len(a) >= 2
+        assert [f.read_bytes() for f in a] == [f.read_bytes() for f in b], name
+
+
+def test_an_unknown_experiment_side_by_side_is_refused_before_any_is_simulated(tmp_path):
+    runs = [
+        ("popup_deploy", SessionStore(tmp_path / "a"), None),
+        ("no_such_experiment", SessionStore(tmp_path / "b"), None),
+    ]
+    with pytest.raises(FileNotFoundError, match="no experiment 'no_such_experiment'"):
+        simulate_side_by_side(runs)
+    assert not list(tmp_path.glob("*/*/session.json"))
+
+
+def test_experiments_side_by_side_already_simulated_start_no_worker(tmp_path, monkeypatch):
+    """A second run (every session complete) checks them here, as simulate_experiment does, and starts no
+    process; the sessions stay as they were."""
+    import concurrent.futures as cf
+
+    store = SessionStore(tmp_path / "s")
+    runs = [("popup_deploy", store, None), ("popup_impact", store, {"pressures_kpa": [10], "taps": 1})]
+    first = simulate_side_by_side(runs)
+    cards = {p: p.read_bytes() for p in (tmp_path / "s").glob("*/session.json")}
+
+    def no_pool(*args, **kwargs):
+        raise AssertionError("a worker was started for sessions already complete")
+
+    monkeypatch.setattr(cf, "ProcessPoolExecutor", no_pool)
+    again = simulate_side_by_side(runs)
+    assert [s for r in first for b in r for s in b.sessions] == [
+        s for r in again for b in r for s in b.skipped
+    ]
+    assert {p: p.read_bytes() for p in (tmp_path / "s").glob("*/session.json")} == cards and len(cards) == 2
+
+
+def test_plans_whose_sessions_are_complete_are_not_checked_against_the_limits_again(tmp_path, monkeypatch):
+    """A second run's check is the sessions' identity, not the limits again (~7 s of a second main job)."""
+    from acquisition.safety import SafetyChecker
+    from twin.runner import prepare_experiment
+
+    overrides = {"pressures_kpa": [10, 50], "taps": 1}
+    simulate_experiment("popup_impact", SessionStore(tmp_path / "s"), overrides=overrides)
+    checked = []
+    monkeypatch.setattr(SafetyChecker, "require_safe", lambda self, plan: checked.append(plan.name))
+    _, plans, _ = prepare_experiment("popup_impact", overrides, sessions_dir=tmp_path / "s")
+    assert len(plans) == 2 and checked == []
+    (tmp_path / "s" / session_id(plans[1]) / "session.json").unlink()  # as an interrupted one: run again
+    prepare_experiment("popup_impact", overrides, sessions_dir=tmp_path / "s")
+    assert checked == [plans[1].name]
+    prepare_experiment("popup_impact", overrides)  # no sessions named: every plan, as `vslab simulate` does
+    assert checked == [plans[1].name, *(p.name for p in plans)]

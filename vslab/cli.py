@@ -125,7 +125,10 @@ def rig(
 @app.command()
 def demo(
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
-    quick: Annotated[bool, typer.Option("--quick", help="A smaller campaign and fewer repetitions.")] = False,
+    quick: Annotated[
+        bool,
+        typer.Option("--quick", help="A smaller campaign, fewer repetitions, 30 epochs at most a network."),
+    ] = False,
 ) -> None:
     """The main job: the whole lab on the twin, end to end (rig session, simulated campaign and experiments,
     datasets, training, Experiment 2 with the trained inverse model, figures, report)."""
