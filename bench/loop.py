@@ -61,13 +61,38 @@ def _load() -> str:
 
 
 def _timed(cmd: list[str], cwd: Path, log: Path) -> float:
-    """Wall seconds of ``cmd``, its output in ``log``; raises if it fails."""
+    """Wall seconds of ``cmd``, its output in ``log``; raises if it fails. Also prints the CPU seconds the
+    machine's cores were busy meanwhile, and what that alone costs on them run side by side (the figure's
+    floor, however the work were scheduled). Counted from /proc/stat, so every process is in it (workers of
+    a forkserver are not the command's children to be accounted), and so is whatever else ran: the load
+    average beside each figure says how much that was."""
+    busy_before = _busy_cpu_s()
     start = time.perf_counter()
     with open(log, "w") as out:
         code = subprocess.call(cmd, cwd=cwd, stdout=out, stderr=subprocess.STDOUT)
     if code:
         raise SystemExit(f"{' '.join(cmd)} failed with {code}: see {log}")
-    return time.perf_counter() - start
+    wall = time.perf_counter() - start
+    if (busy := _busy_cpu_s()) is not None and busy_before is not None:
+        cpu, cores, name = busy - busy_before, os.cpu_count() or 1, " ".join(Path(c).name for c in cmd)
+        print(
+            f"  `{name}`: the cores busy {cpu:.0f} CPU-seconds meanwhile (user + system, every process) "
+            f"≥ {cpu / cores:.0f} s on {cores} cores; {cpu / wall:.2f} cores busy on average",
+            flush=True,
+        )
+    return wall
+
+
+def _busy_cpu_s() -> float | None:
+    """Seconds every core of this machine has spent busy since boot (/proc/stat: all but idle, iowait and the
+    time the hypervisor took); None where there is no /proc/stat."""
+    try:
+        with open("/proc/stat") as f:
+            ticks = [int(v) for v in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    user, nice, system, _idle, _iowait, irq, softirq = ticks[:7]
+    return (user + nice + system + irq + softirq) / os.sysconf("SC_CLK_TCK")
 
 
 def main_job(tmp: Path, figures: dict, only: set[str]) -> None:
