@@ -52,7 +52,7 @@ def unmodelled_study(lab: Lab, seed: int, points: int, train: dict, paths: dict,
         save_compared,
         save_comparison,
     )
-    from twin.runner import simulate_side_by_side
+    from twin.runner import Simulation, simulate_side_by_side
 
     robot = UNMODELLED_ROBOT
     study = lab.study(STUDY_LAB)
@@ -60,8 +60,8 @@ def unmodelled_study(lab: Lab, seed: int, points: int, train: dict, paths: dict,
     orders = ("drawn", "shuffled")  # not reversed: creep would make a point's two visits anti-correlated
     campaigns = {order: {"points": points, "robot": robot, "visit_order": order} for order in orders}
     simulate_side_by_side(  # both campaigns and the paths of Experiment 1 (path_rows), two at a time
-        [("campaign", study.study(order).sessions, campaigns[order]) for order in orders]
-        + [("experiment1", study.study("experiment1").sessions, _paths_overrides(paths))],
+        [Simulation("campaign", study.study(order).sessions, campaigns[order]) for order in orders]
+        + [Simulation("experiment1", study.study("experiment1").sessions, _paths_overrides(paths))],
         seed=seed,
     )
     data = {}

@@ -17,7 +17,14 @@ from acquisition.schemas.events import Event, EventKind
 from acquisition.schemas.fast_read import read_events, read_fixed_topics
 from models import trajectories
 from models.robot import load_robot
-from twin.runner import SIM_EPOCH_NS, session_id, simulate, simulate_experiment, simulate_side_by_side
+from twin.runner import (
+    SIM_EPOCH_NS,
+    Simulation,
+    session_id,
+    simulate,
+    simulate_experiment,
+    simulate_side_by_side,
+)
 from twin.streams import tracker_spec
 from twin.world import World
 
@@ -453,7 +460,7 @@ def test_experiments_side_by_side_write_what_one_after_another_writes(tmp_path):
     for name, overrides in runs:
         simulate_experiment(name, SessionStore(tmp_path / "a"), seed=3, overrides=overrides)
     store = SessionStore(tmp_path / "b")
-    reports = simulate_side_by_side([(name, store, overrides) for name, overrides in runs], seed=3)
+    reports = simulate_side_by_side([Simulation(name, store, overrides) for name, overrides in runs], seed=3)
     written = sorted(s for r in reports for batch in r for s in batch.sessions)
     names = sorted(p.name for p in (tmp_path / "a").iterdir())
     assert written == names and len(names) >= 3
@@ -465,8 +472,8 @@ def test_experiments_side_by_side_write_what_one_after_another_writes(tmp_path):
 
 def test_an_unknown_experiment_side_by_side_is_refused_before_any_is_simulated(tmp_path):
     runs = [
-        ("popup_deploy", SessionStore(tmp_path / "a"), None),
-        ("no_such_experiment", SessionStore(tmp_path / "b"), None),
+        Simulation("popup_deploy", SessionStore(tmp_path / "a")),
+        Simulation("no_such_experiment", SessionStore(tmp_path / "b")),
     ]
     with pytest.raises(FileNotFoundError, match="no experiment 'no_such_experiment'"):
         simulate_side_by_side(runs)
@@ -479,7 +486,10 @@ def test_experiments_side_by_side_already_simulated_start_no_worker(tmp_path, mo
     import concurrent.futures as cf
 
     store = SessionStore(tmp_path / "s")
-    runs = [("popup_deploy", store, None), ("popup_impact", store, {"pressures_kpa": [10], "taps": 1})]
+    runs = [
+        Simulation("popup_deploy", store),
+        Simulation("popup_impact", store, {"pressures_kpa": [10], "taps": 1}),
+    ]
     first = simulate_side_by_side(runs)
     cards = {p: p.read_bytes() for p in (tmp_path / "s").glob("*/session.json")}
 

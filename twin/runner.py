@@ -236,11 +236,32 @@ def simulate_experiment(
     return reports
 
 
-def simulate_side_by_side(runs: list[tuple[str, SessionStore, dict | None]], seed: int = 0,
-                          processes: int = 2) -> list[list[SimReport]]:  # fmt: skip
-    """Experiments that do not depend on each other, ``(experiment, sessions, overrides)`` each, simulated at
-    once, each whole in one of ``processes`` worker processes: every session as :func:`simulate_experiment`
-    writes it (each batch keeps its seed), in less time where a core is free.
+@dataclass(frozen=True)
+class Simulation:
+    """One experiment to simulate into a session store (its ``overrides`` as ``vslab simulate --set`` takes
+    them)."""
+
+    experiment: str
+    sessions: SessionStore
+    overrides: dict | None = None
+
+    def run(self, seed: int) -> list[SimReport]:
+        return simulate_experiment(self.experiment, self.sessions, seed=seed, overrides=self.overrides)
+
+    def pending(self, seed: int) -> bool:
+        """Whether any plan has no complete session in the store yet (planned, not checked)."""
+        from acquisition.plans.experiments import expand_experiment
+
+        _, plans, _ = expand_experiment(self.experiment, self.overrides, benches=128, seed=seed)  # as run
+        return any(_complete(self.sessions.root / session_id(p)) is None for p in plans)
+
+
+def simulate_side_by_side(
+    simulations: list[Simulation], seed: int = 0, processes: int = 2
+) -> list[list[SimReport]]:
+    """Experiments that do not depend on each other simulated at once, each whole in one of ``processes``
+    worker processes: every session as :func:`simulate_experiment` writes it (each batch keeps its seed), in
+    less time where a core is free.
 
     One simulated experiment keeps ~1.4 of 2 cores busy (writing is one thread; the kernel's parallel steps
     wait for their slowest thread); two side by side, each kernel on one thread (the benches are stepped
@@ -251,29 +272,18 @@ def simulate_side_by_side(runs: list[tuple[str, SessionStore, dict | None]], see
     import concurrent.futures as cf
     import multiprocessing
 
-    def run_here(experiment: str, sessions: SessionStore, overrides: dict | None) -> list[SimReport]:
-        return simulate_experiment(experiment, sessions, seed=seed, overrides=overrides)
-
-    todo = [k for k, run in enumerate(runs) if _pending(*run, seed)]
+    todo = [k for k, simulation in enumerate(simulations) if simulation.pending(seed)]
     if len(todo) < 2 or processes < 2:  # nothing to share the cores with: here, the kernel on every core
-        return [run_here(*run) for run in runs]
+        return [simulation.run(seed) for simulation in simulations]
     context = multiprocessing.get_context("forkserver")  # nothing of this process's threads is forked
     pool = cf.ProcessPoolExecutor(min(processes, len(todo)), mp_context=context,
                                   initializer=_one_kernel_thread)  # fmt: skip
     try:
-        futures = {k: pool.submit(simulate_experiment, runs[k][0], runs[k][1], seed=seed,
-                                  overrides=runs[k][2]) for k in todo}  # fmt: skip
-        return [futures[k].result() if k in futures else run_here(*run) for k, run in enumerate(runs)]
+        futures = {k: pool.submit(simulations[k].run, seed) for k in todo}
+        return [futures[k].result() if k in futures else simulation.run(seed)
+                for k, simulation in enumerate(simulations)]  # fmt: skip
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
-
-
-def _pending(experiment: str, sessions: SessionStore, overrides: dict | None, seed: int) -> bool:
-    """Whether any plan of the experiment has no complete session in ``sessions`` (planned, not checked)."""
-    from acquisition.plans.experiments import expand_experiment
-
-    _, plans, _ = expand_experiment(experiment, overrides, benches=128, seed=seed)  # simulate_experiment's
-    return any(_complete(sessions.root / session_id(p)) is None for p in plans)
 
 
 def _one_kernel_thread() -> None:

@@ -47,7 +47,7 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     from pipeline.in_loop import stored_compensators
     from pipeline.simulated import simulated_dataset
     from pipeline.unmodelled import unmodelled_study
-    from twin.runner import simulate_side_by_side
+    from twin.runner import Simulation, simulate_side_by_side
 
     timings: dict[str, float] = {}
 
@@ -72,7 +72,7 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
 
     step(SIMULATIONS)  # two at a time, the longest first (sessions already complete are kept)
     simulated = ("campaign", "experiment1", "popup_static", "popup_impact", "popup_deploy")
-    simulate_side_by_side([(e, lab.sessions, sized(e)) for e in simulated], seed=seed)
+    simulate_side_by_side([Simulation(e, lab.sessions, sized(e)) for e in simulated], seed=seed)
     done(SIMULATIONS)
 
     step("campaign")
