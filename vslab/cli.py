@@ -75,6 +75,29 @@ def robots_urdf(
         console.print(f"written: {out}")
 
 
+@app.command("schema")
+def schema_command(
+    name: Annotated[str, typer.Argument(help="robot, experiment, grid or experiment-<kind>.")],
+    out: Annotated[Path | None, typer.Option(help="Write it to this file (default: print it).")] = None,
+) -> None:
+    """The JSON Schema of a kind of YAML file, for editors (shipped in configs/schemas/)."""
+    from vslab.schemas import schema_text
+
+    try:
+        text = schema_text(name)
+    except KeyError as exc:
+        _error(exc.args[0])
+    if out is None:
+        typer.echo(text, nl=False)
+        return
+    try:
+        out.write_text(text, encoding="utf-8")
+    except OSError as exc:
+        _error(f"cannot write {out}: {exc.strerror or exc}")
+    if not options().quiet:
+        console.print(f"written: {out}")
+
+
 @twin_app.command("survey")
 def twin_survey(
     robot: Annotated[str, typer.Option(help="Robot description.")] = "vsl",
@@ -154,7 +177,8 @@ def figures() -> None:
     """Regenerate every figure and table from the lab's newest datasets and models, and the report."""
     from rich.markup import escape
 
-    from analysis.lab_figures import all_figures, lab_report
+    from analysis.lab_figures import all_figures
+    from analysis.lab_report import lab_report
 
     lab = options().lab
     datasets = lab.datasets.root
