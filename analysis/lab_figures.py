@@ -1,5 +1,6 @@
-"""Every figure and table of a lab directory, from its newest datasets and models (or named versions), and the
-report page that gathers them. Each figure records which versions it used (``<figure>.json`` beside it).
+"""Every figure and table of a lab directory, from its newest datasets and models (or named versions); the
+report page that gathers them is :mod:`analysis.lab_report`. Each figure records which versions it used
+(``<figure>.json`` beside it).
 
     lab = Lab.open("lab")
     results = all_figures(lab)      # writes lab.figures
@@ -15,8 +16,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from analysis import diagnostics
-from analysis.report import Report
+from analysis import diagnostics, vsl_paths
 from pipeline.lab import Lab, LabPath, local_folder, upload
 from pipeline.model_store import FORWARD, LAB_TAGS
 from pipeline.session_index import SessionError
@@ -118,14 +118,32 @@ def _unmodelled(lab: Lab, res: Results) -> None:
         return
     table, card = load_comparison(path)
     for direction, wide in wide_tables(table).items():
-        res.tables[f"unmodelled effects: {direction} models"] = wide.round(3)
+        wide = wide.rename(columns={"n": "test points"}).rename(columns=lambda c: _in_mm(c, "test points"))
+        res.tables[f"unmodelled effects: {direction} models, mean tip error"] = wide.rename_axis("cell")
     inputs = card.get("inputs", INPUTS)  # a card written before it said so: the models read the same
     res.texts["unmodelled effects"] = "\n\n".join(f"The {d} models read {inputs[d]}." for d in inputs)
     if card.get("experiment2"):
         paths = pd.DataFrame(card["experiment2"]).drop(columns=["session"], errors="ignore")
-        res.tables["unmodelled effects: Experiment 2, distance to the desired path (mm)"] = paths.round(3)
+        res.tables["unmodelled effects: Experiment 2, distance to the desired path"] = _path_table(paths)
     for name, version in card["made_from"].items():
-        res.versions[f"dataset {name}, vsl_unmodelled"] = version
+        kind = (
+            "settings" if recorded_settings(version) is not None else "dataset"
+        )  # training, paths: JSON settings
+        res.versions[f"{kind} {name}, vsl_unmodelled"] = version
+
+
+def _in_mm(column: str, *besides: str) -> str:
+    """A model's column of mean tip errors headed with its unit (the columns ``besides`` stay)."""
+    return column if column in besides else f"{column} (mm)"
+
+
+def _path_table(errors: pd.DataFrame) -> pd.DataFrame:
+    """Path errors per session (``vsl_paths.path_errors``) as the report shows them: the command mode in
+    words, the errors in mm, and ``n`` named for what it counts."""
+    out = errors.rename(columns={"n": "tracked points", "mode": "command"})
+    if "command" in out:
+        out["command"] = out["command"].map(lambda m: vsl_paths.MODE_LABELS.get(m, m))
+    return out
 
 
 def _models(lab: Lab, datasets: dict, res: Results, out: Path) -> None:
@@ -152,9 +170,7 @@ def _models(lab: Lab, datasets: dict, res: Results, out: Path) -> None:
         rows.append({"model": name, **_headline(card["metrics"])})
         if tag == FORWARD:
             grids["hybrid (small residual)"] = diagnostics.cell_grid(card["metrics"]["per_cell"])
-    res.tables["forward model: test error (mm), campaign, random split"] = pd.DataFrame(rows).set_index(
-        "model"
-    )
+    res.tables["forward model: test error, campaign, random split"] = pd.DataFrame(rows).set_index("model")
     versions = {k: v for k, v in res.versions.items() if k.startswith(("dataset campaign", "model"))}
     for fig in (diagnostics.error_heatmaps(grids, out, made_from=versions),
                 diagnostics.learning_curves(cards, out, made_from=versions)):  # fmt: skip
@@ -174,14 +190,15 @@ def _models(lab: Lab, datasets: dict, res: Results, out: Path) -> None:
 
 
 def registration_table(registration: dict) -> pd.DataFrame:
-    """One row per robot of a dataset card's registration: points used, residuals in mm (all static points,
-    and the selected ones the transform was fitted on)."""
+    """One row per robot of a dataset card's registration: points used (counts), whether the model's tip was
+    corrected for the links' static deflection, residuals in mm (all static points, and the selected ones the
+    transform was fitted on)."""
     rows = {}
     for robot, r in registration.items():
         res_all, res_sel = r.get("residuals", {}), r.get("residuals_selected", {})
         rows[robot] = {
-            "static points": r.get("points"), "selected": r.get("selected"), "trimmed": r.get("trimmed"),
-            "model deflection": r.get("deflection"),
+            "static points": r.get("points"), "selected points": r.get("selected"),
+            "trimmed points": r.get("trimmed"), "model corrected for deflection": r.get("deflection"),
             "rms, all (mm)": 1e3 * res_all.get("rms_m", np.nan),
             "rms, selected (mm)": 1e3 * res_sel.get("rms_m", np.nan),
             "p95, selected (mm)": 1e3 * res_sel.get("p95_m", np.nan),
@@ -190,13 +207,15 @@ def registration_table(registration: dict) -> pd.DataFrame:
     return pd.DataFrame.from_dict(rows, orient="index").rename_axis("robot")
 
 
+HEADLINE = ("mean", "median", "p95", "max")  # the tip error statistics of the forward model table (mm)
+
+
 def _headline(metrics: dict) -> dict:
-    return {"mean": metrics.get("tip_mean_mm"), "median": metrics.get("tip_median_mm"),
-            "p95": metrics.get("tip_p95_mm"), "max": metrics.get("tip_max_mm")}  # fmt: skip
+    return {f"{k} (mm)": metrics.get(f"tip_{k}_mm") for k in HEADLINE}
 
 
 def _summary_mm(summary: dict) -> dict:
-    return {k: summary.get(k) for k in ("mean", "median", "p95", "max")}
+    return {f"{k} (mm)": summary.get(k) for k in HEADLINE}
 
 
 def _experiment1(datasets: dict, forward, res: Results, out: Path) -> None:
@@ -219,11 +238,39 @@ def _pngs(res: Results, figure) -> None:
 
 
 def _experiment2(datasets: dict, res: Results, out: Path) -> None:
-    from analysis import vsl_figures, vsl_paths
+    from analysis import vsl_figures
 
     data = datasets["experiment2"][0]
     _pngs(res, vsl_figures.fig7(data, out, {"dataset experiment2": res.versions["dataset experiment2"]}))
-    res.tables["Experiment 2: distance to the desired path (mm)"] = vsl_paths.path_errors(data)
+    errors = vsl_paths.path_errors(data)
+    res.tables["Experiment 2: distance to the desired path"] = _path_table(errors)
+    res.tables["Experiment 2: the paper's findings (Fig. 7b) beside ours"] = experiment2_claims(errors)
+
+
+# Seed 000 gives no numbers for Experiment 2, only its findings from Fig. 7b (Sec. "Results"): (finding,
+# the mean path error that should be lower, the one it should be lower than; each "robot/mode").
+EXPERIMENT2_CLAIMS = [
+    ("hybrid inverse beats model-based IK on the VSL arm", "vsl/hybrid", "vsl/ik"),
+    ("hybrid VSL arm beats the rigid arm with model-based IK", "vsl/hybrid", "vsl_rigid/ik"),
+    ("static compensation beats model-based IK on the VSL arm", "vsl/static", "vsl/ik"),
+]
+
+
+def experiment2_claims(errors: pd.DataFrame) -> pd.DataFrame:
+    """Each finding "A beats B" of seed 000's Experiment 2 that our sessions can test: the paper's verdict
+    ("yes"), ours, and our mean path errors of A and B (mm, over the sessions of each robot and command
+    mode)."""
+    means = errors.assign(key=errors["robot"].astype(str) + "/" + errors["mode"].astype(str))
+    means = means.groupby("key")["mean_mm"].mean()
+    rows = {}
+    for finding, better, worse in EXPERIMENT2_CLAIMS:
+        if better in means and worse in means:
+            ours = "yes" if means[better] < means[worse] else "no"
+            rows[finding] = [ours, means[better], means[worse]]
+    columns = ["this twin", "the first, ours (mm)", "the second, ours (mm)"]
+    table = pd.DataFrame.from_dict(rows, orient="index", columns=columns).rename_axis("finding: A beats B")
+    table.insert(0, "paper", "yes")
+    return table
 
 
 def _popup(lab: Lab, res: Results, out: Path) -> None:
@@ -236,7 +283,12 @@ def _popup(lab: Lab, res: Results, out: Path) -> None:
     assert fig, "no static curves to plot"
     res.figures["popup_fig7"] = out / "fig7_popup_hysteresis.png"  # figure7 records its sessions beside it
     table = popup_tests.table1(popup_tests.static_stiffness(curves), popup_tests.impact_parameters(impact))
-    res.tables["POPUP Table 1: ours (twin) / the paper's"] = popup_tests.table1_side_by_side(table)
+    res.tables["POPUP Table 1: ours (twin) beside the paper's"] = popup_tests.table1_report(table)
+    inertia = float(table["inertia_kgm2"].iloc[0])
+    res.texts["POPUP Table 1"] = (
+        f"Our moment of inertia of the link about its hinge, from all pressures: I = {inertia:.4f} kg·m². "
+        "The paper's Table 1 lists no ζ; its column is the ζ its f_s, ĉ and k̂ imply."
+    )
     from analysis import popup_reach
     from models.robot import load_robot
 
@@ -248,15 +300,15 @@ def _popup(lab: Lab, res: Results, out: Path) -> None:
     vs = popup_reach.figures_15_16(result, servoed, out, made_from)
     for png in vs["png"]:
         res.figures[png.stem] = png
-    res.tables["POPUP visual servoing (Figs. 15–16): final tip error (mm)"] = pd.DataFrame(
-        {"RBM-based control": [1e3 * float(np.linalg.norm(result.prbm[-1] - result.target))],
-         "visual servoing": [vs["final_error_mm"]]}, index=["soft arm to target"],
+    res.tables["POPUP visual servoing (Figs. 15–16): final tip error"] = pd.DataFrame(
+        {"RBM-based control (mm)": [1e3 * float(np.linalg.norm(result.prbm[-1] - result.target))],
+         "visual servoing (mm)": [vs["final_error_mm"]]}, index=pd.Index(["soft arm to target"], name="tip"),
     )  # fmt: skip
     d = result.difference_mm
-    res.tables["POPUP target reaching (Figs. 12–13): RBM–PRBM difference (mm)"] = pd.DataFrame(
-        {"this twin": [d[0], d[-1]], "paper": [popup_reach.PAPER["difference_start_mm"],
-                                               popup_reach.PAPER["difference_target_mm"]]},
-        index=["at the start", "at the target"],
+    res.tables["POPUP target reaching (Figs. 12–13): RBM–PRBM tip difference"] = pd.DataFrame(
+        {"this twin (mm)": [d[0], d[-1]], "paper (mm)": [popup_reach.PAPER["difference_start_mm"],
+                                                         popup_reach.PAPER["difference_target_mm"]]},
+        index=pd.Index(["at the start", "at the target"], name="where"),
     )  # fmt: skip
 
 
@@ -278,8 +330,8 @@ def realtime_sessions(lab: Lab) -> pd.DataFrame:
                 continue
             rows.append({"session": info.id, "plan": meta.get("plan", ""), "status": info.status,
                          "topic": topic, "messages": s.messages, "rate (Hz)": round(s.rate_hz, 1),
-                         "dropped": s.dropped})  # fmt: skip
-    columns = ["session", "plan", "status", "topic", "messages", "rate (Hz)", "dropped"]
+                         "dropped messages": s.dropped})  # fmt: skip
+    columns = ["session", "plan", "status", "topic", "messages", "rate (Hz)", "dropped messages"]
     return pd.DataFrame(rows, columns=columns).set_index(["session", "topic"])
 
 
@@ -289,42 +341,12 @@ def _realtime(lab: Lab, res: Results) -> None:
         res.tables["real-time sessions"] = table
 
 
-def lab_report(lab: Lab, res: Results, timings: dict[str, float] | None = None) -> LabPath:
-    """``lab.report / "index.html"`` from the figures and tables of :func:`all_figures`."""
-    page = Report("vslab: the lab on its digital twin")
-    overview = pd.DataFrame({"version": res.versions}) if res.versions else pd.DataFrame()
-    tables = {"what the figures were made from": overview}
-    if timings:
-        tables["main job steps (s)"] = pd.DataFrame({"seconds": timings})
-    if res.missing:
-        tables["not made (and why)"] = pd.DataFrame({"reason": res.missing})
-    page.section("Overview", text=OVERVIEW, tables=tables)
-    for title, names, table_keys in SECTIONS:
-        figures = [res.figures[n] for n in names if n in res.figures]
-        tables = {k: v for k, v in res.tables.items() if any(k.startswith(t) for t in table_keys)}
-        text = "\n\n".join(v for k, v in res.texts.items() if k in table_keys)
-        if figures or tables:
-            page.section(title, text=text, figures=figures, tables=tables)
-    return page.write(lab.report / "index.html")
+def recorded_settings(value: str) -> dict | None:
+    """The settings a "version" that is a JSON object holds (``{"repetitions": 2}``), None for a version."""
+    import json
 
-
-OVERVIEW = """Everything on this page was produced on the digital twin by vslab's main job: sessions recorded
-through the device emulators and simulated in batches, the pipeline's datasets, the trained networks, and the
-papers' experiments repeated with them. Numbers from the papers are shown beside ours where the papers give
-them; the twin's parameters marked ASSUMED in configs/ are ours, so agreement in trend matters more than in
-value."""
-
-SECTIONS = [
-    ("The twin with unmodelled effects: every model beside the floor (mean tip error, mm; grouped split)", [],
-     ["unmodelled effects"]),
-    ("Real-time sessions (the devices' drivers against the twin's emulators)", [], ["real-time sessions"]),
-    ("Datasets and models (ours)", ["clock_fits", "registration_vsl", "error_heatmaps", "learning_curves"],
-     ["forward model", "registration"]),
-    ("Seed 000, Experiment 1 (Fig. 5)", ["fig5"], []),
-    ("Seed 000, Experiment 2 (Figs. 6 and 7)", ["fig6", "fig7a", "fig7b"], ["Experiment 2"]),
-    ("Seed 001, POPUP link tests (Fig. 7, Table 1)", ["popup_fig7"], ["POPUP Table 1"]),
-    ("Seed 001, target reaching (Figs. 12–13)", ["fig12_popup_reach_paths", "fig13_popup_reach_difference"],
-     ["POPUP target reaching"]),
-    ("Seed 001, visual servoing (Figs. 15–16)",
-     ["fig15_popup_visual_servoing_paths", "fig16_popup_visual_servoing_joints"], ["POPUP visual servoing"]),
-]  # fmt: skip
+    try:
+        parsed = json.loads(value)
+    except (TypeError, ValueError):
+        return None
+    return parsed if isinstance(parsed, dict) else None

@@ -279,6 +279,38 @@ def table1_side_by_side(table: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame.from_dict(rows, orient="index").rename_axis("p (kPa)")
 
 
+def paper_zeta(table: pd.DataFrame) -> pd.Series:
+    """The damping ratio ζ the paper's Table 1 implies (it lists f_s, ĉ and k̂, not ζ): with ĉ = 2ζ√(k̂I),
+    k̂ = I ω_n² and ω_n = 2π f_s / √(1 − ζ²), ζ√(1 − ζ²) = a := π ĉ f_s / k̂, so ζ² = (1 − √(1 − 4a²)) / 2."""
+    a = np.pi * table["paper_c_hat"] * table["paper_f_s_hz"] / table["paper_k_hat"]
+    return np.sqrt((1 - np.sqrt(1 - 4 * a**2)) / 2)
+
+
+# The report's Table 1: (header, our column, the paper's column, format spec), columns of :func:`table1`.
+TABLE1_COLUMNS = [
+    ("f_s (Hz)", "f_s_hz", "paper_f_s_hz", ".2f"),
+    ("ζ", "zeta", "paper_zeta", ".3f"),
+    ("k (N·m/rad)", "k", "paper_k", ".0f"),
+    ("k̂ (N·m/rad)", "k_hat", "paper_k_hat", ".0f"),
+    ("ĉ (N·m·s/rad)", "c_hat", "paper_c_hat", ".3f"),
+]
+
+
+def table1_report(table: pd.DataFrame) -> pd.DataFrame:
+    """Table 1 for the report: per pressure (kPa), each parameter ours and the paper's side by side (the
+    paper's "name, paper (unit)" column beside ours; NaN where a test has no value, e.g. k above 50 kPa),
+    numeric, with each column's format in ``attrs["formats"]``."""
+    table = table.assign(paper_zeta=paper_zeta(table))
+    out, formats = pd.DataFrame(index=pd.Index(table["pressure_kpa"].to_numpy(), name="p (kPa)")), {}
+    for title, ours, paper, spec in TABLE1_COLUMNS:
+        name, unit = title.removesuffix(")").rsplit(" (", 1) if "(" in title else (title, "")
+        paper_title = f"{name}, paper" + (f" ({unit})" if unit else "")
+        out[title], out[paper_title] = table[ours].to_numpy(), table[paper].to_numpy()
+        formats |= {title: spec, paper_title: spec}
+    out.attrs["formats"] = formats | {"p (kPa)": ".0f"}
+    return out
+
+
 def table1_markdown(table: pd.DataFrame) -> str:
     """Table 1 as a Markdown table: ours / the paper's for f_s, k, k̂, ĉ, and our ζ."""
     side = table1_side_by_side(table)

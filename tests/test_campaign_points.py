@@ -65,7 +65,7 @@ def test_visit_order_never_returns_the_drawn_order():
 
 # ------------------------------------------------------------------ the default campaign inside the box
 def _default_campaign():
-    """The README's `vslab simulate campaign`: the default parameters on 128 benches."""
+    """The documented `vslab simulate campaign` (docs/how-to/record.md): the defaults on 128 benches."""
     robots, plans, _ = expand_experiment("campaign", benches=128)
     return robots["vsl"], plans
 
@@ -130,7 +130,8 @@ def test_the_worst_move_of_the_default_campaign_completes_on_the_twin(tmp_path):
 def test_the_report_says_what_the_inverse_models_read(tmp_path):
     """The report's comparison section says the inverse models' currents are measured after the move has
     landed (a payload sensor), from the comparison's card."""
-    from analysis.lab_figures import Results, _unmodelled, lab_report
+    from analysis.lab_figures import Results, _unmodelled
+    from analysis.lab_report import lab_report
     from pipeline.comparison import UNMODELLED, save_comparison
 
     table = pd.DataFrame([{"direction": d, "model": m, "cell": "all", "n": 10, "tip_mm_mean": 0.5}
@@ -146,7 +147,7 @@ def test_the_report_says_what_the_inverse_models_read(tmp_path):
 
 @pytest.mark.slow
 def test_the_default_campaign_completes_on_the_twin(tmp_path):
-    """The README's `vslab simulate campaign` in full (17,568 points on 128 benches; minutes): no bench
+    """The documented `vslab simulate campaign` in full (17,568 points on 128 benches; minutes): no bench
     stops early."""
     reports = simulate_experiment("campaign", SessionStore(tmp_path / "sessions"), seed=0, benches=128)
     assert [r.stopped for r in reports] == [{}] and sum(len(r.sessions) for r in reports) == 128

@@ -8,7 +8,8 @@ import pytest
 from acquisition.recorder.sessions import SessionStore
 from acquisition.recorder.writer import SessionWriter
 from acquisition.schemas.events import Event, EventKind
-from analysis.lab_figures import all_figures, lab_report, realtime_sessions
+from analysis.lab_figures import all_figures, realtime_sessions
+from analysis.lab_report import lab_report
 from models.robot import load_robot
 from pipeline import model_store
 from pipeline.grid import run_grid
@@ -32,8 +33,7 @@ def test_figures_and_report_of_a_lab_with_only_a_campaign(campaign_dataset, tmp_
     (trained,) = run_grid(Lab(lab), grid)
     res = all_figures(Lab(lab), tmp_path / "figures")
     assert (
-        "forward-small-residual"
-        not in res.tables["forward model: test error (mm), campaign, random split"].index
+        "forward-small-residual" not in res.tables["forward model: test error, campaign, random split"].index
     )
     model_store.tag(
         lab / "models", model_store.FORWARD, trained["version"]
@@ -43,11 +43,11 @@ def test_figures_and_report_of_a_lab_with_only_a_campaign(campaign_dataset, tmp_
     assert all(p.is_file() and p.with_suffix(".pdf").is_file() for p in res.figures.values())
     assert (tmp_path / "figures" / "error_heatmaps.json").is_file()  # which versions it was made from
     assert {"dataset experiment1", "dataset experiment2"} <= set(res.missing)  # named, with the reason
-    table = res.tables["forward model: test error (mm), campaign, random split"]
-    assert table.loc["forward-small-residual", "mean"] < 0.5 * table.loc["rigid model", "mean"]
+    table = res.tables["forward model: test error, campaign, random split"]
+    assert table.loc["forward-small-residual", "mean (mm)"] < 0.5 * table.loc["rigid model", "mean (mm)"]
     assert res.versions["dataset campaign"] == version
     reg = res.tables["registration (tracker → base), campaign"].loc["vsl"]
-    assert 0 < reg["rms, selected (mm)"] < 1.0 and reg["selected"] <= reg["static points"]
+    assert 0 < reg["rms, selected (mm)"] < 1.0 and reg["selected points"] <= reg["static points"]
     page = lab_report(Lab(lab), res).read_text()
     assert "error_heatmaps" in page and "not made (and why)" in page and "dataset experiment1" in page
 

@@ -23,12 +23,12 @@ def test_report_inlines_figures_tables_and_cards(tmp_path):
     plt.close(fig)
     page = Report("vslab <test>")
     page.section("Errors", text="First paragraph.\n\nSecond & last.", figures=[png, tmp_path / "gone.png"],
-                 tables={"mean error (mm)": pd.DataFrame({"rigid": [2.1], "hybrid": [0.2]}, index=["vsl"])},
+                 tables={"error": pd.DataFrame({"rigid (mm)": [2.1], "hybrid (mm)": [0.2]}, index=["a"])},
                  cards={"model card": {"version": "abc", "metrics": {"mean_mm": 0.2}}})  # fmt: skip
     out = page.write(tmp_path / "report" / "index.html")
     text = out.read_text()
     assert "vslab &lt;test&gt;" in text and "Second &amp; last." in text
     assert base64.b64encode(png.read_bytes()).decode() in text  # inlined: no file needed beside the page
     assert 'href="../figures/line.pdf"' in text and "missing figure gone.png" in text
-    assert "<td>2.1</td>" in text and "&quot;version&quot;: &quot;abc&quot;" in text
+    assert "<td>2.10</td>" in text and "&quot;version&quot;: &quot;abc&quot;" in text
     assert "http" not in text.replace("http-equiv", "")  # nothing fetched from the network

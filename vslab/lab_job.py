@@ -41,7 +41,8 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     """Run every step into ``lab``; returns the report's path. ``batch_priority``: this process runs the
     steps after the real-time session at a batch priority (the CLI's choice; a caller that goes on with other
     work, a test run, keeps its own)."""
-    from analysis.lab_figures import FIGURE_INPUTS, all_figures, figure_inputs, lab_report
+    from analysis.lab_figures import FIGURE_INPUTS, all_figures, figure_inputs
+    from analysis.lab_report import lab_report
     from analysis.vsl_paths import path_errors
     from pipeline.grid import load_grid, run_grid
     from pipeline.in_loop import stored_compensators
