@@ -7,7 +7,7 @@ VENV   ?= .venv
 BIN     = $(VENV)/bin
 LAB    ?= lab
 
-.PHONY: demo test check test-under-load lint format bench loop clean
+.PHONY: demo test check test-under-load lint format bench loop docs clean
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -56,9 +56,13 @@ bench: $(BIN)/.installed
 loop: $(BIN)/.installed
 	$(BIN)/python bench/loop.py
 
+# the documentation site (docs/, mkdocs.yml) into site/: --strict, so a broken link or reference fails
+docs: $(BIN)/.installed
+	$(BIN)/mkdocs build --strict --site-dir site
+
 lint format: $(BIN)/.installed
 	$(BIN)/ruff check --fix .
 	$(BIN)/ruff format .
 
 clean:
-	rm -rf $(VENV) $(LAB) .pytest_cache .ruff_cache
+	rm -rf $(VENV) $(LAB) site .pytest_cache .ruff_cache

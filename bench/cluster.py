@@ -8,8 +8,8 @@ sync, segment; then registration and D) and a grid of ``--models`` networks on i
 and the paper net × seeds, one torch thread per job). Prints the wall times, the 2-worker speed-up, the
 per-job costs (worker seconds per session and per model), the data sizes (MiB per session, of the dataset,
 per model) and the machine's load average before and after, then estimates 10,000 sessions and 1,000 models
-on N machines from those costs (README: Scaling out). The estimate assumes jobs spread evenly and a shared
-file system that keeps up; a session costs in proportion to its length, a model to its rows × epochs.
+on N machines from those costs (docs/how-to/scale-out.md). The estimate assumes jobs spread evenly and a
+shared file system that keeps up; a session costs in proportion to its length, a model to its rows × epochs.
 """
 
 from __future__ import annotations

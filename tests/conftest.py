@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import signal
 import socket
 import subprocess
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -197,3 +199,67 @@ def real_time():
                         "recording (steal in /proc/stat)")  # fmt: skip
 
     return check
+
+
+# ------------------------------------------------------------------------------- the tutorials, run once
+TUTORIALS = ("twin-end-to-end", "paper-figures", "first-session")  # docs/tutorials/, in the site's nav order
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+_FENCE = re.compile(r"^(?P<indent>[ \t]*)(?P<fence>`{3,}|~{3,})[ \t]*(?P<lang>[\w+-]*)[^\n]*$")
+
+
+def tutorial_blocks(page: Path) -> list[str]:
+    """The ``sh`` fenced blocks of a Markdown page, in order (indented fences, as in admonitions, included):
+    the commands a reader runs; ``text`` blocks show output and are never run."""
+    blocks, lines, k = [], page.read_text().splitlines(), 0
+    while k < len(lines):
+        m = _FENCE.match(lines[k])
+        k += 1
+        if m is None:
+            continue
+        body, indent, fence = [], m["indent"], m["fence"]
+        while k < len(lines) and not lines[k].strip().startswith(fence):
+            body.append(lines[k][len(indent) :] if lines[k].startswith(indent) else lines[k].lstrip())
+            k += 1
+        k += 1
+        if m["lang"] == "sh":
+            blocks.append("\n".join(body) + "\n")
+    return blocks
+
+
+@dataclass
+class TutorialRun:
+    """The tutorials' ``sh`` blocks run in order in one working directory: each (page, block, exit status,
+    output); the run stops at the first block that fails."""
+
+    workdir: Path
+    results: list[tuple[str, str, int, str]] = field(default_factory=list)
+
+    def failure(self) -> str | None:
+        """What a failed block ran and said, or None when every block succeeded."""
+        for page, block, rc, output in self.results:
+            if rc != 0:
+                said = f"\n--- its output ---\n{output}"
+                return f"docs/tutorials/{page}.md: this block exited {rc}:\n{block}{said}"
+        return None
+
+    def output_of(self, word: str) -> str:
+        """The output of the blocks whose commands contain ``word``."""
+        return "".join(output for _, block, _, output in self.results if word in block)
+
+
+@pytest.fixture(scope="session")
+def tutorial_run(tmp_path_factory) -> TutorialRun:
+    """Every tutorial's ``sh`` blocks, in nav order, each with ``bash -euo pipefail`` in one fresh directory
+    with the project's ``vslab`` first on PATH, as a reader following them does (≈ 3 min: the twin tutorial
+    runs the quick main job, which tests/test_main_job.py then inspects instead of running it again)."""
+    run = TutorialRun(tmp_path_factory.mktemp("tutorials"))
+    env = os.environ | {"PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    for page in TUTORIALS:
+        for block in tutorial_blocks(DOCS / "tutorials" / f"{page}.md"):
+            command = ["bash", "-euo", "pipefail", "-c", block]
+            done = subprocess.run(command, cwd=run.workdir, env=env, stdout=subprocess.PIPE,
+                                  stderr=subprocess.STDOUT, text=True, timeout=1800)  # fmt: skip
+            run.results.append((page, block, done.returncode, done.stdout))
+            if done.returncode != 0:
+                return run
+    return run

@@ -7,12 +7,11 @@ exit status, the one `error:` line (or one `warning:` line for the bad session w
 with the rest), that nothing says "Traceback", that every file of the sessions folder is unchanged (a new
 recovered copy of a torn part is what `recover` is for), and that nothing half-written is left in the lab.
 
-Outcomes (what the README documents): `sessions list` marks a bad folder bad with a warning line and lists
-the rest (exit 0); `sessions info` and `sessions recover` refuse a bad folder with one error line (exit 2);
-`vslab build` skips a bad session with a warning line and builds the good ones (exit 0), or says no session
-was usable (exit 2). A torn part (truncated) is not bad: it is listed as torn, recovered, or read up to the
-tear. A part whose summary is whole is only read through by `build`, which finds its damage.
-"""
+Outcomes (what docs/how-to/record.md documents): `sessions list` marks a bad folder bad with a warning line
+and lists the rest (exit 0); `sessions info` and `sessions recover` refuse a bad folder with one error line
+(exit 2); `vslab build` skips a bad session with a warning line and builds the good ones (exit 0), or says no
+session was usable (exit 2). A torn part (truncated) is not bad: it is listed as torn, recovered, or read up
+to the tear. A part whose summary is whole is only read through by `build`, which finds its damage."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
-"""The README's "Your first session on the robot", step by step, on `vslab rig --factory`: devices as they
-come out of the box (servos all ID 1 at 57,600 baud with Return Delay Time 250, adapters at a 16 ms latency
-timer).
+"""The tutorial "Your first session on the robot" (docs/tutorials/first-session.md), step by step, on `vslab
+rig --factory`: devices as they come out of the box (servos all ID 1 at 57,600 baud with Return Delay Time
+250, adapters at a 16 ms latency timer).
 
 The lab's description here is vsl's with what a lab writes for its bus: Return Delay Time 0 and the adapter's
 latency timer set to 1 ms, and a servo rate the link carries with room to spare on a busy computer

@@ -1,0 +1,110 @@
+"""The documentation site: it builds with --strict (a broken link or reference fails), its reference pages
+are generated from the code, the tutorials' commands run, and the pages load in Chromium without console
+errors."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from conftest import TUTORIALS, tutorial_blocks
+
+ROOT = Path(__file__).resolve().parents[1]
+REFERENCE = ("cli", "robot-description", "experiments", "training-grid", "topics", "dataset-columns",
+             "model-card", "api")  # fmt: skip
+CHROMIUM = shutil.which("chromium") or ("/usr/bin/chromium" if Path("/usr/bin/chromium").exists() else None)
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory) -> Path:
+    """The site as `make docs` builds it (≈ 10 s)."""
+    out = tmp_path_factory.mktemp("site")
+    mkdocs = Path(sys.executable).parent / "mkdocs"
+    done = subprocess.run([str(mkdocs), "build", "--strict", "--site-dir", str(out)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)  # fmt: skip
+    assert done.returncode == 0, f"mkdocs build --strict failed:\n{done.stderr}"
+    return out
+
+
+def test_site_builds_strict_with_the_generated_reference(site):
+    for page in REFERENCE:
+        assert (site / "reference" / f"{page}.html").is_file(), page
+    cli = (site / "reference" / "cli.html").read_text()
+    assert "vslab demo" in cli and "--quick" in cli and "VSLAB_LAB" in cli
+    assert "length_mm" not in (site / "reference" / "dataset-columns.html").read_text()
+    assert "/servo/state" in (site / "reference" / "topics.html").read_text()
+    assert "card_sha256" in (site / "reference" / "model-card.html").read_text()
+    assert "pipeline.lab.Lab" in (site / "reference" / "api.html").read_text()  # mkdocstrings ran
+    assert not (site / "hooks").exists(), "the hooks are the build's code, not pages"
+    home = (site / "index.html").read_text()  # links name files: the site opens from disk, no server
+    assert 'href="tutorials/twin-end-to-end.html"' in home and "reference/cli.html" in home
+
+
+def test_only_sh_blocks_are_commands(tmp_path):
+    page = tmp_path / "page.md"
+    page.write_text("```sh\nvslab --help\n```\n\n```text\nUsage: vslab\n```\n\n!!! tip\n    ```sh\n    ls\n"
+                    "    ```\n````markdown\n```sh\nnot run\n```\n````\n")  # fmt: skip
+    assert tutorial_blocks(page) == ["vslab --help\n", "ls\n"]
+
+
+@pytest.mark.slow
+def test_tutorials_commands_run_in_order_on_the_twin(tutorial_run):
+    for page in TUTORIALS:
+        assert tutorial_blocks(ROOT / "docs" / "tutorials" / f"{page}.md"), f"{page}: no sh block to run"
+    assert tutorial_run.failure() is None, tutorial_run.failure()
+
+
+# ----------------------------------------------------------------------------------------------- Chromium
+def _screens():
+    """bench/docs_screens.py (its DevTools-protocol Browser) as a module."""
+    spec = importlib.util.spec_from_file_location("docs_screens", ROOT / "bench" / "docs_screens.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    """Headless Chromium whose console the test observes: a page's deliberate console.error must be seen
+    first, or the test fails (it never passes for want of looking)."""
+    if CHROMIUM is None:
+        if os.environ.get("CI"):
+            pytest.fail("Chromium is not installed (CI installs it: .ci/run)")
+        pytest.skip("Chromium is not installed (apt-get install chromium); CI runs this test")
+    screens = _screens()
+    probe = tmp_path_factory.mktemp("probe") / "probe.html"
+    probe.write_text('<html><body><script>console.error("deliberate-probe")</script></body></html>')
+    with screens.Browser(CHROMIUM, tmp_path_factory.mktemp("chromium-profile")) as b:
+        assert any("deliberate-probe" in e for e in b.load(probe.as_uri())), "the console is not observed"
+        yield b
+
+
+def _loads_cleanly(browser, page: Path) -> None:
+    assert page.is_file(), page
+    assert browser.load(page.as_uri()) == [], page
+    title = browser.call("Runtime.evaluate", session=True, expression="document.title", returnByValue=True)
+    assert title["result"]["value"], f"{page}: no title: not rendered"
+
+
+def test_home_tutorial_and_a_report_load_without_console_errors(site, browser, tmp_path):
+    from analysis.report import Report
+
+    _loads_cleanly(browser, site / "index.html")
+    _loads_cleanly(browser, site / "tutorials" / "twin-end-to-end.html")
+    header = "getComputedStyle(document.querySelector('.md-header')).position"
+    styled = browser.call("Runtime.evaluate", session=True, returnByValue=True, expression=header)
+    assert styled["result"]["value"] in ("sticky", "fixed"), "the theme's CSS is not loaded"
+    page = Report("a report")
+    page.section("a section", text="made in the test")
+    _loads_cleanly(browser, Path(page.write(tmp_path / "report" / "index.html")))
+
+
+@pytest.mark.slow
+def test_the_tutorials_report_loads_without_console_errors(tutorial_run, browser):
+    assert tutorial_run.failure() is None, tutorial_run.failure()
+    _loads_cleanly(browser, tutorial_run.workdir / "lab" / "report" / "index.html")
