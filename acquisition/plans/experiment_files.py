@@ -33,6 +33,15 @@ NAMED = {"trajectory": EXPERIMENT1_NAMES, "trajectories": EXPERIMENT1_NAMES, "co
 # Each kind's parameters: key → description with its unit. The shipped file's value (configs/experiments/)
 # gives the parameter's kind (true/false, integer count, number, text, list, mapping), as it does for the
 # loader, and is the schema's ``default``: read from the file, never copied here.
+# The set-up both POPUP link tests share (a link clamped as a cantilever), then each test's own parameters
+LINK_TEST = {
+    "robot": f"The arm: {ROBOT}.",
+    "without_masses": "Masses of the description taken off for the test (names).",
+    "rigid_links": "Links made rigid for the test (names): × 1000 stiffer, no hysteresis.",
+    "fixed_joints": "Drives × 1000 stiffer, without backlash (the link on a fixed joint).",
+    "pose_deg": "Joint angles during the test (°), one per actuated joint.",
+    "pressures_kpa": "Link pressures tested (kPa).",
+}
 PARAMETERS: dict[str, dict[str, str]] = {
     "campaign": {
         "robot": f"The arm: {ROBOT}.",
@@ -89,12 +98,7 @@ PARAMETERS: dict[str, dict[str, str]] = {
         "hold_s": "Hold of the deployed arm, one static point (s).",
     },
     "popup_impact": {
-        "robot": f"The arm: {ROBOT}.",
-        "without_masses": "Masses of the description taken off for the test (names).",
-        "rigid_links": "Links made rigid for the test (names): × 1000 stiffer, no hysteresis.",
-        "fixed_joints": "Drives × 1000 stiffer, without backlash (the link on a fixed joint).",
-        "pose_deg": "Joint angles during the test (°), one per actuated joint.",
-        "pressures_kpa": "Link pressures tested (kPa).",
+        **LINK_TEST,
         "taps": "Hammer taps per pressure.",
         "tap_impulse_nms": "Angular impulse of one tap about the tapped joint (N·m·s).",
         "settle_s": "Wait for pressure and link at rest before the first tap (s).",
@@ -115,12 +119,7 @@ PARAMETERS: dict[str, dict[str, str]] = {
         "hold_s": "Settled holds at the start and at the target (s).",
     },
     "popup_static": {
-        "robot": f"The arm: {ROBOT}.",
-        "without_masses": "Masses of the description taken off for the test (names).",
-        "rigid_links": "Links made rigid for the test (names): × 1000 stiffer, no hysteresis.",
-        "fixed_joints": "Drives × 1000 stiffer, without backlash (the link on a fixed joint).",
-        "pose_deg": "Joint angles during the test (°), one per actuated joint.",
-        "pressures_kpa": "Link pressures tested (kPa).",
+        **LINK_TEST,
         "link": "The link under test (a link of the robot): its moment sets the loads.",
         "load_steps": "Load increments from no mass up to the largest load.",
         "max_collapse_fraction": "Largest load as a fraction of the collapse moment M_c(p).",
