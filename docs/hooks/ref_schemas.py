@@ -78,8 +78,13 @@ def _prose(text: str) -> str:
 
 
 def _default(name: str, prop: dict, required: set[str]) -> str:
+    """Required (with the shipped file's value where the schema gives one, as an experiment's does), the
+    default, or — ."""
     if name in required:
-        return "required"
+        shipped = (
+            f" (shipped: `{json.dumps(prop['default'], ensure_ascii=False)}`)" if "default" in prop else ""
+        )
+        return "required" + shipped
     if "default" not in prop:
         return NONE
     return f"`{json.dumps(prop['default'], ensure_ascii=False)}`"
