@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -50,6 +52,48 @@ def test_only_sh_blocks_are_commands(tmp_path):
     page.write_text("```sh\nvslab --help\n```\n\n```text\nUsage: vslab\n```\n\n!!! tip\n    ```sh\n    ls\n"
                     "    ```\n````markdown\n```sh\nnot run\n```\n````\n")  # fmt: skip
     assert tutorial_blocks(page) == ["vslab --help\n", "ls\n"]
+
+
+# a `vslab …` command in a code block of any page (after a prompt, a pipe or `&&`), up to where the shell
+# takes over again (a pipe, a redirection, a comment)
+_COMMAND = re.compile(r"(?:^|[|;&(]\s*)vslab\s+(?P<args>.*)")
+_SHELL = re.compile(r"\s(?:\|\||&&|\||>|2>|<|;|#)(?:\s|$)")
+
+
+def documented_commands() -> list[tuple[str, list[str]]]:
+    """Every `vslab …` command shown in the docs' code blocks (continued lines joined), as (page, argv);
+    those with a placeholder (`<name>`, `…`) left out."""
+    found = []
+    for page in sorted((ROOT / "docs").rglob("*.md")):
+        text = re.sub(r"\\\n\s*", " ", page.read_text())  # a command continued over lines
+        in_block = False
+        for line in text.splitlines():
+            if line.strip().startswith("```"):
+                in_block = not in_block
+                continue
+            if in_block and (m := _COMMAND.search(line.strip().removeprefix("$ "))):
+                args = shlex.split(_SHELL.split(m["args"])[0], comments=True)
+                if not any("…" in a or "<" in a for a in args):
+                    found.append((str(page.relative_to(ROOT)), args))
+    return found
+
+
+def test_every_command_the_docs_show_is_one_vslab_has(tmp_path):
+    """Each documented command names a real command and real options (typer parses them; `--help` stops it
+    before it runs): a renamed option breaks this, not a reader. An s3:// lab is swapped for a folder."""
+    from typer.testing import CliRunner
+
+    from vslab.cli import app
+
+    commands = documented_commands()
+    assert len(commands) >= 50, commands  # the how-to guides and tutorials show dozens
+    wrong = []
+    for page, args in commands:
+        args = [str(tmp_path) if a.startswith("s3://") else a for a in args]
+        done = CliRunner().invoke(app, [*args, "--help"])
+        if done.exit_code != 0:
+            wrong.append(f"{page}: vslab {' '.join(args)}: {done.output.strip().splitlines()[-1:]}")
+    assert not wrong, "\n".join(wrong)
 
 
 @pytest.mark.slow
