@@ -233,6 +233,7 @@ class TutorialRun:
 
     workdir: Path
     results: list[tuple[str, str, int, str]] = field(default_factory=list)
+    left_running: list[str] = field(default_factory=list)  # processes a tutorial started and did not stop
 
     def failure(self) -> str | None:
         """What a failed block ran and said, or None when every block succeeded."""
@@ -248,18 +249,48 @@ class TutorialRun:
 
 
 @pytest.fixture(scope="session")
-def tutorial_run(tmp_path_factory) -> TutorialRun:
+def tutorial_run(tmp_path_factory):
     """Every tutorial's ``sh`` blocks, in nav order, each with ``bash -euo pipefail`` in one fresh directory
     with the project's ``vslab`` first on PATH, as a reader following them does (≈ 3 min: the twin tutorial
-    runs the quick main job, which tests/test_main_job.py then inspects instead of running it again)."""
+    runs the quick main job, which tests/test_main_job.py then inspects instead of running it again). What a
+    tutorial started and did not stop (the rig, if a block failed before its ``kill``) is stopped here."""
     run = TutorialRun(tmp_path_factory.mktemp("tutorials"))
     env = os.environ | {"PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
-    for page in TUTORIALS:
-        for block in tutorial_blocks(DOCS / "tutorials" / f"{page}.md"):
+    try:
+        for page, block in (
+            (p, b) for p in TUTORIALS for b in tutorial_blocks(DOCS / "tutorials" / f"{p}.md")
+        ):
             command = ["bash", "-euo", "pipefail", "-c", block]
             done = subprocess.run(command, cwd=run.workdir, env=env, stdout=subprocess.PIPE,
                                   stderr=subprocess.STDOUT, text=True, timeout=1800)  # fmt: skip
             run.results.append((page, block, done.returncode, done.stdout))
             if done.returncode != 0:
-                return run
-    return run
+                break
+        run.left_running = _stop_left_running(run.workdir)
+        yield run
+    finally:
+        _stop_left_running(run.workdir)
+
+
+def _stop_left_running(workdir: Path, grace_s: float = 10.0) -> list[str]:
+    """Stop every process still running in ``workdir`` once ``grace_s`` has let the stopping ones end (a rig
+    given SIGTERM takes a moment): what was left, one line each."""
+    import psutil
+
+    def inside(p: psutil.Process) -> bool:
+        with contextlib.suppress(psutil.Error, OSError):
+            return Path(p.cwd()).is_relative_to(workdir)
+        return False
+
+    running = [p for p in psutil.process_iter() if p.pid != os.getpid() and inside(p)]
+    _, left = psutil.wait_procs(running, timeout=grace_s)
+    said = []
+    for p in left:
+        with contextlib.suppress(psutil.Error):
+            said.append(f"{p.pid}: {' '.join(p.cmdline())}")
+            p.terminate()
+    _, stubborn = psutil.wait_procs(left, timeout=5)
+    for p in stubborn:
+        with contextlib.suppress(psutil.Error):
+            p.kill()
+    return said

@@ -101,6 +101,7 @@ def test_tutorials_commands_run_in_order_on_the_twin(tutorial_run):
     for page in TUTORIALS:
         assert tutorial_blocks(ROOT / "docs" / "tutorials" / f"{page}.md"), f"{page}: no sh block to run"
     assert tutorial_run.failure() is None, tutorial_run.failure()
+    assert not tutorial_run.left_running, "a tutorial leaves these running (stop them in its last block)"
 
 
 # ----------------------------------------------------------------------------------------------- Chromium
