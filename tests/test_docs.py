@@ -33,6 +33,7 @@ def site(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.mark.slow  # the site's build (≈ 10 s) is for `make test`; `make check` stays for the code
 def test_site_builds_strict_with_the_generated_reference(site):
     for page in REFERENCE:
         assert (site / "reference" / f"{page}.html").is_file(), page
@@ -136,6 +137,7 @@ def _loads_cleanly(browser, page: Path) -> None:
     assert title["result"]["value"], f"{page}: no title: not rendered"
 
 
+@pytest.mark.slow
 def test_home_tutorial_and_a_report_load_without_console_errors(site, browser, tmp_path):
     from analysis.report import Report
 
