@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, create_model
 
 from acquisition.plans import experiments as ex
 from models.trajectories import EXPERIMENT1_NAMES
+from models.units import unit_of_name
 
 
 class ExperimentFile(BaseModel):
@@ -154,17 +155,6 @@ TITLES = {
 }
 
 
-# a parameter's unit by the end of its name (longest first), shown as the schema's ``unit`` (the reference
-# pages read it): the docs' own suffix table would read ``speed_m_s`` as seconds
-UNITS = (("_m_s2", "m/s²"), ("_rad_s", "rad/s"), ("_m_s", "m/s"), ("_nms", "N·m·s"), ("_kpa", "kPa"),
-         ("_bar", "bar"), ("_mm", "mm"), ("_deg", "°"), ("_kg", "kg"), ("_g", "g"), ("_s", "s"))  # fmt: skip
-
-
-def unit(key: str) -> str | None:
-    """The unit of parameter ``key`` (the end of its name), None for a count, a name or a fraction."""
-    return next((u for suffix, u in UNITS if key.endswith(suffix)), None)
-
-
 def _number(key: str, integer: bool) -> Any:
     """The type of numeric parameter ``key``: the checks ``experiments._check_value`` applies to it."""
     low, high = ex.BOUNDS.get(
@@ -206,7 +196,7 @@ def _type(key: str, default: Any, name: str) -> Any:
 
 def _extra(key: str, default: Any) -> dict[str, Any]:
     """A parameter's schema annotations beyond its type: its shipped value as ``default``, its ``unit``."""
-    return {"default": default} | ({"unit": u} if (u := unit(key)) else {})
+    return {"default": default} | ({"unit": u} if (u := unit_of_name(key)) else {})
 
 
 def _model(kind: str) -> type[ExperimentFile]:

@@ -7,14 +7,8 @@ import json
 import re
 from collections.abc import Iterator
 
-# The code's convention (DESIGN.md): a quantity's unit is the end of its name. Longest suffixes first.
-UNITS = (
-    ("_m_s2_per_sqrt_hz", "m/s²/√Hz"), ("_nms_per_rad", "N·m·s/rad"), ("_nm_per_rad", "N·m/rad"),
-    ("_nm_per_a", "N·m/A"), ("_per_bar", "1/bar"), ("_rad_s2", "rad/s²"), ("_rad_s", "rad/s"),
-    ("_m_s2", "m/s²"), ("_kgm2", "kg·m²"), ("_counts", "counts"), ("_nm", "N·m"), ("_pa", "Pa"),
-    ("_bar", "bar"), ("_kg", "kg"), ("_mm", "mm"), ("_hz", "Hz"), ("_rad", "rad"), ("_deg", "deg"),
-    ("_ms", "ms"), ("_m", "m"), ("_s", "s"), ("_a", "A"), ("_v", "V"), ("_g", "g"),
-)  # fmt: skip
+from models.units import unit_of_name
+
 NONE = "—"  # what the code does not say
 
 
@@ -22,7 +16,7 @@ def unit(name: str, prop: dict) -> str:
     """The field's unit: the schema's own ``unit`` key where the model sets one, else its name's suffix."""
     if prop.get("unit"):
         return str(prop["unit"])
-    return next((u for suffix, u in UNITS if name.lower().endswith(suffix)), NONE)
+    return unit_of_name(name) or NONE
 
 
 def _ref_name(ref: str) -> str:
