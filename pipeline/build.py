@@ -211,6 +211,8 @@ def build(
     if "from_dataset" in borrowed:  # pin the borrowed registration's version: part of ours
         borrowed["from_dataset"] = _borrowed(lab.datasets, borrowed["from_dataset"])
     cache = lab.cache
+    for stage in ("session", "dataset"):  # the code read once, here: a pool's workers forked later inherit it
+        stage_version(stage)
     own = executor is None
     if own:
         workers = max(1, min(len(sessions), os.cpu_count() or 1))

@@ -143,17 +143,27 @@ def window_minima(x: np.ndarray, z: np.ndarray, width: float) -> tuple[np.ndarra
     return x[first], z[first]
 
 
+def line_fit(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """The least-squares line y = a + c·x through the points, returns (a, c): the centred normal equations
+    (what ``np.polyfit(x, y, 1)`` solves, without its Vandermonde matrix and SVD: a fit of a 100k-sample
+    stream costs a tenth). x must not be constant."""
+    xm, ym = float(x.mean()), float(y.mean())
+    dx = x - xm
+    c = float((dx * (y - ym)).sum() / (dx * dx).sum())  # numpy sums, not BLAS: no threads in a worker
+    return ym - c * xm, c
+
+
 def envelope_line(x: np.ndarray, z: np.ndarray, width: float, slope: float | None = None,
                   trim: float = 5.0) -> tuple[float, float]:  # fmt: skip
     """The line z = a + c·x under the points: the slope by least squares through the window minima of the
     detrended points (refined 3×; windows off the line by more than ``trim`` MADs, a USB stall, dropped),
     the intercept at the lowest kept window minimum. ``slope`` given: only the intercept. Returns (a, c)."""
-    c = slope if slope is not None else (float(np.polyfit(x, z, 1)[0]) if np.ptp(x) > 0 else 0.0)
+    c = slope if slope is not None else (line_fit(x, z)[1] if np.ptp(x) > 0 else 0.0)
     xw, zw = window_minima(x, z - c * x, width)
     keep = np.ones(xw.size, bool)
     for _ in range(0 if slope is not None or xw.size < 3 else 3):
         for _ in range(2):
-            dc, a0 = np.polyfit(xw[keep], zw[keep], 1)
+            a0, dc = line_fit(xw[keep], zw[keep])
             r = zw - a0 - dc * xw
             keep = np.abs(r) <= trim * 1.4826 * float(np.median(np.abs(r[keep]))) + 1e-9
             keep |= keep.sum() < 3  # too few left to fit a line: keep every window

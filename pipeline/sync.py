@@ -163,7 +163,7 @@ def sync(
     stamped = stamp_fields(session.robot)
     for topic, df in session.streams.items():
         fitted = fit_stream(session, topic, **fit_options)
-        df = df.copy()
+        df = df.copy(deep=False)  # a new column on a shallow copy: the session's own table is left as it was
         if fitted is None:
             if topic in stamped and len(df):
                 out.report.warnings.append(f"{topic}: no device stamps to fit; t is the host log time")
