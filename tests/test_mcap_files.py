@@ -69,6 +69,38 @@ def test_chunks_compressed_in_threads_make_the_same_file_byte_for_byte(tmp_path)
     assert threads == here
 
 
+def test_derived_channels_have_chunks_of_their_own_and_read_back_in_time_order(tmp_path):
+    """A viewer's channels (derived from the measured ones) never share a chunk with a measured channel, so a
+    reader of the measured channels skips their bytes; the mcap package reads the interleaved file in time
+    order."""
+    from mcap.reader import make_reader
+
+    path, n = tmp_path / "d.mcap", 3000
+    with open(path, "wb") as f:
+        w = BatchMcapWriter(f, chunk_size=4096)
+        w.start(profile="ros2", library="test")
+        schema = w.register_schema("t/msg/Fixed", "ros2msg", b"int64 x")
+        measured = w.register_channel("/measured", "cdr", schema)
+        derived = w.register_channel("/derived", "cdr", schema, derived=True)
+        t = np.arange(n, dtype=np.uint64) * 1000
+        for lo in range(0, n, 100):  # the two written in turns, as a recorder writes them
+            now, seq = t[lo : lo + 100], np.arange(lo, lo + 100, dtype=np.uint32)
+            w.add_batch(measured, now, now, seq, np.zeros((100, 8), np.uint8))
+            w.add_batch(derived, now + 1, now + 1, seq, np.ones((100, 8), np.uint8))
+        w.finish()
+    with open(path, "rb") as f:
+        mcap_reader.read_magic(f)
+        summary = mcap_reader.read_summary(f)
+        holding = [set(ci.message_index_offsets) for ci in summary.chunk_indexes]
+        assert len(holding) > 10 and all(len(h) == 1 for h in holding)
+        assert {derived} in holding and {measured} in holding
+        parts = mcap_reader.fixed_size_messages(f, summary, {measured: 8})[measured]
+        assert np.array_equal(np.concatenate([p[0] for p in parts]), t.astype(np.int64))
+    with open(path, "rb") as f:
+        times = [m.log_time for _, _, m in make_reader(f).iter_messages(log_time_order=True)]
+    assert len(times) == 2 * n and times == sorted(times)
+
+
 def test_a_message_of_the_wrong_size_is_refused(tmp_path):
     path = tmp_path / "a.mcap"
     _write(path)

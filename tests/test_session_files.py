@@ -185,6 +185,11 @@ def test_standard_reader_matches_fast_reader(session):
     # beside the measured topics, the arm for a viewer (tests/test_foxglove_export.py checks those)
     assert set(seen) - STANDARD_TOPICS == set(streams) | {EVENTS}
     assert {ROBOT_DESCRIPTION, TF_STATIC} <= set(seen)
+    with open(directory / "s1_000.mcap", "rb") as f:  # the viewer's topics in chunks of their own
+        summary = make_reader(f).get_summary()
+    topics = {cid: c.topic for cid, c in summary.channels.items()}
+    kinds = [{topics[c] in STANDARD_TOPICS for c in ci.message_index_offsets} for ci in summary.chunk_indexes]
+    assert {True} in kinds and {False} in kinds and all(len(k) == 1 for k in kinds)
     for name, items in seen.items():
         if name == EVENTS or name in STANDARD_TOPICS:
             continue

@@ -278,7 +278,7 @@ class SessionWriter:
         if self._scene is not None:
             for name, (schema_name, text) in self._scene.schemas().items():
                 schema_id = writer.register_schema(schema_name, SCHEMA_ENCODING, text.encode())
-                part.channels[name] = writer.register_channel(name, MESSAGE_ENCODING, schema_id)
+                part.channels[name] = writer.register_channel(name, MESSAGE_ENCODING, schema_id, derived=True)
             writer.add_attachment(URDF_ATTACHMENT, "application/xml", self._scene.urdf.encode())
         writer.add_metadata(SESSION_METADATA, {**self.metadata, "part": str(len(self.parts) - 1)})
         writer.flush()

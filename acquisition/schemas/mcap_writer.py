@@ -102,7 +102,8 @@ class BatchMcapWriter:
         self.compression_level = compression_level
         self._compress_in = compress_in
         self._compressing: deque[tuple[_OpenChunk, int, Future]] = deque()  # in the order written
-        self._chunk = _OpenChunk()
+        self._open: dict[bool, _OpenChunk] = {}  # the chunk being filled: of measured, of derived channels
+        self._derived: set[int] = set()  # channels registered ``derived``
         self._schemas: dict[int, Schema] = {}
         self._channels: dict[int, Channel] = {}
         self._chunk_indexes: list[ChunkIndex] = []
@@ -144,12 +145,18 @@ class BatchMcapWriter:
         self._write_record(schema)
         return schema.id
 
-    def register_channel(self, topic: str, message_encoding: str, schema_id: int, metadata=None) -> int:
+    def register_channel(self, topic: str, message_encoding: str, schema_id: int, metadata=None,
+                         derived: bool = False) -> int:  # fmt: skip
+        """A channel's id. ``derived``: its messages are computed from the others' (what a viewer draws):
+        they go in chunks of their own, so a reader of the measured channels never decompresses them (a third
+        of a session's bytes). Chunks of the two kinds overlap in time, as MCAP allows."""
         channel = Channel(
             id=len(self._channels) + 1, topic=topic, message_encoding=message_encoding,
             schema_id=schema_id, metadata=dict(metadata or {}),
         )  # fmt: skip
         self._channels[channel.id] = channel
+        if derived:
+            self._derived.add(channel.id)
         self._stats.channel_count += 1
         self._stats.channel_message_counts[channel.id] = 0
         self._write_record(channel)
@@ -199,10 +206,7 @@ class BatchMcapWriter:
             records["publish_time"] = publish_time[lo:hi]
             records["data"] = payload[lo:hi]
             offsets = np.arange(hi - lo, dtype=np.uint64) * np.uint64(dtype.itemsize)
-            self._chunk.add(channel_id, records.tobytes(), np.asarray(log_time[lo:hi], np.uint64), offsets)
-            self._count(channel_id, log_time[lo:hi])
-            if self._chunk.size >= self.chunk_size:
-                self._finalize_chunk()
+            self._add(channel_id, records.tobytes(), np.asarray(log_time[lo:hi], np.uint64), offsets)
 
     def add_message(
         self, channel_id: int, log_time: int, data: bytes, publish_time: int, sequence: int
@@ -210,11 +214,16 @@ class BatchMcapWriter:
         """One message of any size (events)."""
         record = struct.pack("<BQHIQQ", Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id, sequence,
                              log_time, publish_time) + data  # fmt: skip
-        lt = np.array([log_time], dtype=np.uint64)
-        self._chunk.add(channel_id, record, lt, np.zeros(1, np.uint64))
-        self._count(channel_id, lt)
-        if self._chunk.size >= self.chunk_size:
-            self._finalize_chunk()
+        self._add(channel_id, record, np.array([log_time], dtype=np.uint64), np.zeros(1, np.uint64))
+
+    def _add(self, channel_id: int, records: bytes, log_time: np.ndarray, offsets: np.ndarray) -> None:
+        """Records of one channel into the open chunk of its kind, closed when full."""
+        derived = channel_id in self._derived
+        chunk = self._open.get(derived) or self._open.setdefault(derived, _OpenChunk())
+        chunk.add(channel_id, records, log_time, offsets)
+        self._count(channel_id, log_time)
+        if chunk.size >= self.chunk_size:
+            self._finalize_chunk(derived)
 
     def _count(self, channel_id: int, log_time: np.ndarray) -> None:
         st = self._stats
@@ -225,11 +234,15 @@ class BatchMcapWriter:
         st.message_count += n
         st.channel_message_counts[channel_id] += n
 
-    def _finalize_chunk(self) -> None:
-        chunk = self._chunk
-        if not chunk.blocks:
+    def _finalize_chunk(self, derived: bool | None = None) -> None:
+        """Close the open chunk of measured (False) or derived (True) channels; None: both."""
+        if derived is None:
+            for kind in sorted(self._open):
+                self._finalize_chunk(kind)
             return
-        self._chunk = _OpenChunk()
+        chunk = self._open.pop(derived, None)
+        if chunk is None or not chunk.blocks:
+            return
         self._stats.chunk_count += 1
         data = b"".join(chunk.blocks)
         if self._compress_in is None:
@@ -293,7 +306,7 @@ class BatchMcapWriter:
         ((channel, log time, data, sequence): why it ends) and close it with its summary. False when even
         that could not be written: the file then ends at the last flush, torn but whole up to it."""
         offset, chunks, metadata, attachments, stats = self._good
-        self._chunk = _OpenChunk()
+        self._open.clear()
         for _, _, future in self._compressing:  # chunks after the last flush: dropped with the rest
             future.cancel()
         self._compressing.clear()
