@@ -332,6 +332,29 @@ class SafetySpec(Part):
     _limits = (("workspace_min_m", "<", "workspace_max_m"),)
 
 
+class FittedValue(Part):
+    """One fitted parameter: its value, standard error and the nominal description's value (SI units)."""
+
+    value: float
+    stderr: NonNegFloat
+    nominal: float
+
+
+class FittedBlock(Part):
+    """What `vslab twin fit` fitted into this description (``pipeline.twin_fit``): from which dataset, with
+    which code, how well (the tracked tip's residual per axis), each value with its standard error, and what
+    the data could not identify, with why (left at the nominal value)."""
+
+    dataset: str
+    code_version: str
+    points: int = Field(ge=0)
+    sessions: int = Field(ge=0)
+    residual_rms_mm: NonNegFloat
+    registration_correction: dict[str, list[float]]  # the tracker registration's rotation vector and shift
+    parameters: dict[str, FittedValue]
+    not_identifiable: dict[str, str]
+
+
 # ------------------------------------------------------------------------------------------- the robot
 class RobotDescription(Part):
     """A validated robot description; use :func:`load_robot` to read one."""
@@ -351,6 +374,7 @@ class RobotDescription(Part):
     safety: SafetySpec | None = None
     gravity_m_s2: tuple[float, float, float] = (0.0, 0.0, -9.81)
     effects: EffectsSpec = EffectsSpec()  # unmodelled effects the twin adds (models.effects); none by default
+    fitted: FittedBlock | None = None  # a description `vslab twin fit` wrote: what was fitted, how well
 
     @model_validator(mode="after")
     def _cross_checks(self) -> RobotDescription:

@@ -30,6 +30,7 @@ from pipeline import baselines as B
 from pipeline.clock import ClockFitter
 from pipeline.registration import FixedRegistration, RigidTransform, TrackerRegistration, model_tip
 from pipeline.train import HybridRegressor, TrainConfig, train
+from pipeline.twin_fit import VslStaticFit
 
 
 @dataclass
@@ -87,6 +88,9 @@ def _to_base(est: Estimator, d) -> np.ndarray:
 CASES = {
     "clock": Case(lambda: ClockFitter(tick_s=1e-3), _clock_data, lambda e, d: e.predict(_clock_data(d)[0])),
     "registration": Case(lambda: TrackerRegistration(load_robot("vsl")), _static_points, _to_base),
+    "twin-fit-vsl": Case(
+        lambda: VslStaticFit("vsl"), lambda d: (d,), lambda e, d: e.table()["value"].dropna().to_numpy()
+    ),
     "registration-borrowed": Case(
         lambda: FixedRegistration(BASE_TO_TRACKER.matrix().tolist(), "campaign@v1"), _static_points, _to_base
     ),

@@ -18,6 +18,7 @@ from vslab import (
     models_cmds,  # noqa: F401  (registers train and models on the app)
     recording,  # noqa: F401  (registers record and run on the app)
     sessions_cmds,  # noqa: F401  (registers sessions on the app)
+    twin_cmds,  # noqa: F401  (registers twin fit on the app)
 )
 from vslab.app import (
     HISTORY_NOT_STORED,

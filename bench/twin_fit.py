@@ -1,0 +1,73 @@
+"""The twin fit's time on the paper-size campaign (issue 33): `pipeline.twin_fit.VslStaticFit` on the
+17,568 settled points of a campaign simulated on the nominal VSL twin (128 benches), beside its target (under
+60 s on 2 cores), with the machine's load average and each fitted value against the description it was
+simulated with.
+
+    python bench/twin_fit.py [--points N] [--benches B] [--lab DIR]
+
+``--lab DIR``: a lab whose ``campaign`` dataset is fitted (simulated and built there first if it has none).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+TARGET_S = 60.0
+
+
+def _load() -> str:
+    return " ".join(f"{v:.2f}" for v in os.getloadavg())
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--points", type=int, default=17568, help="campaign points (the paper's n = 17568)")
+    parser.add_argument("--benches", type=int, default=128, help="campaign sessions (twin benches)")
+    parser.add_argument("--lab", type=Path, default=None, help="a lab to fit (its campaign dataset)")
+    args = parser.parse_args()
+
+    from acquisition.recorder.sessions import SessionStore
+    from pipeline.build import build
+    from pipeline.dataset_store import DatasetError
+    from pipeline.lab import Lab
+    from pipeline.twin_fit import VslStaticFit
+    from twin.runner import simulate_experiment
+
+    print(f"bench/twin_fit.py on {os.cpu_count()} cores, load average at the start {_load()}", flush=True)
+    with tempfile.TemporaryDirectory(prefix="twin-fit-") as scratch:
+        where = args.lab or Path(scratch) / "lab"
+        lab = Lab(where)
+        try:
+            data, _ = lab.datasets.load("campaign")
+        except DatasetError:
+            start = time.perf_counter()
+            simulate_experiment("campaign", SessionStore(where / "sessions"), benches=args.benches,
+                                overrides={"points": args.points})  # fmt: skip
+            report = build(sorted((where / "sessions").iterdir()), lab, "campaign")
+            data, _ = lab.datasets.load("campaign", report.version)
+            print(f"campaign simulated and built: {time.perf_counter() - start:.1f} s", flush=True)
+        start = time.perf_counter()
+        fit = VslStaticFit("vsl").fit(data)
+        took = time.perf_counter() - start
+    table = fit.table()
+    table["off_%"] = 100 * (table["value"] / table["nominal"] - 1)
+    table["off_se"] = (table["value"] - table["nominal"]) / table["stderr"]
+    print(table.drop(columns="why").to_string(index=False, float_format=lambda v: f"{v:.6g}"))
+    print(f"not identifiable: {', '.join(fit.not_identifiable_)}")
+    verdict = "ok" if took < TARGET_S else "MISSED"
+    print(f"\nfit of {fit.n_points_:,} points ({fit.n_sessions_} sessions): {took:.1f} s   "
+          f"target < {TARGET_S:.0f} s {verdict}   (load {_load()}; tip residual "
+          f"{fit.residual_rms_mm_:.3f} mm per axis)")  # fmt: skip
+    return 0 if took < TARGET_S else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
