@@ -61,24 +61,29 @@ class VslStaticFit(Estimator):
     ``robot``: the nominal description (a name, a path or a :class:`RobotDescription`). ``min_weight``: a
     table pressure is identifiable when the points' interpolation weights on it sum to at least this (about
     that many points recorded at it). ``iterations``: of the statics' fixed point δ = M(q, δ, m)/k.
+    ``substeps``: torques a move between two points is followed by. ``fit_parameters`` False: only the
+    registration's correction is fitted, the description kept as it is (its own prediction: ``vslab twin
+    check``).
 
     Learns ``robot_`` (the nominal description), ``values_`` / ``stderr_`` / ``nominal_`` (parameter name →
     value, standard error, nominal value; lengths in m, stiffness in N·m/rad), ``not_identifiable_``
     (parameter → why), ``correction_`` (the registration's rotation vector in rad and translation in m),
-    ``residual_rms_mm_`` (of the fitted tip, per axis), ``n_points_`` and ``n_sessions_``.
+    ``residual_rms_mm_`` (of the fitted tip, per axis), ``errors_mm_`` (each point's distance from the fitted
+    tip, NaN where a point could not be used), ``n_points_`` and ``n_sessions_``.
     """
 
     def __init__(self, robot: RobotDescription | str = "vsl", min_weight: float = 20.0,
-                 iterations: int = 3, substeps: int = 8) -> None:  # fmt: skip
+                 iterations: int = 3, substeps: int = 8, fit_parameters: bool = True) -> None:  # fmt: skip
         self.robot = robot
         self.min_weight = min_weight
         self.iterations = iterations
         self.substeps = substeps
+        self.fit_parameters = fit_parameters
 
     # ------------------------------------------------------------------------------------------ fit
     def fit(self, points: pd.DataFrame) -> VslStaticFit:
         robot = load_robot(self.robot) if isinstance(self.robot, str) else self.robot
-        links = _check(robot, points)
+        links = _check(robot, points, same_name=self.fit_parameters)
         channels = [f"p_{link.pressure_channel or 0}" for link in links]
         ok = np.isfinite(points[[*NEEDED, *channels]].to_numpy(float)).all(axis=1)
         rows = points.loc[ok]
@@ -109,6 +114,8 @@ class VslStaticFit(Estimator):
                 else:
                     hidden[name] = (f"{w.sum():.1f} points' worth recorded near {pk / 1e5:g} bar "
                                     f"(the fit needs {self.min_weight:g})")  # fmt: skip
+        if not self.fit_parameters:
+            free, hidden = [], {}
         unit = {"_m": 1e-3, "_rad": 1e-4}  # fitted in mm, 0.1 mrad and % of k
         scale = np.array([unit.get(n[n.rfind("_") :], 0.01 * nominal[n]) for n in free])
 
@@ -153,6 +160,8 @@ class VslStaticFit(Estimator):
             "translation_m": [float(v) for v in shift],
         }
         self.residual_rms_mm_ = float(np.sqrt(np.mean(r**2)))
+        self.errors_mm_ = np.full(len(points), np.nan)
+        self.errors_mm_[ok] = np.linalg.norm(r.reshape(-1, 3), axis=1)
         self.n_points_ = len(rows)
         self.n_sessions_ = len(set(sessions.tolist()))
         return self
@@ -238,15 +247,17 @@ class VslStaticFit(Estimator):
         }
 
 
-def _check(robot: RobotDescription, points: pd.DataFrame) -> list:
-    """The links the fit bends (those with virtual joints), or a ``TwinFitError`` saying what is missing."""
+def _check(robot: RobotDescription, points: pd.DataFrame, same_name: bool = True) -> list:
+    """The links the fit bends (those with virtual joints), or a ``TwinFitError`` saying what is missing.
+    ``same_name``: the points must be of the robot of that name (a fit; a check compares other descriptions
+    of the arm, a fitted one among them, with its points)."""
     if not isinstance(robot.kinematics, AnthropomorphicKinematics) or robot.servo is None:
         raise TwinFitError(f"robot {robot.name!r} is not a VSL-type arm (anthropomorphic, servo-driven): "
                            "its static fit is not built")  # fmt: skip
     if not len(points):
         raise TwinFitError("the dataset has no settled points")
-    if "robot" in points and (others := sorted(set(points["robot"].astype(str)) - {robot.name})):
-        known = sorted(set(points["robot"].astype(str)))
+    known = sorted(set(points["robot"].astype(str))) if "robot" in points else [robot.name]
+    if same_name and (others := sorted(set(known) - {robot.name})):
         if robot.name not in known:
             raise TwinFitError(f"the dataset's points are of robot {', '.join(known)}, not {robot.name}")
         raise TwinFitError(f"the dataset mixes robots ({', '.join(known)}): fit one robot's points, not "

@@ -16,6 +16,7 @@ import yaml
 from typer.testing import CliRunner
 
 from models.robot import load_robot
+from pipeline.twin_check import twin_check
 from pipeline.twin_fit import TwinFitError, VslStaticFit
 from vslab.cli import app
 
@@ -94,6 +95,25 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
         and "2.5 bar" in fit.not_identifiable_["upper_vsl.k@2.5bar"]
     )
 
+    # a held-out campaign of the lab's arm and its repeat (the floor): the fitted twin predicts it within
+    # 1.3× the floor; the nominal twin, the papers' arm, about 3.5× off
+    written = tmp_path / "fitted.yaml"
+    written.write_text(yaml.safe_dump(fit.description("vsl_fitted", "vsl", "campaign", "test")))
+    held_out = {}
+    for order in ("drawn", "shuffled"):
+        sub = tmp_path / order
+        simulate_experiment("campaign", SessionStore(sub / "sessions"), seed=7, benches=16,
+                            overrides={"points": 1000, "robot": str(tmp_path / "lab_robot.yaml"),
+                                       "visit_order": order})  # fmt: skip
+        built = build(sorted((sub / "sessions").iterdir()), Lab(sub), "campaign")
+        held_out[order] = Lab(sub).datasets.load("campaign", built.version)[0]
+    table = twin_check({"nominal": load_robot("vsl"), "fitted": load_robot(written)}, held_out["drawn"],
+                       held_out["shuffled"])  # fmt: skip
+    overall = table[table["pressure_bin"] == "all"].iloc[0]
+    assert overall["n"] == 1000 and len(table) == 16  # 3 pressure bins × 5 payloads, and all
+    assert overall["fitted_mm_mean"] <= 1.3 * overall["floor_mm_mean"], overall.to_dict()
+    assert overall["nominal_mm_mean"] > 2 * overall["fitted_mm_mean"], overall.to_dict()
+
 
 @pytest.fixture(scope="module")
 def lab(campaign_dataset, tmp_path_factory):
@@ -124,6 +144,20 @@ def test_the_command_writes_a_description_the_twin_loads(lab):
     )  # 0.1 bar: nominal
     assert robot.masses == load_robot("vsl").masses  # what was not fitted is the nominal description's
     assert all(np.isfinite(v.stderr) and v.stderr > 0 for v in fitted.values())
+
+
+def test_the_check_tables_each_description_per_cell(lab):
+    path, _ = lab
+    fitted = path / "twin" / "vsl_fitted.yaml"
+    if not fitted.exists():
+        assert runner.invoke(app, ["--lab", str(path), "twin", "fit", "--dataset", "campaign"]).exit_code == 0
+    result = runner.invoke(app, ["--lab", str(path), "twin", "check", "--robot", str(fitted),
+                                 "--dataset", "campaign"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert "vsl_fitted mm" in result.output and "vsl mm" in result.output and "│ all" in result.output
+    result = runner.invoke(app, ["--lab", str(path), "twin", "check", "--robot", str(fitted),
+                                 "--dataset", "campaign", "--repeat", "nothing"])  # fmt: skip
+    assert result.exit_code == 2 and result.output.startswith("error: --repeat")
 
 
 @pytest.mark.parametrize(

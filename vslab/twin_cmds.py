@@ -74,3 +74,46 @@ def twin_fit(
         console.print(f"tip residual {fit.residual_rms_mm_:.3f} mm per axis over {fit.n_points_} points "
                       f"of {fit.n_sessions_} sessions")  # fmt: skip
         console.print(f"written: {target}")
+
+
+@twin_app.command("check")
+def twin_check(
+    robot: Annotated[str, typer.Option(help="The description to check (a fitted one: a path).")],
+    dataset: Annotated[
+        str, typer.Option(help="A dataset of the lab's robot the fit did not see: NAME[@VERSION].")
+    ],
+    nominal: Annotated[str, typer.Option(help="The description to compare with (a name or a path).")] = "vsl",
+    repeat: Annotated[
+        str | None, typer.Option(help="The dataset's repeat (its points in another order): the floor beside.")
+    ] = None,
+) -> None:
+    """How well a description predicts a dataset's tracked tips, per pressure × payload cell, beside the
+    nominal description's and (given the dataset's repeat) the floor: what no static model predicts."""
+    from pipeline.dataset_store import DatasetError
+    from pipeline.twin_check import twin_check as check
+    from pipeline.twin_fit import TwinFitError
+
+    checked, compared = _robot(robot), _robot(nominal)
+    lab = options().lab
+    loaded = {}
+    for option, reference in (("--dataset", dataset), ("--repeat", repeat)):
+        if reference is None:
+            continue
+        name, _, version = reference.partition("@")
+        try:
+            loaded[option] = lab.datasets.load(name, version or None)[0]
+        except DatasetError as exc:
+            _error(f"{option} {exc}")
+    try:
+        table = check({"nominal": compared, "checked": checked}, loaded["--dataset"], loaded.get("--repeat"))
+    except (TwinFitError, ValueError) as exc:
+        _error(f"--dataset {dataset}: {exc}")
+    shown = Table("pressure", "payload g", "n", f"{compared.name} mm", f"{checked.name} mm",
+                  *(["floor mm", f"{checked.name} / floor"] if repeat else []))  # fmt: skip
+    for row in table.itertuples():
+        cells = [row.pressure_bin, "all" if row.payload_g < 0 else f"{row.payload_g:g}", f"{row.n}",
+                 f"{row.nominal_mm_mean:.3f}", f"{row.checked_mm_mean:.3f}"]  # fmt: skip
+        if repeat:
+            cells += [f"{row.floor_mm_mean:.3f}", f"{row.checked_mm_mean / row.floor_mm_mean:.2f}"]
+        shown.add_row(*cells)
+    console.print(shown)
