@@ -116,44 +116,48 @@ class VslStaticFit(Estimator):
                                     f"(the fit needs {self.min_weight:g})")  # fmt: skip
         if not self.fit_parameters:
             free, hidden = [], {}
-        unit = {"_m": 1e-3, "_rad": 1e-4}  # fitted in mm, 0.1 mrad and % of k
-        scale = np.array([unit.get(n[n.rfind("_") :], 0.01 * nominal[n]) for n in free])
-
-        def unpack(z: np.ndarray) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
-            values = dict(nominal)
-            values.update(
-                {n: nominal[n] + s * v for n, s, v in zip(free, scale, z[: len(free)], strict=True)}
-            )
-            return values, z[len(free) : len(free) + 3] * 1e-3, z[len(free) + 3 :] * 1e-3  # mrad, mm
-
-        def residual(z: np.ndarray) -> np.ndarray:
-            values, rotvec, shift = unpack(z)
-            tau_y = [values.get(f"{link.name}.tau_y_nm", 1.0) for link in links]
-            state = _hysteresis_states(path, np.asarray(tau_y), order)
-            tip, _ = self._tip(robot, links, tables, values, q, p, m, state)
-            return ((Rotation.from_rotvec(rotvec).apply(tip) + shift - x) * 1e3).ravel()  # mm
-
-        # each point's hysteresis state, from the nominal arm's torques in each session's order (the path
-        # between two points is taken as one monotone step: the state is an estimate)
+        # each point's hysteresis state follows the nominal arm's torques along each session's moves
         _, torque = self._tip(robot, links, tables, nominal, q, p, m, 0.0)
         t = rows["t"].to_numpy(float) if "t" in rows else np.arange(len(rows), dtype=float)
         order = _session_order(sessions, t)
         path = _path_torques(robot, q, m, order, torque, self.substeps)
-        start = np.zeros(len(free) + 6)
-        fit = least_squares(residual, start, method="trf", x_scale=1.0)
-        values, rotvec, shift = unpack(fit.x)
-        jac = fit.jac[:, : len(free) + 6]
-        r = fit.fun
-        cov = _clustered_covariance(jac, r, np.repeat(sessions, 3))
-        se = np.sqrt(np.clip(np.diag(cov)[: len(free)], 0.0, None)) * scale
-        # a direction the points do not constrain: its error is as large as the nominal value's own scale
-        for n, e in zip(free, se, strict=True):
-            if not np.isfinite(e) or e > 0.5 * abs(nominal[n]):
-                hidden[n] = f"the points do not constrain it (standard error {e:.3g})"
+
+        def solve(free: list[str]) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, dict]:
+            """Values, registration rotation and shift, residuals (mm) and standard errors of ``free``."""
+            unit = {"_m": 1e-3, "_rad": 1e-4}  # fitted in mm, 0.1 mrad and % of k
+            scale = np.array([unit.get(n[n.rfind("_") :], 0.01 * nominal[n]) for n in free])
+
+            def unpack(z: np.ndarray) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
+                values = dict(nominal)
+                values.update({n: nominal[n] + s * v for n, s, v in zip(free, scale, z, strict=False)})
+                return values, z[len(free) : len(free) + 3] * 1e-3, z[len(free) + 3 :] * 1e-3  # mrad, mm
+
+            def residual(z: np.ndarray) -> np.ndarray:
+                values, rotvec, shift = unpack(z)
+                tau_y = [values.get(f"{link.name}.tau_y_nm", 1.0) for link in links]
+                state = _hysteresis_states(path, np.asarray(tau_y), order)
+                tip, _ = self._tip(robot, links, tables, values, q, p, m, state)
+                return ((Rotation.from_rotvec(rotvec).apply(tip) + shift - x) * 1e3).ravel()  # mm
+
+            fit = least_squares(residual, np.zeros(len(free) + 6), method="trf", x_scale=1.0)
+            cov = _clustered_covariance(fit.jac, fit.fun, np.repeat(sessions, 3))
+            se = np.sqrt(np.clip(np.diag(cov)[: len(free)], 0.0, None)) * scale
+            return *unpack(fit.x), fit.fun, dict(zip(free, se.tolist(), strict=True))
+
+        # what the points cannot constrain, or a loop no link can hold, is named and the rest fitted again
+        while True:  # ends: each pass that does not end it takes at least one name out of ``free``
+            values, rotvec, shift, r, se = solve(free)
+            dropped = {n: f"the points do not constrain it (standard error {e:.3g})" for n, e in se.items()
+                       if not np.isfinite(e) or e > 0.5 * abs(nominal[n])}  # fmt: skip
+            dropped |= _impossible_loops(links, tables, values, free, se)
+            if not dropped:
+                break
+            hidden |= dropped
+            free = [n for n in free if n not in dropped]
         self.robot_ = robot
         self.nominal_ = nominal
-        self.values_ = {n: float(values[n]) for n in free if n not in hidden}
-        self.stderr_ = {n: float(e) for n, e in zip(free, se, strict=True) if n not in hidden}
+        self.values_ = {n: float(values[n]) for n in free}
+        self.stderr_ = {n: float(se[n]) for n in free}
         self.not_identifiable_ = hidden
         self.correction_ = {
             "rotation_rad": [float(v) for v in rotvec],
@@ -220,10 +224,13 @@ class VslStaticFit(Estimator):
                     "damping_nms_per_rad": list(table.damping_nms_per_rad),
                 }
             if link.hysteresis is not None:
-                data["hysteresis"] = {
+                loop = {
                     field: float(values.get(f"{link.name}.{field}", getattr(link.hysteresis, field)))
                     for field in ("delta_h_rad", "tau_y_nm")
                 }
+                k_max = max(values[_knot(link.name, pk)] for pk in robot.link_table(link.name).pressure_pa)
+                loop["tau_y_nm"] = max(loop["tau_y_nm"], k_max * loop["delta_h_rad"])  # within 2 SE of it
+                data["hysteresis"] = loop
             links.append(data)
         return {
             "extends": extends,
@@ -340,3 +347,23 @@ def _hysteresis_states(path: np.ndarray, tau_y: np.ndarray, order: np.ndarray) -
             prev[now] = path[rows, sub]
         z[rows] = state[now]
     return z
+
+
+def _impossible_loops(links, tables, values: dict, free: list[str], se: dict) -> dict[str, str]:
+    """The fitted hysteresis of each link whose loop no link can hold (τ_y below k_max·δ_h: the link would
+    deflect against its load) by more than two standard errors of τ_y, with why: the points' history effect
+    is something the statics leave out. (Within two errors of the bound the loop is kept: the description
+    written takes τ_y at the bound.)"""
+    out = {}
+    for link, table in zip(links, tables, strict=True):
+        names = (f"{link.name}.delta_h_rad", f"{link.name}.tau_y_nm")
+        if not set(names) <= set(free):
+            continue
+        delta_h, tau_y = values[names[0]], values[names[1]]
+        bound = max(values[_knot(link.name, pk)] for pk in table.pressure_pa) * delta_h
+        if delta_h < 0 or tau_y <= 0 or tau_y < bound - 2 * se[names[1]]:
+            why = (f"the fitted loop (δ_h {delta_h:.3g} rad, τ_y {tau_y:.3g} N·m) is none a link can hold "
+                   f"(τ_y under k_max·δ_h = {bound:.3g} N·m): the points' history is something the statics "
+                   "leave out (creep, hose torques)")  # fmt: skip
+            out |= dict.fromkeys(names, why)
+    return out

@@ -56,8 +56,11 @@ def twin_fit(
     fitted = fit.description(f"{nominal.name}_fitted", extends, f"{name}@{version}",
                              code_version("pipeline.twin_fit"))  # fmt: skip
     text = yaml.safe_dump(fitted, sort_keys=False, allow_unicode=True, width=110, default_flow_style=None)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    target.write_text(f"# written by `vslab twin fit --robot {robot} --dataset {name}@{version}`\n{text}")
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_text(f"# written by `vslab twin fit --robot {robot} --dataset {name}@{version}`\n{text}")
+    except OSError as exc:
+        _error(f"--out {target}: cannot be written ({exc.strerror or exc})")
     try:
         load_robot(target)  # what was written must be a description the twin can run
     except RobotDescriptionError as exc:
@@ -106,8 +109,10 @@ def twin_check(
             _error(f"{option} {exc}")
     try:
         table = check({"nominal": compared, "checked": checked}, loaded["--dataset"], loaded.get("--repeat"))
-    except (TwinFitError, ValueError) as exc:
+    except TwinFitError as exc:
         _error(f"--dataset {dataset}: {exc}")
+    except ValueError as exc:  # the repeat is not this dataset's campaign in another order
+        _error(f"--repeat {repeat}: {exc}")
     shown = Table("pressure", "payload g", "n", f"{compared.name} mm", f"{checked.name} mm",
                   *(["floor mm", f"{checked.name} / floor"] if repeat else []))  # fmt: skip
     for row in table.itertuples():
