@@ -20,6 +20,8 @@ from models.robot import RobotDescriptionError, load_robot
 from pipeline.lab import Lab
 
 if TYPE_CHECKING:  # torch: imported by the commands that use models
+    import pandas as pd
+
     from pipeline.model_store import ModelStore
 
 try:  # typer ≥ 0.2x carries its own click, whose exceptions derive from TyperException
@@ -134,6 +136,19 @@ def _robot(name: str):
         return load_robot(name)
     except RobotDescriptionError as exc:
         _error(str(exc))
+
+
+def load_dataset(option: str, reference: str) -> tuple[pd.DataFrame, str]:
+    """The dataset a command was given as ``option`` (``NAME`` or ``NAME@VERSION``) from the lab: its rows (D)
+    and ``name@version``, or one error line that names the option."""
+    name, _, version = reference.partition("@")
+    try:
+        data, card = options().lab.datasets.load(name, version or None)
+    except FileNotFoundError as exc:  # the store's DatasetNotFound says what is there and how to build it
+        _error(f"{option} {reference}: {exc}")
+    except (OSError, ValueError) as exc:
+        _error(f"{option} {reference}: cannot be read ({type(exc).__name__}: {exc}); build it again")
+    return data, f"{name}@{card['version']}"
 
 
 # ------------------------------------------------------------------------------------------------ --set

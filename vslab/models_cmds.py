@@ -12,7 +12,7 @@ from typing import Annotated
 import typer
 from rich.table import Column, Table
 
-from vslab.app import _error, _overrides, app, console, options
+from vslab.app import _error, _overrides, app, console, load_dataset, options
 
 models_app = typer.Typer(help="Trained networks in <lab>/models/.", no_args_is_help=True)
 app.add_typer(models_app, name="models")
@@ -345,18 +345,11 @@ def compare_models_command(
     lab = options().lab
     if split not in _SPLITS:
         _error(f"--split {split!r}: expected one of {', '.join(_SPLITS)}")
-    loaded = {}
-    for option, reference in (("DATASET", dataset), ("--repeat", repeat)):
-        if reference is None:
-            continue
-        name, _, version = reference.partition("@")
-        try:
-            data, card = lab.datasets.load(name, version or None)
-        except FileNotFoundError as exc:
-            _error(f"{option} {reference}: {exc} (build it first: `vslab build --name {name}`)")
-        except (OSError, ValueError) as exc:
-            _error(f"{option} {reference}: cannot be read ({type(exc).__name__}: {exc}); build it again")
-        loaded[option] = (data, f"{name}@{card['version']}")
+    loaded = {
+        option: load_dataset(option, reference)
+        for option, reference in (("DATASET", dataset), ("--repeat", repeat))
+        if reference is not None
+    }
     data, dataset_ref = loaded["DATASET"]
     if "--repeat" in loaded and loaded["--repeat"][1] == dataset_ref:
         _error(f"--repeat {repeat}: is DATASET itself ({dataset_ref}); the repeat is the campaign run again")

@@ -11,7 +11,7 @@ import yaml
 from rich.table import Table
 
 from models.robot import CONFIG_DIR, RobotDescriptionError, load_robot, robot_path
-from vslab.app import _error, _robot, console, options, twin_app
+from vslab.app import _error, _robot, console, load_dataset, options, twin_app
 
 
 @twin_app.command("fit")
@@ -32,33 +32,27 @@ def twin_fit(
     to a dataset of the lab's robot and write a description that extends the nominal one, each value with its
     standard error; what the data cannot identify is named, with why, and left nominal."""
     from acquisition.code_version import code_version
-    from pipeline.dataset_store import DatasetError
     from pipeline.twin_fit import TwinFitError, VslStaticFit
 
     nominal = _robot(robot)
     lab = options().lab
-    name, _, version = dataset.partition("@")
-    try:
-        data, _ = lab.datasets.load(name, version or None)
-        name, version = lab.datasets.resolve(dataset)
-    except DatasetError as exc:
-        _error(f"--dataset {exc}")
+    data, reference = load_dataset("--dataset", dataset)
     try:
         fit = VslStaticFit(nominal).fit(data)
     except TwinFitError as exc:
-        _error(f"--dataset {name}@{version}: {exc}")
+        _error(f"--dataset {reference}: {exc}")
     if out is None and not lab.is_local:
         _error(f"--lab {lab} is on a store: give --out FILE for the fitted description")
     target = out if out is not None else Path(str(lab.twin)) / f"{nominal.name}_fitted.yaml"
     base = robot_path(robot)
     extends = nominal.name if base.resolve().parent == CONFIG_DIR.resolve() else os.path.relpath(
         base.resolve(), target.resolve().parent)  # fmt: skip
-    fitted = fit.description(f"{nominal.name}_fitted", extends, f"{name}@{version}",
+    fitted = fit.description(f"{nominal.name}_fitted", extends, reference,
                              code_version("pipeline.twin_fit"))  # fmt: skip
     text = yaml.safe_dump(fitted, sort_keys=False, allow_unicode=True, width=110, default_flow_style=None)
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
-        target.write_text(f"# written by `vslab twin fit --robot {robot} --dataset {name}@{version}`\n{text}")
+        target.write_text(f"# written by `vslab twin fit --robot {robot} --dataset {reference}`\n{text}")
     except OSError as exc:
         _error(f"--out {target}: cannot be written ({exc.strerror or exc})")
     try:
@@ -92,21 +86,15 @@ def twin_check(
 ) -> None:
     """How well a description predicts a dataset's tracked tips, per pressure × payload cell, beside the
     nominal description's and (given the dataset's repeat) the floor: what no static model predicts."""
-    from pipeline.dataset_store import DatasetError
     from pipeline.twin_check import twin_check as check
     from pipeline.twin_fit import TwinFitError
 
     checked, compared = _robot(robot), _robot(nominal)
-    lab = options().lab
-    loaded = {}
-    for option, reference in (("--dataset", dataset), ("--repeat", repeat)):
-        if reference is None:
-            continue
-        name, _, version = reference.partition("@")
-        try:
-            loaded[option] = lab.datasets.load(name, version or None)[0]
-        except DatasetError as exc:
-            _error(f"{option} {exc}")
+    loaded = {
+        option: load_dataset(option, reference)[0]
+        for option, reference in (("--dataset", dataset), ("--repeat", repeat))
+        if reference is not None
+    }
     try:
         table = check({"nominal": compared, "checked": checked}, loaded["--dataset"], loaded.get("--repeat"))
     except TwinFitError as exc:
