@@ -42,6 +42,7 @@ from models.estimator import Estimator
 from models.prbm import bouc_wen_step, interp_table
 from models.robot import AnthropomorphicKinematics, RobotDescription, load_robot
 from models.statics import gravity_moments
+from pipeline.errors import PipelineError
 
 MEASURED_Q = ("q_0", "q_1", "q_2")
 TIP = ("x_0", "x_1", "x_2")
@@ -51,7 +52,7 @@ L1_CONFOUNDED = (
 )
 
 
-class TwinFitError(ValueError):
+class TwinFitError(PipelineError, ValueError):
     """Data a fit cannot use (no rows, missing columns, another kind of robot); the message says which."""
 
 
