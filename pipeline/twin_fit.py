@@ -100,7 +100,6 @@ class VslStaticFit(Estimator):
         nominal: dict[str, float] = {"l2_m": robot.kinematics.l2_m, "l3_m": robot.kinematics.l3_m}
         free: list[str] = ["l2_m", "l3_m"]
         hidden: dict[str, str] = {"l1_m": L1_CONFOUNDED}
-        weights = {}
         for link, table, pv in zip(links, tables, p.T, strict=True):
             if link.hysteresis is not None:  # the loop's half width: how far a point falls short of τ/k
                 nominal[f"{link.name}.delta_h_rad"] = link.hysteresis.delta_h_rad
@@ -109,7 +108,7 @@ class VslStaticFit(Estimator):
             for j, (pk, k) in enumerate(zip(table.pressure_pa, table.stiffness_nm_per_rad, strict=True)):
                 name = _knot(link.name, pk)
                 nominal[name] = k
-                weights[name] = w = _hat(pv, table.pressure_pa, j)
+                w = _hat(pv, table.pressure_pa, j)
                 if w.sum() >= self.min_weight:
                     free.append(name)
                 else:
