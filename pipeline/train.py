@@ -7,6 +7,7 @@ Seeded and deterministic on CPU: the same data, config, seed and thread count gi
 from __future__ import annotations
 
 import contextlib
+import copy
 import logging
 import os
 import time
@@ -20,7 +21,7 @@ import torch
 from models import kinematics
 from models.estimator import Estimator
 from models.hybrid import HybridNet, NetConfig
-from models.robot import AnthropomorphicKinematics, load_robot
+from models.robot import AnthropomorphicKinematics, RobotDescription, load_robot
 from pipeline import metrics as pipeline_metrics
 from pipeline.datasets import SPLIT_COLUMNS
 
@@ -84,25 +85,41 @@ def _rows(data: pd.DataFrame, net: NetConfig, split: str, part: str) -> pd.DataF
 
 @lru_cache(maxsize=8)
 def _lengths(robot: str) -> kinematics.ArmLengths:
-    kin = load_robot(robot).kinematics
+    return _description_lengths(load_robot(robot))
+
+
+def _description_lengths(description: RobotDescription) -> kinematics.ArmLengths:
+    kin = description.kinematics
     if not isinstance(kin, AnthropomorphicKinematics):
-        raise ValueError(f"robot {robot!r}: the hybrid nets are defined for the anthropomorphic VSL arm")
+        raise ValueError(f"robot {description.name!r}: the hybrid nets are defined for the anthropomorphic "
+                         "VSL arm")  # fmt: skip
     return kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
 
 
-def _robot_lengths(data: pd.DataFrame) -> kinematics.ArmLengths:
+Robot = RobotDescription | str | None  # a description, a name or a path; None: each row's ``robot`` by name
+
+
+def _robot_lengths(data: pd.DataFrame, robot: Robot = None) -> kinematics.ArmLengths:
+    """The link lengths whose rigid FK scores an inverse net's joints as a tip error: ``robot``'s, or those
+    of the one robot named in the rows (a dataset of a description that is a file, such as a fitted twin's
+    campaign, names its description: ``robot`` gives it)."""
+    if isinstance(robot, RobotDescription):
+        return _description_lengths(robot)
+    if robot is not None:
+        return _lengths(str(robot))
     robots = data["robot"].unique() if "robot" in data else ["vsl"]
     if len(robots) != 1:
         raise ValueError(f"dataset mixes robots {list(robots)}: evaluate one robot at a time")
     return _lengths(str(robots[0]))
 
 
-def _errors(direction: str, pred: np.ndarray, rows: pd.DataFrame, targets) -> dict[str, np.ndarray]:
+def _errors(direction: str, pred: np.ndarray, rows: pd.DataFrame, targets,
+            robot: Robot = None) -> dict[str, np.ndarray]:  # fmt: skip
     """Per-row errors: tip (mm) for both directions, joint (mrad, the norm over joints) for inverse."""
     y = rows[list(targets)].to_numpy(float)
     if direction == "forward":
         return {"tip_mm": np.linalg.norm(pred - y, axis=1) * 1e3}
-    lengths = _robot_lengths(rows)
+    lengths = _robot_lengths(rows, robot)
     tip = np.linalg.norm(kinematics.vsl_fk(pred, lengths) - kinematics.vsl_fk(y, lengths), axis=1)
     return {"joint_mrad": np.linalg.norm(pred - y, axis=1) * 1e3, "tip_mm": tip * 1e3}
 
@@ -121,7 +138,7 @@ def _torch_settings(threads: int):
 
 
 def _descend(net: HybridNet, config: TrainConfig, tr: pd.DataFrame, va: pd.DataFrame,
-             result: TrainResult) -> list[float]:  # fmt: skip
+             result: TrainResult, robot: Robot = None) -> list[float]:  # fmt: skip
     """Adam epochs over ``tr`` in a seeded order until ``val`` stops improving for ``config.patience``
     epochs; the net ends with its best weights, ``result`` with the curves. Returns each epoch's time (s)."""
     device = net.in_mean.device
@@ -154,7 +171,8 @@ def _descend(net: HybridNet, config: TrainConfig, tr: pd.DataFrame, va: pd.DataF
         epoch_times.append(time.perf_counter() - t0)
         result.train_loss.append(total / len(xs_tr))
         result.val_loss.append(val_loss)
-        result.val_error_mm.append(float(_errors(cols.direction, pred, va, cols.targets)["tip_mm"].mean()))
+        errors = _errors(cols.direction, pred, va, cols.targets, robot)
+        result.val_error_mm.append(float(errors["tip_mm"].mean()))
         if val_loss < best:
             best, result.best_epoch = val_loss, epoch
             best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
@@ -172,18 +190,30 @@ class HybridRegressor(Estimator):
     :class:`TrainResult`: curves, best epoch, timings). ``predict(rows)`` gives the outputs (n, 3) of a
     DataFrame holding the net's input columns (or of an (n, 7) array). Randomness comes from
     ``config.seed``; ``threads`` (default: every core) and ``device`` (default: CUDA if there is one) are
-    part of what makes a run bit-identical."""
+    part of what makes a run bit-identical.
+
+    ``pretrained``: a net of the same :class:`NetConfig` to start from, its weights and its input and output
+    scaling (fine-tuning a net pretrained on the twin's campaign, ``pipeline.pretrain``; it is copied, never
+    changed). ``robot``: the description (or its name or file) whose rigid FK turns an inverse net's joints
+    into the validation tip error; by default the robot the rows name (a dataset of a fitted twin, whose
+    description is a file, needs it)."""
 
     def __init__(self, config: TrainConfig | None = None, threads: int | None = None,
-                 device: str | None = None) -> None:  # fmt: skip
+                 device: str | None = None, pretrained: HybridNet | None = None,
+                 robot: Robot = None) -> None:  # fmt: skip
         self.config = config
         self.threads = threads
         self.device = device
+        self.pretrained = pretrained
+        self.robot = robot
 
     def fit(self, data: pd.DataFrame) -> HybridRegressor:
         config = self.config
         if config is None:
             raise ValueError("HybridRegressor needs a TrainConfig (its net, optimiser and split)")
+        if self.pretrained is not None and self.pretrained.config != config.net:
+            raise ValueError(f"pretrained net is {self.pretrained.config}, the config's is {config.net}: "
+                             "fine-tuning starts from a net of the same shape")  # fmt: skip
         tr, va = (_rows(data, config.net, config.split, p) for p in ("train", "val"))
         if len(tr) < 2 or len(va) < 1:
             raise ValueError(f"{config.split}: needs ≥ 2 train and ≥ 1 val rows, has {len(tr)} and {len(va)}")
@@ -194,14 +224,17 @@ class HybridRegressor(Estimator):
         start = time.perf_counter()
         with _torch_settings(self.threads or os.cpu_count() or 1), torch.random.fork_rng(devices=[]):
             torch.manual_seed(config.seed)  # the initial weights
-            x_tr, y_tr = (tr[list(c)].to_numpy(float) for c in (config.net.inputs, config.net.targets))
-            net = HybridNet(config.net).fit_scaler(x_tr, y_tr).to(device)
-            epoch_times = _descend(net, config, tr, va, result)
+            if self.pretrained is not None:
+                net = copy.deepcopy(self.pretrained).to(device)
+            else:
+                x_tr, y_tr = (tr[list(c)].to_numpy(float) for c in (config.net.inputs, config.net.targets))
+                net = HybridNet(config.net).fit_scaler(x_tr, y_tr).to(device)
+            epoch_times = _descend(net, config, tr, va, result, self.robot)
         net.eval()
         result.model = net
         result.train_time_s = time.perf_counter() - start
         result.epoch_time_s = float(np.mean(epoch_times))
-        log.info(
+        log.debug(  # the commands print their own summaries
             "trained %s-%s: %d epochs, best %d, val %.3f mm, %.1f s",
             config.net.direction, config.net.name, len(epoch_times), result.best_epoch,
             result.val_error_mm[result.best_epoch], result.train_time_s,
@@ -216,11 +249,17 @@ class HybridRegressor(Estimator):
 
 
 def train(
-    data: pd.DataFrame, config: TrainConfig, threads: int | None = None, device: str | None = None
+    data: pd.DataFrame,
+    config: TrainConfig,
+    threads: int | None = None,
+    device: str | None = None,
+    pretrained: HybridNet | None = None,
+    robot: Robot = None,
 ) -> TrainResult:
-    """The net and learning curves of ``HybridRegressor(config, threads, device).fit(data)`` (its
-    ``history_``): a convenience for the grid and the benches, which save the net with its curves."""
-    return HybridRegressor(config, threads, device).fit(data).history_
+    """The net and learning curves of ``HybridRegressor(config, threads, device, pretrained, robot)
+    .fit(data)`` (its ``history_``): a convenience for the grid and the benches, which save the net with its
+    curves."""
+    return HybridRegressor(config, threads, device, pretrained, robot).fit(data).history_
 
 
 def model_card(result: TrainResult, dataset: dict, metrics: dict, threads: int | None) -> dict:
@@ -250,10 +289,10 @@ def _summary(err: np.ndarray, prefix: str, unit: str) -> dict[str, float]:
     }
 
 
-def metrics(direction: str, pred: np.ndarray, rows: pd.DataFrame) -> dict:
+def metrics(direction: str, pred: np.ndarray, rows: pd.DataFrame, robot: Robot = None) -> dict:
     """Error summary of predictions ``pred`` (n, 3) for ``rows`` of D (see :func:`evaluate`)."""
     net = NetConfig(direction)
-    errs = _errors(direction, np.asarray(pred, float), rows, net.targets)
+    errs = _errors(direction, np.asarray(pred, float), rows, net.targets, robot)
     out: dict = {"direction": direction, "n": len(rows)}
     if direction == "inverse":
         out |= _summary(errs["joint_mrad"], "joint", "mrad")
@@ -263,17 +302,18 @@ def metrics(direction: str, pred: np.ndarray, rows: pd.DataFrame) -> dict:
     return out | {"per_cell": cells}
 
 
-def evaluate(model: HybridNet, data: pd.DataFrame, split: str = "split_random", part: str = "test") -> dict:
+def evaluate(model: HybridNet, data: pd.DataFrame, split: str = "split_random", part: str = "test",
+             robot: Robot = None) -> dict:  # fmt: skip
     """Errors of ``model`` on one part of D: mean, median, p95, max and ``per_cell`` (p_0 bin × payload).
 
     Forward: the 3-D tip error |x̂ − x| (mm). Inverse: the joint error |q̂ − q| (mrad) and the tip error of the
     rigid FK of q̂ against the rigid FK of q (mm). That is only a proxy: the inverse model's real test is in
     the loop (Experiment 2), where q̂ is commanded and the measured tip is compared with the goal.
+    ``robot``: whose rigid FK that is (by default the robot the rows name).
     """
     rows = _rows(data, model.config, split, part)
-    return metrics(
-        model.config.direction, model.predict(rows[list(model.config.inputs)].to_numpy(float)), rows
-    )
+    pred = model.predict(rows[list(model.config.inputs)].to_numpy(float))
+    return metrics(model.config.direction, pred, rows, robot)
 
 
 def evaluate_rigid(

@@ -24,7 +24,7 @@ from sklearn.base import clone
 
 from models.errors import NotFittedError
 from models.estimator import Estimator
-from models.hybrid import preset
+from models.hybrid import HybridNet, preset
 from models.robot import load_robot
 from pipeline import baselines as B
 from pipeline.clock import ClockFitter
@@ -81,6 +81,17 @@ def _net(direction: str) -> HybridRegressor:
     return HybridRegressor(TrainConfig(preset(direction, "small-residual"), max_epochs=3, seed=2), threads=1)
 
 
+def _fine_tuned() -> HybridRegressor:
+    """An inverse net fine-tuned from a pretrained one (``pipeline.pretrain``): here one whose scaler saw a
+    made-up sample (the contract, not pretraining's worth)."""
+    config = TrainConfig(preset("inverse", "small-residual"), max_epochs=3, seed=2)
+    rng = np.random.default_rng(4)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(4)  # the made-up start's weights: the same at every call
+        start = HybridNet(config.net).fit_scaler(rng.normal(size=(50, 7)), rng.normal(size=(50, 3)))
+    return HybridRegressor(config, threads=1, pretrained=start)
+
+
 def _to_base(est: Estimator, d) -> np.ndarray:
     return est.to_base(_static_points(d)[0].filter(like="tracker_position").to_numpy())
 
@@ -111,6 +122,9 @@ CASES = {
         )
         for direction in ("forward", "inverse")
     },
+    "hybrid-inverse-fine-tuned": Case(
+        _fine_tuned, lambda d: (d,), lambda e, d: e.predict(B.part_of(d, "split_random", "test"))
+    ),
 }
 
 
@@ -159,12 +173,20 @@ def test_fit_learns_underscored_attributes_and_is_deterministic(fitted):
     assert np.isfinite(first).mean() > 0.9
 
 
+def _comparable(params: dict) -> dict:
+    """Parameters as values: a net (a fine-tuned net's start, which clone copies) by its weights."""
+    return {
+        k: {n: t.tolist() for n, t in v.state_dict().items()} if isinstance(v, torch.nn.Module) else v
+        for k, v in params.items()
+    }
+
+
 def test_clone_is_a_fresh_estimator_with_the_same_parameters(fitted):
     est = fitted[0]
     copy = clone(est)
     assert copy is not est and copy.fitted_attributes() == []
     params = est.get_params(deep=False)
-    assert copy.get_params(deep=False) == params
+    assert _comparable(copy.get_params(deep=False)) == _comparable(params)
     name, other = next(iter(params)), object()
     assert copy.set_params(**{name: other}) is copy  # set_params only stores, as the constructor does
     assert copy.get_params(deep=False)[name] is other and est.get_params(deep=False)[name] is params[name]
