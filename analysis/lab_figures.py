@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from analysis import diagnostics, vsl_paths
+from analysis.twin_report import twin_against_robot
 from pipeline.lab import Lab, LabPath, local_folder, upload
 from pipeline.model_store import FORWARD, LAB_TAGS
 from pipeline.session_index import SessionError
@@ -99,6 +100,7 @@ def _all_figures(lab: Lab, out: Path) -> Results:
         ("popup", lambda: _popup(lab, res, out)),
         ("real-time sessions", lambda: _realtime(lab, res)),
         ("unmodelled effects", lambda: _unmodelled(lab, res)),
+        ("the twin against your robot", lambda: twin_against_robot(lab, res, out)),
     ):
         try:
             step()

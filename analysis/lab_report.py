@@ -64,6 +64,18 @@ twin's parameters marked ASSUMED in configs/ are ours, so compare trends with th
 
 SECTIONS = [
     ReportSection(
+        "The twin against your robot",
+        """The description fitted to the lab's own arm (`vslab twin fit`): each value beside the nominal one,
+        with its standard error and how far it moved, and what the data could not identify. Then how well it
+        predicts data the fit did not see, beside the nominal description and the floor (`vslab twin
+        check`), and what pretraining on it saves (`vslab twin curve`): the test error of a network against
+        the measured rows it used, alone and pretrained on the twin's campaign. A fitted twin near the floor
+        predicts what can be predicted; a change of many standard errors is your arm differing from the
+        papers'.""",
+        ("pretraining_curve",),
+        ("your twin",),
+    ),
+    ReportSection(
         "The twin with unmodelled effects: every model beside the floor (mean tip error, mm; grouped split)",
         """Each model's mean tip error on the test sessions of the twin with creep, hysteresis and backlash
         on, beside the floor: the error no static model can go below (the same points visited twice). A model

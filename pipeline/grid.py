@@ -179,8 +179,11 @@ def _net(entry: dict) -> NetConfig:
     return dataclasses.replace(net, **entry)
 
 
-def expand(lab: Lab, grid: dict) -> list[dict]:
-    """The grid's jobs (JSON-able dicts): dataset, TrainConfig dict, model name and version."""
+def expand(lab: Lab, grid: dict, pretrain: dict | None = None) -> list[dict]:
+    """The grid's jobs (JSON-able dicts): dataset, TrainConfig dict, model name and version. ``pretrain``
+    (``{"dataset": "NAME[@VERSION]", "robot": description}``: a twin's campaign, ``pipeline.pretrain``):
+    each job first trains its net on that dataset (a model of its own, ``pretrain.version``), then fine-tunes
+    it on the job's dataset: another version than the job's without pretraining."""
     train = grid.get("train", {})
     if unknown := sorted(set(train) - set(TRAIN_KEYS)):
         raise GridError(f"grid train: unknown fields {unknown} (known: {list(TRAIN_KEYS)})")
@@ -192,6 +195,12 @@ def expand(lab: Lab, grid: dict) -> list[dict]:
     if tagged and each > 1:
         raise GridError("grid models: a tag names one network: tag the models of a grid of one dataset, "
                         "one split and one seed")  # fmt: skip
+    twin = None
+    if pretrain is not None:
+        try:
+            twin = dict(zip(("name", "version"), lab.datasets.resolve(pretrain["dataset"]), strict=True))
+        except DatasetError as exc:
+            raise GridError(f"pretraining dataset {pretrain['dataset']}: {exc}") from None
     for spec in grid.get("datasets", []):
         try:
             dataset, dataset_version = lab.datasets.resolve(spec)
@@ -208,10 +217,15 @@ def expand(lab: Lab, grid: dict) -> list[dict]:
                             f"grid job {net.direction}-{net.name} {split} seed {seed}: {exc}"
                         ) from None
                     name = f"{net.direction}-{net.name}"
-                    jobs.append({
+                    job = {
                         "name": name, "version": model_version(dataset_version, config),
                         "dataset": {"name": dataset, "version": dataset_version}, "config": config.to_dict(),
-                    } | ({"tag": entry["tag"]} if "tag" in entry else {}))  # fmt: skip
+                    } | ({"tag": entry["tag"]} if "tag" in entry else {})  # fmt: skip
+                    if twin is not None:
+                        first = model_version(twin["version"], config)
+                        job["pretrain"] = {"version": first, "dataset": twin, "robot": str(pretrain["robot"])}
+                        job["version"] = model_version(dataset_version, config, pretrained=first)
+                    jobs.append(job)
     return list({job["version"]: job for job in jobs}.values())  # the same job listed twice runs once
 
 
@@ -227,21 +241,48 @@ def _summary(job: dict, card: dict, status: str) -> dict:
 
 def train_job(job: dict, lab: Lab, threads: int = 1) -> dict:
     """Train, evaluate (test part of the job's split) and save one job into ``lab`` (top-level, its arguments
-    pickle: any executor runs it)."""
+    pickle: any executor runs it); a job with ``pretrain`` starts from the net its twin's campaign trained
+    (trained and saved first where it is not in ``lab.models`` yet)."""
     from pipeline.train import evaluate, model_card, train
 
     existing = lab.models.path(job["name"], job["version"])
     if (existing / CARD).is_file():
         return _summary(job, load_card(existing), "existing")
+    pretrained, noted = None, {}
+    if "pretrain" in job:
+        pretrained = _pretrained(job, lab, threads)
+        pre = job["pretrain"]
+        twin = f"{pre['dataset']['name']}@{pre['dataset']['version']}"
+        noted = {"pretrained": {"model": pre["version"], "robot": pre["robot"], "dataset": twin}}
     data, _ = lab.datasets.load(job["dataset"]["name"], job["dataset"]["version"])
     config = TrainConfig.from_dict(job["config"])
-    result = train(data, config, threads=threads, device="cpu")
+    result = train(data, config, threads=threads, device="cpu", pretrained=pretrained)
     card = model_card(result, job["dataset"], evaluate(result.model, data, config.split, "test"), threads)
     try:
-        lab.models.save(job["name"], job["version"], result.model, card)
+        lab.models.save(job["name"], job["version"], result.model, card | noted)
     except FileExistsError:  # another worker finished the same version first: keep theirs
         return _summary(job, load_card(existing), "existing")
-    return _summary(job, jsonable(card), "trained")
+    return _summary(job, jsonable(card | noted), "trained")
+
+
+def _pretrained(job: dict, lab: Lab, threads: int):
+    """The net of ``job``'s config trained on its twin's campaign (``job["pretrain"]``): from ``lab.models``,
+    or trained, scored on the campaign's test part and saved there first."""
+    from pipeline.train import evaluate, model_card, train
+
+    pre = job["pretrain"]
+    if (lab.models.path(job["name"], pre["version"]) / CARD).is_file():
+        return lab.models.load(pre["version"])[0]
+    data, _ = lab.datasets.load(pre["dataset"]["name"], pre["dataset"]["version"])
+    config = TrainConfig.from_dict(job["config"])
+    result = train(data, config, threads=threads, device="cpu", robot=pre["robot"])
+    scores = evaluate(result.model, data, config.split, "test", robot=pre["robot"])
+    try:
+        lab.models.save(job["name"], pre["version"], result.model, model_card(result, pre["dataset"], scores,
+                                                                              threads))  # fmt: skip
+    except FileExistsError:  # another job pretrained the same net first
+        return lab.models.load(pre["version"])[0]
+    return result.model
 
 
 HEAVY_WEIGHTS = 100_000  # a net this large computes more than it waits: torch's threads speed it up
@@ -288,14 +329,16 @@ def run_grid(
     progress: Callable[[int, int, dict], None] | None = None,
     workers: int | None = None,
     threads: int | None = None,
+    pretrain: dict | None = None,
 ) -> list[dict]:
     """Train every job of ``grid`` whose version is not in ``lab.models`` yet; one summary per job, in grid
     order (``status``: "trained" or "existing"). ``progress(done, total, summary)`` after each job.
     ``workers``, ``threads``: processes and torch threads per job (default: the small nets side by side,
     then each large one on every core, :func:`_rounds`; a cluster's workers take 1 thread each). A model of
     the grid with a ``tag`` gets it in ``lab.models`` once every job is done (the main job's grid tags the
-    networks the figures and Experiment 2 use)."""
-    jobs = expand(lab, grid)
+    networks the figures and Experiment 2 use). ``pretrain``: each net pretrained on a twin's campaign first
+    (:func:`expand`)."""
+    jobs = expand(lab, grid, pretrain)
     results: dict[str, dict] = {}
     todo = []
     for job in jobs:

@@ -31,7 +31,7 @@ if TYPE_CHECKING:  # imported where used: opening a lab (every command does) nee
 # the lab's file primitives, for the layers above the pipeline (analysis writes figures and the report with
 # them): they reach the storage through the Lab module, never below it
 __all__ = [
-    "ComparisonStore", "DatasetStore", "Lab", "LabPath", "StoreError", "is_local",
+    "ComparisonStore", "DatasetStore", "Lab", "LabPath", "StoreError", "TwinStore", "is_local",
     "local_folder", "upload",
 ]  # fmt: skip
 
@@ -45,6 +45,44 @@ class ComparisonStore:
     def path(self, name: str) -> LabPath:
         """The file of comparison ``name``."""
         return self.root / f"{name}.json"
+
+
+@dataclass(frozen=True)
+class TwinStore:
+    """``<lab>/twin/``: the twin of the lab's own robot. The descriptions ``vslab twin fit`` writes, the
+    checks of them (``vslab twin check``) and the pretraining curve (``vslab twin curve``), each a file the
+    report reads; the twin's surveys; and one study per description whose campaign was simulated for
+    pretraining (``pipeline.pretrain``)."""
+
+    root: LabPath
+
+    def fitted(self, robot: str) -> LabPath:
+        """The description fitted to the lab's robot, by its nominal description's name."""
+        return self.root / f"{robot}_fitted.yaml"
+
+    def check(self, robot: str) -> LabPath:
+        """The newest check of description ``robot`` (its name)."""
+        return self.root / f"check-{robot}.json"
+
+    def checks(self) -> list[LabPath]:
+        return sorted(self.root.glob("check-*.json")) if self.root.exists() else []
+
+    def descriptions(self) -> list[LabPath]:
+        """Every description written here (fitted ones, and any a lab keeps beside them)."""
+        return sorted(self.root.glob("*.yaml")) if self.root.exists() else []
+
+    @property
+    def curve(self) -> LabPath:
+        """The newest pretraining curve (its table and what it was made from)."""
+        return self.root / "pretraining_curve.json"
+
+    def survey(self, robot: str, trajectory: str) -> LabPath:
+        return self.root / f"survey_{robot}_{trajectory}.json"
+
+    def campaigns(self, key: str) -> Lab:
+        """The lab in which the twin's campaign of one description (``key``: its name and digest) is
+        simulated."""
+        return Lab(self.root / key)
 
 
 @dataclass(frozen=True)
@@ -122,9 +160,8 @@ class Lab:
         return self.root / "rig"
 
     @property
-    def twin(self) -> LabPath:
-        """The folder of the twin's surveys."""
-        return self.root / "twin"
+    def twin(self) -> TwinStore:
+        return TwinStore(self.root / "twin")
 
     @property
     def mlflow(self) -> LabPath:

@@ -9,6 +9,7 @@ it is handed wrong ends in one `error:` line and exit status 2.
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,30 +23,7 @@ from vslab.cli import app
 
 runner = CliRunner()
 
-LAB_ROBOT = """\
-extends: vsl
-name: vsl                 # the lab records under the shipped name; its arm is not the papers'
-description: a lab's VSL arm
-kinematics: {l2_m: 0.252, l3_m: 0.248}
-links:
-  - name: upper_vsl
-    after_joint: q2
-    virtual_joints: [d2]
-    hinge_fraction: 0.15
-    pressure_channel: 0
-    table:
-      pressure_pa:          [10000, 50000, 100000, 150000, 200000, 250000]
-      stiffness_nm_per_rad: [6.4, 32.0, 64.0, 96.0, 128.0, 160.0]    # ×0.8
-      damping_nms_per_rad:  [0.118, 0.264, 0.374, 0.458, 0.529, 0.591]
-    hysteresis: {delta_h_rad: 0.00087, tau_y_nm: 0.18}
-  - name: lower_vsl
-    after_joint: q3
-    virtual_joints: [d3]
-    hinge_fraction: 0.15
-    pressure_channel: 1
-    table: {from_link: upper_vsl, factor: 1.5625}                    # ×1.25 of the papers'
-    hysteresis: {delta_h_rad: 0.00087, tau_y_nm: 0.3}
-"""
+LAB_ROBOT = (Path(__file__).resolve().parents[1] / "bench" / "lab_arm.yaml").read_text()
 
 
 @pytest.mark.slow

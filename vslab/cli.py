@@ -116,7 +116,7 @@ def twin_survey(
     except ValueError as exc:
         _fail(str(exc))
     _print_grid(grid, f"{desc.name}: mean tip error (mm), true tip vs rigid FK of the encoders, {trajectory}")
-    out = options().lab.twin / f"survey_{desc.name}_{trajectory}.json"
+    out = options().lab.twin.survey(desc.name, trajectory)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(grid.to_dict(), indent=2))
     if not options().quiet:

@@ -12,7 +12,7 @@ from typing import Annotated
 import typer
 from rich.table import Column, Table
 
-from vslab.app import _error, _overrides, app, console, load_dataset, options
+from vslab.app import _error, _overrides, _robot, app, console, load_dataset, options
 
 models_app = typer.Typer(help="Trained networks in <lab>/models/.", no_args_is_help=True)
 app.add_typer(models_app, name="models")
@@ -52,6 +52,17 @@ def train(
             "each; they must see the lab at the same path, or the same store (vslab[cluster])."
         ),
     ] = None,
+    pretrain: Annotated[
+        str | None,
+        typer.Option(
+            help="A description of the arm (a fitted twin's file from `vslab twin fit`, or a name): each "
+            "net first learns a campaign simulated on it (dataset twin-<name>), then fine-tunes on the "
+            "grid's data."
+        ),
+    ] = None,
+    pretrain_points: Annotated[
+        int | None, typer.Option(help="Points of the twin's campaign (default: the campaign experiment's).")
+    ] = None,
 ) -> None:
     """Train every job of a grid whose version is not in <lab>/models yet (a second run trains nothing)."""
     import concurrent.futures as cf
@@ -65,9 +76,13 @@ def train(
     if workers < 0:
         _error(f"--workers must be ≥ 0 (0: the small nets one per core, the large ones alone), got {workers}")
     overrides = _overrides(set_ or [])
+    if pretrain_points is not None and (pretrain is None or pretrain_points < 10):
+        _error("--pretrain-points: the points of the twin's campaign for --pretrain (an integer ≥ 10)")
     try:
         spec = load_grid(grid, overrides)
-        n_jobs = len(expand(options().lab, spec))
+        expand(options().lab, spec)  # the grid and its datasets checked before the twin is simulated
+        twin = _twin_campaign(pretrain, pretrain_points) if pretrain is not None else None
+        n_jobs = len(expand(options().lab, spec, twin))
     except (ValueError, OSError) as exc:  # GridError; a damaged model already in the lab
         _error(str(exc))
     if cluster is not None and workers:
@@ -95,7 +110,7 @@ def train(
                 )
                 stack.callback(executor.shutdown, cancel_futures=True)
             results = run_grid(options().lab, spec, executor=executor, progress=progress,
-                               workers=workers or None, threads=threads)  # fmt: skip
+                               workers=workers or None, threads=threads, pretrain=twin)  # fmt: skip
         # GridError; a damaged model or dataset; a full disk; no cluster at the address
         except (ValueError, OSError, ClusterError) as exc:
             bar.stop()
@@ -114,6 +129,27 @@ def train(
     console.print(
         f"{trained} trained, {len(results) - trained} existing, in {time.perf_counter() - start:.1f} s"
     )
+
+
+def _twin_campaign(robot: str, points: int | None) -> dict:
+    """The twin's campaign for ``vslab train --pretrain``: simulated on ``robot`` and built (what is there
+    already is kept), as ``run_grid`` takes it; one error line for a description it cannot be."""
+    from pipeline.pretrain import PretrainError, twin_campaign, twin_robot
+
+    description = _robot(robot)
+    try:
+        twin_robot(description)
+    except PretrainError as exc:
+        _error(f"--pretrain {robot}: {exc}")
+    if not options().lab.is_local:
+        _error(
+            f"--pretrain: the twin's campaign is simulated into the lab, and {options().lab} is on a store"
+        )
+    if not options().quiet:
+        console.print(f"the twin's campaign on {description.name} ({robot}): simulating and building …",
+                      highlight=False)  # fmt: skip
+    report = twin_campaign(options().lab, robot, points=points)
+    return {"dataset": f"{report.name}@{report.version}", "robot": robot}
 
 
 @models_app.command("list")

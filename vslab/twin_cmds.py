@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 from typing import Annotated
@@ -43,7 +44,7 @@ def twin_fit(
         _error(f"--dataset {reference}: {exc}")
     if out is None and not lab.is_local:
         _error(f"--lab {lab} is on a store: give --out FILE for the fitted description")
-    target = out if out is not None else Path(str(lab.twin)) / f"{nominal.name}_fitted.yaml"
+    target = out if out is not None else Path(str(lab.twin.fitted(nominal.name)))
     base = robot_path(robot)
     extends = nominal.name if base.resolve().parent == CONFIG_DIR.resolve() else os.path.relpath(
         base.resolve(), target.resolve().parent)  # fmt: skip
@@ -91,12 +92,13 @@ def twin_check(
 
     checked, compared = _robot(robot), _robot(nominal)
     loaded = {
-        option: load_dataset(option, reference)[0]
+        option: load_dataset(option, reference)
         for option, reference in (("--dataset", dataset), ("--repeat", repeat))
         if reference is not None
     }
+    data, repeated = loaded["--dataset"][0], loaded.get("--repeat", (None,))[0]
     try:
-        table = check({"nominal": compared, "checked": checked}, loaded["--dataset"], loaded.get("--repeat"))
+        table = check({"nominal": compared, "checked": checked}, data, repeated)
     except TwinFitError as exc:
         _error(f"--dataset {dataset}: {exc}")
     except ValueError as exc:  # the repeat is not this dataset's campaign in another order
@@ -110,3 +112,104 @@ def twin_check(
             cells += [f"{row.floor_mm_mean:.3f}", f"{row.checked_mm_mean / row.floor_mm_mean:.2f}"]
         shown.add_row(*cells)
     console.print(shown)
+    made_from = {"robot": robot, "nominal": nominal} | {
+        option.removeprefix("--"): reference for option, (_, reference) in loaded.items()
+    }
+    names = {"checked": checked.name, "nominal": compared.name}
+    kept = _keep(options().lab.twin.check(checked.name), {"made_from": made_from, "names": names,
+                                                          "table": table.to_dict("records")})  # fmt: skip
+    if not options().quiet:
+        console.print(f"kept for the report: {kept}", highlight=False)
+
+
+def _keep(path, record: dict):
+    """Write ``record`` as JSON at ``path`` in the lab's twin folder (what the report reads); one error line
+    where it cannot be written."""
+    try:
+        if options().lab.is_local:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(record, indent=1, default=float))
+    except OSError as exc:
+        _error(f"{path}: cannot be written ({exc.strerror or exc})")
+    return path
+
+
+@twin_app.command("curve")
+def twin_curve(
+    robot: Annotated[
+        str, typer.Option(help="The twin to pretrain on (a fitted description's file, or a name).")
+    ],
+    dataset: Annotated[str, typer.Option(help="The lab's measured dataset: NAME[@VERSION].")],
+    direction: Annotated[str, typer.Option(help="The nets' direction: inverse or forward.")] = "inverse",
+    preset: Annotated[str, typer.Option(help="A preset of models.hybrid (small-residual, paper, …).")] = (
+        "small-residual"
+    ),
+    split: Annotated[
+        str, typer.Option(help="split_group (whole sessions drawn: no test row seen) or split_random.")
+    ] = "split_group",
+    points: Annotated[
+        int | None, typer.Option(help="Points of the twin's campaign (default: the campaign experiment's).")
+    ] = None,
+    max_epochs: Annotated[
+        int, typer.Option(help="Training epochs at most (early stopping ends most).")
+    ] = 300,
+) -> None:
+    """The learning curve of pretraining on the twin: the measured data's test error of a net trained on 1, 2,
+    5, 10, 20, 50 and 100 % of the measured train and val rows alone, beside the same net pretrained on the
+    twin's campaign and fine-tuned on them. Prints the table and draws <lab>/figures/pretraining_curve."""
+    from analysis.diagnostics import pretraining_curve
+    from models.hybrid import preset as net_preset
+    from pipeline.datasets import SPLIT_COLUMNS
+    from pipeline.pretrain import PretrainError, curve_verdict, learning_curve, twin_campaign, twin_robot
+    from pipeline.train import TrainConfig
+
+    if direction not in ("inverse", "forward"):
+        _error(f"--direction {direction}: expected inverse or forward")
+    if split not in SPLIT_COLUMNS:
+        _error(f"--split {split}: expected one of {', '.join(SPLIT_COLUMNS)}")
+    if max_epochs < 1 or (points is not None and points < 10):
+        _error("--max-epochs is at least 1 and --points at least 10")
+    try:
+        net = net_preset(direction, preset)
+    except KeyError as exc:
+        _error(f"--preset {preset}: {exc.args[0]}")
+    try:
+        twin_robot(_robot(robot))
+    except PretrainError as exc:
+        _error(f"--robot {robot}: {exc}")
+    lab = options().lab
+    if not lab.is_local:
+        _error(f"--robot: the twin's campaign is simulated into the lab, and {lab} is on a store")
+    measured, reference = load_dataset("--dataset", dataset)
+    say = (lambda _: None) if options().quiet else (lambda text: console.print(text, highlight=False))
+    say(f"the twin's campaign on {robot}: simulating and building …")
+    report = twin_campaign(lab, robot, points=points)
+    twin, _ = lab.datasets.load(report.name, report.version)
+    config = TrainConfig(net=net, split=split, max_epochs=max_epochs)
+    try:
+        curve = learning_curve(measured, twin, config, robot=robot, progress=say)
+    except ValueError as exc:  # PretrainError; a dataset without the columns the nets need
+        _error(f"--dataset {reference}: {exc}")
+    made_from = {"measured": reference, "twin": f"{report.name}@{report.version}", "robot": robot}
+    drawn = pretraining_curve(curve, Path(str(lab.figures)), made_from=made_from)
+    net_name = f"{direction}-{preset}"
+    _keep(lab.twin.curve, {"made_from": made_from, "net": net_name, "split": split,
+                           "curve": curve.to_dict("records")})  # fmt: skip
+    table = Table(
+        "measured rows", "train", "val", "alone mm", "pretrained mm", "alone mrad", "pretrained mrad"
+    )
+    for row in curve.to_dict("records"):
+        share = f"{row['fraction']:.0%}" if row["fraction"] else "none (twin only)"
+        cells = [share, f"{row['train_rows']:,}", f"{row['val_rows']:,}"]
+        for key in ("measured_only_tip_mean_mm", "fine_tuned_tip_mean_mm", "measured_only_joint_mean_mrad",
+                    "fine_tuned_joint_mean_mrad"):  # fmt: skip
+            value = row.get(key, float("nan"))
+            cells.append("" if value != value else f"{value:.3f}")
+        table.add_row(*cells)
+    console.print(table)
+    verdict = curve_verdict(curve)
+    said = (f"pretrained on the twin, fine-tuned on 10 % ({verdict['rows']:,} rows): "
+            f"{verdict['fine_tuned']:.3f} mm; alone on all {verdict['all_rows']:,}: "
+            f"{verdict['all_measured']:.3f} mm (ratio {verdict['ratio']:.2f})")  # fmt: skip
+    console.print(said, highlight=False)
+    console.print(f"drawn: {drawn['png']}", highlight=False)

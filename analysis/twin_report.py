@@ -1,0 +1,89 @@
+"""The report's section "the twin against your robot" (issue 33), from what the lab's twin folder holds
+(``pipeline.lab.TwinStore``): each fitted description's values beside the nominal ones with their standard
+errors and what could not be identified (`vslab twin fit`), the newest check of each (`vslab twin check`)
+and the pretraining curve (`vslab twin curve`), drawn again here from its table."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pandas as pd
+
+from analysis import diagnostics
+from models.robot import RobotDescriptionError, load_robot
+from pipeline.lab import Lab
+
+TABLES = "your twin"  # the start of every table key of this section
+
+
+def twin_against_robot(lab: Lab, res, out: Path) -> None:
+    """Fill ``res`` (``analysis.lab_figures.Results``) with this section's tables, texts and the curve's
+    figure: what the lab's twin folder holds (a lab whose twin was never fitted has no such section)."""
+    for path in lab.twin.descriptions():
+        try:
+            robot = load_robot(Path(str(path)))
+        except RobotDescriptionError as exc:
+            res.missing[f"{TABLES}: {Path(str(path)).name}"] = str(exc)
+            continue
+        if robot.fitted is None:
+            continue
+        res.tables[f"{TABLES}: {robot.name}, fitted beside nominal"] = fitted_table(robot.fitted)
+        fitted = robot.fitted
+        res.versions[f"dataset fitted, {robot.name}"] = fitted.dataset
+        words = [f"`{robot.name}` was fitted to {fitted.points:,} settled points of {fitted.sessions} "
+                 f"sessions of {fitted.dataset}; the tracked tip's residual is "
+                 f"{fitted.residual_rms_mm:.3f} mm per axis."]  # fmt: skip
+        if fitted.not_identifiable:
+            words.append("Not identifiable, left nominal: " + "; ".join(
+                f"{name} ({why})" for name, why in fitted.not_identifiable.items()) + ".")  # fmt: skip
+        res.texts[f"{TABLES}: {robot.name}, fitted beside nominal"] = " ".join(words)
+    for path in lab.twin.checks():
+        record = json.loads(path.read_text())
+        names = record["names"]
+        table = check_table(pd.DataFrame(record["table"]), names)
+        res.tables[f"{TABLES}: {names['checked']} checked on {record['made_from']['dataset']}"] = table
+    if lab.twin.curve.exists():
+        record = json.loads(lab.twin.curve.read_text())
+        curve = pd.DataFrame(record["curve"])
+        drawn = diagnostics.pretraining_curve(curve, out, made_from=record["made_from"])
+        res.figures["pretraining_curve"] = drawn["png"]
+        res.tables[f"{TABLES}: pretraining curve, {record['net']}"] = curve_table(curve)
+
+
+def fitted_table(fitted) -> pd.DataFrame:
+    """One row per fitted parameter: nominal, fitted, its standard error and how far it moved (% and SE)."""
+    rows = {
+        name: {"nominal": v.nominal, "fitted": v.value, "standard error": v.stderr,
+               "change (%)": 100 * (v.value / v.nominal - 1) if v.nominal else math.nan,
+               "change (SE)": (v.value - v.nominal) / v.stderr if v.stderr else math.nan}
+        for name, v in fitted.parameters.items()
+    }  # fmt: skip
+    return pd.DataFrame.from_dict(rows, orient="index").rename_axis("parameter (SI units)")
+
+
+def check_table(table: pd.DataFrame, names: dict[str, str]) -> pd.DataFrame:
+    """The check per pressure × payload cell: each description's mean distance (mm) and the floor's."""
+    shown = pd.DataFrame({
+        "pressure": table["pressure_bin"],
+        "payload (g)": ["all" if g < 0 else f"{g:g}" for g in table["payload_g"]],
+        "points": table["n"],
+        f"{names['nominal']} (mm)": table["nominal_mm_mean"],
+        f"{names['checked']} (mm)": table["checked_mm_mean"],
+    })  # fmt: skip
+    if "floor_mm_mean" in table:
+        shown["floor (mm)"] = table["floor_mm_mean"]
+        shown[f"{names['checked']} / floor"] = table["checked_mm_mean"] / table["floor_mm_mean"]
+    return shown.set_index(["pressure", "payload (g)"])
+
+
+def curve_table(curve: pd.DataFrame) -> pd.DataFrame:
+    """The curve's rows: measured rows used, and the test errors of each net."""
+    shown = pd.DataFrame({
+        "measured rows": [f"{f:.0%}" if f else "none (twin only)" for f in curve["fraction"]],
+        "train rows": curve["train_rows"], "val rows": curve["val_rows"],
+        "alone (mm)": curve["measured_only_tip_mean_mm"],
+        "pretrained, fine-tuned (mm)": curve["fine_tuned_tip_mean_mm"],
+    })  # fmt: skip
+    return shown.set_index("measured rows")
