@@ -28,7 +28,7 @@ def arm_lengths(robot: str = "vsl") -> kinematics.ArmLengths:
     kin = load_robot(robot).kinematics
     if not isinstance(kin, AnthropomorphicKinematics):
         raise ValueError(f"robot {robot!r} is not the anthropomorphic VSL arm")
-    return kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+    return kin.arm()
 
 
 def desired_path(trajectory: str = "curve", speed: float = 0.02, n_per_segment: int = 400) -> np.ndarray:

@@ -26,17 +26,25 @@ class SingularityError(ModelError, ValueError):
 
 @dataclass(frozen=True)
 class ArmLengths:
-    """Link lengths of the anthropomorphic arm (m): L1 base to J2 axis, L2 J2→J3, L3 J3→end-effector."""
+    """The anthropomorphic arm: link lengths (m), L1 base to J2 axis, L2 J2→J3, L3 J3→end-effector, and each
+    joint's offset (rad): its true angle minus the encoder's reading (zero for the papers' arm). The functions
+    below take and return encoder angles."""
 
     l1: float
     l2: float
     l3: float
+    offsets: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def true_angles(self, q: ArrayLike) -> Array:
+        """The joints' true angles of encoder readings q (..., 3)."""
+        q = np.asarray(q, dtype=float)
+        return q + np.asarray(self.offsets) if any(self.offsets) else q
 
 
 # ---------------------------------------------------------------------------------------- VSL arm
 def vsl_fk_transform(q: ArrayLike, lengths: ArmLengths) -> Array:
     """⁰T₃ of eq. (1) for joint angles q (..., 3) → (..., 4, 4)."""
-    q = np.asarray(q, dtype=float)
+    q = lengths.true_angles(q)
     c1, s1 = np.cos(q[..., 0]), np.sin(q[..., 0])
     c2, s2 = np.cos(q[..., 1]), np.sin(q[..., 1])
     c23, s23 = np.cos(q[..., 1] + q[..., 2]), np.sin(q[..., 1] + q[..., 2])
@@ -52,7 +60,7 @@ def vsl_fk_transform(q: ArrayLike, lengths: ArmLengths) -> Array:
 
 def vsl_fk(q: ArrayLike, lengths: ArmLengths) -> Array:
     """End-effector position (..., 3) of eq. (1)."""
-    q = np.asarray(q, dtype=float)
+    q = lengths.true_angles(q)
     c1, s1 = np.cos(q[..., 0]), np.sin(q[..., 0])
     reach = lengths.l2 * np.cos(q[..., 1]) + lengths.l3 * np.cos(q[..., 1] + q[..., 2])
     z = lengths.l1 + lengths.l2 * np.sin(q[..., 1]) + lengths.l3 * np.sin(q[..., 1] + q[..., 2])
@@ -62,7 +70,8 @@ def vsl_fk(q: ArrayLike, lengths: ArmLengths) -> Array:
 def vsl_ik(x: ArrayLike, lengths: ArmLengths, elbow: int = 1) -> Array:
     """Joint angles (..., 3) reaching positions x (..., 3): eqs. (2)–(7), λ = ``elbow`` (+1 up, −1 down).
 
-    θ3 is returned in (−π, π]. Targets outside the annulus |L2 − L3| ≤ r3 ≤ L2 + L3 raise UnreachableError.
+    θ3 is returned in (−π, π] (before the joint offsets are taken off: the result is the encoders').
+    Targets outside the annulus |L2 − L3| ≤ r3 ≤ L2 + L3 raise UnreachableError.
     """
     if elbow not in (1, -1):
         raise ValueError(f"elbow must be +1 (up) or -1 (down), got {elbow!r}")
@@ -89,7 +98,8 @@ def vsl_ik(x: ArrayLike, lengths: ArmLengths, elbow: int = 1) -> Array:
     theta2 = np.arctan2(r2, r1) + elbow * np.arccos(cos_a)
     theta3 = np.pi + elbow * np.arccos(cos_b)
     theta3 = np.pi - np.mod(np.pi - theta3, 2 * np.pi)  # wrap to (−π, π]
-    return np.stack([theta1, theta2, theta3], -1)
+    q = np.stack([theta1, theta2, theta3], -1)
+    return q - np.asarray(lengths.offsets) if any(lengths.offsets) else q  # the encoders' readings
 
 
 def vsl_ik_where_reachable(x: ArrayLike, lengths: ArmLengths, elbow: int = 1) -> Array:
@@ -111,7 +121,7 @@ def vsl_jacobian(q: ArrayLike, lengths: ArmLengths) -> Array:
     This is the true derivative: eq. (8) as printed has two errors in its second row (∂y/∂q2 is
     −s1(L2 s2 + L3 s23), not +, and ∂y/∂q3 is −L3 s1 s23, not −L3 s1 c23).
     """
-    q = np.asarray(q, dtype=float)
+    q = lengths.true_angles(q)
     c1, s1 = np.cos(q[..., 0]), np.sin(q[..., 0])
     c2, s2 = np.cos(q[..., 1]), np.sin(q[..., 1])
     c23, s23 = np.cos(q[..., 1] + q[..., 2]), np.sin(q[..., 1] + q[..., 2])

@@ -19,7 +19,7 @@ from pydantic import Field, ValidationError, field_validator, model_validator
 from models.description_part import NonNegFloat, Part, PositiveFloat
 from models.effects import EffectsSpec
 from models.errors import ModelError
-from models.kinematics import DHChain, DHRow
+from models.kinematics import ArmLengths, DHChain, DHRow
 from models.yaml_files import read_yaml
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs" / "robots"
@@ -39,6 +39,13 @@ class AnthropomorphicKinematics(Part):
     l1_m: PositiveFloat
     l2_m: PositiveFloat
     l3_m: PositiveFloat
+    # each joint's true angle minus its encoder's reading: the encoders' zero errors, a lab arm's own
+    # (`vslab twin fit` fits them; the papers' arm has none)
+    joint_offsets_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def arm(self) -> ArmLengths:
+        """The rigid arm of eq. (1) (``models.kinematics``): lengths and joint offsets."""
+        return ArmLengths(self.l1_m, self.l2_m, self.l3_m, self.joint_offsets_rad)
 
 
 class DHRowSpec(Part):
@@ -454,14 +461,15 @@ class RobotDescription(Part):
         # many times per compensated command, and validating each row cost ~70 % of a command's 18 ms)
         row = DHRowSpec.model_construct
         hinge = {v: link.hinge_fraction for link in self.links for v in link.virtual_joints}
-        rows = [row(a_m=0.0, alpha_rad=math.pi / 2, d_m=kin.l1_m, joint="q1", offset_rad=0.0)]
-        for q, length in (("q2", kin.l2_m), ("q3", kin.l3_m)):
+        o1, o2, o3 = kin.joint_offsets_rad
+        rows = [row(a_m=0.0, alpha_rad=math.pi / 2, d_m=kin.l1_m, joint="q1", offset_rad=o1)]
+        for q, length, offset in (("q2", kin.l2_m, o2), ("q3", kin.l3_m, o3)):
             virtual = [v for link in self.links if link.after_joint == q for v in link.virtual_joints]
             if not virtual:
-                rows.append(row(a_m=length, alpha_rad=0.0, d_m=0.0, joint=q, offset_rad=0.0))
+                rows.append(row(a_m=length, alpha_rad=0.0, d_m=0.0, joint=q, offset_rad=offset))
                 continue
             frac = hinge[virtual[0]]
-            rows.append(row(a_m=frac * length, alpha_rad=0.0, d_m=0.0, joint=q, offset_rad=0.0))
+            rows.append(row(a_m=frac * length, alpha_rad=0.0, d_m=0.0, joint=q, offset_rad=offset))
             bend = virtual[0]
             rows.append(row(a_m=(1 - frac) * length, alpha_rad=0.0, d_m=0.0, joint=bend, offset_rad=0.0))
         return rows

@@ -123,7 +123,7 @@ class PrbmGreyBox(Baseline):
             raise ValueError(f"robot {robot.name!r}: the grey box needs the servo-driven VSL-type arm")
         kin = robot.kinematics
         self.robot_ = robot
-        self.lengths_ = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+        self.lengths_ = kin.arm()
         rows = [r.joint for r in robot.dh_rows()]
         self.virtual_rows_ = [i for i, r in enumerate(rows) if not r.startswith("q")]
         servo_names = list(robot.devices[device_of(robot, "joints")].ids)

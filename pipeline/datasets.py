@@ -72,7 +72,7 @@ def assemble(points: pd.DataFrame, robot: RobotDescription) -> pd.DataFrame:
     out |= {f"qc_{j}": commanded[:, j] for j in range(commanded.shape[1])}
     if isinstance(robot.kinematics, AnthropomorphicKinematics):
         kin = robot.kinematics
-        lengths = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+        lengths = kin.arm()
         fk, ik = kinematics.vsl_fk(q, lengths), kinematics.vsl_ik_where_reachable(x, lengths)
     else:
         fk, ik = robot.chain().position(q), np.full((len(x), q.shape[1]), np.nan)

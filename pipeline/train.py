@@ -93,7 +93,7 @@ def _description_lengths(description: RobotDescription) -> kinematics.ArmLengths
     if not isinstance(kin, AnthropomorphicKinematics):
         raise ValueError(f"robot {description.name!r}: the hybrid nets are defined for the anthropomorphic "
                          "VSL arm")  # fmt: skip
-    return kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+    return kin.arm()
 
 
 Robot = RobotDescription | str | None  # a description, a name or a path; None: each row's ``robot`` by name

@@ -13,7 +13,6 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from models import kinematics
 from models.robot import RobotDescription
 from pipeline.floor import floor_errors_mm, matched_points
 from pipeline.metrics import cell_pressure_pa, cell_records
@@ -34,7 +33,7 @@ def twin_check(descriptions: dict[str, RobotDescription], data: pd.DataFrame,
     }
     if repeat is not None:
         kin = next(iter(descriptions.values())).kinematics  # the rigid FK that takes out what q explains
-        errors["floor_mm"] = floor_errors_mm(rows, kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m))
+        errors["floor_mm"] = floor_errors_mm(rows, kin.arm())
     cells = pd.DataFrame(cell_records(errors, cell_pressure_pa(rows), rows["payload_kg"].to_numpy(float)))
     overall = {"pressure_bin": "all", "payload_g": -1, "n": len(rows)}
     overall |= {f"{name}_mean": float(np.nanmean(e)) for name, e in errors.items()}

@@ -8,7 +8,8 @@ This is the static part of the VSL arm's fit (:class:`VslStaticFit`). From a dat
 - each link's stiffness table k(p) at the table's pressures the data reaches (linear in between, as the
   twin interpolates it),
 - each link's hysteresis (the loop's half width δ_h and how soon it turns, τ_y), and
-- the link lengths ``l2_m`` and ``l3_m``,
+- the link lengths ``l2_m`` and ``l3_m`` and the joint offsets of ``q2`` and ``q3`` (their encoders' zero
+  errors, ``kinematics.joint_offsets_rad``),
 
 beside a small rigid correction of the tracker registration (the dataset's registration was fitted with the
 nominal arm: a lab arm's other lengths move it a little). The tip model is the description's statics, the
@@ -19,14 +20,15 @@ the stiffness came out 10–55 % high on the nominal twin's own campaign; with a
 low; as here, within 0.3 % (upper link) and 1.4–5 % (lower link, less loaded) on its 17,568 points.
 
 What the data cannot separate is named, with the reason, and left at its nominal value: ``l1_m`` (it moves
-the tip along the base's vertical axis exactly as the registration's offset does), a table pressure no point
-was recorded near, and anything whose standard error exceeds half its nominal value. Standard errors come
+the tip along the base's vertical axis exactly as the registration's offset does), ``q1``'s offset (it turns
+the arm about that axis as the registration's rotation does), a table pressure no point
+was recorded near, and anything whose standard error exceeds half its nominal value (a joint offset, whose
+nominal value is 0: half a degree). Standard errors come
 from the Jacobian at the solution, clustered by session (a session's points share its bench and its drift:
 treating them as independent would make the errors too small).
 
-Not fitted yet (issue 33 asks for them): joint offsets (the description has no field for them), masses and
-the current → torque constant (the payload response), servo stiffness and backlash, damping (a dynamic
-fit), the unmodelled effects' sizes, POPUP's Table 1. ``vslab twin check`` and pretraining are not built.
+Not fitted yet (issue 33 asks for them): masses and the current → torque constant (the payload response),
+servo stiffness and backlash, damping (a dynamic fit), the unmodelled effects' sizes, POPUP's Table 1.
 """
 
 from __future__ import annotations
@@ -50,6 +52,10 @@ NEEDED = (*MEASURED_Q, *TIP, "payload_kg")
 L1_CONFOUNDED = (
     "moves the tip along the base's vertical axis exactly as the tracker registration's offset does"
 )
+Q1_CONFOUNDED = (
+    "turns the arm about the base's vertical axis exactly as the tracker registration's rotation does"
+)
+OFFSETS = ("q1", "q2", "q3")  # the anthropomorphic arm's joints, in order (its kinematics' joint_offsets_rad)
 
 
 class TwinFitError(PipelineError, ValueError):
@@ -98,8 +104,11 @@ class VslStaticFit(Estimator):
 
         tables = [robot.link_table(link.name) for link in links]
         nominal: dict[str, float] = {"l2_m": robot.kinematics.l2_m, "l3_m": robot.kinematics.l3_m}
-        free: list[str] = ["l2_m", "l3_m"]
-        hidden: dict[str, str] = {"l1_m": L1_CONFOUNDED}
+        nominal |= {
+            f"{j}.offset_rad": o for j, o in zip(OFFSETS, robot.kinematics.joint_offsets_rad, strict=True)
+        }
+        free: list[str] = ["l2_m", "l3_m", "q2.offset_rad", "q3.offset_rad"]
+        hidden: dict[str, str] = {"l1_m": L1_CONFOUNDED, "q1.offset_rad": Q1_CONFOUNDED}
         for link, table, pv in zip(links, tables, p.T, strict=True):
             if link.hysteresis is not None:  # the loop's half width: how far a point falls short of τ/k
                 nominal[f"{link.name}.delta_h_rad"] = link.hysteresis.delta_h_rad
@@ -148,7 +157,7 @@ class VslStaticFit(Estimator):
         while True:  # ends: each pass that does not end it takes at least one name out of ``free``
             values, rotvec, shift, r, se = solve(free)
             dropped = {n: f"the points do not constrain it (standard error {e:.3g})" for n, e in se.items()
-                       if not np.isfinite(e) or e > 0.5 * abs(nominal[n])}  # fmt: skip
+                       if not np.isfinite(e) or e > _loosest(n, nominal[n])}  # fmt: skip
             dropped |= _impossible_loops(links, tables, values, free, se)
             if not dropped:
                 break
@@ -175,8 +184,9 @@ class VslStaticFit(Estimator):
     ) -> tuple[np.ndarray, ...]:
         """The statics' tip (base frame) of the arm with ``values``' lengths and stiffness tables, and the
         links' torques: δ = τ/k − δ_h·z, z each link's hysteresis state."""
-        arm = robot.model_copy(update={"kinematics": robot.kinematics.model_copy(
-            update={"l2_m": values["l2_m"], "l3_m": values["l3_m"]})})  # fmt: skip
+        fitted = {"l2_m": values["l2_m"], "l3_m": values["l3_m"],
+                  "joint_offsets_rad": tuple(values[f"{j}.offset_rad"] for j in OFFSETS)}  # fmt: skip
+        arm = robot.model_copy(update={"kinematics": robot.kinematics.model_copy(update=fitted)})
         k = np.stack(
             [
                 interp_table(pv, t.pressure_pa, [values[_knot(link.name, pk)] for pk in t.pressure_pa])
@@ -236,7 +246,11 @@ class VslStaticFit(Estimator):
             "extends": extends,
             "name": name,
             "description": f"{robot.description}, fitted to {dataset}",
-            "kinematics": {"l2_m": round(values["l2_m"], 7), "l3_m": round(values["l3_m"], 7)},
+            "kinematics": {
+                "l2_m": round(values["l2_m"], 7),
+                "l3_m": round(values["l3_m"], 7),
+                "joint_offsets_rad": [round(values[f"{j}.offset_rad"], 7) for j in OFFSETS],
+            },
             "links": links,
             "fitted": {
                 "dataset": dataset,
@@ -277,6 +291,15 @@ def _check(robot: RobotDescription, points: pd.DataFrame, same_name: bool = True
     if missing:
         raise TwinFitError(f"the dataset has no column {', '.join(missing)}")
     return links
+
+
+LOOSEST_OFFSET_RAD = np.radians(0.5)  # a joint offset known no better than this is not identified
+
+
+def _loosest(name: str, nominal: float) -> float:
+    """The largest standard error a fitted value may have: half its nominal value, half a degree for a joint
+    offset (nominally zero)."""
+    return LOOSEST_OFFSET_RAD if name.endswith(".offset_rad") else 0.5 * abs(nominal)
 
 
 def _knot(link: str, pressure_pa: float) -> str:

@@ -95,7 +95,7 @@ def test_fitted_stiffness_repairs_a_wrong_description(parts, forward):
 
 def _lengths() -> kinematics.ArmLengths:
     kin = load_robot("vsl").kinematics
-    return kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+    return kin.arm()
 
 
 def test_inverse_baselines(parts):

@@ -196,7 +196,7 @@ def test_pressurised_links_lengthen():
     stretch = []
     for bar in bars:
         longer = kinematics.ArmLengths(kin.l1_m, kin.l2_m * (1 + strain * bar), kin.l3_m * (1 + strain * bar))
-        nominal = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+        nominal = kin.arm()
         stretch.append(kinematics.vsl_fk(POSES[1], longer) - kinematics.vsl_fk(POSES[1], nominal))
     moved = tips["on"] - tips["off"]
     print(f"\nmoved {moved * 1e3} mm, expected {np.array(stretch) * 1e3} mm")

@@ -11,7 +11,6 @@ import pytest
 from typer.testing import CliRunner
 
 from acquisition.plans.experiments import visit_order
-from models import kinematics
 from models.robot import load_robot
 from pipeline import baselines as B
 from pipeline.comparison import (
@@ -35,7 +34,7 @@ runner = CliRunner()
 @pytest.fixture(scope="module")
 def lengths():
     kin = load_robot("vsl_unmodelled").kinematics
-    return kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+    return kin.arm()
 
 
 def test_the_repeat_visits_the_same_points_in_another_order(hard_campaigns):

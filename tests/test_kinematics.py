@@ -187,3 +187,23 @@ def test_ik_where_reachable_is_nan_exactly_where_the_ik_refuses():
     out = vsl_ik_where_reachable(x, L)
     assert np.isnan(out[[1, 2]]).all()
     np.testing.assert_array_equal(out[[0, 3]], vsl_ik(x[[0, 3]], L))
+
+
+def test_joint_offsets_are_the_encoders_zero_errors_in_every_kinematic_function():
+    """A description's joint offsets (true angle − encoder reading) enter eq. (1), its IK, its Jacobian and
+    the D-H chain the twin and the statics use, the same way: the functions take and give encoder angles."""
+    from models.robot import load_robot
+
+    nominal = load_robot("vsl")
+    offsets = (0.004, 0.005236, -0.005236)
+    kin = nominal.kinematics.model_copy(update={"joint_offsets_rad": offsets})
+    arm = nominal.model_copy(update={"kinematics": kin})
+    rng = np.random.default_rng(2)
+    q = np.column_stack([rng.uniform(-1, 1, 50), rng.uniform(0.1, 1.4, 50), rng.uniform(-2, -0.3, 50)])
+    lengths = kin.arm()
+    np.testing.assert_allclose(vsl_fk(q, lengths), arm.chain().position(q), atol=1e-12)
+    np.testing.assert_allclose(vsl_fk(q, lengths), vsl_fk(q + offsets, nominal.kinematics.arm()), atol=1e-15)
+    np.testing.assert_allclose(vsl_ik(vsl_fk(q, lengths), lengths, 1), q, atol=1e-9)
+    np.testing.assert_allclose(vsl_jacobian(q, lengths), vsl_jacobian(q + offsets, nominal.kinematics.arm()))
+    np.testing.assert_allclose(vsl_fk_transform(q, lengths)[:, :3, 3], vsl_fk(q, lengths), atol=1e-15)
+    assert nominal.kinematics.arm().offsets == (0.0, 0.0, 0.0)  # the papers' arm: none

@@ -1,9 +1,10 @@
 """The twin of the lab's own robot (issue 33, its static part): `vslab twin fit` and ``pipeline.twin_fit``.
 
-A lab robot the fit is not told about (upper link ×0.8, lower ×1.25, l2 +2 mm, l3 −2 mm, the lower link's
-hysteresis slower) is simulated, built and fitted from the nominal description; the fit finds it within
-its standard errors. The command writes a description that extends the nominal one and the twin loads; what
-it is handed wrong ends in one `error:` line and exit status 2.
+A lab robot the fit is not told about (`bench/lab_arm.yaml`: upper link ×0.8, lower ×1.25, l2 +2 mm,
+l3 −2 mm, joint offsets ±0.3°, the lower link's hysteresis slower) is simulated, built and fitted from the
+nominal description; the fit finds it within its standard errors. The command writes a description that
+extends the nominal one and the twin loads; what it is handed wrong ends in one `error:` line and exit
+status 2.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     data, _ = Lab(lab).datasets.load("campaign", report.version)
 
     fit = VslStaticFit("vsl").fit(data)
-    true = {"l2_m": 0.252, "l3_m": 0.248}
+    true = {"l2_m": 0.252, "l3_m": 0.248, "q2.offset_rad": 0.005236, "q3.offset_rad": -0.005236}
     for link in truth.links:
         table = truth.link_table(link.name)
         true |= {
@@ -58,14 +59,16 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
             f"{link.name}.delta_h_rad": link.hysteresis.delta_h_rad,
             f"{link.name}.tau_y_nm": link.hysteresis.tau_y_nm,
         }
-    assert len(fit.values_) == 14  # 2 lengths, 4 stiffness values and 2 hysteresis values a link
+    assert len(fit.values_) == 16  # 2 lengths, 2 offsets, 4 stiffness values and 2 hysteresis values a link
     for name, value in fit.values_.items():
         assert abs(value - true[name]) <= 3 * fit.stderr_[name], (name, value, true[name], fit.stderr_[name])
     assert abs(fit.values_["l2_m"] - 0.252) < 0.3e-3 and abs(fit.values_["l3_m"] - 0.248) < 0.3e-3
+    for joint in ("q2", "q3"):  # the encoders' zeros, within 0.1°
+        assert abs(fit.values_[f"{joint}.offset_rad"] - true[f"{joint}.offset_rad"]) < np.radians(0.1)
     for p, k in zip((0.5, 1, 1.5, 2), (32.0, 64.0, 96.0, 128.0), strict=True):
         assert abs(fit.values_[f"upper_vsl.k@{p:g}bar"] / k - 1) < 0.05
     # what 0.5-2 bar points cannot tell: the table's ends, and l1 (the registration's vertical offset)
-    assert set(fit.not_identifiable_) == {"l1_m"} | {
+    assert set(fit.not_identifiable_) == {"l1_m", "q1.offset_rad"} | {
         f"{k}_vsl.k@{p}bar" for k in ("upper", "lower") for p in ("0.1", "2.5")
     }
     assert (

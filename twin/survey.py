@@ -24,7 +24,7 @@ def arm_lengths(robot: RobotDescription) -> kinematics.ArmLengths:
     kin = robot.kinematics
     if not isinstance(kin, AnthropomorphicKinematics):
         raise ValueError(f"robot {robot.name!r} is not the anthropomorphic VSL arm")
-    return kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+    return kin.arm()
 
 
 def follow(world: World, plan: trajectories.SetPoints) -> list:

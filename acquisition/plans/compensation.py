@@ -65,7 +65,7 @@ class StaticModelCompensator:
             raise ValueError(f"robot {robot.name!r}: static compensation needs the servo-driven VSL-type arm")
         kin = robot.kinematics
         self.robot, self.payload_kg, self.iterations = robot, payload_kg, iterations
-        self.lengths = kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+        self.lengths = kin.arm()
 
     def predict_tip(self, q_cmd: np.ndarray, pressure_pa: np.ndarray) -> np.ndarray:
         """Where the tip comes to rest for commands ``q_cmd`` (n, A): servo droop, then link bending."""

@@ -206,7 +206,7 @@ def arm_lengths(robot: RobotDescription) -> kinematics.ArmLengths:
         raise ValueError(
             f"robot {robot.name!r} is not an anthropomorphic arm (Experiment 1 needs the VSL arm)"
         )
-    return kinematics.ArmLengths(kin.l1_m, kin.l2_m, kin.l3_m)
+    return kin.arm()
 
 
 def _builder(name: str, robot: RobotDescription, parameters: dict) -> PlanBuilder:
