@@ -256,22 +256,24 @@ class DHChain:
             return q[..., self._q_rows] + self._offset
         return np.where(self._is_actuated, q[..., self._q_rows], delta[..., self._delta_rows]) + self._offset
 
-    def frames(self, q: ArrayLike, delta: ArrayLike | None = None) -> Array:
-        """Cumulative transforms (..., R + 1, 4, 4): index 0 is the base, i + 1 the frame after row i."""
-        local = _dh_transforms(self._a, self._alpha, self._d, self.theta(q, delta))
+    def frames(self, q: ArrayLike, delta: ArrayLike | None = None, a: ArrayLike | None = None) -> Array:
+        """Cumulative transforms (..., R + 1, 4, 4): index 0 is the base, i + 1 the frame after row i. ``a``:
+        the rows' lengths (..., R) where they are not the chain's (links that lengthen with pressure)."""
+        lengths = self._a if a is None else np.asarray(a, dtype=float)
+        local = _dh_transforms(lengths, self._alpha, self._d, self.theta(q, delta))
         out = np.empty((*local.shape[:-3], local.shape[-3] + 1, 4, 4))
         out[..., 0, :, :] = np.eye(4)
         for i in range(local.shape[-3]):
             out[..., i + 1, :, :] = out[..., i, :, :] @ local[..., i, :, :]
         return out
 
-    def fk(self, q: ArrayLike, delta: ArrayLike | None = None) -> Array:
-        """End-effector transform (..., 4, 4)."""
-        return self.frames(q, delta)[..., -1, :, :]
+    def fk(self, q: ArrayLike, delta: ArrayLike | None = None, a: ArrayLike | None = None) -> Array:
+        """End-effector transform (..., 4, 4) (``a``: as :meth:`frames`)."""
+        return self.frames(q, delta, a)[..., -1, :, :]
 
-    def position(self, q: ArrayLike, delta: ArrayLike | None = None) -> Array:
-        """End-effector position (..., 3)."""
-        return self.fk(q, delta)[..., :3, 3]
+    def position(self, q: ArrayLike, delta: ArrayLike | None = None, a: ArrayLike | None = None) -> Array:
+        """End-effector position (..., 3) (``a``: as :meth:`frames`)."""
+        return self.fk(q, delta, a)[..., :3, 3]
 
     def jacobian(self, q: ArrayLike, delta: ArrayLike | None = None) -> Array:
         """Geometric position Jacobian (..., 3, n_actuated): z_{i−1} × (p_e − p_{i−1}) per actuated row."""

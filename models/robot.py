@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 from models.description_part import NonNegFloat, Part, PositiveFloat
@@ -473,6 +474,34 @@ class RobotDescription(Part):
             bend = virtual[0]
             rows.append(row(a_m=(1 - frac) * length, alpha_rad=0.0, d_m=0.0, joint=bend, offset_rad=0.0))
         return rows
+
+    def elongating_rows(self, strain_per_bar: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Which D-H rows lengthen with pressure (``effects.elongation``: a pressurised link's virtual joints'
+        rows and the row of the joint it follows): each row's pressure channel (−1: none) and strain per Pa
+        (``strain_per_bar`` instead of the description's, e.g. a fit's). Zeros without elongation."""
+        rows = [r.joint for r in self.dh_rows()]
+        channel, strain = np.full(len(rows), -1), np.zeros(len(rows))
+        elongation = self.effects.elongation
+        per_bar = strain_per_bar if strain_per_bar is not None else (elongation.strain_per_bar if elongation
+                                                                     else 0.0)  # fmt: skip
+        if per_bar:
+            for link in self.links:
+                if link.pressure_channel is None:
+                    continue
+                for i, name in enumerate(rows):
+                    if name in link.virtual_joints or name == link.after_joint:
+                        channel[i], strain[i] = link.pressure_channel, per_bar / 1e5
+        return channel, strain
+
+    def row_lengths(self, pressure_pa: ArrayLike, strain_per_bar: float | None = None) -> np.ndarray:
+        """Every D-H row's length a (..., R) at link pressures (..., channels): a₀ (1 + ε p) on the rows that
+        lengthen (:meth:`elongating_rows`), a₀ on the others (the twin's kernel computes the same)."""
+        a0 = np.array([r.a_m for r in self.dh_rows()])
+        channel, strain = self.elongating_rows(strain_per_bar)
+        p = np.asarray(pressure_pa, float)
+        on = channel >= 0
+        gauge = np.where(on, p[..., np.maximum(channel, 0)], 0.0)
+        return a0 * (1.0 + strain * gauge)
 
     def chain(self) -> DHChain:
         """The kinematic chain (virtual joints included) as a :class:`models.kinematics.DHChain`."""

@@ -27,13 +27,14 @@ def _mass_table(robot: RobotDescription) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 def gravity_moments(robot: RobotDescription, q: ArrayLike, delta: ArrayLike | None = None,
-                    payload_kg: ArrayLike = 0.0) -> Array:  # fmt: skip
+                    payload_kg: ArrayLike = 0.0, a: ArrayLike | None = None) -> Array:  # fmt: skip
     """Gravity moment (N·m) about every row's joint axis, (..., R) in chain order: (r × m g) · z summed over
     the masses distal to the joint, the payload hanging at the tool point. Same convention as the twin's
-    kernel: positive = gravity turns the joint in its positive direction."""
+    kernel: positive = gravity turns the joint in its positive direction. ``a``: the rows' lengths (..., R)
+    of links that lengthen with pressure (``RobotDescription.row_lengths``)."""
     chain = robot.chain()
     q = np.asarray(q, float)
-    frames = chain.frames(q, delta)  # (..., R + 1, 4, 4); frames[..., i] is the frame before row i
+    frames = chain.frames(q, delta, a)  # (..., R + 1, 4, 4); frames[..., i] is the frame before row i
     n_rows = frames.shape[-3] - 1
     mass_row, mass_pos, mass_kg = _mass_table(robot)
     tip = frames[..., -1, :, :]

@@ -10,6 +10,8 @@ This is the static part of the VSL arm's fit (:class:`VslStaticFit`). From a dat
 - each link's hysteresis (the loop's half width δ_h and how soon it turns, τ_y), and
 - the link lengths ``l2_m`` and ``l3_m`` and the joint offsets of ``q2`` and ``q3`` (their encoders' zero
   errors, ``kinematics.joint_offsets_rad``),
+- how much the links lengthen with pressure (``effects.elongation``, an effect the papers' statics leave
+  out; none, 0, where the points show none),
 
 beside a small rigid correction of the tracker registration (the dataset's registration was fitted with the
 nominal arm: a lab arm's other lengths move it a little). The tip model is the description's statics, the
@@ -30,7 +32,8 @@ from the Jacobian at the solution, clustered by session (a session's points shar
 treating them as independent would make the errors too small).
 
 Not fitted yet (issue 33 asks for them): masses and the current → torque constant (the payload response),
-servo stiffness and backlash, damping (a dynamic fit), the unmodelled effects' sizes, POPUP's Table 1.
+servo stiffness and backlash, damping (a dynamic fit), the other unmodelled effects (creep, hose torques, the
+tracker's field distortion), POPUP's Table 1.
 """
 
 from __future__ import annotations
@@ -54,6 +57,7 @@ NEEDED = (*MEASURED_Q, *TIP, "payload_kg")
 L1_CONFOUNDED = (
     "moves the tip along the base's vertical axis exactly as the tracker registration's offset does"
 )
+STRAIN = "elongation.strain_per_bar"  # the links' lengthening with pressure (effects.elongation)
 Q1_CONFOUNDED = (
     "turns the arm about the base's vertical axis exactly as the tracker registration's rotation does"
 )
@@ -109,7 +113,9 @@ class VslStaticFit(Estimator):
         nominal |= {
             f"{j}.offset_rad": o for j, o in zip(OFFSETS, robot.kinematics.joint_offsets_rad, strict=True)
         }
-        free: list[str] = ["l2_m", "l3_m", "q2.offset_rad", "q3.offset_rad"]
+        elongation = robot.effects.elongation
+        nominal[STRAIN] = elongation.strain_per_bar if elongation is not None else 0.0
+        free: list[str] = ["l2_m", "l3_m", "q2.offset_rad", "q3.offset_rad", STRAIN]
         hidden: dict[str, str] = {"l1_m": L1_CONFOUNDED, "q1.offset_rad": Q1_CONFOUNDED}
         for link, table, pv in zip(links, tables, p.T, strict=True):
             if link.hysteresis is not None:  # the loop's half width: how far a point falls short of τ/k
@@ -136,7 +142,7 @@ class VslStaticFit(Estimator):
         def solve(free: list[str], fixed: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, dict]:
             """Values, registration rotation and shift, residuals (mm) and standard errors of ``free`` (the
             others nominal, or as ``fixed``)."""
-            unit = {"_m": 1e-3, "_rad": 1e-4}  # fitted in mm, 0.1 mrad and % of k
+            unit = {"_m": 1e-3, "_rad": 1e-4, "_bar": 1e-4}  # fitted in mm, 0.1 mrad, 0.01 %/bar and % of k
             scale = np.array([unit.get(n[n.rfind("_") :], 0.01 * nominal[n]) for n in free])
 
             def unpack(z: np.ndarray) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
@@ -167,6 +173,9 @@ class VslStaticFit(Estimator):
             for name, why in _absent_loops(links, values, free, se).items():
                 fixed[name], at_zero[name] = 0.0, se[name]
                 dropped |= {name: "", name.replace("delta_h_rad", "tau_y_nm"): why}
+            if STRAIN in free and values[STRAIN] < 2 * se[STRAIN] and STRAIN not in dropped:
+                fixed[STRAIN], at_zero[STRAIN] = 0.0, se[STRAIN]  # the links do not lengthen: none
+                dropped[STRAIN] = ""
             dropped |= _impossible_loops(links, tables, values, [n for n in free if n not in dropped], se)
             if not dropped:
                 break
@@ -191,11 +200,18 @@ class VslStaticFit(Estimator):
     def _tip(
         self, robot: RobotDescription, links, tables, values: dict, q, p, m, z
     ) -> tuple[np.ndarray, ...]:
-        """The statics' tip (base frame) of the arm with ``values``' lengths and stiffness tables, and the
-        links' torques: δ = τ/k − δ_h·z, z each link's hysteresis state."""
+        """The statics' tip (base frame) of the arm with ``values``' lengths, offsets, lengthening with
+        pressure and stiffness tables, and the links' torques: δ = τ/k − δ_h·z, z each link's hysteresis
+        state."""
         fitted = {"l2_m": values["l2_m"], "l3_m": values["l3_m"],
                   "joint_offsets_rad": tuple(values[f"{j}.offset_rad"] for j in OFFSETS)}  # fmt: skip
         arm = robot.model_copy(update={"kinematics": robot.kinematics.model_copy(update=fitted)})
+        a = None
+        if values.get(STRAIN):  # the rows' lengths at each point's pressures, by channel
+            by_channel = np.zeros((len(q), robot.pneumatics.channels))
+            for i, link in enumerate(links):
+                by_channel[:, link.pressure_channel or 0] = p[:, i]
+            a = arm.row_lengths(by_channel, values[STRAIN])
         k = np.stack(
             [
                 interp_table(pv, t.pressure_pa, [values[_knot(link.name, pk)] for pk in t.pressure_pa])
@@ -207,9 +223,9 @@ class VslStaticFit(Estimator):
         delta = np.zeros_like(k)
         hyst = np.array([values.get(f"{link.name}.delta_h_rad", 0.0) for link in links])
         for _ in range(self.iterations):
-            torque = gravity_moments(arm, q, delta, m)[:, virtual]
+            torque = gravity_moments(arm, q, delta, m, a)[:, virtual]
             delta = torque / np.maximum(k, 1e-3) - hyst * z
-        return arm.chain().position(q, delta), torque
+        return arm.chain().position(q, delta, a), torque
 
     # ----------------------------------------------------------------------------------- the result
     def table(self) -> pd.DataFrame:
@@ -261,6 +277,7 @@ class VslStaticFit(Estimator):
                 "joint_offsets_rad": [round(values[f"{j}.offset_rad"], 7) for j in OFFSETS],
             },
             "links": links,
+            **_effects_block(robot, self.values_),
             "fitted": {
                 "dataset": dataset,
                 "code_version": code_version,
@@ -275,6 +292,16 @@ class VslStaticFit(Estimator):
                 "not_identifiable": dict(self.not_identifiable_),
             },
         }
+
+
+def _effects_block(robot: RobotDescription, values: dict) -> dict:
+    """The fitted description's ``effects`` where the fit says other than the nominal description: the links'
+    lengthening with pressure (``null``: none, where the nominal one has it)."""
+    strain = values.get(STRAIN)
+    nominal = robot.effects.elongation
+    if strain is None or strain == (nominal.strain_per_bar if nominal else 0.0):
+        return {}
+    return {"effects": {"elongation": {"strain_per_bar": float(strain)} if strain > 0 else None}}
 
 
 def _check(robot: RobotDescription, points: pd.DataFrame, same_name: bool = True) -> list:
@@ -303,12 +330,15 @@ def _check(robot: RobotDescription, points: pd.DataFrame, same_name: bool = True
 
 
 LOOSEST_OFFSET_RAD = np.radians(0.5)  # a joint offset known no better than this is not identified
+LOOSEST_STRAIN_PER_BAR = 1e-3  # nor a lengthening known no better than 0.25 mm per bar of a 0.25 m link
 
 
 def _loosest(name: str, nominal: float) -> float:
-    """The largest standard error a fitted value may have: half its nominal value, half a degree for a joint
-    offset (nominally zero)."""
-    return LOOSEST_OFFSET_RAD if name.endswith(".offset_rad") else 0.5 * abs(nominal)
+    """The largest standard error a fitted value may have: half its nominal value; for those nominally zero,
+    half a degree (a joint offset) or 0.1 % per bar (the links' lengthening)."""
+    if name.endswith(".offset_rad"):
+        return LOOSEST_OFFSET_RAD
+    return LOOSEST_STRAIN_PER_BAR if name == STRAIN and not nominal else 0.5 * abs(nominal)
 
 
 def _knot(link: str, pressure_pa: float) -> str:

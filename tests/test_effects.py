@@ -239,3 +239,24 @@ def test_descriptions_switch_effects_on_and_extend_others(tmp_path):
         with pytest.raises(RobotDescriptionError, match=says) as caught:
             load_robot(tmp_path / file)
         assert "\n" not in str(caught.value)
+
+
+def test_the_statics_lengthen_the_links_as_the_twin_does():
+    """``RobotDescription.row_lengths`` (the fit's and the statics' model of the elongation) gives each D-H
+    row the length the twin's kernel gives it, and the chain with those lengths puts the tip where the
+    rigid arm with L₂ and L₃ stretched by ε p puts it."""
+    from twin import kernel
+
+    robot = _vsl_with(elongation=Elongation(strain_per_bar=0.0025))
+    channel, strain = robot.elongating_rows()
+    a0 = np.array([r.a_m for r in robot.dh_rows()])
+    for p in ([0.5e5, 2e5], [2e5, 1e5]):
+        twin_rows = np.empty_like(a0)
+        kernel._row_lengths(a0, channel, strain, np.array(p), twin_rows)
+        np.testing.assert_array_equal(robot.row_lengths(np.array(p)), twin_rows)
+    p = np.array([[1.5e5, 1.5e5]])
+    kin = robot.kinematics
+    longer = kinematics.ArmLengths(kin.l1_m, kin.l2_m * 1.00375, kin.l3_m * 1.00375)
+    tip = robot.chain().position(POSES[1][None], None, robot.row_lengths(p))
+    np.testing.assert_allclose(tip[0], kinematics.vsl_fk(POSES[1], longer), atol=1e-12)
+    assert not load_robot("vsl").elongating_rows()[1].any()  # the papers' arm does not lengthen

@@ -1,10 +1,10 @@
 """The twin of the lab's own robot (issue 33, its static part): `vslab twin fit` and ``pipeline.twin_fit``.
 
 A lab robot the fit is not told about (`bench/lab_arm.yaml`: upper link ×0.8, lower ×1.25, l2 +2 mm,
-l3 −2 mm, joint offsets ±0.3°, the lower link's hysteresis slower) is simulated, built and fitted from the
-nominal description; the fit finds it within its standard errors. The command writes a description that
-extends the nominal one and the twin loads; what it is handed wrong ends in one `error:` line and exit
-status 2.
+l3 −2 mm, joint offsets ±0.3°, links that lengthen 0.1 % per bar, the lower link's hysteresis slower) is
+simulated, built and fitted from the nominal description; the fit finds it within its standard errors. The
+command writes a description that extends the nominal one and the twin loads; what it is handed wrong ends
+in one `error:` line and exit status 2.
 """
 
 from __future__ import annotations
@@ -48,7 +48,8 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     data, _ = Lab(lab).datasets.load("campaign", report.version)
 
     fit = VslStaticFit("vsl").fit(data)
-    true = {"l2_m": 0.252, "l3_m": 0.248, "q2.offset_rad": 0.005236, "q3.offset_rad": -0.005236}
+    true = {"l2_m": 0.252, "l3_m": 0.248, "q2.offset_rad": 0.005236, "q3.offset_rad": -0.005236,
+            "elongation.strain_per_bar": 0.001}  # fmt: skip
     for link in truth.links:
         table = truth.link_table(link.name)
         true |= {
@@ -59,7 +60,9 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
             f"{link.name}.delta_h_rad": link.hysteresis.delta_h_rad,
             f"{link.name}.tau_y_nm": link.hysteresis.tau_y_nm,
         }
-    assert len(fit.values_) == 16  # 2 lengths, 2 offsets, 4 stiffness values and 2 hysteresis values a link
+    assert (
+        len(fit.values_) == 17
+    )  # 2 lengths, 2 offsets, the lengthening, 4 stiffness and 2 loop values a link
     for name, value in fit.values_.items():
         assert abs(value - true[name]) <= 3 * fit.stderr_[name], (name, value, true[name], fit.stderr_[name])
     assert abs(fit.values_["l2_m"] - 0.252) < 0.3e-3 and abs(fit.values_["l3_m"] - 0.248) < 0.3e-3
@@ -80,6 +83,9 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     # 1.3× the floor; the nominal twin, the papers' arm, about 3.5× off
     written = tmp_path / "fitted.yaml"
     written.write_text(yaml.safe_dump(fit.description("vsl_fitted", "vsl", "campaign", "test")))
+    assert load_robot(written).effects.elongation.strain_per_bar == pytest.approx(
+        fit.values_["elongation.strain_per_bar"]
+    )  # the twin of the fitted description lengthens its links as the lab's arm does
     held_out = {}
     for order in ("drawn", "shuffled"):
         sub = tmp_path / order

@@ -54,15 +54,7 @@ def build_params(robot: RobotDescription, dt: float = DEFAULT_DT) -> kernel.Kern
     ).reshape(-1, 3)
 
     links = robot.links
-    # effects.elongation: the rows of a pressurised link (its virtual joints' and the joint it follows)
-    row_channel, row_strain = np.full(len(rows), -1), np.zeros(len(rows))
-    if (elongation := robot.effects.elongation) is not None:
-        for link in links:
-            if link.pressure_channel is None:
-                continue
-            for i, name in enumerate(row_names):
-                if name in link.virtual_joints or name == link.after_joint:
-                    row_channel[i], row_strain[i] = link.pressure_channel, elongation.strain_per_pa
+    row_channel, row_strain = robot.elongating_rows()  # effects.elongation (models.robot)
     tables = [robot.link_table(link.name) for link in links]
     width = max(len(t.pressure_pa) for t in tables)
 
