@@ -1,7 +1,8 @@
 """The report's section "the twin against your robot" (issue 33), from what the lab's twin folder holds
 (``pipeline.lab.TwinStore``): each fitted description's values beside the nominal ones with their standard
-errors and what could not be identified (`vslab twin fit`), the newest check of each (`vslab twin check`)
-and the pretraining curve (`vslab twin curve`), drawn again here from its table."""
+errors and what could not be identified (`vslab twin fit` keeps its ``fitted`` block there), the newest
+check of each (`vslab twin check`) and the pretraining curve (`vslab twin curve`), drawn again here from its
+table."""
 
 from __future__ import annotations
 
@@ -12,7 +13,6 @@ from pathlib import Path
 import pandas as pd
 
 from analysis import diagnostics
-from models.robot import RobotDescriptionError, load_robot
 from pipeline.lab import Lab
 
 TABLES = "your twin"  # the start of every table key of this section
@@ -21,24 +21,18 @@ TABLES = "your twin"  # the start of every table key of this section
 def twin_against_robot(lab: Lab, res, out: Path) -> None:
     """Fill ``res`` (``analysis.lab_figures.Results``) with this section's tables, texts and the curve's
     figure: what the lab's twin folder holds (a lab whose twin was never fitted has no such section)."""
-    for path in lab.twin.descriptions():
-        try:
-            robot = load_robot(Path(str(path)))
-        except RobotDescriptionError as exc:
-            res.missing[f"{TABLES}: {Path(str(path)).name}"] = str(exc)
-            continue
-        if robot.fitted is None:
-            continue
-        res.tables[f"{TABLES}: {robot.name}, fitted beside nominal"] = fitted_table(robot.fitted)
-        fitted = robot.fitted
-        res.versions[f"dataset fitted, {robot.name}"] = fitted.dataset
-        words = [f"`{robot.name}` was fitted to {fitted.points:,} settled points of {fitted.sessions} "
-                 f"sessions of {fitted.dataset}; the tracked tip's residual is "
-                 f"{fitted.residual_rms_mm:.3f} mm per axis."]  # fmt: skip
-        if fitted.not_identifiable:
+    for path in lab.twin.fits():
+        fitted = json.loads(path.read_text())
+        name = fitted["name"]
+        res.tables[f"{TABLES}: {name}, fitted beside nominal"] = fitted_table(fitted["parameters"])
+        res.versions[f"dataset fitted, {name}"] = fitted["dataset"]
+        words = [f"`{name}` ({fitted['file']}) was fitted to {fitted['points']:,} settled points of "
+                 f"{fitted['sessions']} sessions of {fitted['dataset']}; the tracked tip's residual is "
+                 f"{fitted['residual_rms_mm']:.3f} mm per axis."]  # fmt: skip
+        if fitted["not_identifiable"]:
             words.append("Not identifiable, left nominal: " + "; ".join(
-                f"{name} ({why})" for name, why in fitted.not_identifiable.items()) + ".")  # fmt: skip
-        res.texts[f"{TABLES}: {robot.name}, fitted beside nominal"] = " ".join(words)
+                f"{n} ({why})" for n, why in fitted["not_identifiable"].items()) + ".")  # fmt: skip
+        res.texts[f"{TABLES}: {name}, fitted beside nominal"] = " ".join(words)
     for path in lab.twin.checks():
         record = json.loads(path.read_text())
         names = record["names"]
@@ -52,13 +46,14 @@ def twin_against_robot(lab: Lab, res, out: Path) -> None:
         res.tables[f"{TABLES}: pretraining curve, {record['net']}"] = curve_table(curve)
 
 
-def fitted_table(fitted) -> pd.DataFrame:
-    """One row per fitted parameter: nominal, fitted, its standard error and how far it moved (% and SE)."""
+def fitted_table(parameters: dict[str, dict]) -> pd.DataFrame:
+    """One row per fitted parameter (a ``fitted`` block's ``parameters``: value, stderr, nominal): nominal,
+    fitted, its standard error and how far it moved (% and SE)."""
     rows = {
-        name: {"nominal": v.nominal, "fitted": v.value, "standard error": v.stderr,
-               "change (%)": 100 * (v.value / v.nominal - 1) if v.nominal else math.nan,
-               "change (SE)": (v.value - v.nominal) / v.stderr if v.stderr else math.nan}
-        for name, v in fitted.parameters.items()
+        name: {"nominal": v["nominal"], "fitted": v["value"], "standard error": v["stderr"],
+               "change (%)": 100 * (v["value"] / v["nominal"] - 1) if v["nominal"] else math.nan,
+               "change (SE)": (v["value"] - v["nominal"]) / v["stderr"] if v["stderr"] else math.nan}
+        for name, v in parameters.items()
     }  # fmt: skip
     return pd.DataFrame.from_dict(rows, orient="index").rename_axis("parameter (SI units)")
 

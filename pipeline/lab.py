@@ -60,16 +60,19 @@ class TwinStore:
         """The description fitted to the lab's robot, by its nominal description's name."""
         return self.root / f"{robot}_fitted.yaml"
 
+    def fit(self, robot: str) -> LabPath:
+        """What the report shows of the description ``robot`` (its name) fitted here: its ``fitted`` block."""
+        return self.root / f"fit-{robot}.json"
+
+    def fits(self) -> list[LabPath]:
+        return sorted(self.root.glob("fit-*.json")) if self.root.exists() else []
+
     def check(self, robot: str) -> LabPath:
         """The newest check of description ``robot`` (its name)."""
         return self.root / f"check-{robot}.json"
 
     def checks(self) -> list[LabPath]:
         return sorted(self.root.glob("check-*.json")) if self.root.exists() else []
-
-    def descriptions(self) -> list[LabPath]:
-        """Every description written here (fitted ones, and any a lab keeps beside them)."""
-        return sorted(self.root.glob("*.yaml")) if self.root.exists() else []
 
     @property
     def curve(self) -> LabPath:

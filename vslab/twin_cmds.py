@@ -61,6 +61,8 @@ def twin_fit(
     except RobotDescriptionError as exc:
         target.unlink()
         _error(f"the fitted description is not valid, nothing written: {exc}")
+    kept = {"name": fitted["name"], "file": str(target), **fitted["fitted"]}
+    _keep(lab.twin.fit(fitted["name"]), kept)  # what the report shows of it
     if not options().quiet:
         table = Table("parameter", "fitted", "± 1 SE", "nominal")
         for row in fit.table().itertuples():
