@@ -29,10 +29,18 @@ def _load() -> str:
 
 def _true(arm, parameter: str) -> float:
     """The value of a fitted parameter's name (``pipeline.twin_fit``) in the description ``arm``."""
-    from pipeline.twin_fit import OFFSETS, STRAIN
+    from models.robot import load_robot
+    from pipeline.twin_fit import OFFSETS, STRAIN, TORQUE_CONSTANT, _mass_bodies
 
     if parameter == STRAIN:
         return arm.effects.elongation.strain_per_bar if arm.effects.elongation else 0.0
+    if parameter == TORQUE_CONSTANT:
+        return arm.servo.torque_constant_nm_per_a
+    if parameter.endswith(".mass_scale"):  # the body's mass against the papers' arm's
+        nominal = load_robot("vsl")
+        body = _mass_bodies(nominal, [nominal.link_of(v) for v in nominal.virtual_joints])[parameter[:-11]]
+        return sum(m.mass_kg for m in arm.masses if m.name in body) / sum(
+            m.mass_kg for m in nominal.masses if m.name in body)  # fmt: skip
     subject, _, field = parameter.partition(".")
     if not field:
         return getattr(arm.kinematics, subject)
@@ -50,6 +58,7 @@ def main() -> int:
     parser.add_argument("--points", type=int, default=17568, help="campaign points (the paper's n = 17568)")
     parser.add_argument("--benches", type=int, default=128, help="campaign sessions (twin benches)")
     parser.add_argument("--lab", type=Path, default=None, help="a lab to fit (its campaign dataset)")
+    parser.add_argument("--seed", type=int, default=0, help="the campaign's seed")
     parser.add_argument("--arm", default="vsl", help="the arm the campaign is simulated on (the fit's truth; "
                         "bench/lab_arm.yaml: a lab's arm the fit is not told about)")  # fmt: skip
     args = parser.parse_args()
@@ -70,8 +79,9 @@ def main() -> int:
             data, _ = lab.datasets.load("campaign")
         except DatasetError:
             start = time.perf_counter()
+            overrides = {"points": args.points, "robot": args.arm}
             simulate_experiment("campaign", SessionStore(where / "sessions"), benches=args.benches,
-                                overrides={"points": args.points, "robot": args.arm})  # fmt: skip
+                                seed=args.seed, overrides=overrides)  # fmt: skip
             report = build(sorted((where / "sessions").iterdir()), lab, "campaign")
             data, _ = lab.datasets.load("campaign", report.version)
             print(f"campaign simulated and built: {time.perf_counter() - start:.1f} s", flush=True)

@@ -93,6 +93,18 @@ def _virtual_stiffness(robot: RobotDescription, batch: tuple[int, ...], pressure
     return out
 
 
+def servo_current_a(servo, torque: ArrayLike, qd: ArrayLike) -> Array:
+    """The drive current (A, no noise) of servos (a ``ServoSpec``) holding ``torque`` (N·m) at speed ``qd``
+    (rad/s): torque / K_t + idle · sign(torque) + friction · sign(speed) (smoothed). The twin's current
+    registers read it; the twin fit weighs the arm with it."""
+    torque = np.asarray(torque, float)
+    return (
+        torque / servo.torque_constant_nm_per_a
+        + servo.idle_current_a * np.sign(torque)
+        + servo.friction_current_a * np.tanh(np.asarray(qd, float) / 0.02)
+    )
+
+
 def servo_droop(robot: RobotDescription, q: ArrayLike, payload_kg: ArrayLike = 0.0) -> Array:
     """How far the position-controlled drives sit from their goals under the static load, (..., A) rad:
     output = goal + M/K (M the gravity moment about the joint, K the position loop's stiffness); steppers land

@@ -12,6 +12,9 @@ This is the static part of the VSL arm's fit (:class:`VslStaticFit`). From a dat
   errors, ``kinematics.joint_offsets_rad``),
 - how much the links lengthen with pressure (``effects.elongation``, an effect the papers' statics leave
   out; none, 0, where the points show none),
+- the masses each link carries beyond its hinge, scaled together (``<link>.mass_scale``: one by one they are
+  not told apart by their moments) and, where the dataset has the servos' currents (``i_*``), their torque
+  constant: the currents weigh the arm (each current residual weighted by its noise against the tip's),
 
 beside a small rigid correction of the tracker registration (the dataset's registration was fitted with the
 nominal arm: a lab arm's other lengths move it a little). The tip model is the description's statics, the
@@ -31,9 +34,8 @@ hysteresis 6–21 % low). Standard errors come
 from the Jacobian at the solution, clustered by session (a session's points share its bench and its drift:
 treating them as independent would make the errors too small).
 
-Not fitted yet (issue 33 asks for them): masses and the current → torque constant (the payload response),
-servo stiffness and backlash, damping (a dynamic fit), the other unmodelled effects (creep, hose torques, the
-tracker's field distortion), POPUP's Table 1.
+Not fitted yet (issue 33 asks for them): servo stiffness and backlash, damping (a dynamic fit), the other
+unmodelled effects (creep, hose torques, the tracker's field distortion), POPUP's Table 1.
 """
 
 from __future__ import annotations
@@ -48,7 +50,7 @@ from scipy.spatial.transform import Rotation
 from models.estimator import Estimator
 from models.prbm import bouc_wen_step, interp_table
 from models.robot import AnthropomorphicKinematics, RobotDescription, load_robot
-from models.statics import gravity_moments
+from models.statics import gravity_moments, servo_current_a
 from pipeline.errors import PipelineError
 
 MEASURED_Q = ("q_0", "q_1", "q_2")
@@ -56,6 +58,12 @@ TIP = ("x_0", "x_1", "x_2")
 NEEDED = (*MEASURED_Q, *TIP, "payload_kg")
 L1_CONFOUNDED = (
     "moves the tip along the base's vertical axis exactly as the tracker registration's offset does"
+)
+TORQUE_CONSTANT = (
+    "servo.torque_constant_nm_per_a"  # the drives' current → torque (their currents weigh the arm)
+)
+CURRENT_WEIGHT_MM_PER_MA = (
+    0.04  # a first guess (0.12 mm of tip noise per 3 mA of current noise), then measured
 )
 STRAIN = "elongation.strain_per_bar"  # the links' lengthening with pressure (effects.elongation)
 Q1_CONFOUNDED = (
@@ -107,6 +115,7 @@ class VslStaticFit(Estimator):
         p = rows[channels].to_numpy(float)
         m = rows["payload_kg"].to_numpy(float)
         sessions = rows["session"].to_numpy() if "session" in rows else np.zeros(len(rows))
+        amps = _currents(robot, rows)  # (n, servos) A, or None: the drives' currents weigh the arm too
 
         tables = [robot.link_table(link.name) for link in links]
         nominal: dict[str, float] = {"l2_m": robot.kinematics.l2_m, "l3_m": robot.kinematics.l3_m}
@@ -117,6 +126,14 @@ class VslStaticFit(Estimator):
         nominal[STRAIN] = elongation.strain_per_bar if elongation is not None else 0.0
         free: list[str] = ["l2_m", "l3_m", "q2.offset_rad", "q3.offset_rad", STRAIN]
         hidden: dict[str, str] = {"l1_m": L1_CONFOUNDED, "q1.offset_rad": Q1_CONFOUNDED}
+        bodies = _mass_bodies(robot, links)  # each link's masses scale together: their sum and balance
+        nominal |= {f"{body}.mass_scale": 1.0 for body in bodies}  # (one by one, the masses on a body are
+        free += [f"{body}.mass_scale" for body in bodies]  # not told apart by its moments: 2–3× their values)
+        nominal[TORQUE_CONSTANT] = robot.servo.torque_constant_nm_per_a
+        if amps is not None:
+            free.append(TORQUE_CONSTANT)
+        else:
+            hidden[TORQUE_CONSTANT] = "the dataset has no joint currents (i_*)"
         for link, table, pv in zip(links, tables, p.T, strict=True):
             if link.hysteresis is not None:  # the loop's half width: how far a point falls short of τ/k
                 nominal[f"{link.name}.delta_h_rad"] = link.hysteresis.delta_h_rad
@@ -133,15 +150,19 @@ class VslStaticFit(Estimator):
                                     f"(the fit needs {self.min_weight:g})")  # fmt: skip
         if not self.fit_parameters:
             free, hidden = [], {}
-        # each point's hysteresis state follows the nominal arm's torques along each session's moves
-        _, torque = self._tip(robot, links, tables, nominal, q, p, m, 0.0)
+        # each point's hysteresis state follows the arm's torques along each session's moves
         t = rows["t"].to_numpy(float) if "t" in rows else np.arange(len(rows), dtype=float)
         order = _session_order(sessions, t)
-        path = _path_torques(robot, q, m, order, torque, self.substeps)
+        parts = _path_parts(robot, links, q, m, order, self.substeps)
+
+        weight = [CURRENT_WEIGHT_MM_PER_MA]  # a current residual's worth in tip millimetres, then measured
+        states: dict[tuple, np.ndarray] = {}  # the loops' states of the last few loads and τ_y asked for
+        last: dict[str, Any] = {}  # the last pass's solution (scaled): where the next one starts
+        arms: dict[tuple, tuple] = {}  # the arm's tip, torques and drive torques at the last values asked for
 
         def solve(free: list[str], fixed: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, dict]:
-            """Values, registration rotation and shift, residuals (mm) and standard errors of ``free`` (the
-            others nominal, or as ``fixed``)."""
+            """Values, registration rotation and shift, residuals (tip in mm, then the currents' in mA) and
+            standard errors of ``free`` (the others nominal, or as ``fixed``)."""
             unit = {"_m": 1e-3, "_rad": 1e-4, "_bar": 1e-4}  # fitted in mm, 0.1 mrad, 0.01 %/bar and % of k
             scale = np.array([unit.get(n[n.rfind("_") :], 0.01 * nominal[n]) for n in free])
 
@@ -152,13 +173,36 @@ class VslStaticFit(Estimator):
 
             def residual(z: np.ndarray) -> np.ndarray:
                 values, rotvec, shift = unpack(z)
-                tau_y = [values.get(f"{link.name}.tau_y_nm", 1.0) for link in links]
-                state = _hysteresis_states(path, np.asarray(tau_y), order)
-                tip, _ = self._tip(robot, links, tables, values, q, p, m, state)
-                return ((Rotation.from_rotvec(rotvec).apply(tip) + shift - x) * 1e3).ravel()  # mm
+                tau_y = tuple(values.get(f"{link.name}.tau_y_nm", 1.0) for link in links)
+                loads = tuple(values.get(f"{body}.mass_scale", 1.0) for body in parts)
+                if (key := (tau_y, loads)) not in states:  # most of the Jacobian's columns change neither
+                    path = _path_torques(parts, values)  # the fitted masses load the links along the moves
+                    if len(states) > 8:
+                        states.pop(next(iter(states)))  # the oldest
+                    states[key] = _hysteresis_states(path, np.asarray(tau_y), order)
+                state = states[key]
+                arm_key = tuple(
+                    values.values()
+                )  # the registration's columns of the Jacobian leave the arm as is
+                if arm_key not in arms:
+                    arms.clear()
+                    arms[arm_key] = self._tip(robot, links, tables, values, q, p, m, state)
+                tip, _, drive = arms[arm_key]
+                out = ((Rotation.from_rotvec(rotvec).apply(tip) + shift - x) * 1e3).ravel()  # mm
+                if amps is None:
+                    return out
+                servo = robot.servo.model_copy(update={"torque_constant_nm_per_a": values[TORQUE_CONSTANT]})
+                wrong = (servo_current_a(servo, drive, 0.0) - amps) * 1e3  # mA
+                return np.concatenate([out, weight[0] * wrong.ravel()])
 
-            fit = least_squares(residual, np.zeros(len(free) + 6), method="trf", x_scale=1.0)
-            cov = _clustered_covariance(fit.jac, fit.fun, np.repeat(sessions, 3))
+            start = np.array([last.get(n, 0.0) for n in free] + list(last.get("registration", np.zeros(6))))
+            fit = least_squares(residual, start, method="trf", x_scale=1.0)
+            last.clear()  # the next pass starts where this one ended
+            last.update(zip(free, fit.x[: len(free)], strict=True), registration=fit.x[len(free) :])
+            groups = np.repeat(sessions, 3)
+            if amps is not None:
+                groups = np.concatenate([groups, np.repeat(sessions, amps.shape[1])])
+            cov = _clustered_covariance(fit.jac, fit.fun, groups)
             se = np.sqrt(np.clip(np.diag(cov)[: len(free)], 0.0, None)) * scale
             return *unpack(fit.x), fit.fun, dict(zip(free, se.tolist(), strict=True))
 
@@ -168,6 +212,10 @@ class VslStaticFit(Estimator):
         at_zero: dict[str, float] = {}  # δ_h fitted at 0: its standard error where it was last free
         while True:  # ends: each pass that does not end it takes at least one name out of ``free``
             values, rotvec, shift, r, se = solve(free, fixed)
+            if amps is not None and weight[0] == CURRENT_WEIGHT_MM_PER_MA:  # each residual by its own noise
+                tip_rms, amp_rms = np.std(r[: 3 * len(q)]), np.std(r[3 * len(q) :]) / weight[0]
+                weight[0] = tip_rms / max(amp_rms, 1e-6)
+                continue
             dropped = {n: f"the points do not constrain it (standard error {e:.3g})" for n, e in se.items()
                        if not np.isfinite(e) or e > _loosest(n, nominal[n])}  # fmt: skip
             for name, why in _absent_loops(links, values, free, se).items():
@@ -190,9 +238,13 @@ class VslStaticFit(Estimator):
             "rotation_rad": [float(v) for v in rotvec],
             "translation_m": [float(v) for v in shift],
         }
-        self.residual_rms_mm_ = float(np.sqrt(np.mean(r**2)))
+        tip_r = r[: 3 * len(q)]
+        self.residual_rms_mm_ = float(np.sqrt(np.mean(tip_r**2)))
+        self.current_rms_ma_ = (
+            float(np.sqrt(np.mean((r[3 * len(q) :] / weight[0]) ** 2))) if amps is not None else None
+        )
         self.errors_mm_ = np.full(len(points), np.nan)
-        self.errors_mm_[ok] = np.linalg.norm(r.reshape(-1, 3), axis=1)
+        self.errors_mm_[ok] = np.linalg.norm(tip_r.reshape(-1, 3), axis=1)
         self.n_points_ = len(rows)
         self.n_sessions_ = len(set(sessions.tolist()))
         return self
@@ -201,11 +253,14 @@ class VslStaticFit(Estimator):
         self, robot: RobotDescription, links, tables, values: dict, q, p, m, z
     ) -> tuple[np.ndarray, ...]:
         """The statics' tip (base frame) of the arm with ``values``' lengths, offsets, lengthening with
-        pressure and stiffness tables, and the links' torques: δ = τ/k − δ_h·z, z each link's hysteresis
-        state."""
+        pressure, masses and stiffness tables, the links' torques (δ = τ/k − δ_h·z, z each link's hysteresis
+        state) and the torques the servos hold."""
         fitted = {"l2_m": values["l2_m"], "l3_m": values["l3_m"],
                   "joint_offsets_rad": tuple(values[f"{j}.offset_rad"] for j in OFFSETS)}  # fmt: skip
-        arm = robot.model_copy(update={"kinematics": robot.kinematics.model_copy(update=fitted)})
+        masses = _scaled_masses(robot, links, values)
+        arm = robot.model_copy(
+            update={"kinematics": robot.kinematics.model_copy(update=fitted), "masses": masses}
+        )
         a = None
         if values.get(STRAIN):  # the rows' lengths at each point's pressures, by channel
             by_channel = np.zeros((len(q), robot.pneumatics.channels))
@@ -219,13 +274,16 @@ class VslStaticFit(Estimator):
             ],
             axis=1,
         )
-        virtual = [i for i, row in enumerate(arm.dh_rows()) if not row.joint.startswith("q")]
+        rows = [row.joint for row in arm.dh_rows()]
+        virtual = [i for i, joint in enumerate(rows) if not joint.startswith("q")]
+        servos = [rows.index(j.name) for j in arm.joints if j.drive == "servo"]
         delta = np.zeros_like(k)
         hyst = np.array([values.get(f"{link.name}.delta_h_rad", 0.0) for link in links])
         for _ in range(self.iterations):
-            torque = gravity_moments(arm, q, delta, m, a)[:, virtual]
+            moments = gravity_moments(arm, q, delta, m, a)
+            torque = moments[:, virtual]
             delta = torque / np.maximum(k, 1e-3) - hyst * z
-        return arm.chain().position(q, delta, a), torque
+        return arm.chain().position(q, delta, a), torque, -moments[:, servos]  # the drives hold −M
 
     # ----------------------------------------------------------------------------------- the result
     def table(self) -> pd.DataFrame:
@@ -277,6 +335,11 @@ class VslStaticFit(Estimator):
                 "joint_offsets_rad": [round(values[f"{j}.offset_rad"], 7) for j in OFFSETS],
             },
             "links": links,
+            "masses": [
+                mass.model_dump(mode="json", exclude_none=True) | {"mass_kg": round(mass.mass_kg, 6)}
+                for mass in _scaled_masses(robot, [robot.link_of(v) for v in robot.virtual_joints], values)
+            ],
+            "servo": {"torque_constant_nm_per_a": round(values[TORQUE_CONSTANT], 6)},
             **_effects_block(robot, self.values_),
             "fitted": {
                 "dataset": dataset,
@@ -292,6 +355,39 @@ class VslStaticFit(Estimator):
                 "not_identifiable": dict(self.not_identifiable_),
             },
         }
+
+
+def _mass_bodies(robot: RobotDescription, links) -> dict[str, list[str]]:
+    """The point masses each bending link carries on the body after its hinge, up to the next link's (the
+    tool point's on the last): {link: [mass names]}."""
+    rows = [row.joint for row in robot.dh_rows()]
+    hinges = [(rows.index(link.virtual_joints[0]), link.name) for link in links]
+    out: dict[str, list[str]] = {}
+    for mass in robot.masses:
+        at = len(rows) - 1 if mass.frame == "tip" else rows.index(mass.frame)
+        carriers = [name for row, name in hinges if row <= at]
+        if carriers:
+            out.setdefault(carriers[-1], []).append(mass.name)
+    return out
+
+
+def _scaled_masses(robot: RobotDescription, links, values: dict) -> list:
+    """The description's point masses, each link's body's scaled by ``<link>.mass_scale`` in ``values``."""
+    scale = {m: values.get(f"{body}.mass_scale", 1.0) for body, names in _mass_bodies(robot, links).items()
+             for m in names}  # fmt: skip
+    return [
+        mass.model_copy(update={"mass_kg": mass.mass_kg * scale.get(mass.name, 1.0)}) for mass in robot.masses
+    ]
+
+
+def _currents(robot: RobotDescription, rows: pd.DataFrame) -> np.ndarray | None:
+    """The servos' currents (n, servos) in A (``i_0`` … in the servos' order), or None where the dataset has
+    none or any is not finite."""
+    names = [f"i_{k}" for k in range(sum(j.drive == "servo" for j in robot.joints))]
+    if not names or not set(names) <= set(rows.columns):
+        return None
+    amps = rows[names].to_numpy(float)
+    return amps if np.isfinite(amps).all() else None
 
 
 def _effects_block(robot: RobotDescription, values: dict) -> dict:
@@ -377,20 +473,43 @@ def _session_order(sessions: np.ndarray, t: np.ndarray) -> np.ndarray:
     return order
 
 
-def _path_torques(robot: RobotDescription, q: np.ndarray, m: np.ndarray, order: np.ndarray,
-                  torque: np.ndarray, substeps: int) -> np.ndarray:  # fmt: skip
+def _path_parts(robot: RobotDescription, links, q: np.ndarray, m: np.ndarray, order: np.ndarray,
+                substeps: int) -> dict[str, np.ndarray]:  # fmt: skip
     """(n, substeps, links) the links' torques along the move into each point from the one before it in its
-    session (joint angles interpolated in a straight line; the point's own torque last): the hysteresis
-    follows the path, which need not be monotone between two points."""
+    session (joint angles interpolated in a straight line, the rigid arm's moments; the point's own last): the
+    hysteresis follows the path, which need not be monotone between two points. In parts, which the torque
+    is linear in: the payload's (``payload``), each bending link's body's masses at their nominal values (by
+    link name: the fit scales them) and the other masses' (``fixed``)."""
     before = np.arange(len(q))
     for row in order:
         row = row[row >= 0]
         before[row[1:]] = row[:-1]
     virtual = [i for i, r in enumerate(robot.dh_rows()) if not r.joint.startswith("q")]
-    out = np.repeat(torque[:, None, :], substeps, axis=1)
-    for s in range(1, substeps):
-        between = q[before] + (q - q[before]) * (s / substeps)
-        out[:, s - 1] = gravity_moments(robot, between, None, m)[:, virtual]
+
+    def part(masses: list, payload) -> np.ndarray:
+        out = np.zeros((len(q), substeps, len(virtual)))
+        if not masses and not np.any(payload):
+            return out
+        arm = robot.model_copy(update={"masses": masses})
+        for s in range(1, substeps + 1):
+            between = q[before] + (q - q[before]) * (s / substeps)
+            out[:, s - 1] = gravity_moments(arm, between, None, payload)[:, virtual]
+        return out
+
+    bodies = _mass_bodies(robot, links)
+    carried = {name for names in bodies.values() for name in names}
+    parts = {"payload": part([], m), "fixed": part([x for x in robot.masses if x.name not in carried], 0.0)}
+    for body, names in bodies.items():
+        parts[body] = part([x for x in robot.masses if x.name in names], 0.0)
+    return parts
+
+
+def _path_torques(parts: dict[str, np.ndarray], values: dict) -> np.ndarray:
+    """The path's torques (see :func:`_path_parts`) with each body's masses scaled as ``values`` say."""
+    out = parts["payload"] + parts["fixed"]
+    for body, torque in parts.items():
+        if body not in ("payload", "fixed"):
+            out = out + values.get(f"{body}.mass_scale", 1.0) * torque
     return out
 
 

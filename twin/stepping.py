@@ -16,8 +16,8 @@ from acquisition.plans.plan import Plan
 from acquisition.safety import SafetyChecker
 from acquisition.schemas.events import Event, EventKind
 from models.robot import RobotDescription
+from models.statics import servo_current_a
 from twin.kernel import Trace
-from twin.streams import servo_current_a
 from twin.topics import stream_rows
 from twin.world import World
 

@@ -16,6 +16,7 @@ import numpy as np
 from acquisition.codecs import popup_boards
 from acquisition.devices.kinds import device_of
 from models.robot import CAN_DIR, PressureSensorSpec, RobotDescription
+from models.statics import servo_current_a
 from twin import sensors
 from twin.clocks import HostLinkSpec, SimulatedClocks, host_receive_ns
 from twin.kernel import Trace
@@ -136,15 +137,6 @@ def servo_counts(robot: RobotDescription, q: np.ndarray, qd: np.ndarray, torque:
         "velocity": sensors.velocity_counts(qd, rng, noise.velocity_noise_counts),
         "current": sensors.current_counts(amps, noise.current_noise_counts, rng),
     }
-
-
-def servo_current_a(servo, torque: np.ndarray, qd: np.ndarray) -> np.ndarray:
-    """The drive current (A, no noise) of servos holding ``torque`` (N·m) at speed ``qd`` (rad/s)."""
-    return (
-        torque / servo.torque_constant_nm_per_a
-        + servo.idle_current_a * np.sign(torque)
-        + servo.friction_current_a * np.tanh(qd / 0.02)
-    )
 
 
 def pressure_stream(robot: RobotDescription, clocks: SimulatedClocks, trace: Trace, dt: float,
