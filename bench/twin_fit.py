@@ -30,7 +30,8 @@ def _load() -> str:
 def _true(arm, parameter: str) -> float:
     """The value of a fitted parameter's name (``pipeline.twin_fit``) in the description ``arm``."""
     from models.robot import load_robot
-    from pipeline.twin_fit import OFFSETS, STRAIN, TORQUE_CONSTANT, _mass_bodies
+    from pipeline.arm_history import mass_bodies
+    from pipeline.twin_fit import OFFSETS, STRAIN, TORQUE_CONSTANT
 
     if parameter == STRAIN:
         return arm.effects.elongation.strain_per_bar if arm.effects.elongation else 0.0
@@ -38,7 +39,7 @@ def _true(arm, parameter: str) -> float:
         return arm.servo.torque_constant_nm_per_a
     if parameter.endswith(".mass_scale"):  # the body's mass against the papers' arm's
         nominal = load_robot("vsl")
-        body = _mass_bodies(nominal, [nominal.link_of(v) for v in nominal.virtual_joints])[parameter[:-11]]
+        body = mass_bodies(nominal, [nominal.link_of(v) for v in nominal.virtual_joints])[parameter[:-11]]
         return sum(m.mass_kg for m in arm.masses if m.name in body) / sum(
             m.mass_kg for m in nominal.masses if m.name in body)  # fmt: skip
     subject, _, field = parameter.partition(".")

@@ -48,9 +48,17 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from models.estimator import Estimator
-from models.prbm import bouc_wen_step, interp_table
+from models.prbm import interp_table
 from models.robot import AnthropomorphicKinematics, RobotDescription, load_robot
 from models.statics import gravity_moments, servo_current_a
+from pipeline.arm_history import (
+    hysteresis_states,
+    mass_bodies,
+    path_parts,
+    path_torques,
+    scaled_masses,
+    session_order,
+)
 from pipeline.errors import PipelineError
 
 MEASURED_Q = ("q_0", "q_1", "q_2")
@@ -126,7 +134,7 @@ class VslStaticFit(Estimator):
         nominal[STRAIN] = elongation.strain_per_bar if elongation is not None else 0.0
         free: list[str] = ["l2_m", "l3_m", "q2.offset_rad", "q3.offset_rad", STRAIN]
         hidden: dict[str, str] = {"l1_m": L1_CONFOUNDED, "q1.offset_rad": Q1_CONFOUNDED}
-        bodies = _mass_bodies(robot, links)  # each link's masses scale together: their sum and balance
+        bodies = mass_bodies(robot, links)  # each link's masses scale together: their sum and balance
         nominal |= {f"{body}.mass_scale": 1.0 for body in bodies}  # (one by one, the masses on a body are
         free += [f"{body}.mass_scale" for body in bodies]  # not told apart by its moments: 2–3× their values)
         nominal[TORQUE_CONSTANT] = robot.servo.torque_constant_nm_per_a
@@ -152,8 +160,8 @@ class VslStaticFit(Estimator):
             free, hidden = [], {}
         # each point's hysteresis state follows the arm's torques along each session's moves
         t = rows["t"].to_numpy(float) if "t" in rows else np.arange(len(rows), dtype=float)
-        order = _session_order(sessions, t)
-        parts = _path_parts(robot, links, q, m, order, self.substeps)
+        order = session_order(sessions, t)
+        parts = path_parts(robot, links, q, m, order, self.substeps)
 
         weight = [CURRENT_WEIGHT_MM_PER_MA]  # a current residual's worth in tip millimetres, then measured
         states: dict[tuple, np.ndarray] = {}  # the loops' states of the last few loads and τ_y asked for
@@ -176,10 +184,10 @@ class VslStaticFit(Estimator):
                 tau_y = tuple(values.get(f"{link.name}.tau_y_nm", 1.0) for link in links)
                 loads = tuple(values.get(f"{body}.mass_scale", 1.0) for body in parts)
                 if (key := (tau_y, loads)) not in states:  # most of the Jacobian's columns change neither
-                    path = _path_torques(parts, values)  # the fitted masses load the links along the moves
+                    path = path_torques(parts, values)  # the fitted masses load the links along the moves
                     if len(states) > 8:
                         states.pop(next(iter(states)))  # the oldest
-                    states[key] = _hysteresis_states(path, np.asarray(tau_y), order)
+                    states[key] = hysteresis_states(path, np.asarray(tau_y), order)
                 state = states[key]
                 arm_key = tuple(
                     values.values()
@@ -257,7 +265,7 @@ class VslStaticFit(Estimator):
         state) and the torques the servos hold."""
         fitted = {"l2_m": values["l2_m"], "l3_m": values["l3_m"],
                   "joint_offsets_rad": tuple(values[f"{j}.offset_rad"] for j in OFFSETS)}  # fmt: skip
-        masses = _scaled_masses(robot, links, values)
+        masses = scaled_masses(robot, links, values)
         arm = robot.model_copy(
             update={"kinematics": robot.kinematics.model_copy(update=fitted), "masses": masses}
         )
@@ -337,7 +345,7 @@ class VslStaticFit(Estimator):
             "links": links,
             "masses": [
                 mass.model_dump(mode="json", exclude_none=True) | {"mass_kg": round(mass.mass_kg, 6)}
-                for mass in _scaled_masses(robot, [robot.link_of(v) for v in robot.virtual_joints], values)
+                for mass in scaled_masses(robot, [robot.link_of(v) for v in robot.virtual_joints], values)
             ],
             "servo": {"torque_constant_nm_per_a": round(values[TORQUE_CONSTANT], 6)},
             **_effects_block(robot, self.values_),
@@ -355,29 +363,6 @@ class VslStaticFit(Estimator):
                 "not_identifiable": dict(self.not_identifiable_),
             },
         }
-
-
-def _mass_bodies(robot: RobotDescription, links) -> dict[str, list[str]]:
-    """The point masses each bending link carries on the body after its hinge, up to the next link's (the
-    tool point's on the last): {link: [mass names]}."""
-    rows = [row.joint for row in robot.dh_rows()]
-    hinges = [(rows.index(link.virtual_joints[0]), link.name) for link in links]
-    out: dict[str, list[str]] = {}
-    for mass in robot.masses:
-        at = len(rows) - 1 if mass.frame == "tip" else rows.index(mass.frame)
-        carriers = [name for row, name in hinges if row <= at]
-        if carriers:
-            out.setdefault(carriers[-1], []).append(mass.name)
-    return out
-
-
-def _scaled_masses(robot: RobotDescription, links, values: dict) -> list:
-    """The description's point masses, each link's body's scaled by ``<link>.mass_scale`` in ``values``."""
-    scale = {m: values.get(f"{body}.mass_scale", 1.0) for body, names in _mass_bodies(robot, links).items()
-             for m in names}  # fmt: skip
-    return [
-        mass.model_copy(update={"mass_kg": mass.mass_kg * scale.get(mass.name, 1.0)}) for mass in robot.masses
-    ]
 
 
 def _currents(robot: RobotDescription, rows: pd.DataFrame) -> np.ndarray | None:
@@ -462,72 +447,6 @@ def _clustered_covariance(jac: np.ndarray, r: np.ndarray, groups: np.ndarray) ->
     g = len(labels)
     meat = scores.T @ scores * (g / (g - 1)) * ((n - 1) / max(n - k, 1))
     return bread @ meat @ bread
-
-
-def _session_order(sessions: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """(sessions, longest) row indices of each session's points in time order, padded with −1."""
-    groups = [np.flatnonzero(sessions == s) for s in np.unique(sessions)]
-    order = np.full((len(groups), max(len(g) for g in groups)), -1)
-    for k, g in enumerate(groups):
-        order[k, : len(g)] = g[np.argsort(t[g], kind="stable")]
-    return order
-
-
-def _path_parts(robot: RobotDescription, links, q: np.ndarray, m: np.ndarray, order: np.ndarray,
-                substeps: int) -> dict[str, np.ndarray]:  # fmt: skip
-    """(n, substeps, links) the links' torques along the move into each point from the one before it in its
-    session (joint angles interpolated in a straight line, the rigid arm's moments; the point's own last): the
-    hysteresis follows the path, which need not be monotone between two points. In parts, which the torque
-    is linear in: the payload's (``payload``), each bending link's body's masses at their nominal values (by
-    link name: the fit scales them) and the other masses' (``fixed``)."""
-    before = np.arange(len(q))
-    for row in order:
-        row = row[row >= 0]
-        before[row[1:]] = row[:-1]
-    virtual = [i for i, r in enumerate(robot.dh_rows()) if not r.joint.startswith("q")]
-
-    def part(masses: list, payload) -> np.ndarray:
-        out = np.zeros((len(q), substeps, len(virtual)))
-        if not masses and not np.any(payload):
-            return out
-        arm = robot.model_copy(update={"masses": masses})
-        for s in range(1, substeps + 1):
-            between = q[before] + (q - q[before]) * (s / substeps)
-            out[:, s - 1] = gravity_moments(arm, between, None, payload)[:, virtual]
-        return out
-
-    bodies = _mass_bodies(robot, links)
-    carried = {name for names in bodies.values() for name in names}
-    parts = {"payload": part([], m), "fixed": part([x for x in robot.masses if x.name not in carried], 0.0)}
-    for body, names in bodies.items():
-        parts[body] = part([x for x in robot.masses if x.name in names], 0.0)
-    return parts
-
-
-def _path_torques(parts: dict[str, np.ndarray], values: dict) -> np.ndarray:
-    """The path's torques (see :func:`_path_parts`) with each body's masses scaled as ``values`` say."""
-    out = parts["payload"] + parts["fixed"]
-    for body, torque in parts.items():
-        if body not in ("payload", "fixed"):
-            out = out + values.get(f"{body}.mass_scale", 1.0) * torque
-    return out
-
-
-def _hysteresis_states(path: np.ndarray, tau_y: np.ndarray, order: np.ndarray) -> np.ndarray:
-    """(n, links) Bouc–Wen state of each point: the torques along each session's moves (``path``, see
-    :func:`_path_torques`) stepped through in time ``order`` from a virgin link (z = 0 at τ = 0), as the
-    twin's links are; all sessions at once."""
-    z = np.zeros((path.shape[0], path.shape[2]))
-    state = np.zeros((order.shape[0], path.shape[2]))
-    prev = np.zeros_like(state)
-    for step in order.T:
-        now = step >= 0
-        rows = step[now]
-        for sub in range(path.shape[1]):
-            state[now] = bouc_wen_step(state[now], path[rows, sub] - prev[now], tau_y)
-            prev[now] = path[rows, sub]
-        z[rows] = state[now]
-    return z
 
 
 def _absent_loops(links, values: dict, free: list[str], se: dict) -> dict[str, str]:

@@ -1,0 +1,105 @@
+"""What a settled point of the VSL arm depends on beyond its own joints, pressures and payload: the loads
+along the moves that led to it and the hysteresis state they leave in each link (``pipeline.twin_fit``
+follows each session's points through them), and which masses each bending link carries.
+
+The loads are the rigid arm's gravity moments about the links' hinges along straight joint-space moves
+between consecutive points, in parts linear in what the fit scales (the payload's, each link's carried
+masses'), so a fit scales them without recomputing the moments.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from models.prbm import bouc_wen_step
+from models.robot import TIP_FRAME, RobotDescription
+from models.statics import gravity_moments
+
+
+def mass_bodies(robot: RobotDescription, links) -> dict[str, list[str]]:
+    """The point masses each bending link carries on the body after its hinge, up to the next link's (the
+    tool point's on the last): {link: [mass names]}."""
+    rows = [row.joint for row in robot.dh_rows()]
+    hinges = [(rows.index(link.virtual_joints[0]), link.name) for link in links]
+    out: dict[str, list[str]] = {}
+    for mass in robot.masses:
+        at = len(rows) - 1 if mass.frame == TIP_FRAME else rows.index(mass.frame)
+        carriers = [name for row, name in hinges if row <= at]
+        if carriers:
+            out.setdefault(carriers[-1], []).append(mass.name)
+    return out
+
+
+def scaled_masses(robot: RobotDescription, links, values: dict) -> list:
+    """The description's point masses, each link's body's scaled by ``<link>.mass_scale`` in ``values``."""
+    scale = {m: values.get(f"{body}.mass_scale", 1.0) for body, names in mass_bodies(robot, links).items()
+             for m in names}  # fmt: skip
+    return [
+        mass.model_copy(update={"mass_kg": mass.mass_kg * scale.get(mass.name, 1.0)}) for mass in robot.masses
+    ]
+
+
+def session_order(sessions: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """(sessions, longest) row indices of each session's points in time order, padded with −1."""
+    groups = [np.flatnonzero(sessions == s) for s in np.unique(sessions)]
+    order = np.full((len(groups), max(len(g) for g in groups)), -1)
+    for k, g in enumerate(groups):
+        order[k, : len(g)] = g[np.argsort(t[g], kind="stable")]
+    return order
+
+
+def path_parts(robot: RobotDescription, links, q: np.ndarray, m: np.ndarray, order: np.ndarray,
+                substeps: int) -> dict[str, np.ndarray]:  # fmt: skip
+    """(n, substeps, links) the links' torques along the move into each point from the one before it in its
+    session (joint angles interpolated in a straight line, the rigid arm's moments; the point's own last): the
+    hysteresis follows the path, which need not be monotone between two points. In parts, which the torque
+    is linear in: the payload's (``payload``), each bending link's body's masses at their nominal values (by
+    link name: the fit scales them) and the other masses' (``fixed``)."""
+    before = np.arange(len(q))
+    for row in order:
+        row = row[row >= 0]
+        before[row[1:]] = row[:-1]
+    virtual = [i for i, r in enumerate(robot.dh_rows()) if not r.joint.startswith("q")]
+
+    def part(masses: list, payload) -> np.ndarray:
+        out = np.zeros((len(q), substeps, len(virtual)))
+        if not masses and not np.any(payload):
+            return out
+        arm = robot.model_copy(update={"masses": masses})
+        for s in range(1, substeps + 1):
+            between = q[before] + (q - q[before]) * (s / substeps)
+            out[:, s - 1] = gravity_moments(arm, between, None, payload)[:, virtual]
+        return out
+
+    bodies = mass_bodies(robot, links)
+    carried = {name for names in bodies.values() for name in names}
+    parts = {"payload": part([], m), "fixed": part([x for x in robot.masses if x.name not in carried], 0.0)}
+    for body, names in bodies.items():
+        parts[body] = part([x for x in robot.masses if x.name in names], 0.0)
+    return parts
+
+
+def path_torques(parts: dict[str, np.ndarray], values: dict) -> np.ndarray:
+    """The path's torques (see :func:`path_parts`) with each body's masses scaled as ``values`` say."""
+    out = parts["payload"] + parts["fixed"]
+    for body, torque in parts.items():
+        if body not in ("payload", "fixed"):
+            out = out + values.get(f"{body}.mass_scale", 1.0) * torque
+    return out
+
+
+def hysteresis_states(path: np.ndarray, tau_y: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """(n, links) Bouc–Wen state of each point: the torques along each session's moves (``path``, see
+    :func:`path_torques`) stepped through in time ``order`` from a virgin link (z = 0 at τ = 0), as the
+    twin's links are; all sessions at once."""
+    z = np.zeros((path.shape[0], path.shape[2]))
+    state = np.zeros((order.shape[0], path.shape[2]))
+    prev = np.zeros_like(state)
+    for step in order.T:
+        now = step >= 0
+        rows = step[now]
+        for sub in range(path.shape[1]):
+            state[now] = bouc_wen_step(state[now], path[rows, sub] - prev[now], tau_y)
+            prev[now] = path[rows, sub]
+        z[rows] = state[now]
+    return z
