@@ -1,8 +1,9 @@
 """Pretraining on the lab's twin (issue 33): a network first learns a campaign simulated on a description of
 the lab's own arm (the one ``vslab twin fit`` writes), then the lab's measured rows fine-tune it.
 
-The twin's campaign is simulated into a study of its own per description, ``<lab>/twin/<name>-<digest>/``
-(a description fitted again is another twin: its sessions are never taken for the old one's), and built into
+The twin's campaign is simulated into a study of its own per description, size and seed,
+``<lab>/twin/<name>-<digest>[-<points>pts]-seed<seed>/`` (a description fitted again is another twin: its
+sessions are never taken for the old one's), and built into
 the lab's datasets as ``twin-<name>``, beside the measured ones. :func:`learning_curve` measures what the twin
 saves: the test error on the measured data of a net trained on 1 … 100 % of the measured rows alone, beside
 the same net pretrained on the twin and fine-tuned on those rows.
@@ -50,7 +51,8 @@ def twin_campaign(lab: Lab, robot: str, *, points: int | None = None, seed: int 
 
     description = twin_robot(robot)
     digest = hashlib.sha256(description.model_dump_json().encode()).hexdigest()[:10]
-    study = lab.twin.campaigns(f"{description.name}-{digest}")
+    size = f"-{int(points)}pts" if points else ""  # another size or seed: other plans, their own sessions
+    study = lab.twin.campaigns(f"{description.name}-{digest}{size}-seed{seed}")
     overrides = {"robot": str(robot)} | ({"points": int(points)} if points else {})
     return simulated_dataset(lab, "campaign", seed=seed, overrides=overrides, name=f"twin-{description.name}",
                              sessions=study.sessions)  # fmt: skip

@@ -180,3 +180,21 @@ def test_the_report_has_a_section_the_twin_against_your_robot(lab, tmp_path):
     assert (tmp_path / "figures" / "pretraining_curve.png").is_file()
     page = lab_report(Lab(tmp_path / "report-lab"), res).read_text()
     assert "The twin against your robot" in page and "pretrained, fine-tuned (mm)" in page
+
+
+def test_twin_campaigns_of_other_sizes_or_descriptions_keep_their_own_sessions(tmp_path):
+    """A second campaign of the same twin at another size (or of a description fitted again) is simulated
+    beside the first, not refused as the first's sessions made otherwise, nor taken for them."""
+    from pipeline.lab import Lab
+    from pipeline.pretrain import twin_campaign
+
+    lab = Lab(tmp_path / "lab")
+    (tmp_path / "arm.yaml").write_text("extends: vsl\nname: vsl_fitted\ndescription: a fitted arm\n")
+    small = twin_campaign(lab, str(tmp_path / "arm.yaml"), points=12)
+    larger = twin_campaign(lab, str(tmp_path / "arm.yaml"), points=16)
+    assert (small.rows, larger.rows) == (12, 16) and small.version != larger.version
+    (tmp_path / "arm.yaml").write_text("extends: vsl\nname: vsl_fitted\ndescription: fitted again\n"
+                                       "kinematics: {l2_m: 0.251}\n")  # fmt: skip
+    again = twin_campaign(lab, str(tmp_path / "arm.yaml"), points=12)
+    assert again.version not in (small.version, larger.version)
+    assert len(list((tmp_path / "lab" / "twin").iterdir())) == 3
