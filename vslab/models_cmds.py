@@ -149,7 +149,11 @@ def _twin_campaign(robot: str, points: int | None) -> dict:
         console.print(f"the twin's campaign on {description.name} ({robot}): simulating and building …",
                       highlight=False)  # fmt: skip
     report = twin_campaign(options().lab, robot, points=points)
-    return {"dataset": f"{report.name}@{report.version}", "robot": robot}
+    where = Path(robot)  # a file: by its whole path (a pool's or a cluster's worker may start elsewhere)
+    return {
+        "dataset": f"{report.name}@{report.version}",
+        "robot": str(where.resolve()) if where.is_file() else robot,
+    }
 
 
 @models_app.command("list")
