@@ -3,9 +3,9 @@ the lab's own arm (the one ``vslab twin fit`` writes), then the lab's measured r
 
 The twin's campaign is simulated into a study of its own per description, size and seed,
 ``<lab>/twin/<name>-<digest>[-<points>pts]-seed<seed>/`` (a description fitted again is another twin: its
-sessions are never taken for the old one's), and built into
-the lab's datasets as ``twin-<name>``, beside the measured ones. :func:`learning_curve` measures what the twin
-saves: the test error on the measured data of a net trained on 1 … 100 % of the measured rows alone, beside
+sessions are never taken for the old one's), and built into the lab's datasets as ``twin-<name>``, beside
+the measured ones. :func:`learning_curve` measures what the twin saves: the test error on the measured data
+of a net trained on 1 … 100 % of the measured rows alone, beside
 the same net pretrained on the twin and fine-tuned on those rows.
 """
 

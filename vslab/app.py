@@ -138,6 +138,21 @@ def _robot(name: str):
         _error(str(exc))
 
 
+def pretraining_twin(option: str, robot: str):
+    """The description ``robot`` a command was given as ``option`` to pretrain the hybrid nets on (its
+    campaign is simulated into the lab: ``pipeline.pretrain``), or one error line: not a description, not the
+    VSL arm, a lab on a store."""
+    from pipeline.pretrain import PretrainError, twin_robot
+
+    try:
+        description = twin_robot(_robot(robot))
+    except PretrainError as exc:
+        _error(f"{option} {robot}: {exc}")
+    if not options().lab.is_local:
+        _error(f"{option}: the twin's campaign is simulated into the lab, and {options().lab} is on a store")
+    return description
+
+
 def load_dataset(option: str, reference: str) -> tuple[pd.DataFrame, str]:
     """The dataset a command was given as ``option`` (``NAME`` or ``NAME@VERSION``) from the lab: its rows (D)
     and ``name@version``, or one error line that names the option."""

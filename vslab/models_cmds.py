@@ -12,7 +12,7 @@ from typing import Annotated
 import typer
 from rich.table import Column, Table
 
-from vslab.app import _error, _overrides, _robot, app, console, load_dataset, options
+from vslab.app import _error, _overrides, app, console, load_dataset, options, pretraining_twin
 
 models_app = typer.Typer(help="Trained networks in <lab>/models/.", no_args_is_help=True)
 app.add_typer(models_app, name="models")
@@ -134,17 +134,9 @@ def train(
 def _twin_campaign(robot: str, points: int | None) -> dict:
     """The twin's campaign for ``vslab train --pretrain``: simulated on ``robot`` and built (what is there
     already is kept), as ``run_grid`` takes it; one error line for a description it cannot be."""
-    from pipeline.pretrain import PretrainError, twin_campaign, twin_robot
+    from pipeline.pretrain import twin_campaign
 
-    description = _robot(robot)
-    try:
-        twin_robot(description)
-    except PretrainError as exc:
-        _error(f"--pretrain {robot}: {exc}")
-    if not options().lab.is_local:
-        _error(
-            f"--pretrain: the twin's campaign is simulated into the lab, and {options().lab} is on a store"
-        )
+    description = pretraining_twin("--pretrain", robot)
     if not options().quiet:
         console.print(f"the twin's campaign on {description.name} ({robot}): simulating and building …",
                       highlight=False)  # fmt: skip

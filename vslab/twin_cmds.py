@@ -12,7 +12,7 @@ import yaml
 from rich.table import Table
 
 from models.robot import CONFIG_DIR, RobotDescriptionError, load_robot, robot_path
-from vslab.app import _error, _robot, console, load_dataset, options, twin_app
+from vslab.app import _error, _robot, console, load_dataset, options, pretraining_twin, twin_app
 
 
 @twin_app.command("fit")
@@ -162,7 +162,7 @@ def twin_curve(
     from analysis.diagnostics import pretraining_curve
     from models.hybrid import preset as net_preset
     from pipeline.datasets import SPLIT_COLUMNS
-    from pipeline.pretrain import PretrainError, curve_verdict, learning_curve, twin_campaign, twin_robot
+    from pipeline.pretrain import curve_verdict, learning_curve, twin_campaign
     from pipeline.train import TrainConfig
 
     if direction not in ("inverse", "forward"):
@@ -175,13 +175,8 @@ def twin_curve(
         net = net_preset(direction, preset)
     except KeyError as exc:
         _error(f"--preset {preset}: {exc.args[0]}")
-    try:
-        twin_robot(_robot(robot))
-    except PretrainError as exc:
-        _error(f"--robot {robot}: {exc}")
+    pretraining_twin("--robot", robot)
     lab = options().lab
-    if not lab.is_local:
-        _error(f"--robot: the twin's campaign is simulated into the lab, and {lab} is on a store")
     measured, reference = load_dataset("--dataset", dataset)
     say = (lambda _: None) if options().quiet else (lambda text: console.print(text, highlight=False))
     say(f"the twin's campaign on {robot}: simulating and building …")
