@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 class Results:
     figures: dict[str, Path] = field(default_factory=dict)  # name → PNG
     tables: dict[str, pd.DataFrame] = field(default_factory=dict)
-    versions: dict[str, str] = field(default_factory=dict)  # what they were made from
+    versions: dict[str, str | dict] = field(default_factory=dict)  # made from: versions, a study's settings
     missing: dict[str, str] = field(default_factory=dict)  # figure → why it could not be made
     texts: dict[str, str] = field(default_factory=dict)  # table key → what the section says about it
 
@@ -97,9 +97,9 @@ def _all_figures(lab: Lab, out: Path) -> Results:
         ("models", lambda: _models(lab, datasets, res, out)),
         ("experiment1", lambda: _experiment1(datasets, forward, res, out)),
         ("experiment2", lambda: _experiment2(datasets, res, out)),
-        ("popup", lambda: _popup(lab, res, out)),
         ("real-time sessions", lambda: _realtime(lab, res)),
         ("unmodelled effects", lambda: _unmodelled(lab, res)),
+        ("popup", lambda: _popup(lab, res, out)),
         ("the twin against your robot", lambda: twin_against_robot(lab, res, out)),
     ):
         try:
@@ -127,11 +127,12 @@ def _unmodelled(lab: Lab, res: Results) -> None:
     if card.get("experiment2"):
         paths = pd.DataFrame(card["experiment2"]).drop(columns=["session"], errors="ignore")
         res.tables["unmodelled effects: Experiment 2, distance to the desired path"] = _path_table(paths)
-    for name, version in card["made_from"].items():
-        kind = (
-            "settings" if recorded_settings(version) is not None else "dataset"
-        )  # training, paths: JSON settings
-        res.versions[f"{kind} {name}, vsl_unmodelled"] = version
+    for name, version in card["made_from"].items():  # training, paths: the settings, recorded as JSON
+        settings = recorded_settings(version)
+        if settings is None:
+            res.versions[f"dataset {name}, vsl_unmodelled"] = version
+        else:
+            res.versions[f"settings {name}, vsl_unmodelled"] = settings
 
 
 def _in_mm(column: str, *besides: str) -> str:

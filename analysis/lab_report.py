@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import pandas as pd
 
-from analysis.lab_figures import Results, recorded_settings
+from analysis.lab_figures import Results
 from analysis.report import Report
 from pipeline.lab import Lab, LabPath
 
@@ -31,14 +31,13 @@ def lab_report(lab: Lab, res: Results, timings: dict[str, float] | None = None) 
     return page.write(lab.report / "index.html")
 
 
-def versions_table(versions: dict[str, str]) -> pd.DataFrame:
+def versions_table(versions: dict[str, str | dict]) -> pd.DataFrame:
     """What the figures were made from: one row per input, its version, and, for the settings a study was
-    run with (recorded as JSON), those settings in words (``repetitions=2``; "defaults" when none)."""
+    run with (a dict), those settings in words (``repetitions=2``; "defaults" when none)."""
     rows = {}
-    for name, value in versions.items():
-        settings = recorded_settings(value)
-        if settings is None:
-            rows[name] = {"version": value, "settings": ""}
+    for name, settings in versions.items():
+        if not isinstance(settings, dict):
+            rows[name] = {"version": settings, "settings": ""}
         else:
             words = ", ".join(f"{k}={v}" for k, v in sorted(settings.items())) or "defaults"
             rows[name] = {"version": None, "settings": words}
