@@ -32,19 +32,17 @@ def main(argv: list[str] | None = None) -> None:
     from analysis.vsl_paths import path_errors
     from pipeline import unmodelled
     from pipeline.baselines import SklearnBaseline
-    from pipeline.build import build
     from pipeline.history import PATHS, HistoryModel
-    from pipeline.session_index import sessions_of
-    from twin.runner import simulate_experiment
+    from pipeline.simulated import simulated_datasets
 
     start, load_before = time.perf_counter(), os.getloadavg()
     with tempfile.TemporaryDirectory() as scratch:
         study = Lab(args.lab or Path(scratch)).study("unmodelled")
-        drawn = study.study("drawn")
-        overrides = {"points": args.points, "robot": unmodelled.UNMODELLED_ROBOT}
-        simulate_experiment("campaign", drawn.sessions, overrides=overrides)
-        campaign = build(sessions_of(drawn.sessions, "campaign"), drawn, "campaign")
-        rows = unmodelled.path_rows(study, 0, campaign.version, unmodelled.STUDY["paths"])
+        experiments = unmodelled.study_experiments(study, args.points, unmodelled.STUDY["paths"])
+        drawn_campaign, _, on_paths = experiments
+        drawn = drawn_campaign.lab
+        campaign, paths = simulated_datasets(study, [drawn_campaign, on_paths])  # not the shuffled one
+        rows = unmodelled.path_rows(drawn, paths.version)
         models = {
             "history-aware hybrid": HistoryModel("inverse", PATHS).fit(rows),
             "without the history": SklearnBaseline("gbr", "inverse").fit(rows),
@@ -53,7 +51,8 @@ def main(argv: list[str] | None = None) -> None:
         for k, (label, model) in enumerate(models.items()):
             commands = ["ik", "history"] if k == 0 else ["history"]
             table = unmodelled.experiment2_rows(
-                study,
+                drawn,
+                study.study(f"experiment2-{k}").sessions,
                 f"experiment2-{k}",
                 0,
                 campaign.version,

@@ -19,7 +19,6 @@ import json
 import logging
 from collections.abc import Callable
 from datetime import UTC, datetime
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -140,19 +139,21 @@ def comparison_markdown(table: pd.DataFrame) -> str:
     return "\n\n".join(parts) + "\n"
 
 
-def save_compared(models: ModelStore, data: pd.DataFrame, dataset: dict[str, str], table: pd.DataFrame,
-                      nets: dict[tuple[str, str], HybridRegressor],
-                  made_from: dict[str, str]) -> list[Path]:  # fmt: skip
-    """Put the networks of a comparison (``compare_models(..., nets=…)``, trained on ``data``, the dataset
-    ``dataset`` = {name, version}) in the model store ``models``, each card carrying the comparison of
-    its direction (``comparison``: the split, ``made_from``, the model's own row name and every record:
-    the other models and the floor). The version is the training's plus the comparison's ``made_from``,
-    so the same training outside a comparison stays another version; one already saved stays as it is.
-    Returns the version directories."""
+def save_compared(path: LabPath, models: ModelStore, data: pd.DataFrame, dataset: dict[str, str],
+                  table: pd.DataFrame, nets: dict[tuple[str, str], HybridRegressor],
+                  made_from: dict[str, str], split: str,
+                  extra: dict[str, list[dict]] | None = None) -> list[dict]:  # fmt: skip
+    """A comparison kept: its networks (``compare_models(..., nets=…)``, trained on ``data``, the dataset
+    ``dataset`` = {name, version}) in the model store ``models``, each card carrying the comparison of its
+    direction (``comparison``: the split, ``made_from``, the model's own row name and every record: the
+    other models and the floor), then the comparison's card at ``path`` (:func:`save_comparison`, its
+    ``models`` the networks saved, beside ``extra``). A network's version is the training's plus the
+    comparison's ``made_from``, so the same training outside a comparison stays another version; one already
+    saved stays as it is. Returns the networks saved ({name, version} each)."""
     from pipeline.model_store import model_version
     from pipeline.train import evaluate, model_card
 
-    out = []
+    saved = []
     for (direction, model), net in nets.items():
         config = net.config
         name = f"{direction}-{config.net.name}"
@@ -162,10 +163,12 @@ def save_compared(models: ModelStore, data: pd.DataFrame, dataset: dict[str, str
         compared = {"split": config.split, "made_from": made_from, "model": model, "records": records}
         card["comparison"] = compared
         try:
-            out.append(models.save(name, version, net.net_, card))
+            models.save(name, version, net.net_, card)
         except FileExistsError:
-            out.append(models.path(name, version))
-    return out
+            pass
+        saved.append({"name": name, "version": version})
+    save_comparison(path, table, made_from, split, (extra or {}) | {"models": saved})
+    return saved
 
 
 def save_comparison(path: LabPath, table: pd.DataFrame, made_from: dict[str, str], split: str,

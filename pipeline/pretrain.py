@@ -47,15 +47,16 @@ def twin_campaign(lab: Lab, robot: str, *, points: int | None = None, seed: int 
     """The campaign experiment (``configs/experiments/campaign.yaml``, ``points`` of it if given) simulated on
     description ``robot`` (a name or a file) into its own study of ``lab`` and built into ``lab``'s datasets
     as ``twin-<name>``. Sessions already simulated for the same description are kept."""
-    from pipeline.simulated import simulated_dataset
+    from pipeline.simulated import TwinExperiment, simulated_dataset
 
     description = twin_robot(robot)
     digest = hashlib.sha256(description.model_dump_json().encode()).hexdigest()[:10]
     size = f"-{int(points)}pts" if points else ""  # another size or seed: other plans, their own sessions
     study = lab.twin.campaigns(f"{description.name}-{digest}{size}-seed{seed}")
     overrides = {"robot": str(robot)} | ({"points": int(points)} if points else {})
-    return simulated_dataset(lab, "campaign", seed=seed, overrides=overrides, name=f"twin-{description.name}",
-                             sessions=study.sessions)  # fmt: skip
+    name = f"twin-{description.name}"
+    experiment = TwinExperiment("campaign", overrides, dataset=name, sessions=study.sessions)
+    return simulated_dataset(lab, experiment, seed=seed)
 
 
 def measured_subset(data: pd.DataFrame, fraction: float, split: str, seed: int = 0) -> pd.DataFrame:

@@ -239,14 +239,17 @@ def simulate_experiment(
 @dataclass(frozen=True)
 class Simulation:
     """One experiment to simulate into a session store (its ``overrides`` as ``vslab simulate --set`` takes
-    them)."""
+    them; ``inverse_model`` as :func:`simulate_experiment` takes it: a simulation with one runs in the
+    calling process, its compensators are not sent to a worker)."""
 
     experiment: str
     sessions: SessionStore
     overrides: dict | None = None
+    inverse_model: Callable[[Plan], Compensator] | None = None
 
     def run(self, seed: int) -> list[SimReport]:
-        return simulate_experiment(self.experiment, self.sessions, seed=seed, overrides=self.overrides)
+        return simulate_experiment(self.experiment, self.sessions, seed=seed, overrides=self.overrides,
+                                   inverse_model=self.inverse_model)  # fmt: skip
 
     def pending(self, seed: int) -> bool:
         """Whether any plan has no complete session in the store yet (planned, not checked)."""
@@ -272,7 +275,8 @@ def simulate_side_by_side(
     import concurrent.futures as cf
     import multiprocessing
 
-    todo = [k for k, simulation in enumerate(simulations) if simulation.pending(seed)]
+    todo = [k for k, simulation in enumerate(simulations)
+            if simulation.inverse_model is None and simulation.pending(seed)]  # fmt: skip
     if len(todo) < 2 or processes < 2:  # nothing to share the cores with: here, the kernel on every core
         return [simulation.run(seed) for simulation in simulations]
     context = multiprocessing.get_context("forkserver")  # nothing of this process's threads is forked

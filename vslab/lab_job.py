@@ -2,9 +2,8 @@
 
 1. a short real-time session through the rig (the twin behind its devices' emulators, recorded live);
 2. the POPUP link tests, the campaign and Experiment 1 simulated (the batched twin, in simulated time; two
-   experiments at a time, ``twin.runner.simulate_side_by_side``), and the campaign's dataset and
-   Experiment 1's (borrowing the campaign's registration) built of the simulated sessions
-   (``pipeline.simulated``): the rig's single real-time repetition is reported on its own, not pooled with
+   experiments at a time), and the campaign's dataset and Experiment 1's (borrowing the campaign's
+   registration) built of the simulated sessions (``pipeline.simulated.simulated_datasets``): the rig's single real-time repetition is reported on its own, not pooled with
    the five simulated ones of its cell, whose spread Fig. 5 shows;
 3. `vslab train`: the forward and inverse networks of the grid (existing versions skipped);
 4. Experiment 2 with the model-based, grey-box and hybrid (trained inverse) commands, and its dataset;
@@ -24,9 +23,10 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from pipeline.comparison import UNMODELLED
 from pipeline.lab import Lab
 from pipeline.model_store import INVERSE
-from pipeline.unmodelled import STUDY, STUDY_QUICK
+from pipeline.unmodelled import STUDY, STUDY_LAB, STUDY_QUICK
 from vslab.app import CommandLineError
 
 # --quick: a smaller lab, its networks trained as long as the study's quick ones (the paper's network ran
@@ -46,23 +46,24 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     from analysis.vsl_paths import path_errors
     from pipeline.grid import load_grid, run_grid
     from pipeline.in_loop import stored_compensators
-    from pipeline.simulated import simulated_dataset
+    from pipeline.simulated import TwinExperiment, simulated_datasets
     from pipeline.unmodelled import unmodelled_study
-    from twin.runner import Simulation, simulate_side_by_side
 
     timings: dict[str, float] = {}
+    under_way: list[tuple[str, float]] = []  # the step being timed, when it started
 
-    def step(name: str):
-        say(f"▶ {name}")
-        timings[name] = time.perf_counter()
-
-    def done(name: str) -> None:
-        timings[name] = time.perf_counter() - timings[name]
-        say(f"  {name}: {timings[name]:.1f} s")
+    def step(name: str | None) -> None:  # the step under way ends (its time said and kept); ``name`` starts
+        if under_way:
+            what, start = under_way.pop()
+            timings[what] = time.perf_counter() - start
+            say(f"  {what}: {timings[what]:.1f} s")
+        if name is not None:
+            say(f"▶ {name}")
+            under_way.append((name, time.perf_counter()))
 
     step("real-time session on the rig")
     _rig_session(lab)
-    done("real-time session on the rig")
+    step(None)
     if batch_priority:  # the rest is batch work, lowered after the rig session (it cannot be raised back)
         from acquisition.processes import lower_priority
 
@@ -71,43 +72,39 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     def sized(what: str) -> dict:  # an experiment's overrides, or the training's
         return QUICK.get(what, {}) if quick else {}
 
-    step(SIMULATIONS)  # two at a time, the longest first (sessions already complete are kept)
-    simulated = ("campaign", "experiment1", "popup_static", "popup_impact", "popup_deploy")
-    simulate_side_by_side([Simulation(e, lab.sessions, sized(e)) for e in simulated], seed=seed)
-    done(SIMULATIONS)
-
-    step("campaign")
-    campaign = simulated_dataset(lab, "campaign", seed=seed, overrides=sized("campaign"))
-    registration = f"campaign@{campaign.version}"  # Experiments 1 and 2 borrow the campaign's
-    done("campaign")
-
-    step("Experiment 1")  # its simulated sessions only: the rig's repetition is reported on its own
-    simulated_dataset(lab, "experiment1", seed=seed, overrides=sized("experiment1"),
-                      registration_from=registration)  # fmt: skip
-    done("Experiment 1")
+    # simulated two at a time, the longest first (complete sessions are kept), then the datasets built (each
+    # a step): the campaign, and Experiment 1 of its simulated sessions only (the rig's repetition is
+    # reported on its own), borrowing the campaign's registration; the POPUP tests' sessions are read as
+    # they are
+    built = {"campaign": "campaign", "experiment1": "Experiment 1"}  # dataset → its step
+    simulated = (*built, "popup_static", "popup_impact", "popup_deploy")
+    campaign, *_ = simulated_datasets(lab, [
+        TwinExperiment(e, sized(e), dataset=e if e in built else None,
+                       registration_from="campaign" if e == "experiment1" else None)
+        for e in simulated], seed=seed, phase=lambda what: step(built.get(what, SIMULATIONS)))  # fmt: skip
+    registration = f"campaign@{campaign.version}"  # Experiment 2 borrows it too
 
     step("training")  # the grid's forward and inverse networks on the campaign (existing versions skipped)
     grid = load_grid(LAB_GRID, {"datasets": [registration], **sized("train")})
     run_grid(lab, grid)  # its networks tagged: the figures and Experiment 2 find them by LAB_TAGS
-    done("training")
 
     step("Experiment 2 with the trained inverse model")
     learned = stored_compensators(lab.models, INVERSE)
-    simulated_dataset(lab, "experiment2", seed=seed, inverse_model=learned, registration_from=registration)
-    done("Experiment 2 with the trained inverse model")
+    simulated_datasets(lab, [TwinExperiment("experiment2", dataset="experiment2", inverse_model=learned,
+                                            registration_from=registration)], seed=seed)  # fmt: skip
 
     step("unmodelled effects: every model beside the floor")
-    unmodelled_study(lab, seed, **(STUDY_QUICK if quick else STUDY), score=path_errors)
-    done("unmodelled effects: every model beside the floor")
+    unmodelled_study(lab.study(STUDY_LAB), lab.comparisons.path(UNMODELLED), seed,
+                     **(STUDY_QUICK if quick else STUDY), score=path_errors)  # fmt: skip
 
     step("figures and report")
     inputs, stamp = figure_inputs(lab), lab.report / FIGURE_INPUTS
     if inputs is not None and stamp.exists() and json.loads(stamp.read_text()) == inputs:
         say("  nothing they read has changed since they were made: the figures and the report stay")
-        done("figures and report")
+        step(None)
         return lab.report / "index.html"
     results = all_figures(lab)
-    done("figures and report")
+    step(None)
     report = lab_report(lab, results, timings)
     (lab.report / "timings.json").write_text(json.dumps(timings, indent=1))
     if inputs is not None:

@@ -372,7 +372,7 @@ def compare_models_command(
     <lab>/comparisons/NAME@VERSION.json."""
     from acquisition.plans.experiments import arm_lengths
     from models.robot import AnthropomorphicKinematics, RobotDescriptionError, load_robot
-    from pipeline.comparison import compare_models, comparison_markdown, save_compared, save_comparison
+    from pipeline.comparison import compare_models, comparison_markdown, save_compared
 
     lab = options().lab
     if split not in _SPLITS:
@@ -408,10 +408,8 @@ def compare_models_command(
     made_from["training"] = json.dumps({"max_epochs": epochs, "seed": seed})
     name, _, version = dataset_ref.partition("@")
     dataset = {"name": name, "version": version}
-    saved = save_compared(lab.models, data, dataset, table, nets, made_from)
     path = lab.comparisons.path(dataset_ref)
-    models = [{"name": p.parent.name, "version": p.name} for p in saved]
-    save_comparison(path, table, made_from, split, {"models": models})
+    models = save_compared(path, lab.models, data, dataset, table, nets, made_from, split)
     console.print(comparison_markdown(table), highlight=False, markup=False, soft_wrap=True)
     if not options().quiet:
         console.print(f"card: {path}", highlight=False, markup=False, soft_wrap=True)
