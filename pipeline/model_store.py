@@ -266,9 +266,9 @@ def tag(root: Path, name: str, version: str) -> str:
     if not isinstance(name, str) or not TAG.fullmatch(name):
         raise ValueError(f"{name!r} is not a tag name (a lower-case letter, then lower-case letters, digits, "
                          "'-' or '_')")  # fmt: skip
+    before = tags(root)
     path = find(root, version)
     check_model(path)
-    before = tags(root)
     current = before | {name: path.name}
     if current == before:  # already so: the file stays as it is (what the figures read has not changed)
         return path.name
