@@ -49,7 +49,7 @@ def test_a_registration_borrowed_from_a_dataset_the_same_call_built_is_pinned_to
 
 
 def test_a_second_call_keeps_every_session_and_version(made):
-    lab, (campaign, experiment1, _), _ = made
+    lab, (campaign, _, _), _ = made
     again = simulated_datasets(lab, [TwinExperiment("campaign", SMALL_CAMPAIGN, dataset="campaign")], seed=4)
     assert again[0].version == campaign.version and not again[0].built
 

@@ -3,8 +3,9 @@
 1. a short real-time session through the rig (the twin behind its devices' emulators, recorded live);
 2. the POPUP link tests, the campaign and Experiment 1 simulated (the batched twin, in simulated time; two
    experiments at a time), and the campaign's dataset and Experiment 1's (borrowing the campaign's
-   registration) built of the simulated sessions (``pipeline.simulated.simulated_datasets``): the rig's single real-time repetition is reported on its own, not pooled with
-   the five simulated ones of its cell, whose spread Fig. 5 shows;
+   registration) built of the simulated sessions (``pipeline.simulated.simulated_datasets``): the rig's
+   single real-time repetition is reported on its own, not pooled with the five simulated ones of its
+   cell, whose spread Fig. 5 shows;
 3. `vslab train`: the forward and inverse networks of the grid (existing versions skipped);
 4. Experiment 2 with the model-based, grey-box and hybrid (trained inverse) commands, and its dataset;
 5. the twin with its unmodelled effects (``vsl_unmodelled``): a campaign and its repeat in a lab of their own
