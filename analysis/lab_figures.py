@@ -278,14 +278,15 @@ def experiment2_claims(errors: pd.DataFrame) -> pd.DataFrame:
 
 def _popup(lab: Lab, res: Results, out: Path) -> None:
     from analysis import popup_tests
+    from pipeline import link_tests
 
     static, _ = lab.sessions.select("popup_static", runner="simulated")
     impact, _ = lab.sessions.select("popup_impact", runner="simulated")
-    curves = popup_tests.link_static_curves(static)
+    curves = link_tests.link_static_curves(static)
     fig = popup_tests.figure7(curves, out)
     assert fig, "no static curves to plot"
     res.figures["popup_fig7"] = out / "fig7_popup_hysteresis.png"  # figure7 records its sessions beside it
-    table = popup_tests.table1(popup_tests.static_stiffness(curves), popup_tests.impact_parameters(impact))
+    table = popup_tests.table1(link_tests.static_stiffness(curves), link_tests.impact_parameters(impact))
     res.tables["POPUP Table 1: ours (twin) beside the paper's"] = popup_tests.table1_report(table)
     inertia = float(table["inertia_kgm2"].iloc[0])
     res.texts["POPUP Table 1"] = (

@@ -14,6 +14,7 @@ from acquisition.recorder.sessions import SessionStore
 from analysis import popup_tests as pt
 from models import prbm
 from models.robot import load_robot, robot_path
+from pipeline import link_tests as lt
 from twin.runner import simulate_experiment
 
 SEED = 7
@@ -62,13 +63,13 @@ def _sessions(directory):
 
 @pytest.fixture(scope="module")
 def curves(static_dir):
-    return pt.link_static_curves(_sessions(static_dir))
+    return lt.link_static_curves(_sessions(static_dir))
 
 
 @pytest.fixture(scope="module")
 def table(impact_dir, curves):
-    static_k = pt.static_stiffness(curves)
-    return pt.table1(static_k, pt.impact_parameters(_sessions(impact_dir)))
+    static_k = lt.static_stiffness(curves)
+    return pt.table1(static_k, lt.impact_parameters(_sessions(impact_dir)))
 
 
 @pytest.mark.slow
@@ -126,8 +127,8 @@ def test_table1_recovers_perturbed_twins(tmp_path, k_factor, c_factor):
     simulate_experiment(
         "popup_static", SessionStore(tmp_path / "static"), seed=SEED, overrides=STATIC | {"robot": str(robot)}
     )
-    static_k = pt.static_stiffness(pt.link_static_curves(_sessions(tmp_path / "static")))
-    table = pt.table1(static_k, pt.impact_parameters(_sessions(tmp_path / "impact")))
+    static_k = lt.static_stiffness(lt.link_static_curves(_sessions(tmp_path / "static")))
+    table = pt.table1(static_k, lt.impact_parameters(_sessions(tmp_path / "impact")))
     k, c = _configured(load_robot(robot).link_table("link2"), table["pressure_kpa"].to_numpy())
     np.testing.assert_allclose(table["f_s_hz"], prbm.damped_frequency_hz(k, c, INERTIA), rtol=0.01)
     np.testing.assert_allclose(table["zeta"], prbm.damping_ratio(k, c, INERTIA), rtol=0.05)
@@ -149,11 +150,11 @@ def test_free_oscillation_fits_a_damped_acceleration(zeta, f_n):
     accel = -(w_n**2) * delta - 2 * sigma * np.gradient(delta, t)  # δ'' = −ω_n² δ − 2σ δ'
     gravity = np.array([0.0, 0.3, -9.81])
     a = np.outer(accel, [0.8, 0.1, 0.59]) + gravity + rng.normal(0, 0.02, (len(t), 3))
-    f_s, z = pt.free_oscillation(t, a, fs)
+    f_s, z = lt.free_oscillation(t, a, fs)
     assert f_s == pytest.approx(w_d / (2 * np.pi), rel=0.002)
     assert z == pytest.approx(zeta, rel=0.02)
     if zeta == 0.2:
-        f, psd = signal.welch(accel, fs=fs, window="boxcar", nperseg=len(t), nfft=pt.NFFT)
+        f, psd = signal.welch(accel, fs=fs, window="boxcar", nperseg=len(t), nfft=lt.NFFT)
         assert abs(f[np.argmax(psd)] / (w_d / (2 * np.pi)) - 1) > 0.01
 
 
@@ -177,10 +178,10 @@ def test_impacts_are_found_in_the_acceleration_not_at_their_events(late_s):
         accel[np.flatnonzero(after)[0]] += 160.0  # the impulse's own sample
     rng = np.random.default_rng(3)
     a = np.outer(accel, [0.8, 0.1, 0.59]) + np.array([0.0, 0.3, -9.81]) + rng.normal(0, 0.02, (len(t), 3))
-    found = pt.impacts(t, a, hits + late_s)
+    found = lt.impacts(t, a, hits + late_s)
     np.testing.assert_allclose(found, hits, atol=0.5 / fs)
-    first = (t >= found[0] + pt.TAP_SKIP_S) & (t < found[1] - pt.TAP_SKIP_S / 2)
-    f_s, z = pt.free_oscillation(t[first], a[first], fs)
+    first = (t >= found[0] + lt.TAP_SKIP_S) & (t < found[1] - lt.TAP_SKIP_S / 2)
+    f_s, z = lt.free_oscillation(t[first], a[first], fs)
     assert f_s == pytest.approx(w_d / (2 * np.pi), rel=0.002)
     assert z == pytest.approx(zeta, rel=0.02)
 
@@ -190,10 +191,10 @@ def test_static_points_below_wrinkling(curves):
     assert curves["arm_m"].iloc[0] == pytest.approx(0.590)  # the twin's hinge → tip (paper: l2 = 0.570 m)
     m_w = prbm.wrinkling_moment(curves["pressure_pa"], 0.055)
     np.testing.assert_allclose(curves["wrinkling_moment_nm"], m_w)
-    k = pt.static_stiffness(curves)
+    k = lt.static_stiffness(curves)
     # 7 masses up to 0.8 M_c: 3 below M_w at 10 kPa (own weight 0.87 N·m), 4 at 50 kPa, on the loading branch
     assert k["n_points"].tolist() == [3, 4]
-    both = pt.static_stiffness(curves, branch=None)
+    both = lt.static_stiffness(curves, branch=None)
     assert (both["n_points"] == 2 * k["n_points"]).all()
 
 
@@ -203,7 +204,7 @@ def hysteresis_curves(root):
     # the heaviest masses ring at ≈ 3.5 Hz with ζ ≈ 0.015 (c/2I ≈ 0.3 /s): settle as the protocol does
     fig7 = STATIC | {"pressures_kpa": [20, 40], "repetitions": 3, "settle_s": 5.0, "hold_s": 1.0}
     simulate_experiment("popup_static", SessionStore(root / "hysteresis"), seed=SEED, overrides=fig7)
-    return pt.link_static_curves(_sessions(root / "hysteresis"))
+    return lt.link_static_curves(_sessions(root / "hysteresis"))
 
 
 def _noise_bound(arm_m: float, hold_s: float, runs: int, k: float = 4.0) -> float:

@@ -36,6 +36,7 @@ from analysis.popup_reach import reach
 from models import prbm
 from models.robot import load_robot
 from models.statics import static_deflection
+from pipeline import link_tests as lt
 from pipeline.build import build
 from pipeline.lab import Lab
 from pipeline.session_index import sessions_of
@@ -115,7 +116,7 @@ def test_table1_from_real_time_link_tests(recorded):
     # read k̂ 6 % low (one at a time they hold under that load)
     impact = recorded.together(*(f"impact-{kpa}" for kpa in PRESSURES_KPA))
     static = [recorded(f"static-{kpa}") for kpa in PRESSURES_KPA]
-    table = pt.table1(pt.static_stiffness(pt.link_static_curves(static)), pt.impact_parameters(impact))
+    table = pt.table1(lt.static_stiffness(lt.link_static_curves(static)), lt.impact_parameters(impact))
     assert table["pressure_kpa"].tolist() == list(PRESSURES_KPA)
     link = load_robot("popup").link_table("link2")
     p = table["pressure_kpa"].to_numpy() * 1e3

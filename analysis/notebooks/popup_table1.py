@@ -18,6 +18,7 @@
 import os
 
 from analysis import popup_tests
+from pipeline import link_tests
 from pipeline.lab import Lab
 
 lab = Lab.open(os.environ.get("VSLAB_LAB", "lab"))
@@ -31,8 +32,8 @@ print(len(static), "static sessions,", len(impact), "impact sessions")
 # loading branch as the paper did (its first static tests only loaded the link).
 
 # %%
-curves = popup_tests.link_static_curves(static)
-stiffness = popup_tests.static_stiffness(curves)
+curves = link_tests.link_static_curves(static)
+stiffness = link_tests.static_stiffness(curves)
 print(stiffness.round(3).to_string())
 popup_tests.figure7(curves, lab.figures / "notebooks")
 
@@ -41,7 +42,7 @@ popup_tests.figure7(curves, lab.figures / "notebooks")
 # oscillation (started from its PSD peak and logarithmic decrement).
 
 # %%
-impact_parameters = popup_tests.impact_parameters(impact)
+impact_parameters = link_tests.impact_parameters(impact)
 print(impact_parameters.round(4).to_string())
 
 # %% [markdown]
