@@ -21,29 +21,43 @@ TABLES = "your twin"  # the start of every table key of this section
 def twin_against_robot(lab: Lab, res, out: Path) -> None:
     """Fill ``res`` (``analysis.lab_figures.Results``) with this section's tables, texts and the curve's
     figure: what the lab's twin folder holds (a lab whose twin was never fitted has no such section)."""
-    for path in lab.twin.fits():
-        fitted = json.loads(path.read_text())
+    for fitted in _records(lab.twin.fits(), res):
         name = fitted["name"]
         res.tables[f"{TABLES}: {name}, fitted beside nominal"] = fitted_table(fitted["parameters"])
-        res.versions[f"dataset fitted, {name}"] = fitted["dataset"]
-        words = [f"`{name}` ({fitted['file']}) was fitted to {fitted['points']:,} settled points of "
-                 f"{fitted['sessions']} sessions of {fitted['dataset']}; the tracked tip's residual is "
-                 f"{fitted['residual_rms_mm']:.3f} mm per axis."]  # fmt: skip
+        if "dataset" in fitted:  # the VSL arm: fitted to a dataset of settled points
+            res.versions[f"dataset fitted, {name}"] = fitted["dataset"]
+            words = [f"`{name}` ({fitted['file']}) was fitted to {fitted['points']:,} settled points of "
+                     f"{fitted['sessions']} sessions of {fitted['dataset']}; the tracked tip's residual is "
+                     f"{fitted['residual_rms_mm']:.3f} mm per axis."]  # fmt: skip
+        else:  # the POPUP arm: fitted to its link tests
+            res.versions[f"link tests fitted, {name}"] = fitted["link_tests"]
+            words = [f"`{name}` ({fitted['file']}) was fitted to {fitted['static_holds']:,} static holds and "
+                     f"{fitted['taps']:,} taps of the lab's {fitted['link_tests']}."]  # fmt: skip
         if fitted["not_identifiable"]:
             words.append("Not identifiable, left nominal: " + "; ".join(
                 f"{n} ({why})" for n, why in fitted["not_identifiable"].items()) + ".")  # fmt: skip
         res.texts[f"{TABLES}: {name}, fitted beside nominal"] = " ".join(words)
-    for path in lab.twin.checks():
-        record = json.loads(path.read_text())
+    for record in _records(lab.twin.checks(), res):
         names = record["names"]
         table = check_table(pd.DataFrame(record["table"]), names)
         res.tables[f"{TABLES}: {names['checked']} checked on {record['made_from']['dataset']}"] = table
-    if lab.twin.curve.exists():
-        record = json.loads(lab.twin.curve.read_text())
+    for record in _records([lab.twin.curve] if lab.twin.curve.exists() else [], res):
         curve = pd.DataFrame(record["curve"])
         drawn = diagnostics.pretraining_curve(curve, out, made_from=record["made_from"])
         res.figures["pretraining_curve"] = drawn["png"]
         res.tables[f"{TABLES}: pretraining curve, {record['net']}"] = curve_table(curve)
+
+
+def _records(paths, res) -> list[dict]:
+    """The JSON records at ``paths``; one that cannot be read is left out, its file and why in
+    ``res.missing`` (the rest of the section is made)."""
+    out = []
+    for path in paths:
+        try:
+            out.append(json.loads(path.read_text()))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            res.missing[f"the twin against your robot: {path}"] = f"not a readable record ({exc})"
+    return out
 
 
 def fitted_table(parameters: dict[str, dict]) -> pd.DataFrame:

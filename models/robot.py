@@ -363,6 +363,20 @@ class FittedBlock(Part):
     not_identifiable: dict[str, str]
 
 
+class LinkTestsFittedBlock(Part):
+    """What `vslab twin fit` fitted into a POPUP description from the lab's link tests
+    (``pipeline.popup_fit``): which tests, with which code, each value with its standard error, what the
+    tests could not identify, with why, and Table 1 as measured (one record per tapped pressure)."""
+
+    link_tests: str
+    code_version: str
+    static_holds: int = Field(ge=0)
+    taps: int = Field(ge=0)
+    parameters: dict[str, FittedValue]
+    not_identifiable: dict[str, str]
+    table1: list[dict[str, float | None]]  # None: not measured (no static test at that pressure)
+
+
 # ------------------------------------------------------------------------------------------- the robot
 class RobotDescription(Part):
     """A validated robot description; use :func:`load_robot` to read one."""
@@ -382,7 +396,7 @@ class RobotDescription(Part):
     safety: SafetySpec | None = None
     gravity_m_s2: tuple[float, float, float] = (0.0, 0.0, -9.81)
     effects: EffectsSpec = EffectsSpec()  # unmodelled effects the twin adds (models.effects); none by default
-    fitted: FittedBlock | None = None  # a description `vslab twin fit` wrote: what was fitted, how well
+    fitted: FittedBlock | LinkTestsFittedBlock | None = None  # `vslab twin fit` wrote it: what, how well
 
     @model_validator(mode="after")
     def _cross_checks(self) -> RobotDescription:

@@ -58,9 +58,11 @@ def _hold_means(t: np.ndarray, x: np.ndarray, t0: np.ndarray, t1: np.ndarray) ->
     return (csum[i1] - csum[i0]) / np.maximum(i1 - i0, 1)
 
 
-def static_holds(directory: Path, link: str = "link2", arm_m: float | None = None) -> pd.DataFrame:
-    """One row per SETTLED hold of a popup_static session: rep, branch, load, tip displacement, τ, δ."""
+def static_holds(directory: Path, link: str | None = None, arm_m: float | None = None) -> pd.DataFrame:
+    """One row per SETTLED hold of a popup_static session: rep, branch, load, tip displacement, τ, δ of
+    ``link`` (default: the link the session's plan loaded, its ``link`` parameter; link 2 if it has none)."""
     st = ingest_session(directory)
+    link = link or st.parameters.get("link", "link2")
     ev = st.events
     arm, own, radius = link_geometry(st.robot, link)
     arm = arm if arm_m is None else arm_m
@@ -81,6 +83,8 @@ def static_holds(directory: Path, link: str = "link2", arm_m: float | None = Non
     return pd.DataFrame(
         {
             "session_id": st.session_id,
+            "robot": st.robot.name,
+            "link": link,
             "pressure_pa": pressure,
             "rep": steps["index"].to_numpy()[i_step],
             "branch": steps["label"].to_numpy()[i_step],
@@ -95,11 +99,18 @@ def static_holds(directory: Path, link: str = "link2", arm_m: float | None = Non
     )
 
 
-def link_static_curves(sessions: list[Path], link: str = "link2", arm_m: float | None = None) -> pd.DataFrame:
+def link_static_curves(
+    sessions: list[Path], link: str | None = None, arm_m: float | None = None
+) -> pd.DataFrame:
     """Mean (and std over the repetitions) static characteristic per pressure, branch and load: τ, δ, v.
 
     Rows are in test order (loading up, unloading down); ``attrs['sessions']`` names the sessions used."""
-    holds = pd.concat([static_holds(s, link, arm_m) for s in sessions], ignore_index=True)
+    return static_curves(pd.concat([static_holds(s, link, arm_m) for s in sessions], ignore_index=True))
+
+
+def static_curves(holds: pd.DataFrame) -> pd.DataFrame:
+    """:func:`link_static_curves` of the holds of its sessions (:func:`static_holds`, concatenated)."""
+    holds = holds.copy()
     holds["order"] = holds.groupby(["pressure_pa", "rep"]).cumcount()
     keys = ["pressure_pa", "branch", "load_kg"]
     g = holds.groupby(keys, sort=False)
@@ -134,6 +145,26 @@ def static_stiffness(curves: pd.DataFrame, branch: str = "loading") -> pd.DataFr
         rows.append({"pressure_pa": p, "k": k, "intercept_nm": b, "n_points": len(lin),
                      "wrinkling_moment_nm": c["wrinkling_moment_nm"].iloc[0]})  # fmt: skip
     return pd.DataFrame(rows)
+
+
+def elastic_stiffness(curves: pd.DataFrame) -> pd.DataFrame:
+    """Per pressure, the link's elastic stiffness k [N·m/rad] and its standard error: the slope of τ on δ
+    over both branches' mean points below M_w(p), each branch with an intercept of its own. The loop's
+    offset between the branches (the hysteresis) cancels, which the loading branch alone cannot do: on the
+    twin its slope is ~0.5 % low. A pressure with fewer than two loads on each branch has none."""
+    rows = []
+    for p, c in curves.groupby("pressure_pa"):
+        lin = c[c["torque_nm"] < c["wrinkling_moment_nm"]]
+        if (lin.groupby("branch")["load_kg"].nunique().reindex(list(BRANCHES)).fillna(0) < 2).any():
+            continue
+        x = np.column_stack([lin["delta_rad"], *(lin["branch"].eq(b).astype(float) for b in BRANCHES)])
+        y = lin["torque_nm"].to_numpy()
+        coef, *_ = np.linalg.lstsq(x, y, rcond=None)
+        dof = len(y) - x.shape[1]
+        sigma2 = float(np.sum((y - x @ coef) ** 2) / dof) if dof > 0 else np.nan
+        se = float(np.sqrt(sigma2 * np.linalg.inv(x.T @ x)[0, 0])) if dof > 0 else np.nan
+        rows.append({"pressure_pa": p, "k": float(coef[0]), "k_se": se, "n_points": len(lin)})
+    return pd.DataFrame(rows, columns=["pressure_pa", "k", "k_se", "n_points"])
 
 
 def _device_time(acc: pd.DataFrame) -> np.ndarray:
@@ -215,7 +246,8 @@ def impact_taps(directory: Path) -> pd.DataFrame:
     for i, (t0, t1) in enumerate(zip(taps + TAP_SKIP_S, ends, strict=True)):
         sel = (t >= t0) & (t < t1)
         f_s, zeta = free_oscillation(t[sel], a[sel], fs)
-        rows.append({"session_id": st.session_id, "tap": i, "f_s_hz": f_s, "zeta": zeta})
+        rows.append({"session_id": st.session_id, "robot": st.robot.name, "tap": i, "f_s_hz": f_s,
+                     "zeta": zeta})  # fmt: skip
     out = pd.DataFrame(rows)
     out.insert(1, "pressure_pa", float(st.parameters["pressure_pa"]))
     return out
@@ -223,7 +255,11 @@ def impact_taps(directory: Path) -> pd.DataFrame:
 
 def impact_parameters(sessions: list[Path]) -> pd.DataFrame:
     """Per pressure: mean and std over taps of the damped frequency f_s [Hz] and damping ratio ζ."""
-    taps = pd.concat([impact_taps(s) for s in sessions], ignore_index=True)
+    return tap_parameters(pd.concat([impact_taps(s) for s in sessions], ignore_index=True))
+
+
+def tap_parameters(taps: pd.DataFrame) -> pd.DataFrame:
+    """:func:`impact_parameters` of the taps of its sessions (:func:`impact_taps`, concatenated)."""
     out = taps.groupby("pressure_pa").agg(
         f_s_hz=("f_s_hz", "mean"), f_s_std_hz=("f_s_hz", "std"),
         zeta=("zeta", "mean"), zeta_std=("zeta", "std"), taps=("tap", "count"),

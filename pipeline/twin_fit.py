@@ -35,7 +35,8 @@ from the Jacobian at the solution, clustered by session (a session's points shar
 treating them as independent would make the errors too small).
 
 Not fitted yet (issue 33 asks for them): servo stiffness and backlash, damping (a dynamic fit), the other
-unmodelled effects (creep, hose torques, the tracker's field distortion), POPUP's Table 1.
+unmodelled effects (creep, hose torques, the tracker's field distortion). The POPUP arm's link is fitted to
+its link tests by ``pipeline.popup_fit``.
 """
 
 from __future__ import annotations

@@ -11,9 +11,13 @@ registrations (fitted and borrowed), every baseline and the hybrid networks, run
 
 from __future__ import annotations
 
+import atexit
+import functools
 import json
+import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,6 +32,7 @@ from models.hybrid import HybridNet, preset
 from models.robot import load_robot
 from pipeline import baselines as B
 from pipeline.clock import ClockFitter
+from pipeline.popup_fit import PopupLinkFit
 from pipeline.registration import FixedRegistration, RigidTransform, TrackerRegistration, model_tip
 from pipeline.train import HybridRegressor, TrainConfig, train
 from pipeline.twin_fit import VslStaticFit
@@ -92,6 +97,32 @@ def _fine_tuned() -> HybridRegressor:
     return HybridRegressor(config, threads=1, pretrained=start)
 
 
+def _link_tests(_d) -> tuple:
+    """(static holds, taps) of the POPUP link tests, simulated once at three pressures (kept for the run)."""
+    return _simulated_link_tests()
+
+
+@functools.cache
+def _simulated_link_tests() -> tuple:
+    import tempfile
+
+    from acquisition.recorder.sessions import SessionStore
+    from pipeline.link_tests import impact_taps, static_holds
+    from twin.runner import simulate_experiment
+
+    root = Path(tempfile.mkdtemp(prefix="vslab-link-tests-"))
+    atexit.register(shutil.rmtree, root, True)
+    store = SessionStore(root / "sessions")
+    small = {"pressures_kpa": [10, 30, 50]}
+    quick = {"repetitions": 1, "settle_s": 1.2, "pressure_settle_s": 1.0}
+    simulate_experiment("popup_static", store, seed=3, overrides=small | quick)
+    simulate_experiment("popup_impact", store, seed=3, overrides=small | {"taps": 2, "record_s": 1.2})
+    sessions = sorted((root / "sessions").iterdir())
+    holds = pd.concat([static_holds(s) for s in sessions if "popup_static" in s.name], ignore_index=True)
+    taps = pd.concat([impact_taps(s) for s in sessions if "popup_impact" in s.name], ignore_index=True)
+    return holds, taps
+
+
 def _to_base(est: Estimator, d) -> np.ndarray:
     return est.to_base(_static_points(d)[0].filter(like="tracker_position").to_numpy())
 
@@ -101,6 +132,9 @@ CASES = {
     "registration": Case(lambda: TrackerRegistration(load_robot("vsl")), _static_points, _to_base),
     "twin-fit-vsl": Case(
         lambda: VslStaticFit("vsl"), lambda d: (d,), lambda e, d: e.table()["value"].dropna().to_numpy()
+    ),
+    "twin-fit-popup": Case(
+        lambda: PopupLinkFit("popup"), _link_tests, lambda e, d: e.table()["value"].dropna().to_numpy()
     ),
     "registration-borrowed": Case(
         lambda: FixedRegistration(BASE_TO_TRACKER.matrix().tolist(), "campaign@v1"), _static_points, _to_base

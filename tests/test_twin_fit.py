@@ -165,7 +165,8 @@ def test_the_check_tables_each_description_per_cell(lab):
     [
         (["--dataset", "nothing"], "--dataset"),
         (["--dataset", "campaign@0000000000000000"], "--dataset"),
-        (["--dataset", "campaign", "--robot", "popup"], "not a VSL-type arm"),
+        (["--dataset", "campaign", "--robot", "popup"], "fitted to its link tests"),
+        ([], "--dataset: the VSL arm is fitted to a dataset"),
         (["--dataset", "campaign", "--robot", "no_such_robot"], "no such robot description"),
     ],
 )

@@ -18,9 +18,12 @@ from vslab.app import _error, _robot, console, load_dataset, options, pretrainin
 @twin_app.command("fit")
 def twin_fit(
     dataset: Annotated[
-        str,
-        typer.Option(help="The lab's dataset to fit: NAME or NAME@VERSION (its settled points, tracked)."),
-    ],
+        str | None,
+        typer.Option(
+            help="The VSL arm's dataset to fit: NAME or NAME@VERSION (its settled points, tracked). "
+            "The POPUP arm is fitted to the lab's link tests (popup_static, popup_impact)."
+        ),
+    ] = None,
     robot: Annotated[
         str, typer.Option(help="The nominal description it extends (a name or a path).")
     ] = "vsl",
@@ -29,31 +32,45 @@ def twin_fit(
         typer.Option(help="The fitted description's file (default: <lab>/twin/<robot>_fitted.yaml)."),
     ] = None,
 ) -> None:
-    """Fit the VSL arm's static parameters (each link's stiffness table k(p) and hysteresis, the link lengths)
-    to a dataset of the lab's robot and write a description that extends the nominal one, each value with its
-    standard error; what the data cannot identify is named, with why, and left nominal."""
+    """Fit a description to the lab's robot and write one that extends the nominal one, each value with its
+    standard error; what the data cannot identify is named, with why, and left nominal. The VSL arm: its
+    static parameters (each link's stiffness table k(p) and hysteresis, the link lengths, joint offsets,
+    masses, the servos' torque constant) from a dataset. The POPUP arm: the tested link's Table 1 (k̂, ĉ at
+    each tapped pressure, its inertia) from the lab's popup_static and popup_impact sessions."""
     from acquisition.code_version import code_version
+    from models.robot import AnthropomorphicKinematics
     from pipeline.twin_fit import TwinFitError, VslStaticFit
 
     nominal = _robot(robot)
     lab = options().lab
-    data, reference = load_dataset("--dataset", dataset)
-    try:
-        fit = VslStaticFit(nominal).fit(data)
-    except TwinFitError as exc:
-        _error(f"--dataset {reference}: {exc}")
     if out is None and not lab.is_local:
         _error(f"--lab {lab} is on a store: give --out FILE for the fitted description")
+    vsl = isinstance(nominal.kinematics, AnthropomorphicKinematics)
+    if vsl and dataset is None:
+        _error("--dataset: the VSL arm is fitted to a dataset of its settled points: give NAME[@VERSION]")
+    if not vsl and dataset is not None:
+        _error(f"--dataset: robot {nominal.name} is fitted to its link tests (the lab's popup_static and "
+               "popup_impact sessions), not to a dataset")  # fmt: skip
+    if vsl:
+        data, reference = load_dataset("--dataset", dataset)
+        try:
+            fit = VslStaticFit(nominal).fit(data)
+        except TwinFitError as exc:
+            _error(f"--dataset {reference}: {exc}")
+        made = fit.description, "pipeline.twin_fit"
+    else:
+        fit, reference = _popup_fit(nominal, lab)
+        made = fit.description, "pipeline.popup_fit"
     target = out if out is not None else Path(str(lab.twin.fitted(nominal.name)))
     base = robot_path(robot)
     extends = nominal.name if base.resolve().parent == CONFIG_DIR.resolve() else os.path.relpath(
         base.resolve(), target.resolve().parent)  # fmt: skip
-    fitted = fit.description(f"{nominal.name}_fitted", extends, reference,
-                             code_version("pipeline.twin_fit"))  # fmt: skip
+    fitted = made[0](f"{nominal.name}_fitted", extends, reference, code_version(made[1]))
     text = yaml.safe_dump(fitted, sort_keys=False, allow_unicode=True, width=110, default_flow_style=None)
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
-        target.write_text(f"# written by `vslab twin fit --robot {robot} --dataset {reference}`\n{text}")
+        said = f"--dataset {reference}" if vsl else "(the link tests)"
+        target.write_text(f"# written by `vslab twin fit --robot {robot} {said}`\n{text}")
     except OSError as exc:
         _error(f"--out {target}: cannot be written ({exc.strerror or exc})")
     try:
@@ -71,9 +88,46 @@ def twin_fit(
         console.print(table)
         for parameter, why in fit.not_identifiable_.items():
             console.print(f"not identifiable, left nominal: {parameter}: {why}", highlight=False)
-        console.print(f"tip residual {fit.residual_rms_mm_:.3f} mm per axis over {fit.n_points_} points "
-                      f"of {fit.n_sessions_} sessions")  # fmt: skip
+        if vsl:
+            console.print(f"tip residual {fit.residual_rms_mm_:.3f} mm per axis over {fit.n_points_} points "
+                          f"of {fit.n_sessions_} sessions")  # fmt: skip
+        else:
+            console.print(f"{fit.n_holds_} static holds and {fit.n_taps_} taps of {len(fit.sessions_)} "
+                          "sessions")  # fmt: skip
         console.print(f"written: {target}")
+
+
+def _popup_fit(nominal, lab):
+    """(the fitted ``PopupLinkFit``, what it was fitted to in words) from the lab's link tests of the link
+    the static test loaded; one ``error:`` line where a session cannot be read or the tests cannot be
+    fitted."""
+    import pandas as pd
+
+    from pipeline.link_tests import impact_taps, static_holds
+    from pipeline.popup_fit import PopupLinkFit
+    from pipeline.twin_fit import TwinFitError
+
+    rows = {}
+    for experiment, read in (("popup_static", static_holds), ("popup_impact", impact_taps)):
+        sessions, bad = lab.sessions.select(experiment)
+        for name, why in bad.items():
+            console.print(f"left out: {name}: {why}", highlight=False, markup=False)
+        try:
+            frames = [read(d) for d in sessions]
+        except Exception as exc:  # a session whose streams or events are not a link test's: one line
+            _error(f"{experiment} sessions: {type(exc).__name__}: {exc}")
+        rows[experiment] = (pd.concat(frames, ignore_index=True) if frames
+                            else pd.DataFrame(columns=["robot", "session_id"]), len(sessions))  # fmt: skip
+    holds = rows["popup_static"][0]
+    links = sorted(set(holds["link"])) if "link" in holds else []
+    if len(links) > 1:
+        _error(f"the link tests: the popup_static sessions load links {', '.join(links)}: fit one link's")
+    try:
+        fit = PopupLinkFit(nominal, links[0] if links else "link2").fit(holds, rows["popup_impact"][0])
+    except TwinFitError as exc:
+        _error(f"the link tests: {exc}")
+    return fit, (f"link tests: {rows['popup_static'][1]} popup_static and {rows['popup_impact'][1]} "
+                 "popup_impact sessions")  # fmt: skip
 
 
 @twin_app.command("check")

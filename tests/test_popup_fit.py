@@ -1,0 +1,153 @@
+"""The twin of the lab's POPUP arm (issue 33): link 2's Table 1 fitted to the link tests of a POPUP the fit is
+not told about (its link stiffness and damping ±30 %), every value within 2 standard errors of the truth and
+the stiffness within 3 %, written back as a description the twin runs; and what it refuses, in one line."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from acquisition.recorder.sessions import SessionStore
+from models.robot import load_robot, robot_path
+from pipeline.link_tests import impact_taps, static_holds
+from pipeline.popup_fit import PopupLinkFit, damping_knot, hinge_inertia, stiffness_knot
+from pipeline.twin_fit import TwinFitError
+from twin.runner import simulate_experiment
+from vslab.cli import app
+
+SEED = 5
+# the paper's pressures, fewer repetitions and shorter rests: what the fit needs, in less robot time
+IMPACT = {"taps": 3, "record_s": 1.2, "settle_s": 1.0}
+STATIC = {"repetitions": 2, "pressure_settle_s": 1.0, "settle_s": 1.2, "hold_s": 2.0}
+LABS = {"stiffer, less damped": (1.3, 0.7), "softer, more damped": (0.7, 1.3)}
+
+
+def lab_popup(path, k_factor: float, c_factor: float):
+    """configs/robots/popup.yaml, still named popup, with link 2's stiffness × k_factor and damping × c_factor
+    (link 1 follows link 2's table); the yield torques scale with a stiffer link (τ_y ≥ k·δ_h)."""
+    data = yaml.safe_load(robot_path("popup").read_text())
+    for link in data["links"]:
+        link["hysteresis"]["tau_y_nm"] *= max(k_factor, 1.0)
+        if link["name"] == "link2":
+            table = link["table"]
+            table["stiffness_nm_per_rad"] = [k * k_factor for k in table["stiffness_nm_per_rad"]]
+            table["damping_nms_per_rad"] = [c * c_factor for c in table["damping_nms_per_rad"]]
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.fixture(scope="module", params=sorted(LABS))
+def tested(request, tmp_path_factory):
+    """(the lab arm's description, its lab folder) after its link tests, simulated on it."""
+    root = tmp_path_factory.mktemp("popup-lab")
+    robot = lab_popup(root / "popup_lab.yaml", *LABS[request.param])
+    sessions = SessionStore(root / "lab" / "sessions")
+    for experiment, overrides in (("popup_static", STATIC), ("popup_impact", IMPACT)):
+        simulate_experiment(experiment, sessions, seed=SEED, overrides=overrides | {"robot": str(robot)})
+    return load_robot(robot), root / "lab"
+
+
+def _rows(lab, experiment, read) -> pd.DataFrame:
+    sessions = sorted(d for d in (lab / "sessions").iterdir() if d.name.startswith(f"sim-{experiment}"))
+    return pd.concat([read(d) for d in sessions], ignore_index=True)
+
+
+@pytest.fixture(scope="module")
+def fitted(tested):
+    truth, lab = tested
+    holds, taps = _rows(lab, "popup_static", static_holds), _rows(lab, "popup_impact", impact_taps)
+    return truth, PopupLinkFit("popup").fit(holds, taps)
+
+
+def _true(truth, p: float) -> tuple[float, float]:
+    table = truth.link_table("link2")
+    return (float(np.interp(p, table.pressure_pa, table.stiffness_nm_per_rad)),
+            float(np.interp(p, table.pressure_pa, table.damping_nms_per_rad)))  # fmt: skip
+
+
+def test_every_fitted_value_is_within_two_standard_errors_of_the_lab_arm(fitted):
+    truth, fit = fitted
+    assert len(fit.measured_) == 9  # every tapped pressure, 10–90 kPa
+    for p in fit.measured_["pressure_pa"]:
+        k, c = _true(truth, p)
+        for name, true in ((stiffness_knot("link2", p), k), (damping_knot("link2", p), c)):
+            error = abs(fit.values_[name] - true)
+            assert error <= 2 * fit.stderr_[name], (name, fit.values_[name], true, fit.stderr_[name])
+        assert abs(fit.values_[stiffness_knot("link2", p)] / k - 1) < 0.03  # stiffness within 3 %
+        assert fit.stderr_[stiffness_knot("link2", p)] < 0.02 * k  # and known to better than 2 %
+    inertia, se = fit.values_["link2.inertia_kgm2"], fit.stderr_["link2.inertia_kgm2"]
+    assert abs(inertia - hinge_inertia(truth, "link2")) <= 2 * se
+
+
+def test_what_the_link_tests_cannot_tell_is_named(fitted):
+    _, fit = fitted
+    assert set(fit.not_identifiable_) == {"link1", "link2.hysteresis"}
+    assert "follows link2's" in fit.not_identifiable_["link1"]
+
+
+def test_the_fitted_description_runs_and_carries_the_lab_arm_s_table(tested, tmp_path):
+    """`vslab twin fit --robot popup` on the lab's link tests: a description the twin loads, link 2's table
+    the lab arm's within 3 %, link 1's following it, the record the report reads kept."""
+    truth, lab = tested
+    result = CliRunner().invoke(app, ["--lab", str(lab), "twin", "fit", "--robot", "popup"])
+    assert result.exit_code == 0, result.output
+    assert "not identifiable, left nominal: link1" in result.output
+    written = lab / "twin" / "popup_fitted.yaml"
+    fitted = load_robot(written)
+    table, true = fitted.link_table("link2"), truth.link_table("link2")
+    np.testing.assert_allclose(table.stiffness_nm_per_rad, true.stiffness_nm_per_rad, rtol=0.03)
+    np.testing.assert_allclose(table.damping_nms_per_rad, true.damping_nms_per_rad, rtol=0.03)
+    np.testing.assert_allclose(fitted.link_table("link1").stiffness_nm_per_rad,
+                               3.691 * np.asarray(table.stiffness_nm_per_rad))  # fmt: skip
+    assert abs(hinge_inertia(fitted, "link2") / hinge_inertia(truth, "link2") - 1) < 0.03
+    record = json.loads((lab / "twin" / "fit-popup_fitted.json").read_text())
+    assert record["link_tests"] == "link tests: 5 popup_static and 9 popup_impact sessions"
+    assert set(record["parameters"]) >= {"link2.k@10kPa", "link2.c@90kPa", "link2.inertia_kgm2"}
+
+
+def test_refused_in_one_line(tested, tmp_path):
+    """A dataset named for the POPUP arm, a lab without its link tests, link tests of another robot: one
+    ``error:`` line, exit 2, nothing written."""
+    _truth, lab = tested
+    empty = tmp_path / "empty"
+    cases = {
+        "fitted to its link tests": ["--lab", str(lab), "twin", "fit", "--robot", "popup", "--dataset", "x"],
+        "no static test of link2": ["--lab", str(empty), "twin", "fit", "--robot", "popup"],
+    }
+    for said, args in cases.items():
+        result = CliRunner().invoke(app, args)
+        assert result.exit_code == 2, result.output
+        assert said in result.output and "Traceback" not in result.output, result.output
+    other = _rows(lab, "popup_static", static_holds).assign(robot="popup_prototype")
+    with pytest.raises(TwinFitError, match="of robot popup_prototype, not popup"):
+        PopupLinkFit("popup").fit(other, _rows(lab, "popup_impact", impact_taps))
+    with pytest.raises(TwinFitError, match="no link 'link3'"):
+        PopupLinkFit("popup", "link3").fit(other, other)
+
+
+def test_the_report_shows_the_popup_fit_and_names_a_damaged_record(tested, tmp_path):
+    """The report's section "The twin against your robot" from the POPUP fit's record; a record that is not
+    JSON is left out with its file named, the rest of the section made."""
+    from analysis.lab_figures import Results
+    from analysis.twin_report import twin_against_robot
+    from pipeline.lab import Lab
+
+    _, lab = tested
+    if not (lab / "twin" / "fit-popup_fitted.json").exists():
+        assert CliRunner().invoke(app, ["--lab", str(lab), "twin", "fit", "--robot", "popup"]).exit_code == 0
+    damaged = lab / "twin" / "check-popup_fitted.json"
+    damaged.write_text('{"names": ')
+    res = Results()
+    twin_against_robot(Lab(lab), res, tmp_path / "figures")
+    damaged.unlink()
+    values = res.tables["your twin: popup_fitted, fitted beside nominal"]
+    assert {"link2.k@10kPa", "link2.c@50kPa", "link2.inertia_kgm2"} <= set(values.index)
+    words = res.texts["your twin: popup_fitted, fitted beside nominal"]
+    assert "static holds" in words and "taps" in words and "link1" in words
+    assert list(res.missing) == [f"the twin against your robot: {damaged}"]
+    assert "not a readable record" in res.missing[f"the twin against your robot: {damaged}"]
