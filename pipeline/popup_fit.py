@@ -45,7 +45,8 @@ class PopupLinkFit(Estimator):
     (``pipeline.link_tests.static_holds`` of its sessions); ``taps``, the dynamic test's taps
     (``impact_taps``). Learns ``values_``, ``stderr_``, ``nominal_`` (by parameter: ``link2.k@10kPa``,
     ``link2.c@10kPa``, ``link2.inertia_kgm2``), ``not_identifiable_`` (name → why), ``measured_`` (Table 1
-    with its errors, per tapped pressure) and ``n_holds_``, ``n_taps_``, ``sessions_``."""
+    per tapped pressure, each value with its standard error: f_s, ζ, the elastic stiffness of the static
+    test where it was run, k̂, ĉ) and ``n_holds_``, ``n_taps_``, ``sessions_``."""
 
     def __init__(self, robot: RobotDescription | str = "popup", link: str = "link2") -> None:
         self.robot = robot
@@ -115,8 +116,11 @@ class PopupLinkFit(Estimator):
             )  # fmt: skip
         why[f"{self.link}.hysteresis"] = "the static test's loops are drawn (Figure 7), not fitted yet"
         self.values_, self.stderr_, self.nominal_, self.not_identifiable_ = values, stderr, nominal, why
-        self.measured_ = tapped[["pressure_pa", "f_s_hz", "zeta", "taps"]].assign(
-            k_static=tapped["pressure_pa"].map(static.set_index("pressure_pa")["k"]),
+        elastic = static.set_index("pressure_pa")
+        self.measured_ = tapped[["pressure_pa", "taps", "f_s_hz"]].assign(
+            f_s_se=tapped["f_s_std_hz"] / np.sqrt(n), zeta=zeta, zeta_se=tapped["zeta_std"] / np.sqrt(n),
+            k_static=tapped["pressure_pa"].map(elastic["k"]),
+            k_static_se=tapped["pressure_pa"].map(elastic["k_se"]),
             k_hat=k_hat, k_hat_se=se_k, c_hat=c_hat, c_hat_se=se_c,
         )  # fmt: skip
         self.robot_ = robot
