@@ -294,3 +294,22 @@ def _stop_left_running(workdir: Path, grace_s: float = 10.0) -> list[str]:
         with contextlib.suppress(psutil.Error):
             p.kill()
     return said
+
+
+def perturbed_popup(path, k_factor: float, c_factor: float):
+    """configs/robots/popup.yaml, still named popup, with link 2's stiffness × k_factor and damping × c_factor
+    written to ``path`` (link 1 follows link 2's table, so it changes too); the links' yield torques scale
+    with a stiffer link, as the description's own check τ_y ≥ k·δ_h asks. Returns ``path``."""
+    import yaml
+
+    from models.robot import robot_path
+
+    data = yaml.safe_load(robot_path("popup").read_text())
+    for link in data["links"]:
+        link["hysteresis"]["tau_y_nm"] *= max(k_factor, 1.0)
+        if link["name"] == "link2":
+            table = link["table"]
+            table["stiffness_nm_per_rad"] = [k * k_factor for k in table["stiffness_nm_per_rad"]]
+            table["damping_nms_per_rad"] = [c * c_factor for c in table["damping_nms_per_rad"]]
+    path.write_text(yaml.safe_dump(data))
+    return path

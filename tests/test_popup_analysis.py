@@ -7,13 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 import pytest
-import yaml
+from conftest import perturbed_popup
 from scipy import signal
 
 from acquisition.recorder.sessions import SessionStore
 from analysis import popup_tests as pt
 from models import prbm
-from models.robot import load_robot, robot_path
+from models.robot import load_robot
 from pipeline import link_tests as lt
 from twin.runner import simulate_experiment
 
@@ -100,27 +100,12 @@ PERTURBED = [(fk, 1.0) for fk in (0.5, 0.7, 1.3, 1.5)] + [(1.0, fc) for fc in (0
 PERTURBED += [(0.5, 1.5), (1.5, 0.5)]
 
 
-def _perturbed_popup(path, k_factor, c_factor):
-    """configs/robots/popup.yaml with link 2's stiffness × k_factor and damping × c_factor (link 1 follows
-    link 2's table, so it changes too); the links' yield torques scale with a stiffer link, as the
-    description's own check τ_y ≥ k·δ_h asks."""
-    data = yaml.safe_load(robot_path("popup").read_text())
-    for link in data["links"]:
-        link["hysteresis"]["tau_y_nm"] *= max(k_factor, 1.0)
-        if link["name"] == "link2":
-            table = link["table"]
-            table["stiffness_nm_per_rad"] = [k * k_factor for k in table["stiffness_nm_per_rad"]]
-            table["damping_nms_per_rad"] = [c * c_factor for c in table["damping_nms_per_rad"]]
-    path.write_text(yaml.safe_dump(data))
-    return path
-
-
 @pytest.mark.slow
 @pytest.mark.parametrize(("k_factor", "c_factor"), PERTURBED)
 def test_table1_recovers_perturbed_twins(tmp_path, k_factor, c_factor):
     """Table 1 by the paper's procedure on twins whose link 2 is not the paper's: f_s within 1 %, ζ 5 %,
     k̂ 5 %, ĉ 15 % of what the twin was given, whatever the damping."""
-    robot = _perturbed_popup(tmp_path / "popup.yaml", k_factor, c_factor)
+    robot = perturbed_popup(tmp_path / "popup.yaml", k_factor, c_factor)
     simulate_experiment(
         "popup_impact", SessionStore(tmp_path / "impact"), seed=SEED, overrides=IMPACT | {"robot": str(robot)}
     )

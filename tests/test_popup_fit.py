@@ -9,11 +9,11 @@ import json
 import numpy as np
 import pandas as pd
 import pytest
-import yaml
+from conftest import perturbed_popup
 from typer.testing import CliRunner
 
 from acquisition.recorder.sessions import SessionStore
-from models.robot import load_robot, robot_path
+from models.robot import load_robot
 from pipeline.link_tests import impact_taps, static_holds
 from pipeline.popup_fit import PopupLinkFit, damping_knot, hinge_inertia, stiffness_knot
 from pipeline.twin_fit import TwinFitError
@@ -27,25 +27,11 @@ STATIC = {"repetitions": 2, "pressure_settle_s": 1.0, "settle_s": 1.2, "hold_s":
 LABS = {"stiffer, less damped": (1.3, 0.7), "softer, more damped": (0.7, 1.3)}
 
 
-def lab_popup(path, k_factor: float, c_factor: float):
-    """configs/robots/popup.yaml, still named popup, with link 2's stiffness × k_factor and damping × c_factor
-    (link 1 follows link 2's table); the yield torques scale with a stiffer link (τ_y ≥ k·δ_h)."""
-    data = yaml.safe_load(robot_path("popup").read_text())
-    for link in data["links"]:
-        link["hysteresis"]["tau_y_nm"] *= max(k_factor, 1.0)
-        if link["name"] == "link2":
-            table = link["table"]
-            table["stiffness_nm_per_rad"] = [k * k_factor for k in table["stiffness_nm_per_rad"]]
-            table["damping_nms_per_rad"] = [c * c_factor for c in table["damping_nms_per_rad"]]
-    path.write_text(yaml.safe_dump(data))
-    return path
-
-
 @pytest.fixture(scope="module", params=sorted(LABS))
 def tested(request, tmp_path_factory):
     """(the lab arm's description, its lab folder) after its link tests, simulated on it."""
     root = tmp_path_factory.mktemp("popup-lab")
-    robot = lab_popup(root / "popup_lab.yaml", *LABS[request.param])
+    robot = perturbed_popup(root / "popup_lab.yaml", *LABS[request.param])
     sessions = SessionStore(root / "lab" / "sessions")
     for experiment, overrides in (("popup_static", STATIC), ("popup_impact", IMPACT)):
         simulate_experiment(experiment, sessions, seed=SEED, overrides=overrides | {"robot": str(robot)})
