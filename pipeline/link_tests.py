@@ -25,8 +25,9 @@ from scipy import optimize, signal
 
 from models import prbm
 from models.robot import RobotDescription
-from pipeline.ingest import ingest_session
-from pipeline.tables import EventKind
+from pipeline.errors import PipelineError
+from pipeline.ingest import DAMAGED_CHUNKS, ingest_session
+from pipeline.tables import EventKind, SessionTables
 
 G = 9.81
 PAPER_L1_M, PAPER_L2_M = 0.030, 0.570  # seed 001 Sec. 4: PRBM body lengths of the 600 mm link
@@ -35,6 +36,21 @@ BRANCHES = ("loading", "unloading")
 TAP_SKIP_S = 0.02  # after a tap: skip the hammer contact before the free oscillation
 PEAK_FLOOR = 0.05  # the free oscillation is fitted from its largest peak down to 5 % of it (above the noise)
 NFFT = 2**17  # zero padding of the PSD (the fit's starting frequency): 1 kHz / 2^17 ≈ 0.008 Hz bins
+
+
+class LinkTestError(PipelineError, ValueError):
+    """A link test's session that cannot be measured: damaged, or without the stream or events it needs."""
+
+
+def _ingested(directory: Path, stream: str) -> SessionTables:
+    """The session's tables; :class:`LinkTestError` naming the session where a chunk was left out as damaged
+    (a link test's numbers are not taken from part of its samples) or ``stream`` has no sample."""
+    st = ingest_session(directory)
+    if damaged := st.report.values.get(DAMAGED_CHUNKS):
+        raise LinkTestError(f"session {Path(directory).name}: damaged ({damaged[0]})")
+    if stream not in st.streams or not len(st.streams[stream]):
+        raise LinkTestError(f"session {Path(directory).name}: no {stream} samples")
+    return st
 
 
 def _seconds(log_time) -> np.ndarray:
@@ -61,7 +77,7 @@ def _hold_means(t: np.ndarray, x: np.ndarray, t0: np.ndarray, t1: np.ndarray) ->
 def static_holds(directory: Path, link: str | None = None, arm_m: float | None = None) -> pd.DataFrame:
     """One row per SETTLED hold of a popup_static session: rep, branch, load, tip displacement, τ, δ of
     ``link`` (default: the link the session's plan loaded, its ``link`` parameter; link 2 if it has none)."""
-    st = ingest_session(directory)
+    st = _ingested(directory, TRACKER)
     link = link or st.parameters.get("link", "link2")
     ev = st.events
     arm, own, radius = link_geometry(st.robot, link)
@@ -232,7 +248,7 @@ def impacts(t: np.ndarray, a: np.ndarray, marks: np.ndarray) -> np.ndarray:
 def impact_taps(directory: Path) -> pd.DataFrame:
     """One row per tap of a popup_impact session: f_s and ζ of the free oscillation that follows its impact,
     up to the next one."""
-    st = ingest_session(directory)
+    st = _ingested(directory, ACCEL)
     ev = st.events
     tapped = (ev["kind"] == EventKind.PLAN_STEP) & (ev["label"] == "tap")
     marks = np.sort(_seconds(ev.loc[tapped, "log_time"]))

@@ -137,3 +137,22 @@ def test_the_report_shows_the_popup_fit_and_names_a_damaged_record(tested, tmp_p
     assert "static holds" in words and "taps" in words and "link1" in words
     assert list(res.missing) == [f"the twin against your robot: {damaged}"]
     assert "not a readable record" in res.missing[f"the twin against your robot: {damaged}"]
+
+
+def test_a_damaged_link_test_is_named_and_nothing_is_fitted(tested, tmp_path):
+    """A byte flipped in one tap session's MCAP: the chunk fails its check, the fit stops with one ``error:``
+    line naming that session, and writes nothing (a link test's numbers are not taken from part of it)."""
+    import shutil
+
+    _, lab = tested
+    shutil.copytree(lab / "sessions", tmp_path / "lab" / "sessions")
+    session = sorted((tmp_path / "lab" / "sessions").glob("sim-popup_impact-*"))[0]
+    mcap = sorted(session.glob("*.mcap"))[0]
+    data = bytearray(mcap.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    mcap.write_bytes(bytes(data))
+    result = CliRunner().invoke(app, ["--lab", str(tmp_path / "lab"), "twin", "fit", "--robot", "popup"])
+    assert result.exit_code == 2, result.output
+    error = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert len(error) == 1 and f"session {session.name}: damaged" in error[0], result.output
+    assert "Traceback" not in result.output and not (tmp_path / "lab" / "twin" / "popup_fitted.yaml").exists()

@@ -103,7 +103,7 @@ def _popup_fit(nominal, lab):
     fitted."""
     import pandas as pd
 
-    from pipeline.link_tests import impact_taps, static_holds
+    from pipeline.link_tests import LinkTestError, impact_taps, static_holds
     from pipeline.popup_fit import PopupLinkFit
     from pipeline.twin_fit import TwinFitError
 
@@ -112,10 +112,14 @@ def _popup_fit(nominal, lab):
         sessions, bad = lab.sessions.select(experiment)
         for name, why in bad.items():
             console.print(f"left out: {name}: {why}", highlight=False, markup=False)
-        try:
-            frames = [read(d) for d in sessions]
-        except Exception as exc:  # a session whose streams or events are not a link test's: one line
-            _error(f"{experiment} sessions: {type(exc).__name__}: {exc}")
+        frames = []
+        for d in sessions:
+            try:
+                frames.append(read(d))
+            except LinkTestError as exc:  # damaged, or without its stream
+                _error(f"{experiment}: {exc}")
+            except Exception as exc:  # events or streams that are not a link test's: one line, named
+                _error(f"{experiment}: session {d.name}: not a link test's ({type(exc).__name__}: {exc})")
         rows[experiment] = (pd.concat(frames, ignore_index=True) if frames
                             else pd.DataFrame(columns=["robot", "session_id"]), len(sessions))  # fmt: skip
     holds = rows["popup_static"][0]
