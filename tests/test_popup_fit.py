@@ -156,3 +156,20 @@ def test_a_damaged_link_test_is_named_and_nothing_is_fitted(tested, tmp_path):
     error = [line for line in result.output.splitlines() if line.startswith("error:")]
     assert len(error) == 1 and f"session {session.name}: damaged" in error[0], result.output
     assert "Traceback" not in result.output and not (tmp_path / "lab" / "twin" / "popup_fitted.yaml").exists()
+
+
+def test_a_pressure_tapped_once_is_named_not_identifiable_and_left_nominal(tested):
+    """One tap at 90 kPa has no spread to say how well it is known: its k̂ and ĉ are named, not returned, and
+    the fitted description keeps the nominal table's value there."""
+    _, lab = tested
+    taps = _rows(lab, "popup_impact", impact_taps)
+    once = taps[(taps["pressure_pa"] != 90_000) | (taps["tap"] == 0)]
+    fit = PopupLinkFit("popup").fit(_rows(lab, "popup_static", static_holds), once)
+    for name in (stiffness_knot("link2", 90_000), damping_knot("link2", 90_000)):
+        assert name not in fit.values_ and "1 tap at 90 kPa" in fit.not_identifiable_[name]
+    assert stiffness_knot("link2", 80_000) in fit.values_
+    written = fit.description("popup_fitted", "popup", "link tests", "test")["links"]
+    table = next(link["table"] for link in written if link["name"] == "link2")
+    nominal = load_robot("popup").link_table("link2")
+    assert table["stiffness_nm_per_rad"][-1] == nominal.stiffness_nm_per_rad[-1]
+    assert table["stiffness_nm_per_rad"][0] != nominal.stiffness_nm_per_rad[0]  # fitted where tapped 3 times
