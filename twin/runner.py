@@ -275,9 +275,10 @@ def simulate_side_by_side(
     import concurrent.futures as cf
     import multiprocessing
 
-    todo = [k for k, simulation in enumerate(simulations)
-            if simulation.inverse_model is None and simulation.pending(seed)]  # fmt: skip
-    if len(todo) < 2 or processes < 2:  # nothing to share the cores with: here, the kernel on every core
+    todo = []  # one alone is not planned twice to find out whether it has work
+    if len(simulations) > 1 and processes > 1:
+        todo = [k for k, s in enumerate(simulations) if s.inverse_model is None and s.pending(seed)]
+    if len(todo) < 2:  # nothing to share the cores with: here, the kernel on every core
         return [simulation.run(seed) for simulation in simulations]
     context = multiprocessing.get_context("forkserver")  # nothing of this process's threads is forked
     pool = cf.ProcessPoolExecutor(min(processes, len(todo)), mp_context=context,
