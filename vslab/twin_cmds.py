@@ -5,14 +5,18 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 import yaml
 from rich.table import Table
 
-from models.robot import CONFIG_DIR, RobotDescriptionError, load_robot, robot_path
+from models.robot import CONFIG_DIR, RobotDescription, RobotDescriptionError, load_robot, robot_path
 from vslab.app import _error, _robot, console, load_dataset, options, pretraining_twin, twin_app
+
+if TYPE_CHECKING:
+    from pipeline.lab import Lab
+    from pipeline.popup_fit import PopupLinkFit
 
 
 @twin_app.command("fit")
@@ -97,7 +101,7 @@ def twin_fit(
         console.print(f"written: {target}")
 
 
-def _popup_fit(nominal, lab):
+def _popup_fit(nominal: RobotDescription, lab: Lab) -> tuple[PopupLinkFit, str]:
     """(the fitted ``PopupLinkFit``, what it was fitted to in words) from the lab's link tests of the link
     the static test loaded; one ``error:`` line where a session cannot be read or the tests cannot be
     fitted."""
