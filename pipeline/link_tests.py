@@ -57,14 +57,21 @@ def _seconds(log_time) -> np.ndarray:
     return np.asarray(log_time, np.int64) * 1e-9
 
 
-def link_geometry(robot: RobotDescription, link: str = "link2") -> tuple[float, float, float]:
-    """(arm m, own moment N·m, radius m) of ``link``: its last virtual joint's D-H a_m, the moment of the
-    masses on that joint's frame about the hinge, and the link radius."""
+def link_hinge(robot: RobotDescription, link: str = "link2") -> tuple[str, float]:
+    """(frame, arm m) of ``link``'s hinge: its last virtual joint, and that D-H row's a_m (hinge → tip); the
+    masses on that frame are what the tests load and swing."""
     spec = next(lk for lk in robot.links if lk.name == link)
     hinge = spec.virtual_joints[-1]
-    arm = next(r.a_m for r in robot.kinematics.rows if r.joint == hinge)
+    return hinge, float(next(r.a_m for r in robot.kinematics.rows if r.joint == hinge))
+
+
+def link_geometry(robot: RobotDescription, link: str = "link2") -> tuple[float, float, float]:
+    """(arm m, own moment N·m, radius m) of ``link``: its hinge's arm (:func:`link_hinge`), the moment of the
+    masses on the hinge's frame about the hinge, and the link radius."""
+    hinge, arm = link_hinge(robot, link)
     own = sum(m.mass_kg * G * (arm + m.position_m[0]) for m in robot.masses if m.frame == hinge)
-    return float(arm), float(own), float(spec.radius_m)
+    radius = next(lk.radius_m for lk in robot.links if lk.name == link)
+    return arm, float(own), float(radius)
 
 
 def _hold_means(t: np.ndarray, x: np.ndarray, t0: np.ndarray, t1: np.ndarray) -> np.ndarray:

@@ -28,7 +28,13 @@ import pandas as pd
 
 from models.estimator import Estimator
 from models.robot import PressureTable, RobotDescription, load_robot
-from pipeline.link_tests import elastic_stiffness, static_curves, tap_parameters
+from pipeline.link_tests import (
+    elastic_stiffness,
+    link_hinge,
+    static_curves,
+    table1_estimates,
+    tap_parameters,
+)
 from pipeline.twin_fit import TwinFitError
 
 
@@ -67,15 +73,18 @@ class PopupLinkFit(Estimator):
                                    f"{robot.name}")  # fmt: skip
         static = elastic_stiffness(static_curves(holds))
         tapped = tap_parameters(taps)
-        w_n = 2 * np.pi * tapped["f_s_hz"] / np.sqrt(1 - tapped["zeta"] ** 2)
-        both = tapped.assign(w_n=w_n).merge(static[["pressure_pa", "k", "k_se"]], on="pressure_pa")
-        if len(both) < 2:
+        estimates = table1_estimates(static, tapped)  # seed 001's procedure, on the elastic stiffness
+        w_n = 2 * np.pi * tapped["f_s_hz"].to_numpy() / np.sqrt(1 - tapped["zeta"].to_numpy() ** 2)
+        measured = static.set_index("pressure_pa").reindex(tapped["pressure_pa"])
+        both = measured["k"].notna().to_numpy()
+        if both.sum() < 2:
             raise TwinFitError("the static and the dynamic test share fewer than two pressures: the link's "
                                "inertia (I = k / ω_n²) needs two to say how well it is known")  # fmt: skip
-        per_pressure = both["k"] / both["w_n"] ** 2
-        inertia = float(per_pressure.mean())
+        per_pressure = measured["k"].to_numpy()[both] / w_n[both] ** 2  # what table1_estimates averages
+        inertia = float(estimates["inertia_kgm2"].iloc[0])
         scatter = float(per_pressure.std(ddof=1) / np.sqrt(len(per_pressure)))
-        regressions = float(np.sqrt(np.sum((per_pressure * both["k_se"] / both["k"]) ** 2)) / len(both))
+        k_rel_se = measured["k_se"].to_numpy()[both] / measured["k"].to_numpy()[both]
+        regressions = float(np.sqrt(np.sum((per_pressure * k_rel_se) ** 2)) / len(per_pressure))
         rel_i = max(scatter, regressions) / inertia  # the larger: what the tests disagree on shows in either
 
         n = tapped["taps"].to_numpy(float)
@@ -84,8 +93,7 @@ class PopupLinkFit(Estimator):
             rel_f = tapped["f_s_std_hz"].to_numpy() / np.sqrt(n) / tapped["f_s_hz"].to_numpy()
             rel_z = tapped["zeta_std"].to_numpy() / np.sqrt(n) / zeta
         rel_w = np.hypot(rel_f, zeta**2 / (1 - zeta**2) * rel_z)  # ω_n = 2π f_s (1 − ζ²)^(−1/2)
-        k_hat = inertia * w_n.to_numpy() ** 2
-        c_hat = 2 * zeta * inertia * w_n.to_numpy()
+        k_hat, c_hat = estimates["k_hat"].to_numpy(), estimates["c_hat"].to_numpy()
         se_k = k_hat * np.hypot(rel_i, 2 * rel_w)
         se_c = c_hat * np.sqrt(rel_i**2 + rel_z**2 + rel_w**2)
 
@@ -116,11 +124,9 @@ class PopupLinkFit(Estimator):
             )  # fmt: skip
         why[f"{self.link}.hysteresis"] = "the static test's loops are drawn (Figure 7), not fitted yet"
         self.values_, self.stderr_, self.nominal_, self.not_identifiable_ = values, stderr, nominal, why
-        elastic = static.set_index("pressure_pa")
         self.measured_ = tapped[["pressure_pa", "taps", "f_s_hz"]].assign(
             f_s_se=tapped["f_s_std_hz"] / np.sqrt(n), zeta=zeta, zeta_se=tapped["zeta_std"] / np.sqrt(n),
-            k_static=tapped["pressure_pa"].map(elastic["k"]),
-            k_static_se=tapped["pressure_pa"].map(elastic["k_se"]),
+            k_static=measured["k"].to_numpy(), k_static_se=measured["k_se"].to_numpy(),
             k_hat=k_hat, k_hat_se=se_k, c_hat=c_hat, c_hat_se=se_c,
         )  # fmt: skip
         self.robot_ = robot
@@ -196,22 +202,15 @@ class PopupLinkFit(Estimator):
         }
 
 
-def _hinge(robot: RobotDescription, link: str) -> tuple[str, float]:
-    """(the frame of ``link``'s hinge: its last virtual joint, the hinge → tip distance: that row's a_m)."""
-    spec = next(lk for lk in robot.links if lk.name == link)
-    hinge = spec.virtual_joints[-1]
-    return hinge, float(next(r.a_m for r in robot.kinematics.rows if r.joint == hinge))
-
-
 def hinge_inertia(robot: RobotDescription, link: str) -> float:
     """The moment of inertia about ``link``'s hinge of every mass carried on the hinge's frame (kg·m²): what
     the dynamic test swings."""
-    hinge, arm = _hinge(robot, link)
+    hinge, arm = link_hinge(robot, link)
     return float(sum(m.mass_kg * (arm + m.position_m[0]) ** 2 + (m.inertia_kgm2 or 0.0)
                      for m in robot.masses if m.frame == hinge))  # fmt: skip
 
 
 def _link_mass(robot: RobotDescription, link: str) -> int | None:
     """The index of the mass that is ``link``'s own (named after it, on its hinge's frame), or None."""
-    hinge, _ = _hinge(robot, link)
+    hinge, _ = link_hinge(robot, link)
     return next((k for k, m in enumerate(robot.masses) if m.frame == hinge and m.name == link), None)
