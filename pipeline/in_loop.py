@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -23,10 +22,6 @@ from models.hybrid import INVERSE_INPUTS
 from models.robot import RobotDescription, load_robot
 from pipeline.baselines import Baseline
 from pipeline.history import HistoryModel, HistoryState
-
-if TYPE_CHECKING:
-    from pipeline.exports import OnnxModel
-    from pipeline.model_store import ModelStore
 
 
 class InverseModelCompensator:
@@ -101,25 +96,3 @@ def learned_compensators(
         return InverseModelCompensator(models[mode], description, identity=(identities or {}).get(mode))
 
     return learned
-
-
-def stored_compensators(models: ModelStore, version: str) -> Callable[[Plan], InverseModelCompensator]:
-    """The saved inverse network ``version`` (a tag or a unique prefix) of ``models`` as the runners' hybrid
-    commands (:func:`learned_compensators`, recorded as its full version id); errors as
-    :func:`stored_inverse`."""
-    model, identity = stored_inverse(models, version)
-    return learned_compensators({"hybrid": model}, identities={"hybrid": identity})
-
-
-def stored_inverse(models: ModelStore, version: str) -> tuple[OnnxModel, str]:
-    """(model, full version id) of the saved inverse network ``version`` (a tag or a unique prefix) of
-    ``models`` as the control loop runs it: its ONNX export on ONNX Runtime, every file checked against its
-    card first. FileNotFoundError for an unknown version; ValueError for an ambiguous, damaged or forward
-    one, or one saved without an ONNX export."""
-    from pipeline.model_store import load_card, load_onnx
-
-    path = models.find(version)
-    direction = load_card(path)["net"].get("direction")
-    if direction != "inverse":
-        raise ValueError(f"a {direction} model; hybrid commands need an inverse one")
-    return load_onnx(path), path.name

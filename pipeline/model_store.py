@@ -399,6 +399,17 @@ class ModelStore:
         """(network, card) of ``version``, every file checked against its card."""
         return load_model(self.find(version))
 
+    def inverse_onnx(self, version: str) -> tuple[OnnxModel, str]:
+        """(model, full version id) of the inverse network ``version`` (a tag or a unique prefix) as the
+        control loop runs it: its ONNX export on ONNX Runtime, every file checked against its card first.
+        FileNotFoundError for an unknown version; ValueError for an ambiguous, damaged or forward one, or one
+        saved without an ONNX export."""
+        path = self.find(version)
+        direction = load_card(path)["net"].get("direction")
+        if direction != "inverse":
+            raise ValueError(f"a {direction} model; hybrid commands need an inverse one")
+        return load_onnx(path), path.name
+
     def onnx(self, version: str) -> OnnxModel:
         """The ONNX export of ``version`` on ONNX Runtime, every file checked against its card."""
         return load_onnx(self.find(version))

@@ -264,10 +264,8 @@ def load_inverse_model(version: str, models: ModelStore | None = None):
     """The saved inverse network ``version`` of ``models`` (default: the CLI's lab's) as the control
     loop runs it: its ONNX export on ONNX Runtime (``predict``), every file checked against its card first. An
     unknown, ambiguous, damaged or forward model, or one saved without an ONNX export, is one error line."""
-    from pipeline.in_loop import stored_inverse
-
     try:
-        return stored_inverse(models or options().lab.models, version)[0]
+        return (models or options().lab.models).inverse_onnx(version)[0]
     except (FileNotFoundError, ValueError) as exc:  # unknown, ambiguous, damaged, forward
         _error(f"--inverse-model {version}: {exc}")
 
@@ -275,10 +273,11 @@ def load_inverse_model(version: str, models: ModelStore | None = None):
 def inverse_compensators(version: str, models: ModelStore | None = None):
     """A saved inverse model of ``models`` (default: the CLI's lab's) as the runners' hybrid commands
     (``pipeline.in_loop.learned_compensators``); an unusable model is one error line."""
-    from pipeline.in_loop import stored_compensators
+    from pipeline.in_loop import learned_compensators
 
     try:
-        return stored_compensators(models or options().lab.models, version)
+        model, identity = (models or options().lab.models).inverse_onnx(version)
+        return learned_compensators({"hybrid": model}, identities={"hybrid": identity})
     except (FileNotFoundError, ValueError) as exc:  # unknown, ambiguous, damaged, forward
         _error(f"--inverse-model {version}: {exc}")
 

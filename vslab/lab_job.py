@@ -46,7 +46,7 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     from analysis.lab_report import lab_report
     from analysis.vsl_paths import path_errors
     from pipeline.grid import load_grid, run_grid
-    from pipeline.in_loop import stored_compensators
+    from pipeline.in_loop import learned_compensators
     from pipeline.simulated import TwinExperiment, simulated_datasets
     from pipeline.unmodelled import unmodelled_study
 
@@ -90,7 +90,8 @@ def run(lab: Lab, seed: int = 0, quick: bool = False, say: Callable[[str], None]
     run_grid(lab, grid)  # its networks tagged: the figures and Experiment 2 find them by LAB_TAGS
 
     step("Experiment 2 with the trained inverse model")
-    learned = stored_compensators(lab.models, INVERSE)
+    model, identity = lab.models.inverse_onnx(INVERSE)  # the tagged network, recorded by its full version id
+    learned = learned_compensators({"hybrid": model}, identities={"hybrid": identity})
     simulated_datasets(lab, [TwinExperiment("experiment2", dataset="experiment2", inverse_model=learned,
                                             registration_from=registration)], seed=seed)  # fmt: skip
 
