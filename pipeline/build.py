@@ -207,9 +207,10 @@ def build(
     session can be read."""
     check_parameters(parameters or {})
     params = {k: {**DEFAULTS[k], **(parameters or {}).get(k, {})} for k in DEFAULTS}
-    borrowed = params["registration"]
-    if "from_dataset" in borrowed:  # pin the borrowed registration's version: part of ours
-        borrowed["from_dataset"] = _borrowed(lab.datasets, borrowed["from_dataset"])
+    borrowed = None  # (name@version, its card's registrations): read once, its version pinned in ours
+    if "from_dataset" in params["registration"]:
+        borrowed = _borrowed(lab.datasets, params["registration"]["from_dataset"])
+        params["registration"]["from_dataset"] = borrowed[0]
     cache = lab.cache
     for stage in ("session", "dataset"):  # the code read once, here: a pool's workers forked later inherit it
         stage_version(stage)
@@ -248,7 +249,7 @@ def build(
         robot = RobotDescription.model_validate_json(mine[0][2]["robot_description"])
         static = _tagged([(rec, t["static"]) for _, t, rec in mine])
         trajectory = _tagged([(rec, t["trajectory"]) for _, t, rec in mine])
-        registration = _fit_registration(static, robot, params["registration"], lab.datasets)
+        registration = _fit_registration(static, robot, params["registration"], borrowed)
         registrations[robot_name] = registration
         for table, rows in (("data", static), ("trajectories", trajectory)):
             if len(rows):
@@ -282,33 +283,38 @@ def _tagged(items: list[tuple[dict, pd.DataFrame]]) -> pd.DataFrame:
 
 
 def _fit_registration(
-    static: pd.DataFrame, robot: RobotDescription, parameters: dict, store: DatasetStore
+    static: pd.DataFrame, robot: RobotDescription, parameters: dict, borrowed: tuple[str, dict] | None
 ) -> Registration:
     """Fit tracker → base on these sessions' static points, or take it from another dataset of the same
-    setup (``from_dataset: name@version``: trajectory-only sessions such as Experiment 2 have no static
-    points)."""
-    from pipeline.registration import FixedRegistration, TrackerRegistration
+    setup (``borrowed``: ``from_dataset``'s name@version and its card's registrations; trajectory-only
+    sessions such as Experiment 2 have no static points)."""
+    from pipeline.registration import (
+        FixedRegistration,
+        RegistrationError,
+        TrackerRegistration,
+        borrowed_placement,
+    )
 
-    if "from_dataset" not in parameters and not len(static):
+    if borrowed is None and not len(static):
         raise ValueError(
             f"no settled static points of {robot.name} to register the tracker on: take the registration of "
             "another dataset of the same setup (--set registration.from_dataset=campaign)"
         )
-    if "from_dataset" in parameters:
-        reference = parameters["from_dataset"]
+    if borrowed is not None:
+        reference, fitted = borrowed
         try:
-            placement = store.placement(reference, robot.name)
-        except DatasetError as exc:
-            raise DatasetError(f"registration.from_dataset={reference}: {exc}") from None
+            placement = borrowed_placement(fitted, robot.name, reference)
+        except RegistrationError as exc:
+            raise DatasetError(f"registration.from_dataset={parameters['from_dataset']}: {exc}") from None
         return FixedRegistration(placement, reference).fit(static)
     return TrackerRegistration(robot, **parameters).fit(static)
 
 
-def _borrowed(store: DatasetStore, reference: str) -> str:
-    """``name`` or ``name@version`` of the dataset whose registration a build borrows → ``name@version``;
-    ``DatasetError`` that names the parameter, the dataset and what to do."""
+def _borrowed(store: DatasetStore, reference: str) -> tuple[str, dict]:
+    """``name`` or ``name@version`` of the dataset whose registration a build borrows → (``name@version``,
+    its card's registrations); ``DatasetError`` that names the parameter, the dataset and what to do."""
     try:
-        return "@".join(store.resolve(reference))
+        return store.registrations(reference)
     except DatasetError as exc:
         raise DatasetError(f"registration.from_dataset={reference}: {exc}") from None
 

@@ -17,7 +17,6 @@ from acquisition.storage import LabPath, publish, read_parquet
 from pipeline.errors import PipelineError
 
 if TYPE_CHECKING:  # imported where used: the Lab makes this store on every command, which needs neither
-    import numpy as np
     import pandas as pd
 
 CARD = "card.json"  # a dataset version's manifest
@@ -118,29 +117,14 @@ class DatasetStore:
         publish(final, fill, CARD)
         return final
 
-    def placement(self, reference: str, robot: str) -> np.ndarray:
-        """The tracker placement (4×4, base → tracker) that dataset ``name[@version]`` fitted for ``robot``
-        (an arm on the same mount, the rigid-link arm in place of the VSL arm, shares it); ``DatasetError``
-        that says which dataset is missing, has none for this robot, or is damaged."""
-        import numpy as np
-
+    def registrations(self, reference: str) -> tuple[str, dict]:
+        """(``name@version``, the tracker registrations its card holds, robot → summary) of dataset
+        ``name[@version]``: what a build borrows (``pipeline.registration.borrowed_placement`` takes one
+        robot's placement of them); ``DatasetError`` where it is not there or its card cannot be read."""
         _, card = self.load(*_split(reference), table=None)
         where = f"{card.get('name') or reference.partition('@')[0]}@{card.get('version')}"
         fitted = card.get("registration") or {}
-        mine = fitted.get(robot) or (next(iter(fitted.values())) if len(fitted) == 1 else None)
-        if not isinstance(mine, dict):
-            raise DatasetError(f"dataset {where} has no registration for robot {robot!r} (its card has "
-                               f"{', '.join(fitted) or 'none'}): borrow one from a dataset of {robot}'s "
-                               "sessions")  # fmt: skip
-        try:
-            placement = np.asarray(mine["base_to_tracker"], float)
-            if placement.shape != (4, 4) or not np.isfinite(placement).all():
-                raise ValueError(f"base_to_tracker is not a finite 4×4 matrix (shape {placement.shape})")
-        except (KeyError, TypeError, ValueError) as exc:
-            why = f"{type(exc).__name__}: {exc}"
-            raise DatasetError(f"dataset {where}: its registration for {robot!r} is damaged ({why}); build "
-                               "that dataset again") from exc  # fmt: skip
-        return placement
+        return where, fitted if isinstance(fitted, dict) else {}
 
 
 def _split(reference: str) -> tuple[str, str | None]:

@@ -33,6 +33,7 @@ from models.estimator import Estimator
 from models.robot import RobotDescription
 from models.statics import static_deflection
 from pipeline.datasets import joint_angles
+from pipeline.errors import PipelineError
 from pipeline.tables import columns
 
 log = logging.getLogger(__name__)
@@ -159,6 +160,31 @@ class Registration(Estimator):
         """The base → tracker placement as a 4×4 matrix (nested lists: JSON-ready, a dataset card's)."""
         self.check_fitted()
         return self.transform_.inverse().matrix().tolist()
+
+
+class RegistrationError(PipelineError, ValueError):
+    """A registration to borrow that is not there for this robot, or is damaged."""
+
+
+def borrowed_placement(fitted: dict, robot: str, where: str) -> np.ndarray:
+    """The tracker placement (4×4, base → tracker) that dataset ``where`` (``name@version``) fitted for
+    ``robot`` among its card's registrations ``fitted`` (``DatasetStore.registrations``); an arm on the same
+    mount (the rigid-link arm in place of the VSL arm) shares it, so a card of one robot serves any.
+    ``RegistrationError`` that says which dataset has none for this robot, or is damaged."""
+    mine = fitted.get(robot) or (next(iter(fitted.values())) if len(fitted) == 1 else None)
+    if not isinstance(mine, dict):
+        raise RegistrationError(f"dataset {where} has no registration for robot {robot!r} (its card has "
+                                f"{', '.join(fitted) or 'none'}): borrow one from a dataset of {robot}'s "
+                                "sessions")  # fmt: skip
+    try:
+        placement = np.asarray(mine["base_to_tracker"], float)
+        if placement.shape != (4, 4) or not np.isfinite(placement).all():
+            raise ValueError(f"base_to_tracker is not a finite 4×4 matrix (shape {placement.shape})")
+    except (KeyError, TypeError, ValueError) as exc:
+        why = f"{type(exc).__name__}: {exc}"
+        raise RegistrationError(f"dataset {where}: its registration for {robot!r} is damaged ({why}); "
+                                "build that dataset again") from exc  # fmt: skip
+    return placement
 
 
 class FixedRegistration(Registration):

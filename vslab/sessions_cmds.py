@@ -169,6 +169,7 @@ def sessions_export(
     from acquisition.recorder.foxglove_export import ExportError, check_rate, export_foxglove, session_robot
     from acquisition.recorder.sessions import SessionError
     from acquisition.schemas.cdr import SchemaError
+    from pipeline.registration import borrowed_placement
 
     if not foxglove:
         _fail("say what to export: --foxglove (the one format there is)")
@@ -181,7 +182,8 @@ def sessions_export(
     if registration is not None:
         try:
             robot = session_robot(info.parts[0]).name
-            placement = options().lab.datasets.placement(registration, robot)
+            where, fitted = options().lab.datasets.registrations(registration)
+            placement = borrowed_placement(fitted, robot, where)
         except (SessionError, ValueError) as exc:
             _fail(escape(str(exc)))
     name = f"{info.id}.foxglove.mcap"  # beside the lab's sessions; here when the lab is on a store
