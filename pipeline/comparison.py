@@ -153,32 +153,50 @@ def save_compared(path: LabPath, models: ModelStore, data: pd.DataFrame, dataset
     from pipeline.model_store import model_version
     from pipeline.train import evaluate, model_card
 
-    saved = []
+    saved, cards = [], []
     for (direction, model), net in nets.items():
         config = net.config
         name = f"{direction}-{config.net.name}"
         version = model_version(dataset["version"], config, comparison=json.dumps(made_from, sort_keys=True))
         records = table[table["direction"] == direction].to_dict("records")
         card = model_card(net.history_, dataset, evaluate(net.net_, data, config.split, "test"), net.threads)
-        compared = {"split": config.split, "made_from": made_from, "model": model, "records": records}
-        card["comparison"] = compared
+        card["comparison"] = {
+            "split": config.split,
+            "made_from": made_from,
+            "model": model,
+            "records": records,
+        }
+        saved.append({"name": name, "version": version})
+        cards.append(card)
+    comparison = comparison_card(table, made_from, split, (extra or {}) | {"models": saved})
+    for entry, net, card in zip(
+        saved, nets.values(), cards, strict=True
+    ):  # the networks first, the card last
         try:
-            models.save(name, version, net.net_, card)
+            models.save(entry["name"], entry["version"], net.net_, card)
         except FileExistsError:
             pass
-        saved.append({"name": name, "version": version})
-    save_comparison(path, table, made_from, split, (extra or {}) | {"models": saved})
+    _write_card(path, comparison)
     return saved
 
 
 def save_comparison(path: LabPath, table: pd.DataFrame, made_from: dict[str, str], split: str,
                     extra: dict[str, list[dict]] | None = None) -> None:  # fmt: skip
+    """A comparison kept without its networks: its card (:func:`comparison_card`) at ``path`` (JSON)."""
+    _write_card(path, comparison_card(table, made_from, split, extra))
+
+
+def comparison_card(table: pd.DataFrame, made_from: dict[str, str], split: str,
+                    extra: dict[str, list[dict]] | None = None) -> dict:  # fmt: skip
     """The comparison's card: what it was made from (``made_from``: dataset versions), the split, when, its
     records, what each direction's models read (``inputs``: :data:`INPUTS`), and ``extra`` tables as records
-    (the main job adds its Experiment 2 on the same twin) (JSON)."""
+    (the main job adds its Experiment 2 on the same twin)."""
     created = datetime.now(UTC).isoformat(timespec="seconds")
-    card = {"made_from": made_from, "split": split, "created": created, "inputs": INPUTS,
+    return {"made_from": made_from, "split": split, "created": created, "inputs": INPUTS,
             "records": table.to_dict("records"), **(extra or {})}  # fmt: skip
+
+
+def _write_card(path: LabPath, card: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(card, indent=1, allow_nan=True))
 
