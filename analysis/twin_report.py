@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from analysis import diagnostics
+from analysis.figure_files import save_figure
 from pipeline.lab import Lab
 
 TABLES = "your twin"  # the start of every table key of this section
@@ -43,7 +43,7 @@ def twin_against_robot(lab: Lab, res, out: Path) -> None:
         res.tables[f"{TABLES}: {names['checked']} checked on {record['made_from']['dataset']}"] = table
     for record in _records([lab.twin.curve] if lab.twin.curve.exists() else [], res):
         curve = pd.DataFrame(record["curve"])
-        drawn = diagnostics.pretraining_curve(curve, out, made_from=record["made_from"])
+        drawn = pretraining_curve(curve, out, made_from=record["made_from"])
         res.figures["pretraining_curve"] = drawn["png"]
         res.tables[f"{TABLES}: pretraining curve, {record['net']}"] = curve_table(curve)
 
@@ -96,3 +96,38 @@ def curve_table(curve: pd.DataFrame) -> pd.DataFrame:
         "pretrained, fine-tuned (mm)": curve["fine_tuned_tip_mean_mm"],
     })  # fmt: skip
     return shown.set_index("measured rows")
+
+
+def pretraining_curve(curve: pd.DataFrame, out_dir: Path, name: str = "pretraining_curve",
+                      made_from: dict | None = None) -> dict:  # fmt: skip
+    """Test error against the measured rows used (``pipeline.pretrain.learning_curve``'s table, log–log): the
+    net trained on them alone beside the net pretrained on the twin's campaign and fine-tuned on them, and
+    the pretrained net alone (no measured row) as a level line."""
+    rows = curve[curve["fraction"] > 0]
+    used = (rows["train_rows"] + rows["val_rows"]).to_numpy()
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only, as every figure of analysis/
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+
+    fig, ax = plt.subplots(figsize=(5.2, 3.6), layout="constrained")
+    ax.plot(used, rows["measured_only_tip_mean_mm"], "o-", color="tab:orange", label="measured rows alone")
+    ax.plot(used, rows["fine_tuned_tip_mean_mm"], "s-", color="tab:blue", label="twin-pretrained, fine-tuned")
+    twin_only = curve.loc[curve["fraction"] == 0, "fine_tuned_tip_mean_mm"]
+    if len(twin_only):
+        ax.axhline(float(twin_only.iloc[0]), ls=":", color="tab:gray", label="twin-pretrained only")
+    for n, f, e in zip(used, rows["fraction"], rows["measured_only_tip_mean_mm"], strict=True):
+        ax.annotate(f"{f:.0%}", (n, e), xytext=(0, 6), textcoords="offset points", ha="center", fontsize=7,
+                    color="tab:gray")  # fmt: skip
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.margins(x=0.08, y=0.12)  # room for the labels
+    for axis in (ax.yaxis.set_major_formatter, ax.yaxis.set_minor_formatter):
+        axis(matplotlib.ticker.FormatStrFormatter("%.2g"))
+    ax.set_xlabel("measured rows used (train + val)")
+    ax.set_ylabel("test tip error, mean (mm)")
+    ax.legend(fontsize=8)
+    plotted = {"rows": used, "measured_only": rows["measured_only_tip_mean_mm"].to_numpy(),
+               "fine_tuned": rows["fine_tuned_tip_mean_mm"].to_numpy()}  # fmt: skip
+    return {"png": save_figure(fig, out_dir, name, made_from), "curve": plotted}

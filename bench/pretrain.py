@@ -96,7 +96,7 @@ def main() -> int:
                                progress=lambda text: print(f"  {text}", flush=True))  # fmt: skip
         trained = time.perf_counter() - t0
         if args.out is not None:
-            from analysis.diagnostics import pretraining_curve
+            from analysis.twin_report import pretraining_curve
 
             png = pretraining_curve(curve, args.out, made_from={"measured": "campaign", "twin": report.name})
             print(f"drawn: {png['png']}")

@@ -221,7 +221,7 @@ def twin_curve(
     """The learning curve of pretraining on the twin: the measured data's test error of a net trained on 1, 2,
     5, 10, 20, 50 and 100 % of the measured train and val rows alone, beside the same net pretrained on the
     twin's campaign and fine-tuned on them. Prints the table and draws <lab>/figures/pretraining_curve."""
-    from analysis.diagnostics import pretraining_curve
+    from analysis.twin_report import pretraining_curve
     from models.hybrid import preset as net_preset
     from pipeline.datasets import SPLIT_COLUMNS
     from pipeline.pretrain import curve_verdict, learning_curve, twin_campaign
