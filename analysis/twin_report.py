@@ -39,6 +39,10 @@ def twin_against_robot(lab: Lab, res, out: Path) -> None:
         res.texts[f"{TABLES}: {name}, fitted beside nominal"] = " ".join(words)
     for record in _records(lab.twin.checks(), res):
         names = record["names"]
+        if record.get("kind") == "link tests":  # the POPUP arm: its link tests run on each twin
+            table = link_test_check_table(pd.DataFrame(record["table"]), names)
+            res.tables[f"{TABLES}: {names['checked']} checked on the lab's link tests"] = table
+            continue
         table = check_table(pd.DataFrame(record["table"]), names)
         res.tables[f"{TABLES}: {names['checked']} checked on {record['made_from']['dataset']}"] = table
     for record in _records([lab.twin.curve] if lab.twin.curve.exists() else [], res):
@@ -85,6 +89,18 @@ def check_table(table: pd.DataFrame, names: dict[str, str]) -> pd.DataFrame:
         shown["floor (mm)"] = table["floor_mm_mean"]
         shown[f"{names['checked']} / floor"] = table["checked_mm_mean"] / table["floor_mm_mean"]
     return shown.set_index(["pressure", "payload (g)"])
+
+
+def link_test_check_table(table: pd.DataFrame, names: dict[str, str]) -> pd.DataFrame:
+    """The POPUP check per pressure and quantity (``pipeline.popup_check``): the lab's value and standard
+    error, each twin's value and its distance (% of the lab's)."""
+    shown = pd.DataFrame({
+        "pressure (kPa)": table["pressure_kpa"], "quantity": table["quantity"],
+        "measured": table["measured"], "standard error": table["se"],
+        names["nominal"]: table["nominal"], f"{names['nominal']} (%)": table["nominal_pct"],
+        names["checked"]: table["checked"], f"{names['checked']} (%)": table["checked_pct"],
+    })  # fmt: skip
+    return shown.set_index(["pressure (kPa)", "quantity"])
 
 
 def curve_table(curve: pd.DataFrame) -> pd.DataFrame:

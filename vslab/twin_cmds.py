@@ -142,19 +142,40 @@ def _popup_fit(nominal: RobotDescription, lab: Lab) -> tuple[PopupLinkFit, str]:
 def twin_check(
     robot: Annotated[str, typer.Option(help="The description to check (a fitted one: a path).")],
     dataset: Annotated[
-        str, typer.Option(help="A dataset of the lab's robot the fit did not see: NAME[@VERSION].")
-    ],
-    nominal: Annotated[str, typer.Option(help="The description to compare with (a name or a path).")] = "vsl",
+        str | None,
+        typer.Option(
+            help="The VSL arm: a dataset of the lab's robot the fit did not see: NAME[@VERSION]. The POPUP "
+            "arm is checked on the lab's link tests (popup_static, popup_impact)."
+        ),
+    ] = None,
+    nominal: Annotated[
+        str | None,
+        typer.Option(help="The description to compare with (a name or a path; default: vsl, popup)."),
+    ] = None,
     repeat: Annotated[
         str | None, typer.Option(help="The dataset's repeat (its points in another order): the floor beside.")
     ] = None,
+    seed: Annotated[int, typer.Option(help="POPUP: the seed of the twin's link tests (not the lab's).")] = 1,
 ) -> None:
-    """How well a description predicts a dataset's tracked tips, per pressure × payload cell, beside the
-    nominal description's and (given the dataset's repeat) the floor: what no static model predicts."""
+    """How well a description predicts the lab's robot beside the nominal description. The VSL arm: a
+    dataset's tracked tips, per pressure × payload cell, and (given the dataset's repeat) the floor: what no
+    static model predicts. The POPUP arm: the lab's link tests run on each twin and measured as the lab's
+    (f_s, ζ, the static stiffness per pressure), each distance in per cent of the lab's value."""
+    from models.robot import AnthropomorphicKinematics
     from pipeline.twin_check import twin_check as check
     from pipeline.twin_fit import TwinFitError
 
-    checked, compared = _robot(robot), _robot(nominal)
+    checked = _robot(robot)
+    vsl = isinstance(checked.kinematics, AnthropomorphicKinematics)
+    compared = _robot(nominal or ("vsl" if vsl else "popup"))
+    if not vsl:
+        if dataset is not None or repeat is not None:
+            _error(f"--dataset: robot {checked.name} is checked on its link tests (the lab's popup_static "
+                   "and popup_impact sessions), not on a dataset")  # fmt: skip
+        _popup_check(robot, checked, nominal or "popup", compared, seed)
+        return
+    if dataset is None:
+        _error("--dataset: the VSL arm is checked on a dataset of its settled points: give NAME[@VERSION]")
     loaded = {
         option: load_dataset(option, reference)
         for option, reference in (("--dataset", dataset), ("--repeat", repeat))
@@ -182,6 +203,41 @@ def twin_check(
     names = {"checked": checked.name, "nominal": compared.name}
     kept = _keep(options().lab.twin.check(checked.name), {"made_from": made_from, "names": names,
                                                           "table": table.to_dict("records")})  # fmt: skip
+    if not options().quiet:
+        console.print(f"kept for the report: {kept}", highlight=False)
+
+
+def _popup_check(robot: str, checked: RobotDescription, nominal: str, compared: RobotDescription,
+                 seed: int) -> None:  # fmt: skip
+    """`vslab twin check` of a POPUP description: the lab's link tests measured, then run on the twin of
+    each description (in a temporary store) and measured alike; one ``error:`` line where they cannot be."""
+    import tempfile
+
+    from pipeline.popup_check import check_summary, popup_check
+    from pipeline.twin_fit import TwinFitError
+
+    lab = options().lab
+    fit, tests = _popup_fit(compared, lab)  # the lab's link tests, read and measured (errors: one line)
+    measured = fit.measured_
+    names = {"checked": checked.name, "nominal": compared.name}
+    with tempfile.TemporaryDirectory(prefix="vslab-twin-check-") as root:
+        try:
+            table = popup_check({"nominal": nominal, "checked": robot}, measured, fit.link, Path(root), seed)
+        except TwinFitError as exc:
+            _error(str(exc))
+    shown = Table("kPa", "quantity", "measured", "± 1 SE", compared.name, "%", checked.name, "%")
+    for row in table.itertuples():
+        shown.add_row(f"{row.pressure_kpa:g}", row.quantity, *(f"{v:.4g}" for v in (row.measured, row.se)),
+                      f"{row.nominal:.4g}", f"{row.nominal_pct:+.2f}", f"{row.checked:.4g}",
+                      f"{row.checked_pct:+.2f}")  # fmt: skip
+    console.print(shown)
+    summary = check_summary(table, ["nominal", "checked"])
+    for quantity, row in summary.iterrows():
+        console.print(f"{quantity}: rms distance {row['nominal']:.2f} % ({compared.name}), "
+                      f"{row['checked']:.2f} % ({checked.name})", highlight=False)  # fmt: skip
+    made_from = {"robot": robot, "nominal": nominal, "link_tests": tests, "seed": seed}
+    record = {"kind": "link tests", "made_from": made_from, "names": names, "table": table.to_dict("records")}
+    kept = _keep(lab.twin.check(checked.name), record)
     if not options().quiet:
         console.print(f"kept for the report: {kept}", highlight=False)
 
