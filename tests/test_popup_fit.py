@@ -199,8 +199,9 @@ def test_the_fitted_twin_predicts_the_lab_arm_s_link_tests_the_nominal_one_does_
 
 
 def test_twin_check_of_the_popup_arm_on_the_lab_s_link_tests(tested, tmp_path):
-    """`vslab twin check --robot <fitted popup>`: no dataset, the lab's link tests; the table, the record the
-    report reads (and its table there); a dataset given for the POPUP arm is one ``error:`` line, exit 2."""
+    """`vslab twin check --robot <fitted popup> --set …` (the link tests as the lab ran them): no dataset, the
+    lab's link tests; the table, the record the report reads (and its table there); a dataset given for the
+    POPUP arm, a --set of no link test, a value the tests refuse: one ``error:`` line each, exit 2."""
     from analysis.lab_figures import Results
     from analysis.twin_report import twin_against_robot
     from pipeline.lab import Lab
@@ -209,7 +210,11 @@ def test_twin_check_of_the_popup_arm_on_the_lab_s_link_tests(tested, tmp_path):
     fitted = lab / "twin" / "popup_fitted.yaml"
     if not fitted.exists():
         assert CliRunner().invoke(app, ["--lab", str(lab), "twin", "fit", "--robot", "popup"]).exit_code == 0
-    result = CliRunner().invoke(app, ["--lab", str(lab), "twin", "check", "--robot", str(fitted)])
+    as_ran = [
+        f"{e}.{k}={v}" for e, o in (("popup_static", STATIC), ("popup_impact", IMPACT)) for k, v in o.items()
+    ]
+    args = ["--lab", str(lab), "twin", "check", "--robot", str(fitted)]
+    result = CliRunner().invoke(app, [*args, *(a for pair in as_ran for a in ("--set", pair))])
     assert result.exit_code == 0, result.output
     assert "f_s_hz: rms distance" in result.output and "zeta: rms distance" in result.output
     record = json.loads((lab / "twin" / "check-popup_fitted.json").read_text())
@@ -221,8 +226,9 @@ def test_twin_check_of_the_popup_arm_on_the_lab_s_link_tests(tested, tmp_path):
     twin_against_robot(Lab(lab), res, tmp_path / "figures")
     shown = res.tables["your twin: popup_fitted checked on the lab's link tests"]
     assert {"measured", "standard error", "popup", "popup_fitted (%)"} <= set(shown.columns)
-    refused = CliRunner().invoke(
-        app, ["--lab", str(lab), "twin", "check", "--robot", str(fitted), "--dataset", "x"]
-    )
-    assert refused.exit_code == 2 and "checked on its link tests" in refused.output, refused.output
-    assert "Traceback" not in refused.output
+    for said, extra in {"checked on its link tests": ["--dataset", "x"],
+                        "name a link test's parameter": ["--set", "taps=3"],
+                        "the twin's link tests": ["--set", "popup_impact.taps=-1"]}.items():  # fmt: skip
+        refused = CliRunner().invoke(app, [*args, *extra])
+        assert refused.exit_code == 2 and said in refused.output, refused.output
+        assert "Traceback" not in refused.output

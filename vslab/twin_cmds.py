@@ -12,7 +12,7 @@ import yaml
 from rich.table import Table
 
 from models.robot import CONFIG_DIR, RobotDescription, RobotDescriptionError, load_robot, robot_path
-from vslab.app import _error, _robot, console, load_dataset, options, pretraining_twin, twin_app
+from vslab.app import _error, _overrides, _robot, console, load_dataset, options, pretraining_twin, twin_app
 
 if TYPE_CHECKING:
     from pipeline.lab import Lab
@@ -156,6 +156,12 @@ def twin_check(
         str | None, typer.Option(help="The dataset's repeat (its points in another order): the floor beside.")
     ] = None,
     seed: Annotated[int, typer.Option(help="POPUP: the seed of the twin's link tests (not the lab's).")] = 1,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set", help="POPUP: the link tests as the lab ran them: popup_impact.taps=3 (repeatable)."
+        ),
+    ] = None,
 ) -> None:
     """How well a description predicts the lab's robot beside the nominal description. The VSL arm: a
     dataset's tracked tips, per pressure × payload cell, and (given the dataset's repeat) the floor: what no
@@ -172,8 +178,10 @@ def twin_check(
         if dataset is not None or repeat is not None:
             _error(f"--dataset: robot {checked.name} is checked on its link tests (the lab's popup_static "
                    "and popup_impact sessions), not on a dataset")  # fmt: skip
-        _popup_check(robot, checked, nominal or "popup", compared, seed)
+        _popup_check(robot, checked, nominal or "popup", compared, seed, _link_test_overrides(set_ or []))
         return
+    if set_:
+        _error("--set: the VSL arm's check simulates nothing (it predicts the dataset's settled points)")
     if dataset is None:
         _error("--dataset: the VSL arm is checked on a dataset of its settled points: give NAME[@VERSION]")
     loaded = {
@@ -207,12 +215,27 @@ def twin_check(
         console.print(f"kept for the report: {kept}", highlight=False)
 
 
+def _link_test_overrides(pairs: list[str]) -> dict[str, dict]:
+    """``--set popup_impact.taps=3`` pairs → {experiment: {key: value}}; one error line for another key."""
+    from pipeline.popup_check import TESTS
+
+    tests = [experiment for experiment, _ in TESTS]
+    out: dict[str, dict] = {}
+    for key, value in _overrides(pairs).items():
+        experiment, _, name = key.partition(".")
+        if experiment not in tests or not name:
+            _error(f"--set {key}: name a link test's parameter: {' or '.join(tests)}.KEY=VALUE")
+        out.setdefault(experiment, {})[name] = value
+    return out
+
+
 def _popup_check(robot: str, checked: RobotDescription, nominal: str, compared: RobotDescription,
-                 seed: int) -> None:  # fmt: skip
+                 seed: int, overrides: dict[str, dict]) -> None:  # fmt: skip
     """`vslab twin check` of a POPUP description: the lab's link tests measured, then run on the twin of
     each description (in a temporary store) and measured alike; one ``error:`` line where they cannot be."""
     import tempfile
 
+    from acquisition.safety import SafetyError
     from pipeline.popup_check import check_summary, popup_check
     from pipeline.twin_fit import TwinFitError
 
@@ -222,9 +245,12 @@ def _popup_check(robot: str, checked: RobotDescription, nominal: str, compared: 
     names = {"checked": checked.name, "nominal": compared.name}
     with tempfile.TemporaryDirectory(prefix="vslab-twin-check-") as root:
         try:
-            table = popup_check({"nominal": nominal, "checked": robot}, measured, fit.link, Path(root), seed)
+            table = popup_check({"nominal": nominal, "checked": robot}, measured, fit.link, Path(root), seed,
+                                overrides)  # fmt: skip
         except TwinFitError as exc:
             _error(str(exc))
+        except (ValueError, RobotDescriptionError, SafetyError) as exc:  # a --set the tests refuse
+            _error(f"the twin's link tests: {exc}")
     shown = Table("kPa", "quantity", "measured", "± 1 SE", compared.name, "%", checked.name, "%")
     for row in table.itertuples():
         shown.add_row(f"{row.pressure_kpa:g}", row.quantity, *(f"{v:.4g}" for v in (row.measured, row.se)),
@@ -235,7 +261,7 @@ def _popup_check(robot: str, checked: RobotDescription, nominal: str, compared: 
     for quantity, row in summary.iterrows():
         console.print(f"{quantity}: rms distance {row['nominal']:.2f} % ({compared.name}), "
                       f"{row['checked']:.2f} % ({checked.name})", highlight=False)  # fmt: skip
-    made_from = {"robot": robot, "nominal": nominal, "link_tests": tests, "seed": seed}
+    made_from = {"robot": robot, "nominal": nominal, "link_tests": tests, "seed": seed, "set": overrides}
     record = {"kind": "link tests", "made_from": made_from, "names": names, "table": table.to_dict("records")}
     kept = _keep(lab.twin.check(checked.name), record)
     if not options().quiet:
