@@ -20,6 +20,7 @@ import pandas as pd
 
 from acquisition.recorder.sessions import SessionStore
 from models.robot import RobotDescription, load_robot
+from pipeline.lab import Lab
 from pipeline.link_tests import impact_taps, static_holds
 from pipeline.popup_fit import PopupLinkFit
 from pipeline.twin_fit import TwinFitError
@@ -37,14 +38,13 @@ def link_test_table(
     return PopupLinkFit(robot, link).fit(holds, taps).measured_
 
 
-def simulated_link_tests(robot: str | Path, root: Path, seed: int,
+def simulated_link_tests(robot: str | Path, store: SessionStore, seed: int,
                          overrides: dict[str, dict] | None = None) -> tuple[pd.DataFrame, ...]:  # fmt: skip
-    """(holds, taps) of the link tests run on the twin of ``robot`` (a name or a description file) into
-    ``root``'s session store (complete sessions are kept); ``overrides``: per experiment, as ``vslab simulate
+    """(holds, taps) of the link tests run on the twin of ``robot`` (a name or a description file) into the
+    session store ``store`` (complete sessions are kept); ``overrides``: per experiment, as ``vslab simulate
     --set`` takes them."""
     from twin.runner import simulate_experiment
 
-    store = SessionStore(Path(root) / "sessions")
     read = {}
     for experiment, rows in TESTS:
         given = (overrides or {}).get(experiment, {}) | {"robot": str(robot)}
@@ -54,16 +54,16 @@ def simulated_link_tests(robot: str | Path, root: Path, seed: int,
     return read["popup_static"], read["popup_impact"]
 
 
-def popup_check(descriptions: dict[str, str | Path], measured: pd.DataFrame, link: str, root: Path,
+def popup_check(descriptions: dict[str, str | Path], measured: pd.DataFrame, link: str, lab: Lab,
                 seed: int = 1, overrides: dict[str, dict] | None = None) -> pd.DataFrame:  # fmt: skip
     """One row per tapped pressure and quantity (:data:`QUANTITIES`) the lab measured (``measured``: its
     :func:`link_test_table`): ``pressure_kpa``, ``quantity``, ``measured``, ``se``, and for each description
     (by its name in ``descriptions``) its twin's value ``<name>`` and distance ``<name>_pct`` (signed, twin −
-    measured, % of measured). Each description's link tests are simulated under ``root/<name>``
+    measured, % of measured). Each description's link tests are simulated into ``lab.study(<name>)``
     with ``seed``; ``TwinFitError`` where a twin's tests cannot be measured."""
     twins = {}
     for name, robot in descriptions.items():
-        holds, taps = simulated_link_tests(robot, Path(root) / name, seed, overrides)
+        holds, taps = simulated_link_tests(robot, lab.study(name).sessions, seed, overrides)
         try:
             twins[name] = link_test_table(load_robot(robot), link, holds, taps).set_index("pressure_pa")
         except TwinFitError as exc:

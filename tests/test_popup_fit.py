@@ -181,6 +181,7 @@ def test_the_fitted_twin_predicts_the_lab_arm_s_link_tests_the_nominal_one_does_
     than the lab's) and measured as the lab's are: its taps' f_s and ζ and its static stiffness within 1 % of
     the lab's at every pressure (rms; f_s within 0.3 %), the nominal twin (a link 30 % stiffer or softer)
     tens of per cent away."""
+    from pipeline.lab import Lab
     from pipeline.popup_check import check_summary, popup_check
 
     _, fit = fitted
@@ -188,7 +189,7 @@ def test_the_fitted_twin_predicts_the_lab_arm_s_link_tests_the_nominal_one_does_
     written = fit.description("popup_fitted", "popup", "link tests", "test")
     description.write_text(yaml.safe_dump(written))
     overrides = {"popup_static": STATIC, "popup_impact": IMPACT}
-    table = popup_check({"nominal": "popup", "checked": description}, fit.measured_, "link2", tmp_path,
+    table = popup_check({"nominal": "popup", "checked": description}, fit.measured_, "link2", Lab(tmp_path),
                         seed=SEED + 1, overrides=overrides)  # fmt: skip
     assert set(table["quantity"]) == {"f_s_hz", "zeta", "k_static"}
     assert len(table[table["quantity"] == "f_s_hz"]) == 9  # every tapped pressure

@@ -236,6 +236,7 @@ def _popup_check(robot: str, checked: RobotDescription, nominal: str, compared: 
     import tempfile
 
     from acquisition.safety import SafetyError
+    from pipeline.lab import Lab
     from pipeline.popup_check import check_summary, popup_check
     from pipeline.twin_fit import TwinFitError
 
@@ -245,7 +246,8 @@ def _popup_check(robot: str, checked: RobotDescription, nominal: str, compared: 
     names = {"checked": checked.name, "nominal": compared.name}
     with tempfile.TemporaryDirectory(prefix="vslab-twin-check-") as root:
         try:
-            table = popup_check({"nominal": nominal, "checked": robot}, measured, fit.link, Path(root), seed,
+            twins = Lab.open(root)  # a lab of its own, thrown away: each twin's tests in its study
+            table = popup_check({"nominal": nominal, "checked": robot}, measured, fit.link, twins, seed,
                                 overrides)  # fmt: skip
         except TwinFitError as exc:
             _error(str(exc))
