@@ -119,14 +119,14 @@ def pretraining_curve(curve: pd.DataFrame, out_dir: Path, name: str = "pretraini
     """Test error against the measured rows used (``pipeline.pretrain.learning_curve``'s table, log–log): the
     net trained on them alone beside the net pretrained on the twin's campaign and fine-tuned on them, and
     the pretrained net alone (no measured row) as a level line."""
-    rows = curve[curve["fraction"] > 0]
-    used = (rows["train_rows"] + rows["val_rows"]).to_numpy()
     import matplotlib
 
     matplotlib.use("Agg")  # files only, as every figure of analysis/
     import matplotlib.pyplot as plt
     import matplotlib.ticker
 
+    rows = curve[curve["fraction"] > 0]
+    used = (rows["train_rows"] + rows["val_rows"]).to_numpy()
     fig, ax = plt.subplots(figsize=(5.2, 3.6), layout="constrained")
     ax.plot(used, rows["measured_only_tip_mean_mm"], "o-", color="tab:orange", label="measured rows alone")
     ax.plot(used, rows["fine_tuned_tip_mean_mm"], "s-", color="tab:blue", label="twin-pretrained, fine-tuned")

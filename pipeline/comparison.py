@@ -169,9 +169,7 @@ def save_compared(path: LabPath, models: ModelStore, data: pd.DataFrame, dataset
         saved.append({"name": name, "version": version})
         cards.append(card)
     comparison = comparison_card(table, made_from, split, (extra or {}) | {"models": saved})
-    for entry, net, card in zip(
-        saved, nets.values(), cards, strict=True
-    ):  # the networks first, the card last
+    for entry, net, card in zip(saved, nets.values(), cards, strict=True):  # the networks, then the card
         try:
             models.save(entry["name"], entry["version"], net.net_, card)
         except FileExistsError:

@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 from acquisition.recorder.sessions import SessionStore
-from models.robot import RobotDescription, load_robot
+from models.robot import load_robot
 from pipeline.lab import Lab
 from pipeline.link_tests import impact_taps, static_holds
 from pipeline.popup_fit import PopupLinkFit
@@ -28,14 +28,6 @@ from pipeline.twin_fit import TwinFitError
 # what the twin is checked on: the quantities the link tests observe (not k̂, ĉ: derived from them and I)
 QUANTITIES = {"f_s_hz": "f_s_se", "zeta": "zeta_se", "k_static": "k_static_se"}
 TESTS = (("popup_static", static_holds), ("popup_impact", impact_taps))
-
-
-def link_test_table(
-    robot: RobotDescription, link: str, holds: pd.DataFrame, taps: pd.DataFrame
-) -> pd.DataFrame:
-    """Table 1 as the link tests measured it (``PopupLinkFit(...).measured_``); ``TwinFitError`` where they
-    cannot be measured."""
-    return PopupLinkFit(robot, link).fit(holds, taps).measured_
 
 
 def simulated_link_tests(robot: str | Path, store: SessionStore, seed: int,
@@ -57,22 +49,24 @@ def simulated_link_tests(robot: str | Path, store: SessionStore, seed: int,
 def popup_check(descriptions: dict[str, str | Path], measured: pd.DataFrame, link: str, lab: Lab,
                 seed: int = 1, overrides: dict[str, dict] | None = None) -> pd.DataFrame:  # fmt: skip
     """One row per tapped pressure and quantity (:data:`QUANTITIES`) the lab measured (``measured``: its
-    :func:`link_test_table`): ``pressure_kpa``, ``quantity``, ``measured``, ``se``, and for each description
-    (by its name in ``descriptions``) its twin's value ``<name>`` and distance ``<name>_pct`` (signed, twin −
-    measured, % of measured). Each description's link tests are simulated into ``lab.study(<name>)``
-    with ``seed``; ``TwinFitError`` where a twin's tests cannot be measured."""
+    ``PopupLinkFit(...).measured_``): ``pressure_kpa``, ``quantity``, ``measured``, ``se``, and for each
+    description (by its name in ``descriptions``) its twin's value ``<name>`` and distance ``<name>_pct``
+    (signed, twin − measured, % of measured). Each description's link tests are simulated into
+    ``lab.study(<name>)`` with ``seed``; ``TwinFitError`` where a twin's tests cannot be measured."""
     twins = {}
     for name, robot in descriptions.items():
         holds, taps = simulated_link_tests(robot, lab.study(name).sessions, seed, overrides)
         try:
-            twins[name] = link_test_table(load_robot(robot), link, holds, taps).set_index("pressure_pa")
+            twins[name] = (
+                PopupLinkFit(load_robot(robot), link).fit(holds, taps).measured_.set_index("pressure_pa")
+            )
         except TwinFitError as exc:
             raise TwinFitError(f"the link tests on the twin of {name}: {exc}") from None
     rows = []
-    for lab in measured.to_dict("records"):
-        p = lab["pressure_pa"]
+    for ours in measured.to_dict("records"):  # the lab's
+        p = ours["pressure_pa"]
         for quantity, se_column in QUANTITIES.items():
-            value, se = float(lab[quantity]), float(lab[se_column])
+            value, se = float(ours[quantity]), float(ours[se_column])
             if not np.isfinite(value):  # the static test did not run at this pressure
                 continue
             row = {"pressure_kpa": p / 1e3, "quantity": quantity, "measured": value, "se": se}
