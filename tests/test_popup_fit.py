@@ -229,7 +229,8 @@ def test_twin_check_of_the_popup_arm_on_the_lab_s_link_tests(tested, tmp_path):
     assert {"measured", "standard error", "popup", "popup_fitted (%)"} <= set(shown.columns)
     for said, extra in {"checked on its link tests": ["--dataset", "x"],
                         "name a link test's parameter": ["--set", "taps=3"],
-                        "the twin's link tests": ["--set", "popup_impact.taps=-1"]}.items():  # fmt: skip
+                        "the twin's link tests": ["--set", "popup_impact.taps=-1"],
+                        "--seed must be ≥ 0": ["--seed", "-1"]}.items():  # fmt: skip
         refused = CliRunner().invoke(app, [*args, *extra])
         assert refused.exit_code == 2 and said in refused.output, refused.output
         assert "Traceback" not in refused.output

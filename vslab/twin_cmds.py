@@ -171,6 +171,8 @@ def twin_check(
     from pipeline.twin_check import twin_check as check
     from pipeline.twin_fit import TwinFitError
 
+    if seed < 0:
+        _error(f"--seed must be ≥ 0, got {seed}")
     checked = _robot(robot)
     vsl = isinstance(checked.kinematics, AnthropomorphicKinematics)
     compared = _robot(nominal or ("vsl" if vsl else "popup"))
