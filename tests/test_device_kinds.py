@@ -126,6 +126,11 @@ def test_every_kind_keeps_its_contract_on_its_emulator(kind_name, rigs):
     np.testing.assert_array_equal(a, World(robot, seed=0).device_rng(device).random(4))
     assert not np.array_equal(a, World(robot, seed=0).device_rng(other).random(4))
     assert not np.array_equal(a, World(robot, seed=1).device_rng(device).random(4))
+    # and each bench's own in a batch: a bench named alike draws alike in any batch, other benches otherwise
+    pair = World(robot, batch=2, seed=0, benches=["a", "b"]).noise(device).generators
+    alone = World(robot, batch=1, seed=0, benches=["b"]).noise(device).generators
+    np.testing.assert_array_equal(pair[1].random(4), alone[0].random(4))
+    assert not np.array_equal(pair[0].random(4), pair[1].random(4))
 
 
 def test_an_unknown_driver_is_one_error_that_names_the_known_kinds():

@@ -172,7 +172,7 @@ def test_tracker_frames_follow_the_true_tip_through_the_configured_transform(vsl
     world = World(vsl, batch=1, q0=np.deg2rad([0, 30, -60]))
     world.settle(0.5)
     trace = world.run_for(1.0)
-    frames = streams.tracker_stream(vsl, world.clocks["tracker"], trace, world.dt, world.rng)
+    frames = streams.tracker_stream(vsl, world.clocks["tracker"], trace, world.dt, world.noise("tracker"))
     transform = streams.tracker_spec(vsl).base_to_tracker
     tip = trace.tip_pos[0, -1]
     expected = transform[:3, :3] @ tip + transform[:3, 3]
@@ -186,12 +186,14 @@ def test_tracker_frames_follow_the_true_tip_through_the_configured_transform(vsl
 def test_device_clocks_drift_and_wrap(vsl):
     world = World(vsl, batch=4, seed=11)
     trace = world.run_for(40.0)
-    servo = streams.servo_stream(vsl, world.clocks["servo_bus"], trace, world.dt, 50.0, world.rng)
+    servo = streams.servo_stream(
+        vsl, world.clocks["servo_bus"], trace, world.dt, 50.0, world.noise("servo_bus")
+    )
     tick = servo["tick"][servo["robot"] == 0]
     assert tick.max() < 32768 and np.any(np.diff(tick) < 0), "the Realtime Tick wraps at 32767"
     board = world.clocks["pressure_board"]
     assert np.abs(board.drift_ppm).max() > 100, "the Uno's resonator drifts by hundreds of ppm"
-    pressure = streams.pressure_stream(vsl, board, trace, world.dt, world.rng)
+    pressure = streams.pressure_stream(vsl, board, trace, world.dt, world.noise("pressure_board"))
     first = pressure["robot"] == 0
     micros = pressure["micros"][first].astype(float)
     t = pressure["t_true"][first]
@@ -204,7 +206,9 @@ def test_device_clocks_drift_and_wrap(vsl):
 def test_pressure_stream_reads_back_within_sensor_noise(vsl):
     world = World(vsl, batch=1, pressure_pa=1.5e5)
     trace = world.run_for(1.0)
-    s = streams.pressure_stream(vsl, world.clocks["pressure_board"], trace, world.dt, world.rng)
+    s = streams.pressure_stream(
+        vsl, world.clocks["pressure_board"], trace, world.dt, world.noise("pressure_board")
+    )
     spec = vsl.sensors.pressure
     p = vsl.sensors.pressure.counts_to_pa(s["counts"])
     pa_per_volt = spec.full_scale_pa / (spec.v_max - spec.v_min)

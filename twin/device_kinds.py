@@ -129,7 +129,7 @@ def servo_streams(world: World, name: str, trace: Trace, servo_rate_hz: float) -
     if device_of(world.robot, "joints") != name:
         return {}
     return {"servo_bus": streams.servo_stream(world.robot, world.clocks[name], trace, world.dt, servo_rate_hz,
-                                              world.device_rng(name))}  # fmt: skip
+                                              world.noise(name))}  # fmt: skip
 
 
 def pressure_streams(world: World, name: str, trace: Trace, servo_rate_hz: float) -> Streams:
@@ -137,7 +137,7 @@ def pressure_streams(world: World, name: str, trace: Trace, servo_rate_hz: float
     if device_of(world.robot, "pressure") != name:
         return {}
     return {"pressure_board": streams.pressure_stream(world.robot, world.clocks[name], trace, world.dt,
-                                                      world.device_rng(name))}  # fmt: skip
+                                                      world.noise(name))}  # fmt: skip
 
 
 def stepper_streams(world: World, name: str, trace: Trace, servo_rate_hz: float) -> Streams:
@@ -145,15 +145,15 @@ def stepper_streams(world: World, name: str, trace: Trace, servo_rate_hz: float)
     if device_of(world.robot, "stepper") != name or world.robot.stepper is None:
         return {}
     return {"stepper_board": streams.stepper_stream(world.robot, world.clocks[name], trace, world.dt,
-                                                    world.device_rng(name))}  # fmt: skip
+                                                    world.noise(name))}  # fmt: skip
 
 
 def tracker_streams(world: World, name: str, trace: Trace, servo_rate_hz: float) -> Streams:
     """The tracker's frames."""
     if device_of(world.robot, "tracker") != name:
         return {}
-    rng = world.device_rng(name)
-    return {"tracker": streams.tracker_stream(world.robot, world.clocks[name], trace, world.dt, rng)}
+    return {"tracker": streams.tracker_stream(world.robot, world.clocks[name], trace, world.dt,
+                                              world.noise(name))}  # fmt: skip
 
 
 def drive_streams(world: World, name: str, trace: Trace, servo_rate_hz: float) -> Streams:
@@ -161,14 +161,14 @@ def drive_streams(world: World, name: str, trace: Trace, servo_rate_hz: float) -
     if device_of(world.robot, "joints") != name:
         return {}
     rate = world.robot.devices[name].rate_hz or servo_rate_hz
-    rng = world.device_rng(name)
-    return {"drives": streams.drive_stream(world.robot, world.clocks[name], trace, world.dt, rate, rng)}
+    noise = world.noise(name)
+    return {"drives": streams.drive_stream(world.robot, world.clocks[name], trace, world.dt, rate, noise)}
 
 
 def link_board_streams(world: World, name: str, trace: Trace, servo_rate_hz: float) -> Streams:
     """A link board's orientation and flex sensors."""
     return {f"link_board:{name}": streams.link_board_stream(world.robot, name, world.clocks[name], trace,
-                                                            world.dt, world.device_rng(name))}  # fmt: skip
+                                                            world.dt, world.noise(name))}  # fmt: skip
 
 
 def accelerometer_streams(world: World, name: str, trace: Trace,
@@ -179,8 +179,7 @@ def accelerometer_streams(world: World, name: str, trace: Trace,
         return {}
     dt, tail = world.dt, world.tip_tail
     before = tail[1] if tail is not None and abs(trace.t[0] - dt - tail[0]) < dt / 2 else None
-    rng = world.device_rng(name)
-    out = streams.accelerometer_stream(world.robot, world.clocks[name], trace, dt, rng, before)
+    out = streams.accelerometer_stream(world.robot, world.clocks[name], trace, dt, world.noise(name), before)
     if trace.tip_pos.shape[1] >= 2:
         world.tip_tail = (float(trace.t[-1]), trace.tip_pos[:, -2:].copy())
     return {"accelerometer": out}

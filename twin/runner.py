@@ -161,7 +161,7 @@ def simulate(
         robot, batch=len(plans), seed=seed,
         q0=np.stack([f["goal_q"][0] for f in first]),
         pressure_pa=np.stack([f["pressure_pa"][0] for f in first]),
-        payload_kg=np.array([f["payload_kg"][0] for f in first]),
+        payload_kg=np.array([f["payload_kg"][0] for f in first]), benches=[session_id(p) for p in plans],
     )  # fmt: skip
     steps_per_block = max(1, round(block_s / world.dt))
     block_s = steps_per_block * world.dt
@@ -219,19 +219,19 @@ def simulate_experiment(
     robots, plans, _ = prepared or prepare_experiment(
         experiment, overrides, benches, seed, inverse_model, sessions_dir
     )
-    batches = []  # (robot, plans, first plan's index in its robot's group, label)
+    batches = []  # (robot, plans, label); each bench draws its own noise: the batches change no data
     for name, robot in robots.items():
         group = [p for p in plans if p.robot == name]
         for k in range(0, len(group), benches):
             batch = group[k : k + benches]
-            batches.append((robot, batch, k, f"{kind} {name} {k + 1}–{k + len(batch)}/{len(group)}"))
-    compensators = [[compensator_for(p, r, inverse_model) for p in batch] for r, batch, _, _ in batches]
-    for (robot, batch, k, _), c in zip(batches, compensators, strict=True):  # sessions of another making on
-        reusable(batch, robot, sessions_dir, seed + k, c)  # disk: refused before any is written
+            batches.append((robot, batch, f"{kind} {name} {k + 1}–{k + len(batch)}/{len(group)}"))
+    compensators = [[compensator_for(p, r, inverse_model) for p in batch] for r, batch, _ in batches]
+    for (robot, batch, _), c in zip(batches, compensators, strict=True):  # sessions of another making on
+        reusable(batch, robot, sessions_dir, seed, c)  # disk: refused before any is written
     reports = []
-    for (robot, batch, k, label), c in zip(batches, compensators, strict=True):
+    for (robot, batch, label), c in zip(batches, compensators, strict=True):
         tick = (lambda f, label=label: progress(label, f)) if progress else None
-        run = dict(seed=seed + k, progress=tick, compensators=c, plans_checked=True)
+        run = dict(seed=seed, progress=tick, compensators=c, plans_checked=True)
         reports.append(simulate(batch, robot, sessions_dir, **run))
     return reports
 

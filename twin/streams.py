@@ -20,6 +20,7 @@ from models.statics import servo_current_a
 from twin import sensors
 from twin.clocks import HostLinkSpec, SimulatedClocks, host_receive_ns
 from twin.kernel import Trace
+from twin.noise import BenchNoise, RowNoise
 
 Stream = dict[str, np.ndarray]
 
@@ -51,13 +52,13 @@ def _step_index(trace: Trace, t: np.ndarray, dt: float) -> np.ndarray:
     return np.clip(np.floor((t - first) / dt + 1e-9).astype(np.int64) - 1, 0, len(trace.t) - 1)
 
 
-def _host(link, t: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def _host(link, t: np.ndarray, rng: RowNoise) -> np.ndarray:
     spec = HostLinkSpec(latency_s=link.latency_s, jitter_s=link.jitter_s, kind=link.kind)
     return host_receive_ns(t, spec, rng)
 
 
 def _stamped(device, clocks: SimulatedClocks, r: np.ndarray, k: np.ndarray, t: np.ndarray,
-             rng: np.random.Generator, stamp: str = "micros") -> Stream:  # fmt: skip
+             rng: RowNoise, stamp: str = "micros") -> Stream:  # fmt: skip
     """The columns every device stream has: bench, sequence number, true time, host receive time (ns) and
     the device's own clock reading under ``stamp``."""
     return {"robot": r, "seq": k, "t_true": t, "host_ns": _host(device.host_link, t, rng),
@@ -65,12 +66,12 @@ def _stamped(device, clocks: SimulatedClocks, r: np.ndarray, k: np.ndarray, t: n
 
 
 def servo_stream(robot: RobotDescription, clocks: SimulatedClocks, trace: Trace, dt: float, rate_hz: float,
-                 rng: np.random.Generator) -> Stream:  # fmt: skip
+                 noise: BenchNoise) -> Stream:  # fmt: skip
     """Sync Reads of every position-controlled joint polled at ``rate_hz``: counts as the XM430 reports."""
     joints = [i for i, j in enumerate(robot.joints) if j.drive != "stepper"]
     batch = trace.q.shape[0]
     r, k, t = host_poll_instants(batch, 1.0 / rate_hz, trace.t[0] - dt, trace.t[-1])
-    idx = _step_index(trace, t, dt)
+    idx, rng = _step_index(trace, t, dt), noise.rows(r)
     counts = servo_counts(
         robot, trace.q[r, idx][:, joints], trace.qd[r, idx][:, joints], trace.torque[r, idx][:, joints], rng
     )
@@ -90,12 +91,12 @@ def drive_scales(eds: str) -> tuple[float, float]:
 
 
 def drive_stream(robot: RobotDescription, clocks: SimulatedClocks, trace: Trace, dt: float, rate_hz: float,
-                 rng: np.random.Generator) -> Stream:  # fmt: skip
+                 noise: BenchNoise) -> Stream:  # fmt: skip
     """The CiA 402 drives' answers to the host's SYNC at ``rate_hz``: position and velocity in encoder
     counts, torque in thousandths of the rated torque (what their PDOs carry), operation enabled."""
     joints = [i for i, j in enumerate(robot.joints) if j.drive != "stepper"]
     r, k, t = host_poll_instants(trace.q.shape[0], 1.0 / rate_hz, trace.t[0] - dt, trace.t[-1])
-    idx = _step_index(trace, t, dt)
+    idx, rng = _step_index(trace, t, dt), noise.rows(r)
     counts_per_rad, rated_nm = drive_scales(str(CAN_DIR / "popup_drive.eds"))
     return {
         **_stamped(robot.devices[device_of(robot, "joints")], clocks, r, k, t, rng),
@@ -110,14 +111,14 @@ def drive_stream(robot: RobotDescription, clocks: SimulatedClocks, trace: Trace,
 
 
 def link_board_stream(robot: RobotDescription, board: str, clocks: SimulatedClocks, trace: Trace, dt: float,
-                      rng: np.random.Generator) -> Stream:  # fmt: skip
+                      noise: BenchNoise) -> Stream:  # fmt: skip
     """A POPUP link board on its own clock at its rate: the orientation of its link's end (roll, pitch, yaw
     at the IMU's resolution) and its four flex sensors' counts."""
     dev = robot.devices[board]
     frame, bend = robot.link_end(dev.link)
     lsb = popup_boards.scale(popup_boards.link_message(dev.ids["board"], popup_boards.ORIENTATION), "Roll")
     r, k, t = device_sample_instants(clocks, 1.0 / dev.rate_hz, trace.t[0] - dt, trace.t[-1])
-    idx = _step_index(trace, t, dt)
+    idx, rng = _step_index(trace, t, dt), noise.rows(r)
     rotation = robot.chain().frames(trace.q[r, idx], trace.delta[r, idx])[:, frame, :3, :3]
     return {
         **_stamped(dev, clocks, r, k, t, rng),
@@ -140,11 +141,11 @@ def servo_counts(robot: RobotDescription, q: np.ndarray, qd: np.ndarray, torque:
 
 
 def pressure_stream(robot: RobotDescription, clocks: SimulatedClocks, trace: Trace, dt: float,
-                    rng: np.random.Generator) -> Stream:  # fmt: skip
+                    noise: BenchNoise) -> Stream:  # fmt: skip
     """ADS1115 conversions of every channel, on the board's own (drifting) clock."""
     rate = robot.sensors.pressure.sample_rate_hz
     r, k, t = device_sample_instants(clocks, 1.0 / rate, trace.t[0] - dt, trace.t[-1])
-    idx = _step_index(trace, t, dt)
+    idx, rng = _step_index(trace, t, dt), noise.rows(r)
     device = robot.devices[device_of(robot, "pressure")]
     return {
         **_stamped(device, clocks, r, k, t, rng),
@@ -158,11 +159,11 @@ def pressure_spec(robot: RobotDescription) -> PressureSensorSpec:
 
 
 def stepper_stream(robot: RobotDescription, clocks: SimulatedClocks, trace: Trace, dt: float,
-                   rng: np.random.Generator) -> Stream:  # fmt: skip
+                   noise: BenchNoise) -> Stream:  # fmt: skip
     """The Nano's position reports (microsteps of each stepper joint) on its own clock."""
     joints = [i for i, j in enumerate(robot.joints) if j.drive == "stepper"]
     r, k, t = device_sample_instants(clocks, 1.0 / robot.stepper.report_rate_hz, trace.t[0] - dt, trace.t[-1])
-    idx = _step_index(trace, t, dt)
+    idx, rng = _step_index(trace, t, dt), noise.rows(r)
     steps = np.rint(trace.q[r, idx][:, joints] / robot.stepper.rad_per_microstep).astype(np.int64)
     return {
         **_stamped(robot.devices[device_of(robot, "stepper")], clocks, r, k, t, rng),
@@ -184,11 +185,11 @@ def tracker_spec(robot: RobotDescription) -> sensors.TrackerSpec:
 
 
 def tracker_stream(robot: RobotDescription, clocks: SimulatedClocks, trace: Trace, dt: float,
-                   rng: np.random.Generator) -> Stream:  # fmt: skip
+                   noise: BenchNoise) -> Stream:  # fmt: skip
     """Aurora-like frames at the tracker's own frame rate: pose of the tip coil in the tracker's frame."""
     period = 1.0 / robot.sensors.tracker.frame_rate_hz
     r, k, t = device_sample_instants(clocks, period, trace.t[0] - dt, trace.t[-1])
-    idx = _step_index(trace, t, dt)
+    idx, rng = _step_index(trace, t, dt), noise.rows(r)
     tip_rot = robot.chain().fk(trace.q[r, idx], trace.delta[r, idx])[..., :3, :3]
     reading = sensors.tracker_measurement(trace.tip_pos[r, idx], tip_rot, tracker_spec(robot), rng)
     return {
@@ -218,13 +219,13 @@ def tip_acceleration(trace: Trace, dt: float, tip_before: np.ndarray | None = No
 
 
 def accelerometer_stream(robot: RobotDescription, clocks: SimulatedClocks, trace: Trace, dt: float,
-                         rng: np.random.Generator, tip_before: np.ndarray | None = None,
+                         noise: BenchNoise, tip_before: np.ndarray | None = None,
                          ) -> Stream:  # fmt: skip
     """The tip accelerometer on its own clock: specific force R_tipᵀ (a − g) in the sensor (tip) frame,
     gravity included (at rest it reads +|g| along the sensor's up direction), noisy and quantised."""
     spec = robot.sensors.accelerometer
     r, k, t = device_sample_instants(clocks, 1.0 / spec.sample_rate_hz, trace.t[0] - dt, trace.t[-1])
-    idx = _step_index(trace, t, dt)
+    idx, rng = _step_index(trace, t, dt), noise.rows(r)
     accel = tip_acceleration(trace, dt, tip_before)[r, idx]
     rot = robot.chain().fk(trace.q[r, idx], trace.delta[r, idx])[..., :3, :3]
     force = np.einsum("nji,nj->ni", rot, accel - np.asarray(robot.gravity_m_s2))

@@ -1,25 +1,27 @@
 """The digital twin: a batch of simulated lab benches you can command, step and query.
 
 ``World`` wraps the compiled kernel (true physics) with the operator's inputs (goals, pressures, valves,
-payload), the device clocks and the sensor models. It is deterministic for a given seed: each device draws
-its clock and its noise from a generator of its own, the seed spawned by the device's name
-(:meth:`World.device_rng`), in the order the caller asks for readings; adding a device to a description
-changes no other device's draws.
+payload), the device clocks and the sensor models. It is deterministic for a given seed: each device of
+each bench draws its clock and its noise from a generator of its own, the seed spawned by the bench's name and
+the device's (:meth:`World.noise`, ``twin.noise``), in the order the caller asks for readings; adding a device
+to a description changes no other device's draws, and a bench's draws do not depend on its batch.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from acquisition.devices.kinds import device_kinds, device_rng, resolve
+from acquisition.devices.kinds import device_kinds, resolve
 from models.effects import creep_rest
 from models.prbm import interp_table
 from models.robot import TIP_FRAME, RobotDescription
 from twin import kernel, streams
 from twin.clocks import SimulatedClocks, SimulatedClockSpec
+from twin.noise import BenchNoise
 
 DEFAULT_DT = 1e-3  # 1 kHz
 
@@ -117,7 +119,8 @@ class World:
     """A batch of ``batch`` independent robots of one description, stepped together at ``dt``.
 
     Commands are per robot (arrays with a leading batch axis, or scalars broadcast to all). ``step(n)``
-    returns the true trace of those steps; ``state`` is the latest true state.
+    returns the true trace of those steps; ``state`` is the latest true state. ``benches``: the benches'
+    names, by which each draws its noise (the simulated runner names them by their sessions).
     """
 
     def __init__(
@@ -129,15 +132,15 @@ class World:
         q0: np.ndarray | None = None,
         pressure_pa: float | np.ndarray | None = None,
         payload_kg: float | np.ndarray = 0.0,
+        benches: Sequence[str] | None = None,
     ) -> None:
         if batch < 1:
             raise ValueError(f"batch must be ≥ 1, got {batch}")
         self.robot = robot
         self.batch = batch
         self.dt = dt
-        self.seed = seed
-        self.rng = np.random.default_rng(seed)
-        self._device_rngs: dict[str, np.random.Generator] = {}
+        self.seed, self.benches = seed, None if benches is None else list(benches)
+        self._noise: dict[str, BenchNoise] = {}
         self.params = build_params(robot, dt)
         self.layout = Layout(
             tuple(robot.actuated_joints), tuple(robot.virtual_joints), robot.pneumatics.channels
@@ -182,7 +185,7 @@ class World:
             self.commands.profile_acc[:, steppers] = robot.stepper.acceleration_rad_s2
         self._start_at_rest()
         self.clocks = {
-            name: SimulatedClocks(_clock_spec(dev.clock), batch, self.device_rng(name))
+            name: SimulatedClocks(_clock_spec(dev.clock), batch, self.noise(name).per_bench())
             for name, dev in robot.devices.items()
         }
         self.tip_tail: tuple[float, np.ndarray] | None = None  # (time, last two tip positions) of a read
@@ -214,12 +217,17 @@ class World:
             out[:, v] = interp_table(pressure, p.table_p[link, :m], p.table_k[link, :m])
         return out
 
+    def noise(self, device: str) -> BenchNoise:
+        """Device ``device``'s noise, each bench's from a generator of its own (``twin.noise``)."""
+        if device not in self._noise:
+            self._noise[device] = BenchNoise(self.seed, device, self.batch, self.benches)
+        return self._noise[device]
+
     def device_rng(self, device: str) -> np.random.Generator:
-        """Device ``device``'s own random generator (the world's seed spawned by its name, see
-        :func:`acquisition.devices.kinds.device_rng`): its noise does not depend on the other devices."""
-        if device not in self._device_rngs:
-            self._device_rngs[device] = device_rng(self.seed, device)
-        return self._device_rngs[device]
+        """The single bench's generator for ``device`` (the real-time rig's world: one bench)."""
+        if self.batch != 1:
+            raise ValueError(f"a batch of {self.batch} benches draws per bench: World.noise({device!r})")
+        return self.noise(device).generators[0]
 
     # ------------------------------------------------------------------------------------ commands
     def command_joints(self, goal_rad: np.ndarray, profile_vel: np.ndarray | None = None,

@@ -189,12 +189,17 @@ def stamp_fields(robot: RobotDescription) -> dict[str, tuple[str, str]]:
     return out
 
 
+def spawned(seed: int | np.random.SeedSequence, name: str) -> np.random.SeedSequence:
+    """``seed`` spawned by ``name``: the same sequence for the same two, whatever else is spawned from it."""
+    root = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
+    key = int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "little")
+    return np.random.SeedSequence(root.entropy, spawn_key=(*root.spawn_key, key))
+
+
 def device_rng(seed: int | np.random.SeedSequence, device: str) -> np.random.Generator:
     """A device's own random generator: the session's seed spawned by the device's name, so adding a device
     to a description changes no other device's noise."""
-    root = seed if isinstance(seed, np.random.SeedSequence) else np.random.SeedSequence(seed)
-    key = int.from_bytes(hashlib.sha256(device.encode()).digest()[:8], "little")
-    return np.random.default_rng(np.random.SeedSequence(root.entropy, spawn_key=(*root.spawn_key, key)))
+    return np.random.default_rng(spawned(seed, device))
 
 
 def timeline_fields(robot: RobotDescription) -> dict[str, tuple[str, tuple[str, ...]]]:
