@@ -7,7 +7,8 @@
   physical floor: the arithmetic of the networks it trained (from their cards) at this machine's measured
   float32 matmul rate; second: the same command again on that lab (goal: nothing recomputed that has not
   changed).
-- campaign: the paper-size campaign (17,568 points on 128 benches) simulated into MCAP sessions.
+- campaign: the paper-size campaign (17,568 points on 128 benches, spread over the cores as `vslab simulate`
+  does) simulated into MCAP sessions.
 - ingest: ``pipeline.ingest.ingest_session`` over those sessions (messages per second, page cache warm).
 - build: the cold build of that campaign into its dataset (every stage, both cores).
 - check / test: `make check` and `make test` on a fresh clone of this repository (the clone's own virtual
@@ -166,7 +167,7 @@ def campaign(tmp: Path, figures: dict, only: set[str], points: int, benches: int
     lab = tmp / "campaign"
     start = time.perf_counter()
     simulate_experiment("campaign", SessionStore(lab / "sessions"), benches=benches,
-                        overrides={"points": points})  # fmt: skip
+                        overrides={"points": points}, processes=os.cpu_count() or 1)  # fmt: skip
     figures["campaign"] = time.perf_counter() - start
     _report("campaign", figures)
     again = SessionStore(tmp / "profiled" / "sessions")

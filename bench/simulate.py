@@ -2,15 +2,17 @@
 
 Targets (issue 4): Experiment 1 (3 trajectories × 5 payloads × 5 arms × 5 repetitions = 375 runs) and the
 17,568-point campaign each in under 5 minutes on this machine, written as sessions (MCAP), as `vslab simulate`
-does. Also Experiment 2 (model-based and static-compensated commands; the hybrid ones need a trained model)
-and the POPUP link tests. Prints wall time, bench-seconds simulated, the speed-up over real time and the
-messages written; every plan is safety-checked before it runs and while it runs.
+does (the benches spread over every core). Also Experiment 2 (model-based and static-compensated commands;
+the hybrid ones need a trained model) and the POPUP link tests. Prints wall time, bench-seconds simulated, the
+speed-up over real time and the messages written; every plan is safety-checked before it runs and while it
+runs.
 Usage: python bench/simulate.py [--points N] [--benches B] [--only PROTOCOL]
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -30,9 +32,8 @@ GROUPS = {  # what --only picks → the experiments it runs
 def run(protocol: str, benches: int, overrides: dict) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         start = time.perf_counter()
-        reports = simulate_experiment(
-            protocol, SessionStore(Path(tmp) / "sessions"), benches=benches, overrides=overrides
-        )
+        reports = simulate_experiment(protocol, SessionStore(Path(tmp) / "sessions"), benches=benches,
+                                      overrides=overrides, processes=os.cpu_count() or 1)  # fmt: skip
         wall = time.perf_counter() - start
         sessions = sum(len(r.sessions) for r in reports)
         simulated = sum(r.simulated_s for r in reports)

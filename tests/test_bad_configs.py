@@ -349,6 +349,7 @@ def test_an_unsafe_plan_is_refused_before_anything_starts(tmp_path, inputs, wher
         ),
         (["simulate", "campaign", "--benches", "0"], "--benches must be ≥ 1"),
         (["simulate", "campaign", "--seed", "-1"], "--seed ≥ 0"),
+        (["simulate", "campaign", "--processes", "0"], "--processes must be ≥ 1"),
         (["simulate", "campaign", "--benches", "many"], "Invalid value for '--benches'"),
         (["simulate", "campaign", "--nope"], "No such option: --nope"),
         (["simulate"], "Missing argument 'experiment'"),

@@ -238,8 +238,9 @@ def test_second_run_skips_complete_sessions(e1, vsl):
 def test_pressure_board_clock_drifts(e1, vsl):
     sigma_ppm = vsl.devices["pressure_board"].clock.drift_ppm_sigma
     assert sigma_ppm == 2000.0
-    # the drifts the runner's World drew (same robot, batch and seed: same generator draws)
-    drawn = World(vsl, batch=len(e1["plans"]), seed=SEED).clocks["pressure_board"].drift_ppm
+    # the drifts the runner's World drew (same robot, seed and benches, named by their sessions: same draws)
+    benches = [session_id(p) for p in e1["plans"]]
+    drawn = World(vsl, batch=len(benches), seed=SEED, benches=benches).clocks["pressure_board"].drift_ppm
     fitted = []
     for data in e1["data"]:
         pressure = data[T.PRESSURE]
@@ -487,6 +488,26 @@ def test_experiments_side_by_side_write_what_one_after_another_writes(tmp_path):
         a, b = (sorted((tmp_path / store_name / name).iterdir()) for store_name in "ab")
         assert [f.name for f in a] == [f.name for f in b] and len(a) >= 2
         assert [f.read_bytes() for f in a] == [f.read_bytes() for f in b], name
+
+
+def test_an_experiment_spread_over_processes_writes_what_one_process_writes(tmp_path, monkeypatch):
+    """``processes=2``: the batch's plans cut in two parts, each in a worker process, write every session
+    byte for byte as the whole batch in this process does; a second run finds them complete."""
+    from twin import runner
+
+    monkeypatch.setattr(runner, "PART_MIN_S", 1.0)  # this small campaign is cut too (it is not, otherwise)
+    simulate_experiment("campaign", SessionStore(tmp_path / "a"), seed=3, overrides={"points": 24})
+    reports = simulate_experiment("campaign", SessionStore(tmp_path / "b"), seed=3, overrides={"points": 24},
+                                  processes=2)  # fmt: skip
+    names = sorted(p.name for p in (tmp_path / "a").iterdir())
+    assert len(reports) == 2 and sorted(s for r in reports for s in r.sessions) == names and len(names) >= 2
+    for name in names:  # every file, the MCAP parts and session.json
+        a, b = (sorted((tmp_path / store_name / name).iterdir()) for store_name in "ab")
+        assert [f.name for f in a] == [f.name for f in b] and len(a) >= 2
+        assert [f.read_bytes() for f in a] == [f.read_bytes() for f in b], name
+    again = simulate_experiment("campaign", SessionStore(tmp_path / "b"), seed=3, overrides={"points": 24},
+                                processes=2)  # fmt: skip
+    assert sorted(s for r in again for s in r.skipped) == names and not any(r.sessions for r in again)
 
 
 def test_an_unknown_experiment_side_by_side_is_refused_before_any_is_simulated(tmp_path):

@@ -21,7 +21,7 @@ from pipeline.tables import EVENT_COLUMNS, SessionTables
 from twin.clocks import unwrap_ticks
 from twin.runner import TWIN_TRUTH, session_id, simulate
 
-SEED = 46  # World(vsl, batch=2, seed=46): stepper boards at ≈ +3279, +2496 ppm, a pressure board −2575
+SEED = 46  # the benches of _plans, seed 46: stepper boards at ≈ +3175, +4690 ppm, a pressure board −2150
 SECONDS = 60.0
 DEVICES = {T.SERVO_STATE: "servo_bus", T.PRESSURE: "pressure_board", T.STEPPER: "stepper_board",
            T.TRACKER: "tracker"}  # fmt: skip
@@ -167,7 +167,9 @@ def test_timeline_matches_noise_free_truth_within_sensor_noise(synced, vsl, tmp_
     run again with noise-free sensors (only quantisation left), its samples placed at their *true* times
     (twin clocks) and interpolated at the frames' *true* times. What differs is the sensor noise (and any
     timing error of the fit, which would show on the pressure steps): the RMS difference stays below the
-    per-sample noise σ (measured on the raw streams) and no frame is off by more than 5 σ."""
+    per-sample noise σ (measured on the raw streams), and no frame is off by more than the worst sample's
+    noise and what one tick of the device's stamp is worth where the truth moves (a servo sample is placed
+    within its 1 ms tick: on a current step of 0.47 A in 2 ms that is up to ~0.2 A)."""
     quiet = _quiet(vsl)
     plans = _plans(vsl)
     simulate(plans, quiet, tmp_path, seed=SEED)
@@ -192,8 +194,12 @@ def test_timeline_matches_noise_free_truth_within_sensor_noise(synced, vsl, tmp_
                 truth_at_frames = np.interp(frame_t, sample_t, ref[name].to_numpy())
                 diff = (timeline[col].to_numpy() - truth_at_frames)[inside]
                 worst = np.abs(noisy[name].to_numpy() - ref[name].to_numpy()).max()
+                rate = np.abs(np.diff(ref[name].to_numpy()) / np.diff(sample_t))  # per sample interval
+                k = np.searchsorted(sample_t, frame_t) - 1  # the interval holding each frame
+                steep = np.max([rate[np.clip(k + d, 0, len(rate) - 1)] for d in (-1, 0, 1)], axis=0)[inside]
+                tick_s = clocks[DEVICES[topic]]["tick_s"]
                 assert np.sqrt(np.mean(diff**2)) < sigma, col
-                assert np.abs(diff).max() <= worst + 0.1 * sigma, col
+                assert np.all(np.abs(diff) <= worst + 0.1 * sigma + steep * tick_s), col
 
 
 def test_fit_on_arrays_with_exponential_jitter_a_wrap_and_a_short_segment():

@@ -10,6 +10,7 @@ with host times offset by a fixed epoch. Benches whose plan has ended hold still
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 import time
 from collections.abc import Callable
@@ -33,6 +34,9 @@ from twin.world import World
 log = logging.getLogger(__name__)
 
 SIM_PREFIX = "sim-"  # the id of every simulated session starts so (a real-time one never does)
+# a part of a batch for a worker process: at least this many bench-seconds (~3 s of one process's work at
+# ~800× real time; a worker takes ~1–2 s to start and load the kernel)
+PART_MIN_S = 2000.0
 
 
 @dataclass(frozen=True)
@@ -205,6 +209,7 @@ def simulate_experiment(
     progress: Callable[[str, float], None] | None = None,
     inverse_model: Callable[[Plan], Compensator] | None = None,
     prepared: tuple[dict[str, RobotDescription], list[Plan], dict] | None = None,
+    processes: int = 1,
 ) -> list[SimReport]:
     """Expand an experiment (``configs/experiments/<name>.yaml`` + overrides) into plans and run them all on
     the twin, at most ``benches`` benches per batch, into the lab's ``sessions`` (a local store). Sessions
@@ -214,7 +219,13 @@ def simulate_experiment(
     trained inverse model) for a plan, by its ``parameters["commands"]``; the layers above ``acquisition``
     (the pipeline's model store, the main job) provide it. It is called once per plan, so a compensator with
     memory starts each session afresh. ``prepared``: what :func:`prepare_experiment` gave for these
-    arguments (a caller that checks before it commits to the work)."""
+    arguments (a caller that checks before it commits to the work).
+
+    ``processes`` > 1: each batch's plans still to simulate are cut into that many parts, each simulated in
+    a worker process (its kernel on one thread): the same sessions, byte for byte (each bench draws its own
+    noise), with every core busy (one process keeps ~1.4 cores so: writing is one thread). Its ``progress``
+    moves as the parts end. An experiment with a learned ``inverse_model`` runs here (its compensators are
+    not sent to workers). Returns a report per batch, or per part."""
     kind, sessions_dir = Path(experiment).stem, sessions.root
     robots, plans, _ = prepared or prepare_experiment(
         experiment, overrides, benches, seed, inverse_model, sessions_dir
@@ -228,12 +239,50 @@ def simulate_experiment(
     compensators = [[compensator_for(p, r, inverse_model) for p in batch] for r, batch, _ in batches]
     for (robot, batch, _), c in zip(batches, compensators, strict=True):  # sessions of another making on
         reusable(batch, robot, sessions_dir, seed, c)  # disk: refused before any is written
+    if processes > 1 and inverse_model is None:
+        return _in_parts(batches, sessions_dir, seed, processes, progress)
     reports = []
     for (robot, batch, label), c in zip(batches, compensators, strict=True):
         tick = (lambda f, label=label: progress(label, f)) if progress else None
         run = dict(seed=seed, progress=tick, compensators=c, plans_checked=True)
         reports.append(simulate(batch, robot, sessions_dir, **run))
     return reports
+
+
+def _in_parts(batches: list, sessions_dir: Path, seed: int, processes: int,
+              progress: Callable[[str, float], None] | None) -> list[SimReport]:  # fmt: skip
+    """The batches' plans not yet complete cut into ``processes`` parts each, simulated in worker processes
+    (:func:`simulate_experiment`'s ``processes``); the progress of a batch is the share of its parts ended."""
+    import concurrent.futures as cf
+    import multiprocessing
+
+    parts, skipped = [], []  # (label, robot, plans); the sessions already complete
+    for robot, batch, label in batches:
+        todo = [p for p in batch if _complete(sessions_dir / session_id(p)) is None]
+        skipped += [session_id(p) for p in batch if p not in todo]
+        n = min(processes, len(todo), max(1, int(sum(p.duration_s for p in todo) // PART_MIN_S)))
+        cuts = np.linspace(0, len(todo), n + 1).round().astype(int)
+        parts += [(label, robot, todo[a:b]) for a, b in itertools.pairwise(cuts)]
+    done = [SimReport([], skipped, 0.0, 0.0, 0)] if skipped else []
+    if len(parts) < 2:  # nothing to share the cores with: here, the kernel on every core
+        return done + [simulate(plans, robot, sessions_dir, seed=seed, plans_checked=True)
+                       for _, robot, plans in parts]  # fmt: skip
+    context = multiprocessing.get_context("forkserver")  # nothing of this process's threads is forked
+    pool = cf.ProcessPoolExecutor(min(processes, len(parts)), mp_context=context,
+                                  initializer=_one_kernel_thread)  # fmt: skip
+    try:
+        futures = [pool.submit(simulate, plans, robot, sessions_dir, seed=seed, plans_checked=True)
+                   for _, robot, plans in parts]  # fmt: skip
+        ended = dict.fromkeys((label for label, _, _ in parts), 0)
+        for future in cf.as_completed(futures):
+            future.result()  # an error: raised once the parts under way have stopped
+            label = parts[futures.index(future)][0]
+            ended[label] += 1
+            if progress:
+                progress(label, ended[label] / sum(1 for other, _, _ in parts if other == label))
+        return done + [f.result() for f in futures]
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 @dataclass(frozen=True)
@@ -263,7 +312,7 @@ def simulate_side_by_side(
     simulations: list[Simulation], seed: int = 0, processes: int = 2
 ) -> list[list[SimReport]]:
     """Experiments that do not depend on each other simulated at once, each whole in one of ``processes``
-    worker processes: every session as :func:`simulate_experiment` writes it (each batch keeps its seed), in
+    worker processes: every session as :func:`simulate_experiment` writes it, in
     less time where a core is free.
 
     One simulated experiment keeps ~1.4 of 2 cores busy (writing is one thread; the kernel's parallel steps

@@ -211,6 +211,13 @@ def simulate(
     dry_run: Annotated[
         bool, typer.Option("--dry-run", help="Build and check the plans, print size and duration, stop.")
     ] = False,
+    processes: Annotated[
+        int | None,
+        typer.Option(
+            help="Worker processes the benches are spread over (default: one per core; the "
+            "sessions are the same however many)."
+        ),
+    ] = None,
 ) -> None:
     """Run an experiment on the twin in simulated time: the same sessions as on the rig, much faster."""
     import time
@@ -225,6 +232,8 @@ def simulate(
 
     if benches < 1 or seed < 0:
         _error(f"--benches must be ≥ 1 and --seed ≥ 0, got --benches {benches} --seed {seed}")
+    if processes is not None and processes < 1:
+        _error(f"--processes must be ≥ 1, got {processes}")
     overrides = _overrides(set_ or [])
     if "history" in str(overrides.get("commands", "")):
         _error(HISTORY_NOT_STORED)
@@ -269,6 +278,7 @@ def simulate(
                 reports = simulate_experiment(
                     experiment, SessionStore(folder), seed=seed, benches=benches, overrides=overrides,
                     progress=progress, inverse_model=hybrid if model is not None else None, prepared=prepared,
+                    processes=processes or os.cpu_count() or 1,
                 )  # fmt: skip
         except (ValueError, OSError, RobotDescriptionError, SafetyError) as exc:  # ExperimentError, full disk
             bar.stop()
