@@ -176,6 +176,7 @@ def test_a_pressure_tapped_once_is_named_not_identifiable_and_left_nominal(teste
     assert table["stiffness_nm_per_rad"][0] != nominal.stiffness_nm_per_rad[0]  # fitted where tapped 3 times
 
 
+@pytest.mark.slow  # the link tests simulated again on two twins: ~7 s a robot, each
 def test_the_fitted_twin_predicts_the_lab_arm_s_link_tests_the_nominal_one_does_not(fitted, tmp_path):
     """`pipeline.popup_check`: the link tests run again on the twin of the fitted description (another seed
     than the lab's) and measured as the lab's are: its taps' f_s and ζ and its static stiffness within 1 % of
@@ -199,6 +200,7 @@ def test_the_fitted_twin_predicts_the_lab_arm_s_link_tests_the_nominal_one_does_
     assert (table["checked_pct"].abs() < 2).all(), table
 
 
+@pytest.mark.slow  # the link tests simulated again on two twins: ~7 s a robot, each
 def test_twin_check_of_the_popup_arm_on_the_lab_s_link_tests(tested, tmp_path):
     """`vslab twin check --robot <fitted popup> --set …` (the link tests as the lab ran them): no dataset, the
     lab's link tests; the table, the record the report reads (and its table there); a dataset given for the
