@@ -9,11 +9,14 @@ with host times offset by a fixed epoch. Benches whose plan has ended hold still
 
 from __future__ import annotations
 
+import concurrent.futures as cf
+import contextlib
 import dataclasses
 import itertools
 import logging
+import multiprocessing
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -253,9 +256,6 @@ def _in_parts(batches: list, sessions_dir: Path, seed: int, processes: int,
               progress: Callable[[str, float], None] | None) -> list[SimReport]:  # fmt: skip
     """The batches' plans not yet complete cut into ``processes`` parts each, simulated in worker processes
     (:func:`simulate_experiment`'s ``processes``); the progress of a batch is the share of its parts ended."""
-    import concurrent.futures as cf
-    import multiprocessing
-
     parts, skipped = [], []  # (label, robot, plans); the sessions already complete
     for robot, batch, label in batches:
         todo = [p for p in batch if _complete(sessions_dir / session_id(p)) is None]
@@ -267,10 +267,7 @@ def _in_parts(batches: list, sessions_dir: Path, seed: int, processes: int,
     if len(parts) < 2:  # nothing to share the cores with: here, the kernel on every core
         return done + [simulate(plans, robot, sessions_dir, seed=seed, plans_checked=True)
                        for _, robot, plans in parts]  # fmt: skip
-    context = multiprocessing.get_context("forkserver")  # nothing of this process's threads is forked
-    pool = cf.ProcessPoolExecutor(min(processes, len(parts)), mp_context=context,
-                                  initializer=_one_kernel_thread)  # fmt: skip
-    try:
+    with _kernel_workers(min(processes, len(parts))) as pool:
         futures = [pool.submit(simulate, plans, robot, sessions_dir, seed=seed, plans_checked=True)
                    for _, robot, plans in parts]  # fmt: skip
         ended = dict.fromkeys((label for label, _, _ in parts), 0)
@@ -281,8 +278,6 @@ def _in_parts(batches: list, sessions_dir: Path, seed: int, processes: int,
             if progress:
                 progress(label, ended[label] / sum(1 for other, _, _ in parts if other == label))
         return done + [f.result() for f in futures]
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
 
 
 @dataclass(frozen=True)
@@ -312,8 +307,8 @@ def simulate_side_by_side(
     simulations: list[Simulation], seed: int = 0, processes: int = 2
 ) -> list[list[SimReport]]:
     """Experiments that do not depend on each other simulated at once, each whole in one of ``processes``
-    worker processes: every session as :func:`simulate_experiment` writes it, in
-    less time where a core is free.
+    worker processes: every session as :func:`simulate_experiment` writes it, in less time where a core is
+    free.
 
     One simulated experiment keeps ~1.4 of 2 cores busy (writing is one thread; the kernel's parallel steps
     wait for their slowest thread); two side by side, each kernel on one thread (the benches are stepped
@@ -321,21 +316,26 @@ def simulate_side_by_side(
     longest first; experiments with every session complete already are only checked, here (no worker is
     started for them). An error in one (or Ctrl-C) is raised once the experiments under way have stopped;
     those still queued are dropped. Returns each experiment's reports, in the order given."""
-    import concurrent.futures as cf
-    import multiprocessing
-
     todo = []  # one alone is not planned twice to find out whether it has work
     if len(simulations) > 1 and processes > 1:
         todo = [k for k, s in enumerate(simulations) if s.inverse_model is None and s.pending(seed)]
     if len(todo) < 2:  # nothing to share the cores with: here, the kernel on every core
         return [simulation.run(seed) for simulation in simulations]
-    context = multiprocessing.get_context("forkserver")  # nothing of this process's threads is forked
-    pool = cf.ProcessPoolExecutor(min(processes, len(todo)), mp_context=context,
-                                  initializer=_one_kernel_thread)  # fmt: skip
-    try:
+    with _kernel_workers(min(processes, len(todo))) as pool:
         futures = {k: pool.submit(simulations[k].run, seed) for k in todo}
         return [futures[k].result() if k in futures else simulation.run(seed)
                 for k, simulation in enumerate(simulations)]  # fmt: skip
+
+
+@contextlib.contextmanager
+def _kernel_workers(processes: int) -> Iterator[cf.ProcessPoolExecutor]:
+    """Worker processes for simulations, each kernel on one thread (forkserver: nothing of this process's
+    threads is forked). On leaving, what is under way ends and what is queued is dropped (an error,
+    Ctrl-C)."""
+    pool = cf.ProcessPoolExecutor(processes, mp_context=multiprocessing.get_context("forkserver"),
+                                  initializer=_one_kernel_thread)  # fmt: skip
+    try:
+        yield pool
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
