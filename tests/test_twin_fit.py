@@ -227,3 +227,29 @@ def test_an_arm_without_hysteresis_is_fitted_without_a_loop(tmp_path):
         assert abs(fit.values_[f"upper_vsl.k@{p:g}bar"] / (80.0 * p) - 1) < 0.03
     written = fit.description("vsl_fitted", "vsl", "campaign", "test")
     assert [link["hysteresis"]["delta_h_rad"] for link in written["links"]] == [0.0, 0.0]
+
+
+def test_the_compiled_hysteresis_steps_each_session_as_the_links_bouc_wen_law_does():
+    """``hysteresis_states`` (compiled) against the law stepped in numpy over every session at once: each
+    point's state after the moves into it, sessions apart, interleaved in the rows and of unequal lengths."""
+    from models.prbm import bouc_wen_step
+    from pipeline.arm_history import hysteresis_states, session_order
+
+    rng = np.random.default_rng(7)
+    n = 400
+    sessions, t = rng.integers(0, 6, n), rng.uniform(0, 100, n)
+    order = session_order(sessions, t)
+    assert (order < 0).any()  # sessions of unequal lengths: padded
+    path = np.cumsum(rng.normal(0, 0.3, (n, 8, 2)), axis=1)  # torques along each move, two links
+    tau_y = np.array([0.4, 0.9])
+    expected = np.zeros((n, 2))
+    state, prev = np.zeros((len(order), 2)), np.zeros((len(order), 2))
+    for step in order.T:
+        now = step >= 0
+        for sub in range(path.shape[1]):
+            state[now] = bouc_wen_step(state[now], path[step[now], sub] - prev[now], tau_y)
+            prev[now] = path[step[now], sub]
+        expected[step[now]] = state[now]
+    got = hysteresis_states(path, tau_y, order)
+    assert np.abs(got).max() > 0.5  # the loops were driven well into their saturation
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)  # expm1: the C library's, not numpy's
