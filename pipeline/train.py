@@ -151,7 +151,9 @@ def _descend(net: HybridNet, config: TrainConfig, tr: pd.DataFrame, va: pd.DataF
     xt, xv = tensor(tr, cols.inputs), tensor(va, cols.inputs)
     xs_tr, ys_tr = net.scale_inputs(xt), net.scale_targets(xt, tensor(tr, cols.targets))
     xs_va, ys_va = net.scale_inputs(xv), net.scale_targets(xv, tensor(va, cols.targets))
-    opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay)
+    # foreach: one kernel per step over all the weights, bit-identical to the per-tensor loop torch picks on a
+    # CPU (a paper net's epoch 1.18 → 1.08 s); fused would be faster still but is not bit-identical
+    opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay, foreach=True)
     best, best_state, epoch_times = float("inf"), None, []
     for epoch in range(config.max_epochs):
         t0 = time.perf_counter()
