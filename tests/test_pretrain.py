@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -77,12 +78,22 @@ def test_the_verdict_reads_ten_percent_against_all():
     assert verdict["ratio"] == pytest.approx(0.9) and verdict["rows"] == 85 and verdict["all_rows"] == 850
 
 
+def _measured_lab(campaign_dataset, tmp_path_factory) -> Path:
+    copy = tmp_path_factory.mktemp("pretrain-lab") / "lab"
+    shutil.copytree(campaign_dataset[0] / "datasets", copy / "datasets")
+    return copy
+
+
+@pytest.fixture(scope="module")
+def measured_lab(campaign_dataset, tmp_path_factory):
+    """A copy of the small campaign's lab: what a lab has measured, its twin not fitted."""
+    return _measured_lab(campaign_dataset, tmp_path_factory)
+
+
 @pytest.fixture(scope="module")
 def lab(campaign_dataset, tmp_path_factory):
     """A copy of the small campaign's lab with its twin fitted (`vslab twin fit`)."""
-    source = campaign_dataset[0]
-    copy = tmp_path_factory.mktemp("pretrain-lab") / "lab"
-    shutil.copytree(source / "datasets", copy / "datasets")
+    copy = _measured_lab(campaign_dataset, tmp_path_factory)
     result = runner.invoke(app, ["--lab", str(copy), "twin", "fit", "--dataset", "campaign"])
     assert result.exit_code == 0, result.output
     return copy
@@ -146,8 +157,8 @@ def test_twin_curve_prints_and_draws_the_learning_curve(lab):
         (["twin", "curve", "--robot", "vsl", "--dataset", "campaign", "--split", "x"], "--split x"),
     ],
 )
-def test_what_pretraining_cannot_use_is_one_error_line(lab, args, says):
-    result = runner.invoke(app, ["--lab", str(lab), *args])
+def test_what_pretraining_cannot_use_is_one_error_line(measured_lab, args, says):
+    result = runner.invoke(app, ["--lab", str(measured_lab), *args])
     assert result.exit_code == 2, result.output
     lines = [line for line in result.output.splitlines() if line.strip()]
     assert lines[0].startswith("error:") and says in result.output and "Traceback" not in result.output
