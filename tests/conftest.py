@@ -12,6 +12,15 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+# Under pytest-xdist (`make check` and `make test` run one worker per core): each worker computes on one
+# thread. Two processes of torch's, numba's or BLAS's threads on the same cores spin-wait on each other (a
+# paper net's epoch 6.7× slower beside another): the fast tier took 192 s on 2 workers of 2 threads each,
+# 92 s on 2 workers of one, against 145 s in one process of 2. Set before numpy, torch or numba is imported;
+# the commands the tests start inherit it.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for threads in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        os.environ.setdefault(threads, "1")
+
 import numpy as np
 import pytest
 from mcap.reader import make_reader
