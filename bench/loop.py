@@ -170,6 +170,7 @@ def campaign(tmp: Path, figures: dict, only: set[str], points: int, benches: int
                         overrides={"points": points}, processes=os.cpu_count() or 1)  # fmt: skip
     figures["campaign"] = time.perf_counter() - start
     _report("campaign", figures)
+    _kernel_floor(points, benches)
     again = SessionStore(tmp / "profiled" / "sessions")
     if profile:
         profiled("the campaign", lambda: simulate_experiment("campaign", again, benches=benches,
@@ -193,6 +194,21 @@ def campaign(tmp: Path, figures: dict, only: set[str], points: int, benches: int
             profiled(
                 "the build, in one process", lambda: build(sessions, other, "campaign", {}, executor=inline)
             )
+
+
+def _kernel_floor(points: int, benches: int) -> None:
+    """The campaign's physical floor here: its robot-seconds stepped by the twin's kernel alone (1 kHz, one
+    robot on one thread, ``bench/twin_kernel.py``'s measure) on every core, with nothing written."""
+    from acquisition.plans.experiments import expand_experiment
+
+    _, plans, _ = expand_experiment("campaign", {"points": points}, benches=benches)
+    robot_s = sum(plan.duration_s for plan in plans)
+    cores = os.cpu_count() or 1
+    per_core = runpy.run_path(str(ROOT / "bench" / "twin_kernel.py"))["speed"]("vsl", 1, 20.0, threads=1)
+    floor = robot_s / per_core / cores
+    print(f"  its floor: {robot_s:,.0f} robot-seconds at {per_core:,.0f}× real time a core (the kernel "
+          f"alone, one robot a thread) on {cores} cores = {floor:.1f} s of physics; the rest is the "
+          "sensors, the clocks, the session files and zstd", flush=True)  # fmt: skip
 
 
 def suite(tmp: Path, figures: dict, only: set[str]) -> None:
