@@ -26,21 +26,24 @@ demo: $(BIN)/.installed
 	$(BIN)/vslab --lab $(LAB) demo
 
 # The suite runs in a worker process per core (pytest-xdist), each computing on one thread (tests/conftest.py):
-# on 2 cores the whole suite 1,540 → 888 s, the fast tier 145 → 92 s. The real-time tests hold beside the
-# other worker, as they hold with every core busy (test-under-load).
-PYTEST = $(BIN)/python -m pytest -n auto
+# on 2 cores the fast tier 145 → 92 s. The tests that judge a real-time recording (marked real_time) then run
+# alone: beside another worker, one lost 64 of 3,801 servo samples (a 160 ms stall) where a busy loop on
+# every core (test-under-load) costs none — found, not yet explained.
+PYTEST = $(BIN)/python -m pytest
 
 test: $(BIN)/.installed
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(COMPILE)
-	$(PYTEST)
+	$(PYTEST) -n auto -m "not real_time"
+	$(PYTEST) -m real_time
 
 check: $(BIN)/.installed
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(COMPILE)
-	$(PYTEST) -m "not slow"
+	$(PYTEST) -n auto -m "not slow and not real_time"
+	$(PYTEST) -m "real_time and not slow"
 
 # the whole suite with every core busy (a CPU-bound process per core): real-time tests must hold there too
 test-under-load: $(BIN)/.installed

@@ -191,6 +191,16 @@ def cpu_stolen_s() -> float:
         return 0.0
 
 
+@pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """A test that judges a real-time recording (it asks for ``real_time``) is marked ``real_time``: make test
+    and make check run those alone, after the others' workers (``make test-under-load`` runs them with every
+    core busy)."""
+    for item in items:
+        if "real_time" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.real_time)
+
+
 @pytest.fixture
 def real_time():
     """Call it after a real-time recording, before asserting its rates: it skips the test, saying so, when
