@@ -35,14 +35,14 @@ test: $(BIN)/.installed
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(COMPILE)
-	$(PYTEST) -n auto -m "not real_time"
+	$(PYTEST) -n auto --dist loadgroup -m "not real_time"
 	$(PYTEST) -m real_time
 
 check: $(BIN)/.installed
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(COMPILE)
-	$(PYTEST) -n auto -m "not slow and not real_time"
+	$(PYTEST) -n auto --dist loadgroup -m "not slow and not real_time"
 	$(PYTEST) -m "real_time and not slow"
 
 # the whole suite with every core busy (a CPU-bound process per core): real-time tests must hold there too

@@ -191,14 +191,21 @@ def cpu_stolen_s() -> float:
         return 0.0
 
 
-@pytest.hookimpl(tryfirst=True)  # before -m deselects by marker
+@pytest.hookimpl(tryfirst=True)  # before -m deselects by marker, and before xdist reads the groups
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """A test that judges a real-time recording (it asks for ``real_time``) is marked ``real_time``: make test
     and make check run those alone, after the others' workers (``make test-under-load`` runs them with every
-    core busy)."""
+    core busy). The tests that read the tutorials' run (``tutorial_run``: the quick main job, ~5 min) are one
+    group: under ``--dist loadgroup`` one worker runs them, so the main job runs once, not once a worker."""
     for item in items:
-        if "real_time" in getattr(item, "fixturenames", ()):
+        fixtures = getattr(item, "fixturenames", ())
+        if "real_time" in fixtures:
             item.add_marker(pytest.mark.real_time)
+        if "tutorial_run" in fixtures:
+            item.add_marker(pytest.mark.xdist_group(TUTORIALS_GROUP))
+
+
+TUTORIALS_GROUP = "tutorials"
 
 
 @pytest.fixture
