@@ -26,7 +26,8 @@ demo: $(BIN)/.installed
 	$(BIN)/vslab --lab $(LAB) demo
 
 # The suite runs in a worker process per core (pytest-xdist), each computing on one thread (tests/conftest.py):
-# on 2 cores the fast tier 145 → 92 s. The tests that judge a real-time recording (marked real_time) then run
+# on 2 cores the fast tier 145 → 92 s. `--dist loadgroup`: the tests that read the tutorials' quick main job
+# share one worker, so it runs once (tests/conftest.py groups them). The tests that judge a real-time recording (marked real_time) then run
 # alone: beside another worker, one lost 64 of 3,801 servo samples (a 160 ms stall) where a busy loop on
 # every core (test-under-load) costs none — found, not yet explained.
 PYTEST = $(BIN)/python -m pytest
