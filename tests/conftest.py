@@ -9,6 +9,8 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -189,6 +191,43 @@ def cpu_stolen_s() -> float:
             return int(f.readline().split()[8]) / os.sysconf("SC_CLK_TCK")
     except (OSError, IndexError, ValueError):
         return 0.0
+
+
+class StealWatch:
+    """What the hypervisor takes of the CPUs (:func:`cpu_stolen_s`), sampled every ``every_s`` in a thread
+    from ``start()`` to ``stop()``: ``total_ms`` in all, ``burst_ms(window_s)`` the most within any window of
+    that length (one stall, which a real-time loop meets, not the same time spread thin)."""
+
+    def __init__(self, every_s: float = 0.02) -> None:
+        self.every_s = every_s
+        self._samples: list[tuple[float, float]] = []
+        self._stopped = threading.Event()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+
+    def start(self) -> StealWatch:
+        self._thread.start()
+        return self
+
+    def stop(self) -> StealWatch:
+        self._stopped.set()
+        self._thread.join()
+        return self
+
+    def _sample(self) -> None:
+        while True:
+            self._samples.append((time.monotonic(), cpu_stolen_s()))
+            if self._stopped.wait(self.every_s):
+                self._samples.append((time.monotonic(), cpu_stolen_s()))
+                return
+
+    @property
+    def total_ms(self) -> float:
+        return (self._samples[-1][1] - self._samples[0][1]) * 1e3
+
+    def burst_ms(self, window_s: float) -> float:
+        t, stolen = np.array(self._samples).T
+        end = np.searchsorted(t, t + window_s, side="right") - 1
+        return float((stolen[end] - stolen).max() * 1e3)
 
 
 def pytest_configure() -> None:

@@ -21,7 +21,7 @@ import sys
 import numpy as np
 import pandas as pd
 import pytest
-from conftest import cpu_stolen_s
+from conftest import StealWatch
 from scipy.spatial.transform import Rotation
 
 from acquisition.plans.popup_experiments import pressure_checks, verify_pressure_checks
@@ -61,6 +61,8 @@ SESSIONS = {
 
 
 STOLEN_MS: dict[str, float] = {}  # per session: CPU time the hypervisor took while it was recorded
+BURST_MS: dict[str, float] = {}  # per session: the most it took within any STALL_WINDOW_S meanwhile
+STALL_WINDOW_S = 0.5
 
 
 @pytest.fixture(scope="module")
@@ -97,15 +99,19 @@ def _start(lab, session: str) -> tuple[subprocess.Popen, float]:
     pressures = [f"pressures_kpa=[{', '.join(map(str, PRESSURES_KPA))}]"] if experiment in tests else []
     sets = [arg for s in (*pressures, *settings) for arg in ("--set", s)]
     command = [*cli, "run", experiment, "--plan", str(plan), *sets, "--rig", "--session", session]
-    stolen_s = cpu_stolen_s()
-    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), stolen_s
+    watch = StealWatch().start()
+    return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), watch
 
 
-def _finish(lab, session: str, run: subprocess.Popen, stolen_s: float):
-    out, err = run.communicate(timeout=300)
+def _finish(lab, session: str, run: subprocess.Popen, watch: StealWatch):
+    try:
+        out, err = run.communicate(timeout=300)
+    finally:
+        watch.stop()
     assert run.returncode == 0, out[-2000:] + err[-2000:]
     assert session_info(lab / "sessions" / session).status == "complete"
-    STOLEN_MS[session] = (cpu_stolen_s() - stolen_s) * 1e3  # said with a failure of the datasets test
+    STOLEN_MS[session] = watch.total_ms  # said with a failure of the datasets test
+    BURST_MS[session] = watch.burst_ms(STALL_WINDOW_S)
     return lab / "sessions" / session
 
 
@@ -201,7 +207,8 @@ def test_real_time_popup_sessions_build_into_datasets(recorded, popup):
         # CI once found none: the runner called the arm settled when its joints were, while link 2 still
         # bounced ±4 mm under the 2 kg (the runner now waits for the tracked tip too)
         card = json.loads((built["reach"].path / "card.json").read_text())["sessions"]["reach"]
-        pytest.fail(f"settled windows rejected: {card['removed']}; ms stolen while recording: {STOLEN_MS}")
+        pytest.fail(f"settled windows rejected: {card['removed']}; ms stolen while recording: {STOLEN_MS}, "
+                    f"the most within {STALL_WINDOW_S} s: {BURST_MS}")  # fmt: skip
     assert reach_d["payload_kg"].tolist() == [2.0, 2.0]
     q = reach_d[[f"q_{j}" for j in range(3)]].to_numpy()
     x = reach_d[[f"x_{k}" for k in range(3)]].to_numpy()
@@ -213,9 +220,9 @@ def test_real_time_popup_sessions_build_into_datasets(recorded, popup):
     tip = path[[f"x_{k}" for k in range(3)]].to_numpy()
     # the path runs from the start hold to the target hold (how far the arm still lags at the path's end
     # depends on how late the busy host sent the last set-points: 30 mm under bench/load.py; 163 mm in a CI
-    # run whose hypervisor took the CPUs: checked only when it did not)
-    if STOLEN_MS["reach"] >= MAX_LAG_S * 1e3:
-        pytest.skip(
-            f"the hypervisor took {STOLEN_MS['reach']:.0f} ms of the CPUs while the reach was recorded"
-        )
+    # run whose hypervisor took the CPUs: checked only when it did not stall it, taking MAX_LAG_S within any
+    # STALL_WINDOW_S; 60-70 ms spread over the ~15 s of the command beside another test worker is no stall)
+    if BURST_MS["reach"] >= MAX_LAG_S * 1e3:
+        pytest.skip(f"the hypervisor took {BURST_MS['reach']:.0f} ms of the CPUs within {STALL_WINDOW_S} s "
+                    f"while the reach was recorded ({STOLEN_MS['reach']:.0f} ms in all)")  # fmt: skip
     assert np.linalg.norm(tip[-1] - x[1]) < 0.1 * np.linalg.norm(tip[0] - x[1])
