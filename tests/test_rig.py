@@ -21,7 +21,10 @@ def _wait_until_settled(bus, goal, seconds=4.0):
     return state
 
 
+# run alone (`-m real_time`): beside another test worker the rig once answered no sync read within the
+# driver's 3 tries of the SDK's 34 ms (the emulator starved of CPU, not a fault of the driver's)
 @pytest.mark.slow
+@pytest.mark.real_time
 def test_servo_bus_drives_the_twin_in_real_time(host_factory, tmp_path):
     robot = load_robot("vsl")
     ids = [robot.devices["servo_bus"].ids[q] for q in ("q2", "q3")]
