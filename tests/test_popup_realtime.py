@@ -92,7 +92,7 @@ def recorded(tmp_path_factory):
     return session
 
 
-def _start(lab, session: str) -> tuple[subprocess.Popen, float]:
+def _start(lab, session: str) -> tuple[subprocess.Popen, StealWatch]:
     experiment, plan, settings = SESSIONS[session]
     cli = [sys.executable, "-m", "vslab.cli", "--lab", str(lab), "--quiet"]
     tests = ("popup_static", "popup_impact")
