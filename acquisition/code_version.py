@@ -3,17 +3,29 @@ its syntax tree without docstrings and comments, so only a change of behaviour r
 
 The pipeline's cache keys stages by it; the twin records it in every simulated session, so a session made by
 other code is never taken for one this code would make.
+
+Normalising a module (parse, strip, dump) costs ~6 ms; the twin's ~100 modules ~0.6 s a process, paid by
+every command and simulation worker that versions what it makes. Each module's normal form is therefore
+kept on disk under the hash of its source bytes (``NORMAL_FORMS``, the user's cache folder): a file read
+again is a file read, and an edited one is a new key. A cache that cannot be written is not used.
 """
 
 from __future__ import annotations
 
 import ast
 import hashlib
+import json
+import os
+import sys
 from functools import cache
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("acquisition", "twin", "pipeline", "models", "analysis")  # whose code a result can depend on
+_FORM = 1  # the normal form's own version: a change to how it is made makes every kept one another key
+NORMAL_FORMS = (
+    Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "vslab" / "code-normal-forms"
+)
 
 
 def _without_docstrings(tree: ast.AST) -> ast.AST:
@@ -60,14 +72,34 @@ def _imports(tree: ast.AST, name: str, is_package: bool) -> set[str]:
 
 @cache
 def _normalised(name: str, root: Path) -> tuple[str, frozenset[str]] | None:
-    """A module's code as its syntax tree without docstrings (comments never reach the tree) and the project
-    modules it imports; None where ``name`` is not a module of ours (an imported function's name)."""
+    """The hash of a module's code as its syntax tree without docstrings (comments never reach the tree) and
+    the project modules it imports; None where ``name`` is not a module of ours (an imported function's
+    name)."""
     path = _module_file(name, root)
     if path is None:
         return None
-    tree = _without_docstrings(ast.parse(path.read_text(), filename=str(path)))
-    imports = _imports(tree, name, path.name == "__init__.py")
-    return ast.dump(tree, annotate_fields=False, include_attributes=False), frozenset(imports)
+    source = path.read_bytes()
+    key = hashlib.sha256(f"{_FORM} {sys.version_info[:2]} {name} {path.name}\n".encode() + source).hexdigest()
+    kept = NORMAL_FORMS / f"{key}.json"
+    try:
+        tree_hash, imports = json.loads(kept.read_text())
+        return tree_hash, frozenset(imports)
+    except (OSError, ValueError, TypeError):  # not kept yet (or a torn file): made, and kept
+        pass
+    tree = _without_docstrings(ast.parse(source, filename=str(path)))
+    dumped = ast.dump(tree, annotate_fields=False, include_attributes=False)
+    made = (
+        hashlib.sha256(dumped.encode()).hexdigest(),
+        sorted(_imports(tree, name, path.name == "__init__.py")),
+    )
+    try:
+        NORMAL_FORMS.mkdir(parents=True, exist_ok=True)
+        partial = kept.with_name(f"{key}.{os.getpid()}.tmp")
+        partial.write_text(json.dumps(made))
+        os.replace(partial, kept)  # whole or not at all: another process may be keeping the same one
+    except OSError:
+        pass
+    return made[0], frozenset(made[1])
 
 
 def code_version(*modules: str, root: Path | None = None) -> str:

@@ -4,6 +4,7 @@ Every edit here is made in a copy of the checkout's packages, never in the real 
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 from pathlib import Path
@@ -110,3 +111,39 @@ def test_dataset_and_model_ids_survive_a_docstring_edit(tree):
     _edit(tree / "pipeline" / "datasets.py", "FRACTIONS = ", "FRACTIONS = 1 and ")
     _forget()
     assert datasets.dataset_version(sources, parameters) != ids[0]
+
+
+def test_the_normal_forms_kept_on_disk_give_the_versions_made_afresh(tmp_path, monkeypatch):
+    """Each module's normal form is kept under the hash of its source (acquisition/code_version.py): a kept
+    one gives the same versions as one made afresh, a torn or foreign file is made again, and a cache folder
+    that cannot be written only costs the time."""
+    from acquisition import code_version as cv
+
+    kept = tmp_path / "kept"
+    monkeypatch.setattr(cv, "NORMAL_FORMS", kept)
+    _forget()
+    made = _versions()
+    files = sorted(kept.glob("*.json"))
+    assert len(files) > 20 and not list(kept.glob("*.tmp"))
+    assert _versions() == made  # read back
+
+    files[0].write_text('["torn')
+    files[1].write_text("{}")
+    assert _versions() == made
+    assert json.loads(files[0].read_text())[0] != "torn"  # made again, and kept
+
+    unwritable = tmp_path / "a-file"
+    unwritable.write_text("")
+    monkeypatch.setattr(cv, "NORMAL_FORMS", unwritable / "forms")  # its parent is a file: nothing is kept
+    assert _versions() == made
+
+
+def test_an_edit_is_a_new_normal_form_not_a_stale_one(tree, tmp_path, monkeypatch):
+    from acquisition import code_version as cv
+
+    monkeypatch.setattr(cv, "NORMAL_FORMS", tmp_path / "kept")
+    before = _versions()
+    _edit(tree / "pipeline" / "clean.py", "hampel_sigmas: float = 4.0", "hampel_sigmas: float = 4.5")
+    assert _versions()["session"] != before["session"]
+    _edit(tree / "pipeline" / "clean.py", "hampel_sigmas: float = 4.5", "hampel_sigmas: float = 4.0")
+    assert _versions() == before

@@ -233,24 +233,24 @@ class World:
     def command_joints(self, goal_rad: np.ndarray, profile_vel: np.ndarray | None = None,
                        profile_acc: np.ndarray | None = None) -> None:  # fmt: skip
         """New goal positions (B, A) or (A,); optional profile velocity/acceleration (0 = unlimited)."""
-        self.commands.goal[:] = np.broadcast_to(goal_rad, self.commands.goal.shape)
+        self.commands.goal[:] = goal_rad  # (A,) or (B, A): assignment broadcasts
         if profile_vel is not None:
-            self.commands.profile_vel[:] = np.broadcast_to(profile_vel, self.commands.profile_vel.shape)
+            self.commands.profile_vel[:] = profile_vel
         if profile_acc is not None:
-            self.commands.profile_acc[:] = np.broadcast_to(profile_acc, self.commands.profile_acc.shape)
+            self.commands.profile_acc[:] = profile_acc
 
     def command_pressure(self, pressure_pa: np.ndarray | float) -> None:
         """Regulator set-points (B, C), (C,) or a scalar, clipped to the regulator's span."""
         p = np.clip(pressure_pa, 0.0, self.robot.pneumatics.regulator_max_pa)
-        self.commands.pressure_set[:] = np.broadcast_to(p, self.commands.pressure_set.shape)
+        self.commands.pressure_set[:] = p
 
     def set_valves(self, open_: np.ndarray | bool) -> None:
         """Valve states (True = open to the regulator, False = hold with a slow leak)."""
-        self.commands.valve_open[:] = np.broadcast_to(open_, self.commands.valve_open.shape)
+        self.commands.valve_open[:] = open_
 
     def set_payload(self, payload_kg: np.ndarray | float) -> None:
         """The operator hangs a payload at the end-effector (per robot)."""
-        self.commands.payload_kg[:] = np.broadcast_to(payload_kg, self.commands.payload_kg.shape)
+        self.commands.payload_kg[:] = payload_kg
 
     def virtual_joint_inertia(self) -> np.ndarray:
         """(B, V) inertia (kg·m²) the kernel gives each virtual joint now: the distal masses (payload
