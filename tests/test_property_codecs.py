@@ -13,12 +13,14 @@ import math
 import struct
 
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from mcap_ros2._dynamic import generate_dynamic, serialize_dynamic
 
 from acquisition.codecs import board_lines as bp
-from acquisition.codecs import ndi
+from acquisition.codecs import ndi, slcan
+from acquisition.errors import CodecError
 from acquisition.schemas.cdr import PRIMITIVES, Field, FixedMessage, SchemaError
 from twin.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
 from twin.emulators.board_hardware import SimplePressureHardware, SimpleStepperHardware
@@ -383,3 +385,34 @@ def test_cdr_decode_of_random_bytes_raises_only_its_own_error(spec, data):
         assert len(data) % message.size
         return
     assert len(rows) * message.size == len(data)
+
+
+def _garbled(crc: bytes, into: str) -> bytes:
+    """``crc`` (4 hex digits, the first a 0) with a space or sign over that 0, or an underscore between."""
+    return crc[:2] + b"_" + crc[3:] if into == "_" else into.encode() + crc[1:]
+
+
+def _leading_zero(prefix: bytes) -> bytes:
+    """A text after ``prefix`` whose CRC starts with the digit 0."""
+    return next(t for i in range(1000) if ndi._hex_crc(prefix + (t := f"{i:04d}".encode())).startswith(b"0"))
+
+
+@pytest.mark.parametrize("into", [" ", "+", "-", "_"])
+def test_a_crc_field_is_four_hex_digits_exactly(into):
+    """int(x, 16) takes " ABC", "+ABC", "-0BC" and "A_BC": a reply or command whose CRC starts with 0 went
+    through with that digit garbled into a space or a sign (found by the property test above)."""
+    reply = b"A_" + _leading_zero(b"A_")
+    assert ndi.parse_reply(reply + ndi._hex_crc(reply) + b"\r") == reply.decode()
+    with pytest.raises(ndi.NdiFormatError):
+        ndi.parse_reply(reply + _garbled(ndi._hex_crc(reply), into) + b"\r")
+    params = _leading_zero(b"TX:")
+    assert ndi.parse_command(b"TX:" + params + ndi._hex_crc(b"TX:" + params)) == ("TX", params.decode())
+    with pytest.raises(ndi.NdiFormatError):
+        ndi.parse_command(b"TX:" + params + _garbled(ndi._hex_crc(b"TX:" + params), into))
+
+
+@pytest.mark.parametrize("line", [b"t 2381122", b"t+2381122", b"t1_381122", b"T 00001232AABB", b"t1239AA"])
+def test_an_slcan_identifier_or_length_with_a_foreign_character_is_malformed(line):
+    assert slcan.parse_frame(b"t1232AABB").can_id == 0x123  # a whole line
+    with pytest.raises(CodecError):
+        slcan.parse_frame(line)

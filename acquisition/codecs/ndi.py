@@ -37,6 +37,11 @@ def crc16_arc(data: bytes) -> int:
     return crc
 
 
+# exactly four hex digits: int(x, 16) alone also takes " ABC", "+ABC" and "A_BC", so a space or sign garbled
+# over a CRC's leading 0 (or an underscore between digits) went through as that CRC
+_CRC_DIGITS = re.compile(rb"[0-9A-Fa-f]{4}")
+
+
 def _hex_crc(data: bytes) -> bytes:
     """The 4 uppercase hex digits of the CRC of ``data``."""
     return b"%04X" % crc16_arc(data)
@@ -62,10 +67,9 @@ def parse_command(line: bytes) -> tuple[str, str]:
         if len(rest) < 4:
             return name.decode("ascii").upper(), rest.decode("ascii", "replace")
         params, crc_text = rest[:-4], rest[-4:]
-        try:
-            got = int(crc_text, 16)
-        except ValueError as exc:
-            raise NdiFormatError(f"bad CRC digits in {line!r}") from exc
+        if not _CRC_DIGITS.fullmatch(crc_text):
+            raise NdiFormatError(f"bad CRC digits in {line!r}")
+        got = int(crc_text, 16)
         want = crc16_arc(name + b":" + params)
         if got != want:
             raise NdiCrcError(f"command {line!r}: CRC {got:04X} != {want:04X}")
@@ -89,10 +93,9 @@ def parse_reply(data: bytes) -> str:
     if len(data) < 4:
         raise NdiFormatError(f"reply too short: {data!r}")
     body, crc_text = data[:-4], data[-4:]
-    try:
-        got = int(crc_text, 16)
-    except ValueError as exc:
-        raise NdiFormatError(f"bad CRC digits in reply {data!r}") from exc
+    if not _CRC_DIGITS.fullmatch(crc_text):
+        raise NdiFormatError(f"bad CRC digits in reply {data!r}")
+    got = int(crc_text, 16)
     want = crc16_arc(body)
     if got != want:
         raise NdiCrcError(f"reply {data[:40]!r}: CRC {got:04X} != {want:04X}")

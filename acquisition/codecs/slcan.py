@@ -12,6 +12,8 @@ encodes and parses; the adapter's emulator and the twin's bus use it, the driver
 
 from __future__ import annotations
 
+import re
+
 from acquisition.codecs.can import CanFrame
 from acquisition.errors import CodecError
 
@@ -37,13 +39,10 @@ def parse_frame(line: bytes) -> CanFrame:
         raise CodecError(f"slcan: not a frame line: {text[:20]!r}")
     extended, remote = text[0] in "TR", text[0] in "rR"
     width = 8 if extended else 3
-    try:
-        can_id = int(text[1 : 1 + width], 16)
-        dlc = int(text[1 + width])
-    except (ValueError, IndexError) as exc:
-        raise CodecError(f"slcan: malformed frame line {text[:30]!r}") from exc
-    if len(text[1 : 1 + width]) != width or dlc > 8:
+    # the identifier's digits and the length's digit, exactly (int() alone takes " 23", "+23", "2_3")
+    if not re.fullmatch(f"[0-9A-Fa-f]{{{width}}}[0-8]", text[1 : 2 + width]):
         raise CodecError(f"slcan: malformed frame line {text[:30]!r}")
+    can_id, dlc = int(text[1 : 1 + width], 16), int(text[1 + width])
     if remote:
         return CanFrame(can_id, b"", extended, True, dlc)
     hex_data = text[2 + width : 2 + width + 2 * dlc]
