@@ -31,7 +31,7 @@ demo: $(BIN)/.installed
 # alone: beside another worker, one lost 64 of 3,801 servo samples (a 160 ms stall) where a busy loop on
 # every core (test-under-load) costs none — found, not yet explained.
 PYTEST = $(BIN)/python -m pytest
-# The real-time run collects only the files whose tests ask for the real_time fixture by name (a collection of
+# The real-time run collects only the files that name real_time (a test asking for the fixture, or marked; a collection of
 # the whole suite is ~4 s of imports for 17 tests); tests/test_suite_workers.py checks that no shared fixture
 # asks for it on a test's behalf, which would hide a real-time test from this list.
 REAL_TIME_FILES = $(shell grep -lw real_time tests/test_*.py)
