@@ -243,13 +243,24 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """A test that judges a real-time recording (it asks for ``real_time``) is marked ``real_time``: make test
     and make check run those alone, after the others' workers (``make test-under-load`` runs them with every
     core busy). The tests that read the tutorials' run (``tutorial_run``: the quick main job, ~5 min) are one
-    group: under ``--dist loadgroup`` one worker runs them, so the main job runs once, not once a worker."""
+    group: under ``--dist loadgroup`` one worker runs them, so the main job runs once, not once a worker. So
+    are the tests of a module that share a module- or class-scoped fixture: spread over both workers, each
+    worker made it (a simulated campaign, a built site: ~65 CPU-seconds of the suite made twice)."""
     for item in items:
         fixtures = getattr(item, "fixturenames", ())
         if "real_time" in fixtures:
             item.add_marker(pytest.mark.real_time)
         if "tutorial_run" in fixtures:
             item.add_marker(pytest.mark.xdist_group(TUTORIALS_GROUP))
+        elif _shares_a_fixture(item):
+            item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))
+
+
+def _shares_a_fixture(item: pytest.Item) -> bool:
+    """Whether ``item`` uses a fixture made once for its module or class (session ones are made once a
+    worker whatever the grouping)."""
+    definitions = getattr(getattr(item, "_fixtureinfo", None), "name2fixturedefs", {})
+    return any(defs and defs[-1].scope in ("module", "class", "package") for defs in definitions.values())
 
 
 TUTORIALS_GROUP = "tutorials"
