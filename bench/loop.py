@@ -61,6 +61,26 @@ def _load() -> str:
     return f"{one:.2f} {five:.2f} {fifteen:.2f}"
 
 
+def _stolen_s() -> float:
+    """CPU seconds the hypervisor has taken from this machine since it booted (steal in /proc/stat; 0 where
+    there is none to read)."""
+    try:
+        fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
+
+
+def python_yardstick(n: int = 10_000_000) -> float:
+    """Seconds one core takes for ``n`` additions in a plain Python loop: how fast this machine runs the
+    Python the loop's figures spend most of their time in (the goals were set on one machine; the same
+    code measured on a slower one reads slower by about this ratio)."""
+    start, total = time.perf_counter(), 0
+    for i in range(n):
+        total += i
+    return time.perf_counter() - start
+
+
 def _timed(cmd: list[str], cwd: Path, log: Path) -> float:
     """Wall seconds of ``cmd``, its output in ``log``; raises if it fails. Also prints the CPU seconds the
     machine's cores were busy meanwhile, and what that alone costs on them run side by side (the figure's
@@ -249,7 +269,10 @@ def main() -> int:
     if unknown := only - set(GOALS):
         parser.error(f"unknown figure(s) {sorted(unknown)}: choose from {', '.join(GOALS)}")
     WHAT["campaign"] = f"campaign simulated ({args.points:,} points)"
-    print(f"bench/loop.py on {os.cpu_count()} cores, load average at the start {_load()}", flush=True)
+    yardstick = python_yardstick()
+    print(f"bench/loop.py on {os.cpu_count()} cores, load average at the start {_load()}; this machine's "
+          f"yardstick: 10 M Python additions in {yardstick:.2f} s on one core", flush=True)  # fmt: skip
+    stolen_at_start = _stolen_s()
     figures: dict[str, float] = {}
     with tempfile.TemporaryDirectory(prefix="loop-") as name:
         tmp = Path(name)
@@ -259,7 +282,8 @@ def main() -> int:
             main_job(tmp, figures, only)
         if only & {"test", "check"}:
             suite(tmp, figures, only)
-    print(f"\nfigure{'':<33} {'measured':>14}   goal             (load average at the end {_load()})")
+    print(f"\nfigure{'':<33} {'measured':>14}   goal             (load average at the end {_load()}; "
+          f"{_stolen_s() - stolen_at_start:.1f} CPU-seconds taken by the hypervisor meanwhile)")  # fmt: skip
     missed = False
     for name in GOALS:
         if name in figures:
