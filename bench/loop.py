@@ -61,16 +61,6 @@ def _load() -> str:
     return f"{one:.2f} {five:.2f} {fifteen:.2f}"
 
 
-def _stolen_s() -> float:
-    """CPU seconds the hypervisor has taken from this machine since it booted (steal in /proc/stat; 0 where
-    there is none to read)."""
-    try:
-        fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()
-        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return 0.0
-
-
 def python_yardstick(n: int = 10_000_000) -> float:
     """Seconds one core takes for ``n`` additions in a plain Python loop: how fast this machine runs the
     Python the loop's figures spend most of their time in (the goals were set on one machine; the same
@@ -104,16 +94,29 @@ def _timed(cmd: list[str], cwd: Path, log: Path) -> float:
     return wall
 
 
-def _busy_cpu_s() -> float | None:
-    """Seconds every core of this machine has spent busy since boot (/proc/stat: all but idle, iowait and the
-    time the hypervisor took); None where there is no /proc/stat."""
+def _cpu_s() -> list[float] | None:
+    """The seconds of /proc/stat's first line since boot, every core together (user, nice, system, idle,
+    iowait, irq, softirq, steal, ...); None where there is none to read."""
     try:
         with open("/proc/stat") as f:
-            ticks = [int(v) for v in f.readline().split()[1:]]
+            return [int(v) / os.sysconf("SC_CLK_TCK") for v in f.readline().split()[1:]]
     except (OSError, ValueError):
         return None
-    user, nice, system, _idle, _iowait, irq, softirq = ticks[:7]
-    return (user + nice + system + irq + softirq) / os.sysconf("SC_CLK_TCK")
+
+
+def _busy_cpu_s() -> float | None:
+    """Seconds every core of this machine has spent busy since boot (all but idle, iowait and the time the
+    hypervisor took); None where there is no /proc/stat."""
+    if (cpu := _cpu_s()) is None:
+        return None
+    user, nice, system, _idle, _iowait, irq, softirq = cpu[:7]
+    return user + nice + system + irq + softirq
+
+
+def _stolen_s() -> float:
+    """Seconds of this machine's CPU the hypervisor has taken since boot (0 where none is counted)."""
+    cpu = _cpu_s()
+    return cpu[7] if cpu is not None and len(cpu) > 7 else 0.0
 
 
 def main_job(tmp: Path, figures: dict, only: set[str]) -> None:
