@@ -122,10 +122,10 @@ def _finish(lab, session: str, run: subprocess.Popen, watch: StealWatch):
 
 @pytest.mark.slow
 def test_table1_from_real_time_link_tests(recorded):
-    # the taps on two rigs at once (each impact found in its accelerometer, however late its event); the
-    # static tests one at a time: side by side with a busy process on each core, two rigs starved of CPU
-    # read k̂ 6 % low (one at a time they hold under that load)
-    impact = recorded.together(*(f"impact-{kpa}" for kpa in PRESSURES_KPA))
+    # one rig at a time: two at once (each emulating the CAN bus and its 1 kHz IMU) starved the host's CAN
+    # reading on a slow 2-core machine, alone in the real-time run (a drive's heartbeat missed for 0.33 s);
+    # the static tests likewise: side by side with a busy process on each core, two rigs read k̂ 6 % low
+    impact = [recorded(f"impact-{kpa}") for kpa in PRESSURES_KPA]
     static = [recorded(f"static-{kpa}") for kpa in PRESSURES_KPA]
     table = pt.table1(lt.static_stiffness(lt.link_static_curves(static)), lt.impact_parameters(impact))
     assert table["pressure_kpa"].tolist() == list(PRESSURES_KPA)
