@@ -85,7 +85,6 @@ def _own_group_nice() -> str:
         return "-"
 
 
-@pytest.mark.skipif(not LINUX, reason="sessions and autogroups are Linux's")
 def _signals_and_cpu(*pids: int) -> str:
     """What each process was doing: its state, the signals it blocks and ignores, its CPU time so far."""
     lines = []
@@ -107,6 +106,7 @@ def _signals_and_cpu(*pids: int) -> str:
     return "; ".join(lines)
 
 
+@pytest.mark.skipif(not LINUX, reason="sessions and autogroups are Linux's")
 def test_ctrl_c_reaches_the_batch_job_and_a_killed_parent_takes_it_along():
     # nice 1: how signals pass is what is checked here; at nice 19 the job's session gets ~1.5 % of a core
     # beside CPU-bound work (its Ctrl-C took 0.9 s to end it under bench/load.py, against 0.05 s idle)
