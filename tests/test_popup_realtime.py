@@ -43,7 +43,7 @@ from pipeline.session_index import sessions_of
 from twin.runner import simulate_experiment
 from twin.streams import tracker_spec
 
-# Each test judges recordings made in real time (two rigs at once for the taps): they run alone, after the
+# Each test judges recordings made in real time, one rig at a time: they run alone, after the
 # other tests' workers (`make test`), like every test that judges a real-time recording. Beside another worker
 # on a slow 2-core machine all four failed in one run, the CAN host starved ("host not reading").
 pytestmark = pytest.mark.real_time
@@ -73,27 +73,22 @@ STALL_WINDOW_S = 0.5
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     """``recorded(name)``: the session of :data:`SESSIONS` run with ``vslab run … --rig`` into the module's
-    lab (each recorded once, when a test first needs it); ``recorded.together(*names)`` records those not yet
-    recorded side by side, each on a rig of its own; ``recorded.lab`` is the lab."""
+    lab (each recorded once, when a test first needs it, on a rig of its own); ``recorded.lab`` is the lab."""
     lab = tmp_path_factory.mktemp("popup-rt") / "lab"
     done: dict[str, object] = {}
 
-    def together(*names: str) -> list:
-        running = {name: _start(lab, name) for name in names if name not in done}
-        try:
-            for name, started in running.items():
-                done[name] = _finish(lab, name, *started)
-        finally:  # one failed: the others do not outlive the test
-            for run, _ in running.values():
+    def session(name: str):
+        if name not in done:
+            run, watch = _start(lab, name)
+            try:
+                done[name] = _finish(lab, name, run, watch)
+            finally:  # it failed: the recording does not outlive the test
                 if run.poll() is None:
                     run.kill()
                     run.wait()
-        return [done[name] for name in names]
+        return done[name]
 
-    def session(name: str):
-        return together(name)[0]
-
-    session.together, session.lab = together, lab
+    session.lab = lab
     return session
 
 
