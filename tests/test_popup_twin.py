@@ -91,3 +91,41 @@ def test_tap_rings_at_table1_damped_frequency(link_bench):
         assert _log_decrement_damping_ratio(x if x[np.argmax(np.abs(x))] > 0 else -x) == pytest.approx(
             zeta, rel=0.2
         )
+
+
+def test_the_rigs_link_boards_sense_what_the_simulated_streams_compute():
+    """The rig's link boards (the CAN emulators' IMU, read sample by sample as the bus asks) against the
+    simulated streams' formula on the same states, in numpy (``DHChain``): the link end's rotation, and the
+    tip's specific force Rᵀ (ẍ − g), while the arm moves and after a tap, wherever the ring wraps."""
+    from twin.rig import Rig
+
+    popup = load_robot("popup")
+    rig = Rig(popup, seed=SEED)
+    chain, gravity, dt = popup.chain(), np.asarray(popup.gravity_m_s2), rig.world.dt
+    rig.world.commands.goal[0, 0] = 0.6  # the base turns: the tip accelerates
+    boards = {name: node.link for name, node in rig.boards.items() if hasattr(node, "link")}
+    assert set(boards) == {"link1_board", "link2_board"}
+    q, delta, tip, forces, rotations = [], [], [], [], {name: [] for name in boards}
+    chunks = np.random.default_rng(SEED).integers(1, 8, 80)  # steps the rig takes between the bus's reads
+    k = 2
+    for chunk in chunks:
+        if k <= 200 < k + chunk:
+            rig.world.tap(0.02)
+        rig.advance(rig.step_due_s(k + chunk - 1))  # the rig ahead of the boards, as when the host wakes late
+        for j in range(k, k + chunk):
+            t = rig.step_due_s(j)
+            step = rig.recent.at(t)
+            q.append(step.q.copy()), delta.append(step.delta.copy()), tip.append(step.tip.copy())
+            for name, board in boards.items():
+                rotations[name].append(board._rotation(step).copy())
+            boards["link2_board"].acceleration(t)  # as the bus samples it
+            forces.append(boards["link2_board"]._forces[step.slot].copy())
+        k += chunk
+    q, delta, tip = np.array(q), np.array(delta), np.array(tip)
+    frames = chain.frames(q, delta)
+    for name, board in boards.items():
+        np.testing.assert_allclose(np.array(rotations[name])[1:], frames[1:, board.frame, :3, :3], atol=1e-12)
+    accel = (tip[2:] - 2.0 * tip[1:-1] + tip[:-2]) / dt**2
+    expected = np.einsum("nji,nj->ni", frames[2:, boards["link2_board"].frame, :3, :3], accel - gravity)
+    assert np.abs(accel).max() > 0.5  # it moved
+    np.testing.assert_allclose(np.array(forces)[2:], expected, atol=1e-6)

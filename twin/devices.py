@@ -20,7 +20,7 @@ import numpy as np
 
 from acquisition.codecs import dynamixel as dx
 from acquisition.devices.kinds import device_of
-from twin import sensors, streams
+from twin import kernel, sensors, streams
 from twin.clocks import _TICK_EPS as TICK_EPS
 from twin.emulators.aurora import TrackerSample
 from twin.emulators.dynamixel import ControlTable
@@ -281,12 +281,6 @@ class RecentStep:
         """Where this step is in its ring."""
         return self._i
 
-    @property
-    def before(self) -> np.ndarray:
-        """The tip positions of the two steps before (2, 3): for the tip's acceleration."""
-        n = self._ring.capacity
-        return self._ring.tip[[(self._i - 2) % n, (self._i - 1) % n]]
-
 
 class RecentSteps:
     """The last ``capacity`` steps of the twin's trace: a board's sample due at rig time t reads the step
@@ -319,7 +313,8 @@ class RecentSteps:
     def at(self, t: float) -> RecentStep:
         """The step holding at rig time ``t`` (the last that ended at or before it)."""
         newest = (self.head - 1) % self.capacity
-        back = int(np.floor((self.t[newest] - t) / self.dt + 1e-9)) if t < self.t[newest] else 0
+        # steps that ended after t (floor here read the step after t whenever the rig was ahead of t)
+        back = math.ceil((self.t[newest] - t) / self.dt - 1e-6) if t < self.t[newest] else 0
         # how far behind the newest step a sample may read (two more are kept for its acceleration)
         kept = min(self.head, self.capacity - 2) - 1
         if back > kept:
@@ -353,38 +348,42 @@ class TwinLinkBoard:
         robot = rig.robot
         self.rig = rig
         self.rng = rig.world.device_rng(device)  # the board's own noise
-        self.chain = robot.chain()
         self.frame, self.bend = robot.link_end(link)
         self.accel_spec = robot.sensors.accelerometer
         self.flex_spec = robot.sensors.flex
-        self.gravity = np.asarray(robot.gravity_m_s2)
         self._rotations: np.ndarray | None = None  # the link end's rotation at each step of rig.recent
-        self._rotated = 0  # rig.recent's steps whose rotation is in _rotations
+        self._forces: np.ndarray | None = None  # the specific force in that frame at each step
+        self._done = 0  # rig.recent's steps whose rotation and force are kept
+
+    def _update(self) -> None:
+        """The link end's rotation and the specific force in its frame at every step the rig appended since
+        the last call, in one batch: computed per sample, the 1 kHz IMU was most of the rig's CPU."""
+        recent = self.rig.recent
+        if self._done == recent.head:
+            return
+        cap = recent.capacity
+        if self._rotations is None:
+            self._rotations, self._forces = np.zeros((cap, 3, 3)), np.zeros((cap, 3))
+        # a sample reads at most capacity − 2 steps back (RecentSteps.at): the two before are the ring's
+        first = recent.head - min(recent.head - self._done, cap - 2)
+        steps = range(first, recent.head)
+        kernel.link_end_states(self.rig.world.params, recent.q, recent.delta, recent.tip, steps, self.frame,
+                               self._rotations, self._forces)  # fmt: skip
+        self._done = recent.head
 
     def _rotation(self, step: RecentStep) -> np.ndarray:
-        """The link end's rotation at ``step``. Computed for every step the rig appended since the last
-        call in one batch (one forward kinematics per sample made the 1 kHz IMU most of the rig's time)."""
-        recent = self.rig.recent
-        if self._rotated < recent.head:
-            n = min(recent.head - self._rotated, recent.capacity)
-            slots = (recent.head - n + np.arange(n)) % recent.capacity
-            if self._rotations is None:
-                self._rotations = np.zeros((recent.capacity, 3, 3))
-            frames = self.chain.frames(recent.q[slots], recent.delta[slots])
-            self._rotations[slots] = frames[:, self.frame, :3, :3]
-            self._rotated = recent.head
+        """The link end's rotation at ``step``."""
+        self._update()
         return self._rotations[step.slot]
 
     def acceleration(self, t: float) -> np.ndarray:
         """Specific force (m/s², 3) at the chain's tip (link 2's end), as ``streams.accelerometer_stream``."""
         self.rig.advance(t)
         step = self.rig.recent.at(t)
-        x0, x1 = step.before
-        accel = (step.tip - 2.0 * x1 + x0) / self.rig.world.dt**2
-        force = self._rotation(step).T @ (accel - self.gravity)
+        self._update()
         spec = self.accel_spec
-        return sensors.accelerometer_reading(force, spec.lsb_m_s2, spec.full_scale_m_s2, spec.noise_rms_m_s2,
-                                             self.rng)  # fmt: skip
+        return sensors.accelerometer_reading(self._forces[step.slot], spec.lsb_m_s2, spec.full_scale_m_s2,
+                                             spec.noise_rms_m_s2, self.rng)  # fmt: skip
 
     def orientation(self, t: float) -> np.ndarray:
         """(roll, pitch, yaw) of the link's end frame in the base frame (rad)."""

@@ -169,6 +169,38 @@ def advance(params: KernelParams, state: KernelState, cmd: KernelCommands, n: in
     return trace
 
 
+def link_end_states(params: KernelParams, q, delta, tip, steps: range, frame: int, rotations, forces) -> None:
+    """What an IMU at the chain's frame ``frame`` (0: the base, i + 1: after D-H row i) senses at each step
+    ``s`` of ``steps``, from a ring of the twin's recent states (capacity C; step s at slot s % C): ``q``
+    (C, a), ``δ`` (C, v), the tip's position ``tip`` (C, 3). Writes at slot s % C the frame's rotation to
+    ``rotations`` (C, 3, 3) and the tip's specific force in that frame, Rᵀ (ẍ − g) with ẍ the tip's second
+    difference over steps s − 2 … s, to ``forces`` (C, 3): the kernel's own kinematics, in one call (a link
+    board's IMU reads it a thousand times a second; numpy spent ~100 µs a sample)."""
+    p = params
+    _link_end_states(q, delta, tip, steps.start, steps.stop, frame, p.dt, p.gravity, p.row_a,
+                     p.row_alpha_cs, p.row_d, p.row_offset, p.row_virtual, p.row_var, p.tool_offset,
+                     rotations, forces)  # fmt: skip
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _link_end_states(q, delta, tip, first, stop, frame, dt, gravity, row_a, row_alpha_cs, row_d, row_offset,
+                     row_virtual, row_var, tool, rotations, forces):  # fmt: skip
+    cap = q.shape[0]
+    frames = np.empty((row_a.shape[0] + 2, 4, 4))
+    sensed = np.empty(3)  # a − g in the base frame
+    for s in range(first, stop):
+        i, i1, i2 = s % cap, (s - 1) % cap, (s - 2) % cap
+        _frames(q[i], delta[i], row_a, row_alpha_cs, row_d, row_offset, row_virtual, row_var, tool, frames)
+        for k in range(3):
+            sensed[k] = (tip[i, k] - 2.0 * tip[i1, k] + tip[i2, k]) / (dt * dt) - gravity[k]
+            for j in range(3):
+                rotations[i, k, j] = frames[frame, k, j]
+        for j in range(3):  # Rᵀ (a − g)
+            forces[i, j] = 0.0
+            for k in range(3):
+                forces[i, j] += frames[frame, k, j] * sensed[k]
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _profile_step(ref, vel, goal, vmax, amax, dt):
     """Dynamixel-like trapezoidal profile: brake in time to stop at the goal; 0 means unlimited."""

@@ -132,8 +132,13 @@ class CanopenNode(CanNode):
         return []
 
     def next_due_s(self) -> float | None:
-        times = [x for x in (self._boot, self._next_heartbeat, *self._next_event.values()) if x is not None]
-        return min(times) if times else None
+        due = self._boot  # the bus asks every node at every event: no list built
+        if self._next_heartbeat is not None and (due is None or self._next_heartbeat < due):
+            due = self._next_heartbeat
+        if self._next_event:
+            event = min(self._next_event.values())
+            due = event if due is None or event < due else due
+        return due
 
     def produce(self, t: float) -> list[tuple[float, CanFrame]]:
         out = []

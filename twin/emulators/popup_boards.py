@@ -34,13 +34,16 @@ class BoardStream:
     sample: Callable[[float], dict[str, int]]
     counter_modulo: int = pb.COUNTER_MODULO
     k: int = 0
+    due_s: float = 0.0  # timer.instant(k), kept with k: the bus asks for it at every event
 
     def start(self, t: float) -> None:
         self.k = self.timer.first_after(t)
+        self.due_s = self.timer.instant(self.k)
 
-    @property
-    def due_s(self) -> float:
-        return self.timer.instant(self.k)
+    def next(self) -> None:
+        """Sample ``k`` was sent: the next one is due."""
+        self.k += 1
+        self.due_s = self.timer.instant(self.k)
 
 
 class BoardNode(CanNode):
@@ -52,9 +55,10 @@ class BoardNode(CanNode):
         self.silent = False
         for s in streams:
             s.start(t0)
+        self._due = min((s.due_s for s in streams), default=None)  # the bus asks at every event: kept
 
     def next_due_s(self) -> float | None:
-        return min((s.due_s for s in self.streams), default=None)
+        return self._due
 
     def produce(self, t: float) -> list[tuple[float, CanFrame]]:
         out = []
@@ -63,7 +67,8 @@ class BoardNode(CanNode):
                 signals = s.sample(due)
                 signals["Counter"] = s.k % s.counter_modulo
                 out.append((due, pb.encode(s.message, signals, scaling=False)))
-                s.k += 1
+                s.next()
+        self._due = min((s.due_s for s in self.streams), default=None)
         return out
 
     def power(self, on: bool, t: float) -> None:
@@ -71,6 +76,7 @@ class BoardNode(CanNode):
         if on and self.silent:
             for s in self.streams:
                 s.start(t)
+            self._due = min((s.due_s for s in self.streams), default=None)
         self.silent = not on
 
 
