@@ -12,7 +12,9 @@ past its slot, as the recorder's. First prints the load the description's rates 
 (``can_budget.popup_can_load``: per frame kind, worst case and typical); then per rate the cycles run and
 answered by every drive, the frames per second through the adapter (both directions), the loop's period
 jitter, the bus load the rig's bus measured (bits carried / bit rate / seconds, stuff bits included) and the
-frames it lost on full transmit queues. States the machine's load as it ran.
+frames it lost on full transmit queues; and what the rig itself cost (% of a core, wake-ups/s), idle with
+the adapter closed and during each rate: a real arm costs the host nothing, so the twin's cost is taken
+from the recorder's daemons. States the machine's load as it ran.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from rig import Meter, scheduling  # bench/rig.py: the rig process's CPU and wake-ups from /proc
 
 from acquisition.devices.can_budget import popup_can_load
 from acquisition.devices.can_drives import CanDrives
@@ -93,17 +96,27 @@ def main() -> None:
         rig = subprocess.Popen([sys.executable, "-m", "twin.rig", "--robot", "popup", "--run-dir", tmp])
         try:
             port = wait_for_ports(run_dir)["can_bus"]
+            time.sleep(1.0)  # start-up work (imports, JIT cache loads) done
+            with Meter(rig.pid) as idle:
+                time.sleep(min(args.seconds, 5.0))
+            use = idle.usage
+            print(
+                f"rig ({scheduling(rig.pid)}) idle, adapter closed (the boards stream, no host reads): "
+                f"{use.core_pct:.1f} % of a core, {use.wakeups / use.wall_s:.0f} wake-ups/s"
+            )
             limits = {j.name: (j.lower_rad, j.upper_rad) for j in robot.joints}
             with CanDrives(port, spec.ids, limits_rad=limits, bitrate=spec.baud) as drives:
                 drives.enable()
                 print(f"{'SYNC Hz':>8} {'loop Hz':>8} {'cycles':>7} {'all answered':>13} {'frames/s':>9} "
-                      f"{'bus load':>9} {'lost':>5} {'period p50/p99 ms':>18}")  # fmt: skip
+                      f"{'bus load':>9} {'lost':>5} {'period p50/p99 ms':>18} "
+                      f"{'rig % core':>11}")  # fmt: skip
                 for rate in args.rate:
-                    r = run_rate(drives, run_dir, rate, args.seconds)
+                    with Meter(rig.pid) as m:
+                        r = run_rate(drives, run_dir, rate, args.seconds)
                     print(f"{r['rate']:8.0f} {r['loop_hz']:8.1f} {r['cycles']:7d} "
                           f"{r['answered'] / max(r['cycles'], 1):13.1%} {r['frames_s']:9.0f} "
                           f"{r['load']:9.1%} {r['lost']:5d} "
-                          f"{r['dt_p50']:8.2f} / {r['dt_p99']:6.2f}")  # fmt: skip
+                          f"{r['dt_p50']:8.2f} / {r['dt_p99']:6.2f} {m.usage.core_pct:11.1f}")  # fmt: skip
         finally:
             rig.terminate()
             rig.wait(timeout=10)
