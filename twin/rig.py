@@ -78,6 +78,9 @@ class Rig:
             emulator = resolve(kind.emulator)(self, name, spec)
             if emulator is not None:
                 self.emulators[name] = emulator
+        # a hammer tap's first call loads four compiled kernel functions (~20 ms here, seconds where numba
+        # has no cache yet): done now, not mid-session, where it stalled every stream of the rig at once
+        self.world.virtual_joint_inertia()
 
     def advance(self, now_s: float) -> None:
         """Step the twin up to ``now_s`` (rig time): it has then taken ``int(now_s / dt)`` steps."""
