@@ -354,6 +354,9 @@ class TwinLinkBoard:
         self._rotations: np.ndarray | None = None  # the link end's rotation at each step of rig.recent
         self._forces: np.ndarray | None = None  # the specific force in that frame at each step
         self._done = 0  # rig.recent's steps whose rotation and force are kept
+        # the first call compiles the kernel's function where numba has no cache yet (0.6 s here): now, as
+        # the rig is built, not at the first sample, while the host waits for the drives' first SDO reply
+        self._update()
 
     def _update(self) -> None:
         """The link end's rotation and the specific force in its frame at every step the rig appended since
