@@ -269,10 +269,10 @@ class TwinJoint:
 class RecentStep:
     """The twin's true state at one step (robot 0), as the rig keeps it for samples due a little late."""
 
-    __slots__ = ("_i", "_ring", "delta", "p_link", "q", "t", "tip")
+    __slots__ = ("_i", "delta", "p_link", "q", "t", "tip")
 
     def __init__(self, ring: RecentSteps, i: int) -> None:
-        self._ring, self._i = ring, i
+        self._i = i
         self.t, self.q, self.delta = ring.t[i], ring.q[i], ring.delta[i]
         self.tip, self.p_link = ring.tip[i], ring.p_link[i]
 
