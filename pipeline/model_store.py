@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import copy
 import datetime
+import hashlib
 import io
 import json
 import logging
@@ -33,7 +34,7 @@ from safetensors.torch import save_file
 
 from acquisition.storage import LabPath, is_local, publish
 from models.hybrid import HybridNet, NetConfig
-from pipeline.cache import digest, file_hash, stage_version
+from pipeline.cache import digest, stage_version
 from pipeline.errors import PipelineError
 from pipeline.exports import OnnxModel, onnx_bytes, torchscript
 
@@ -105,7 +106,7 @@ def save_model(root: Path, name: str, version: str, model: HybridNet, card: dict
             "name": name, "version": version, **jsonable(card), "net": _net_config(model, card).to_dict(),
             "code_version": stage_version("model"), "torch": torch.__version__,
             "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "files": {f: file_hash([folder / f]) for f in FILES},
+            "files": {f: file_sha256(folder / f) for f in FILES},
         }  # fmt: skip
         full = json.loads(json.dumps(full))  # hashed as it will read back (tuples → lists, …)
         full["card_sha256"] = card_digest(full)
@@ -160,6 +161,12 @@ def load_card(path: Path) -> dict:
     return card
 
 
+def file_sha256(path: Path) -> str:
+    """sha256 of one file's bytes, as a card records it."""
+    with path.open("rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
 def check_model(path: Path) -> dict:
     """The card of a version directory once every file is checked against it (:class:`ModelIntegrityError`
     names the first file that is missing, unreadable or not the one the card recorded)."""
@@ -173,7 +180,7 @@ def check_model(path: Path) -> dict:
         raise ModelIntegrityError(path, CARD, f"'files' must hold a sha256 of each of {list(FILES)}")
     for name in sorted(files):
         try:
-            actual = file_hash([path / name])
+            actual = file_sha256(path / name)
         except FileNotFoundError:
             raise ModelIntegrityError(path, name, "missing") from None
         except OSError as exc:
