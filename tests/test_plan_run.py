@@ -16,7 +16,8 @@ import pytest
 from acquisition.errors import AcquisitionError
 from acquisition.plans.compensation import CompensationError, StaticModelCompensator, compensator_for
 from acquisition.plans.plan_run import PlanRunError, choose_plan, operator_prompts, ready_plan
-from acquisition.recorder.setup import SetupError, checked_ports, new_recorder, ports_file, session_id
+from acquisition.recorder.recorder import Recorder, RecorderError
+from acquisition.recorder.setup import SetupError, checked_ports, ports_file, session_id
 from models.hybrid import INVERSE_INPUTS
 from models.robot import load_robot
 from pipeline.baselines import RigidModel
@@ -105,8 +106,10 @@ def test_session_ids_ports_and_sessions_are_checked(tmp_path):
         checked_ports(vsl, {"gripper": "/dev/null"}, "here")
     (tmp_path / "sessions" / "s1").mkdir(parents=True)
     (tmp_path / "sessions" / "s1" / "s1_000.mcap").write_bytes(b"")
-    with pytest.raises(SetupError, match="session s1 exists already"):
-        new_recorder(vsl, {}, tmp_path / "sessions", "s1", "manual", {})
+    with pytest.raises(RecorderError, match="session s1 exists already"):
+        Recorder(vsl, {"servo_bus": "/dev/null"}, tmp_path / "sessions" / "s1", "s1")
+    with pytest.raises(RecorderError, match=r"none of vsl's devices \(.*\) is in the port map \(gripper\)"):
+        Recorder(vsl, {"gripper": "/dev/null"}, tmp_path / "sessions" / "s2", "s2")
 
 
 def test_a_rig_s_devices_are_found_or_refused_in_one_line(tmp_path):

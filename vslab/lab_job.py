@@ -123,10 +123,12 @@ class MainJobError(CommandLineError):
 def _rig_session(lab: Lab) -> None:
     """One Experiment 1 curve run in real time on the rig, recorded into ``lab`` (skipped when already
     recorded): the library calls behind `vslab run experiment1 --plan … --rig`, the whole plan or a
-    MainJobError (a ``PlanRunError``, ``RigError`` or ``SetupError`` where it cannot start)."""
+    MainJobError (a ``PlanRunError``, ``RigError``, ``SetupError`` or ``RecorderError`` where it cannot
+    start)."""
     if any(lab.sessions.root.glob("rig-*/session.json")):
         return
-    from acquisition.plans.plan_run import choose_plan, ready_plan, record_plan
+    from acquisition.plans.plan_run import choose_plan, plan_session, ready_plan, record_plan
+    from acquisition.recorder.recorder import Recorder
     from acquisition.recorder.setup import recording_failure
     from twin.rig_process import rig_controls, session_devices
 
@@ -134,8 +136,10 @@ def _rig_session(lab: Lab) -> None:
     plan, desc = choose_plan("experiment1", "experiment1/curve/vsl-1bar/25g", overrides)
     compensator, session = ready_plan(plan, desc), "rig-experiment1-curve"
     with session_devices(desc, rig_dir=lab.rigs / session, plan=plan) as (port_map, rig_dir):
-        report, rec = record_plan(plan, desc, port_map, lab.sessions.root, session, compensator,
-                                  rig_controls(rig_dir), "experiment1")  # fmt: skip
+        rec = Recorder(
+            desc, port_map, lab.sessions.root / session, session, **plan_session(plan, "experiment1")
+        )
+        report = record_plan(plan, rec, compensator, rig_controls(rig_dir))
     if failure := recording_failure(rec):
         raise MainJobError(f"the rig session {plan.name}: {failure}")
     if report.status != "complete":

@@ -145,7 +145,7 @@ def record(
     live_port: LivePort = 8765,
 ) -> None:
     """Record every device of a robot to one MCAP session, with live counters; Ctrl-C stops cleanly."""
-    from acquisition.recorder.setup import new_recorder
+    from acquisition.recorder.recorder import Recorder
     from twin.rig_process import session_devices
 
     local_lab("record")
@@ -156,7 +156,9 @@ def record(
     session_id = _session_id(session, time.strftime("%Y%m%d-%H%M%S") + f"-{desc.name}")
     try:
         with session_devices(desc, ports, _rig_dir(rig, session_id)) as (port_map, _):
-            rec = new_recorder(desc, port_map, options().lab.sessions.root, session_id, experiment, rates)
+            rec = Recorder(
+                desc, port_map, options().lab.sessions.root / session_id, session_id, experiment, rates=rates
+            )
             view = _live_view(desc, live_host, live_port) if live else contextlib.nullcontext()
             with view as live_server:
                 rec.live = live_server
@@ -198,7 +200,14 @@ def run(
 ) -> None:
     """Run one plan of an experiment in real time on the devices (or the rig) while recording it. Payload
     changes and taps prompt the operator (on the rig: applied). Ctrl-C: a safe stop; the file stays valid."""
-    from acquisition.plans.plan_run import choose_plan, operator_prompts, ready_plan, record_plan
+    from acquisition.plans.plan_run import (
+        choose_plan,
+        operator_prompts,
+        plan_session,
+        ready_plan,
+        record_plan,
+    )
+    from acquisition.recorder.recorder import Recorder
     from pipeline.in_loop import learned_compensators
     from twin.rig_process import rig_controls, session_devices
 
@@ -216,8 +225,9 @@ def run(
         with session_devices(desc, ports, _rig_dir(rig, session_id), the_plan) as (port_map, rig_dir):
             controls = rig_controls(rig_dir) if rig else operator_prompts(_prompt)
             view = (lambda: _live_view(desc, live_host, live_port)) if live else None
-            report, rec = record_plan(the_plan, desc, port_map, options().lab.sessions.root, session_id,
-                                      compensator, controls, experiment, device_rates, view)  # fmt: skip
+            rec = Recorder(desc, port_map, options().lab.sessions.root / session_id, session_id,
+                           rates=device_rates, **plan_session(the_plan, experiment))  # fmt: skip
+            report = record_plan(the_plan, rec, compensator, controls, view)
     except AcquisitionError as exc:  # PlanRunError, a port, the rig, the session folder: nothing started
         _error(str(exc))
     _finish(rec)

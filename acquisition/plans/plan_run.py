@@ -4,8 +4,9 @@
 Three steps, each refusing what it cannot do with a :class:`PlanRunError` before anything starts:
 :func:`choose_plan` (the experiment expanded, one plan picked by name or number), :func:`ready_plan` (the
 plan held to the robot's safety limits, its compensator chosen) and :func:`record_plan` (the session
-recorded while the :class:`~acquisition.plans.rt_runner.RealTimeRunner` runs the plan on the devices of a
-port map). Where the devices come from (ports, a rig) and who hangs payloads is the caller's: the rig is
+recorded while the :class:`~acquisition.plans.rt_runner.RealTimeRunner` runs the plan on the recorder's
+devices). Where the devices come from (ports, a rig), where the session goes (the caller makes the
+:class:`Recorder`, with :func:`plan_session`'s words) and who hangs payloads is the caller's: the rig is
 the twin's (``twin.rig_process``), a prompt is the command line's.
 """
 
@@ -14,14 +15,13 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable, Mapping
 from contextlib import AbstractContextManager
-from pathlib import Path
 
 from acquisition.errors import AcquisitionError
 from acquisition.plans.compensation import CompensationError, Compensator, compensator_for
 from acquisition.plans.plan import Plan
 from acquisition.plans.rt_runner import RealTimeRunner, RunnerError, RunReport
 from acquisition.recorder.recorder import Recorder
-from acquisition.recorder.setup import new_recorder, recording
+from acquisition.recorder.setup import recording
 from acquisition.safety import SafetyChecker, SafetyError
 from models.robot import RobotDescription
 
@@ -83,30 +83,28 @@ def operator_prompts(ask: Callable[[str], object]) -> Controls:
             lambda nms: ask(f"tap the link (≈ {nms * 1e3:g} mN·m·s), then press Enter"))  # fmt: skip
 
 
+def plan_session(plan: Plan, experiment: str = "") -> dict:
+    """What the session of ``plan`` says of it: its :class:`Recorder`'s ``experiment`` (the plan's own,
+    else ``experiment``) and ``metadata`` (the plan, its parameters, the real-time runner)."""
+    metadata = {"plan": plan.name, "runner": "real-time", "parameters": plan.parameters}
+    return {"experiment": plan.parameters.get("experiment", experiment), "metadata": metadata}
+
+
 def record_plan(
     plan: Plan,
-    desc: RobotDescription,
-    port_map: dict[str, str],
-    sessions_dir: Path,
-    session_id: str,
+    rec: Recorder,
     compensator: Compensator | None = None,
     controls: Controls = (None, None),
-    experiment: str = "",
-    rates: Mapping[str, float] | None = None,
     live: Callable[[], AbstractContextManager] | None = None,
-) -> tuple[RunReport, Recorder]:
-    """Run ``plan`` on the devices of ``port_map`` while recording them into ``sessions_dir/session_id``:
-    (the runner's report, the stopped recorder, whose account the caller reports). ``live``: a started live
-    view for the recorder to serve (a context); a runner's stop on an error is a :class:`PlanRunError`, the
+) -> RunReport:
+    """Run ``plan`` on ``rec``'s devices while ``rec`` records them (made with :func:`plan_session`'s
+    words; the caller reports its account once stopped): the runner's report. ``live``: a started live view
+    for the recorder to serve (a context); a runner's stop on an error is a :class:`PlanRunError`, the
     session stopped safely and kept."""
-    name = plan.parameters.get("experiment", experiment)
-    rec = new_recorder(desc, port_map, sessions_dir, session_id, name, rates or {}, plan=plan.name,
-                       runner="real-time", parameters=plan.parameters)  # fmt: skip
     with live() if live is not None else contextlib.nullcontext() as live_server:
         rec.live = live_server
         with recording(rec):
             try:
-                report = RealTimeRunner(rec, plan, compensator, *controls).run()
+                return RealTimeRunner(rec, plan, compensator, *controls).run()
             except (SafetyError, RunnerError) as exc:
                 raise PlanRunError(str(exc)) from None
-    return report, rec

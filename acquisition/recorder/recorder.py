@@ -74,7 +74,8 @@ def ring_slots(entry: DeviceEntry, topic: str) -> int:
 
 
 class RecorderError(AcquisitionError, RuntimeError):
-    """The recording cannot start (no device to record, a device vslab has no driver for)."""
+    """The recording cannot start (no device to record, a device vslab has no driver for, a session that is
+    there already)."""
 
 
 @dataclass(frozen=True)
@@ -127,6 +128,9 @@ class Recorder:
         self.robot = robot
         self.directory = Path(directory)
         self.session_id = session_id
+        if self.directory.exists() and any(self.directory.glob("*.mcap")):  # never written over
+            raise RecorderError(f"session {session_id} exists already in {self.directory.parent}: choose "
+                                "another --session")  # fmt: skip
         rates = dict(rates or {})
         unknown = sorted(set(rates) - set(robot.devices))
         if unknown:
@@ -145,6 +149,9 @@ class Recorder:
             driver = robot.devices[name].driver
             devices[name] = DeviceEntry(name, driver, port, source.rate_hz, list(source.topics),
                                         list(source.sampled_topics), source.sampled_rates_hz)  # fmt: skip
+        if not devices:
+            raise RecorderError(f"none of {robot.name}'s devices ({', '.join(robot.devices)}) is in the port "
+                                f"map ({', '.join(ports) or 'empty'})")  # fmt: skip
         rotation = rotation or RotationPolicy()
         now = time.monotonic_ns()
         self.layout = Layout(

@@ -1,5 +1,6 @@
 """A recording set up from a port map: the ports checked before anything opens them, the session's id and
-folder checked, the recorder made and started, and what went wrong said once it stopped.
+the recorder started and stopped, and what went wrong said once it stopped (the recorder itself refuses a
+session that exists and a port map without the robot's devices).
 
 What `vslab record`, `vslab run` and the main job share. Every problem a user can cause is a
 :class:`SetupError` (or the recorder's own :class:`RecorderError`), one line naming what and where; nothing
@@ -13,7 +14,7 @@ import json
 import os
 import re
 import stat
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from pathlib import Path
 
 from acquisition.errors import AcquisitionError
@@ -25,7 +26,7 @@ SESSION_ID = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,127}")
 
 class SetupError(AcquisitionError, ValueError):
     """A recording that cannot be set up as asked (a bad session id, a port that is not a serial port, a
-    session that exists already); nothing was recorded."""
+    sessions folder that cannot be written); nothing was recorded."""
 
 
 def session_id(given: str | None, default: str) -> str:
@@ -94,20 +95,6 @@ def not_a_serial_port(port: str) -> str | None:
     return None
 
 
-def new_recorder(desc: RobotDescription, port_map: dict, sessions_dir: Path, sid: str, experiment: str,
-                 rates: Mapping[str, float], **meta) -> Recorder:  # fmt: skip
-    """The session's Recorder (not started) into ``sessions_dir/sid``: refused when that session exists or
-    none of ``desc``'s devices is in ``port_map``."""
-    directory = sessions_dir / sid
-    if directory.exists() and any(directory.glob("*.mcap")):
-        raise SetupError(f"session {sid} exists already in {directory.parent}: choose another --session")
-    rec = Recorder(desc, port_map, directory, sid, experiment=experiment, rates=dict(rates), metadata=meta)
-    if not rec.devices:
-        raise SetupError(f"none of {desc.name}'s devices ({', '.join(desc.devices)}) is in the port map "
-                         f"({', '.join(port_map) or 'empty'})")  # fmt: skip
-    return rec
-
-
 @contextlib.contextmanager
 def recording(rec: Recorder) -> Iterator[Recorder]:
     """``rec`` started for the block and stopped after it; a sessions folder that cannot be written is a
@@ -131,5 +118,5 @@ def recording_failure(rec: Recorder) -> str | None:
     return None
 
 
-__all__ = ["RecorderError", "SetupError", "checked_ports", "configured_ports", "new_recorder",
-           "ports_file", "recording", "recording_failure", "session_id"]  # fmt: skip
+__all__ = ["RecorderError", "SetupError", "checked_ports", "configured_ports", "ports_file", "recording",
+           "recording_failure", "session_id"]  # fmt: skip
