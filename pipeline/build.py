@@ -219,12 +219,12 @@ def build(
         workers = max(1, min(len(sessions), os.cpu_count() or 1))
         executor = cf.ProcessPoolExecutor(workers) if workers > 1 else InlineExecutor()
     try:
-        futures = [executor.submit(process_session, d, params, cache) for d in sessions]
-        results = []
-        for k, future in enumerate(cf.as_completed(futures)):
-            results.append(future.result())
+        results = []  # in the order of ``sessions``, each as soon as it and those before it are done
+        each = len(sessions)  # lists, not itertools.repeat: a Dask executor maps collections only
+        for record in executor.map(process_session, sessions, [params] * each, [cache] * each):
+            results.append(record)
             if progress:
-                progress(k + 1, len(futures))
+                progress(len(results), len(sessions))
     finally:
         if own:
             executor.shutdown()
