@@ -34,9 +34,10 @@ hysteresis 6–21 % low). Standard errors come
 from the Jacobian at the solution, clustered by session (a session's points share its bench and its drift:
 treating them as independent would make the errors too small).
 
-Not fitted yet (issue 33 asks for them): servo stiffness and backlash, damping (a dynamic fit), the other
-unmodelled effects (creep, hose torques, the tracker's field distortion). The POPUP arm's link is fitted to
-its link tests by ``pipeline.popup_fit``.
+The servos' stiffness and backlash come from their goals against their encoders (``pipeline.servo_fit``),
+with the torque constant fitted here. Not fitted yet (issue 33 asks for them): damping (a dynamic fit), the
+other unmodelled effects (creep, hose torques, the tracker's field distortion). The POPUP arm's link is
+fitted to its link tests by ``pipeline.popup_fit``.
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ from pipeline.arm_history import (
     session_order,
 )
 from pipeline.errors import PipelineError
+from pipeline.servo_fit import BACKLASH, STIFFNESS, ServoFit
 
 MEASURED_Q = ("q_0", "q_1", "q_2")
 TIP = ("x_0", "x_1", "x_2")
@@ -238,11 +240,14 @@ class VslStaticFit(Estimator):
                 break
             hidden |= {n: why for n, why in dropped.items() if why}
             free = [n for n in free if n not in dropped]
+        # the servos' stiffness and backlash: their goals against their encoders (the drives' torque from
+        # their currents, with the torque constant fitted here where it was)
+        servo = ServoFit(robot, values[TORQUE_CONSTANT] if TORQUE_CONSTANT in free else None).fit(rows)
         self.robot_ = robot
-        self.nominal_ = nominal
-        self.values_ = {n: float(values[n]) for n in free} | fixed
-        self.stderr_ = {n: float(se[n]) for n in free} | at_zero
-        self.not_identifiable_ = hidden
+        self.nominal_ = nominal | servo.nominal_
+        self.values_ = {n: float(values[n]) for n in free} | fixed | servo.values_
+        self.stderr_ = {n: float(se[n]) for n in free} | at_zero | servo.stderr_
+        self.not_identifiable_ = hidden | servo.not_identifiable_
         self.correction_ = {
             "rotation_rad": [float(v) for v in rotvec],
             "translation_m": [float(v) for v in shift],
@@ -348,7 +353,11 @@ class VslStaticFit(Estimator):
                 mass.model_dump(mode="json", exclude_none=True) | {"mass_kg": round(mass.mass_kg, 6)}
                 for mass in scaled_masses(robot, [robot.link_of(v) for v in robot.virtual_joints], values)
             ],
-            "servo": {"torque_constant_nm_per_a": round(values[TORQUE_CONSTANT], 6)},
+            "servo": {
+                "torque_constant_nm_per_a": round(values[TORQUE_CONSTANT], 6),
+                "stiffness_per_p_gain_nm_per_rad": round(values[STIFFNESS], 6),
+                "backlash_rad": round(values[BACKLASH], 7),
+            },
             **_effects_block(robot, self.values_),
             "fitted": {
                 "dataset": dataset,

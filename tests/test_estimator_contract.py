@@ -34,6 +34,7 @@ from pipeline import baselines as B
 from pipeline.clock import ClockFitter
 from pipeline.popup_fit import PopupLinkFit
 from pipeline.registration import FixedRegistration, RigidTransform, TrackerRegistration, model_tip
+from pipeline.servo_fit import ServoFit
 from pipeline.train import HybridRegressor, TrainConfig, train
 from pipeline.twin_fit import VslStaticFit
 
@@ -132,6 +133,9 @@ CASES = {
     "registration": Case(lambda: TrackerRegistration(load_robot("vsl")), _static_points, _to_base),
     "twin-fit-vsl": Case(
         lambda: VslStaticFit("vsl"), lambda d: (d,), lambda e, d: e.table()["value"].dropna().to_numpy()
+    ),
+    "twin-fit-servos": Case(
+        lambda: ServoFit("vsl"), lambda d: (d,), lambda e, d: e.table()[["value", "stderr"]].to_numpy()
     ),
     "twin-fit-popup": Case(
         lambda: PopupLinkFit("popup"), _link_tests, lambda e, d: e.table()["value"].dropna().to_numpy()

@@ -2,9 +2,10 @@
 
 A lab robot the fit is not told about (`bench/lab_arm.yaml`: upper link ×0.8, lower ×1.25, l2 +2 mm,
 l3 −2 mm, joint offsets ±0.3°, links that lengthen 0.1 % per bar, masses ×1.15, the servos' torque constant
-×0.95, the lower link's hysteresis slower) is simulated, built and fitted from the nominal description; the
-fit finds it within its standard errors. The command writes a description that extends the nominal one and
-the twin loads; what it is handed wrong ends in one `error:` line and exit status 2.
+×0.95, their stiffness ×0.8 and backlash ×2, the lower link's hysteresis slower) is simulated, built and
+fitted from the nominal description; the fit finds it within its standard errors. The command writes a
+description that extends the nominal one and the twin loads; what it is handed wrong ends in one `error:`
+line and exit status 2.
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ import yaml
 from typer.testing import CliRunner
 
 from models.robot import load_robot
+from pipeline.servo_fit import BACKLASH, ServoFit
+from pipeline.servo_fit import STIFFNESS as SERVO_STIFFNESS
 from pipeline.twin_check import twin_check
 from pipeline.twin_fit import TwinFitError, VslStaticFit
 from vslab.cli import app
@@ -30,12 +33,14 @@ LAB_ROBOT = (Path(__file__).resolve().parents[1] / "bench" / "lab_arm.yaml").rea
 @pytest.mark.slow
 def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     """3,000 settled points of the lab's arm: the lengths within 0.3 mm, the offsets within 0.1°, the upper
-    link's stiffness within 3 %, the masses within 1 %, the torque constant within 0.5 %, each of those and
-    the lengthening within 3 standard errors of the truth. (Issue 33 asks 2 errors: measured here, l3 is 2.2
-    errors off.) The hysteresis loops and the lower link's stiffness (stiffer, less loaded, its loop a sixth
-    of its bending) within 5 errors: measured, the upper loop's δ_h and τ_y 17–20 % low (3.9 and 4.1
-    errors), the lower link's 1 bar stiffness 14 % low (3.3 errors): the fit's path of the loads between
-    points is not yet the twin's (a gap of issue 33, open)."""
+    link's stiffness within 3 %, the masses within 1 %, the torque constant within 0.5 %, the servos'
+    stiffness within 3 % and backlash within 5 %, each of those and the lengthening within 3 standard errors
+    of the truth, the servos' two within 2 (measured: every one of them within 2; the servos' 0.2 % and 0.4
+    errors off). The hysteresis loops and the lower link's stiffness (stiffer, less loaded, its loop a sixth
+    of its bending) within 5 errors: measured, the upper loop's δ_h and τ_y 10–11 % low (1.8 and 2.0 errors),
+    the lower link's δ_h 45 % low (3.8 errors) beside its τ_y, which the points do not constrain (named, left
+    nominal), and its 1.5 bar stiffness 15 % high (1.8 errors): the fit's path of the loads between points is
+    not yet the twin's (a gap of issue 33, open)."""
     from acquisition.recorder.sessions import SessionStore
     from pipeline.build import build
     from pipeline.lab import Lab
@@ -52,7 +57,8 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     fit = VslStaticFit("vsl").fit(data)
     true = {"l2_m": 0.252, "l3_m": 0.248, "q2.offset_rad": 0.005236, "q3.offset_rad": -0.005236,
             "elongation.strain_per_bar": 0.001, "upper_vsl.mass_scale": 1.15, "lower_vsl.mass_scale": 1.15,
-            "servo.torque_constant_nm_per_a": 1.71}  # fmt: skip
+            "servo.torque_constant_nm_per_a": 1.71, "servo.stiffness_per_p_gain_nm_per_rad": 0.08,
+            "servo.backlash_rad": 0.00872}  # fmt: skip
     for link in truth.links:
         table = truth.link_table(link.name)
         true |= {
@@ -63,23 +69,27 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
             f"{link.name}.delta_h_rad": link.hysteresis.delta_h_rad,
             f"{link.name}.tau_y_nm": link.hysteresis.tau_y_nm,
         }
-    assert (
-        len(fit.values_) == 20
-    )  # lengths, offsets, lengthening, masses, K_t; 4 stiffness, 2 loop values a link
+    assert len(fit.values_) + len(fit.not_identifiable_) == 28 and not set(fit.values_) & set(
+        fit.not_identifiable_
+    )  # l1-l3, 3 offsets, lengthening, 2 masses, K_t, the servos' 2; 6 stiffness and 2 loop values a link
     for name, value in fit.values_.items():
         loose = name.startswith("lower_vsl.") or name.endswith(("delta_h_rad", "tau_y_nm"))
-        within = (5 if loose else 3) * fit.stderr_[name]
+        errors = 5 if loose else 2 if name in (SERVO_STIFFNESS, BACKLASH) else 3
+        within = errors * fit.stderr_[name]
         assert abs(value - true[name]) <= within, (name, value, true[name], fit.stderr_[name])
     for body in ("upper_vsl", "lower_vsl"):
         assert abs(fit.values_[f"{body}.mass_scale"] / 1.15 - 1) < 0.01
     assert abs(fit.values_["servo.torque_constant_nm_per_a"] / 1.71 - 1) < 0.005
+    assert abs(fit.values_["servo.stiffness_per_p_gain_nm_per_rad"] / 0.08 - 1) < 0.03
+    assert abs(fit.values_["servo.backlash_rad"] / 0.00872 - 1) < 0.05
     assert abs(fit.values_["l2_m"] - 0.252) < 0.3e-3 and abs(fit.values_["l3_m"] - 0.248) < 0.3e-3
     for joint in ("q2", "q3"):  # the encoders' zeros, within 0.1°
         assert abs(fit.values_[f"{joint}.offset_rad"] - true[f"{joint}.offset_rad"]) < np.radians(0.1)
     for p, k in zip((0.5, 1, 1.5, 2), (32.0, 64.0, 96.0, 128.0), strict=True):
         assert abs(fit.values_[f"upper_vsl.k@{p:g}bar"] / k - 1) < 0.03
-    # what 0.5-2 bar points cannot tell: the table's ends, and l1 (the registration's vertical offset)
-    assert set(fit.not_identifiable_) == {"l1_m", "q1.offset_rad"} | {
+    # what 0.5-2 bar points cannot tell: the table's ends, and l1 (the registration's vertical offset); the
+    # lower (less loaded) link's loop may be too small to time (its τ_y)
+    assert set(fit.not_identifiable_) - {"lower_vsl.tau_y_nm"} == {"l1_m", "q1.offset_rad"} | {
         f"{k}_vsl.k@{p}bar" for k in ("upper", "lower") for p in ("0.1", "2.5")
     }
     assert (
@@ -144,6 +154,10 @@ def test_the_command_writes_a_description_the_twin_loads(lab):
     scale = fitted["upper_vsl.mass_scale"].value  # the masses a link's body carries scale together
     assert robot.masses[0].mass_kg == pytest.approx(0.1 * scale, abs=1e-6) and robot.masses[0].frame == "d2"
     assert all(np.isfinite(v.stderr) and v.stderr > 0 for v in fitted.values())
+    assert robot.servo.backlash_rad == pytest.approx(fitted[BACKLASH].value, abs=1e-7)
+    assert robot.servo.stiffness_per_p_gain_nm_per_rad == pytest.approx(
+        fitted[SERVO_STIFFNESS].value, abs=1e-6
+    )
 
 
 def test_the_check_tables_each_description_per_cell(lab):
@@ -188,6 +202,38 @@ def test_data_a_fit_cannot_use_is_refused_with_why(campaign_dataset):
         VslStaticFit("vsl").fit(data.drop(columns=["x_0"]))
     with pytest.raises(TwinFitError, match="at least 10"):
         VslStaticFit("vsl").fit(data.iloc[:5])
+
+
+def test_the_servos_stiffness_and_backlash_are_the_twin_s_within_two_errors(campaign_dataset):
+    """600 points of the papers' arm: its servos' 80 N·m/rad (P = 800) and 0.25° of backlash found within 2
+    standard errors, the stiffness within 3 % and the backlash within 10 %; least squares through the same
+    points takes the stiffness 8.6 % off (where a point rests in the play follows its pose)."""
+    data = campaign_dataset[2]
+    fit = ServoFit("vsl").fit(data)
+    assert not fit.not_identifiable_ and fit.n_sessions_ == 8 and fit.n_points_ == len(data)
+    for name, true in ((SERVO_STIFFNESS, 0.1), (BACKLASH, 0.00436)):
+        assert abs(fit.values_[name] - true) <= 2 * fit.stderr_[name], (name, fit.values_[name], fit.stderr_)
+    assert abs(fit.values_[SERVO_STIFFNESS] / 0.1 - 1) < 0.03
+    assert abs(fit.values_[BACKLASH] / 0.00436 - 1) < 0.10
+    servo = load_robot("vsl").servo  # least squares of the droop on the torque, as the module says
+    amps = data[["i_0", "i_1"]].to_numpy()
+    torque = (servo.torque_constant_nm_per_a * (amps - servo.idle_current_a * np.sign(amps))).ravel()
+    droop = (data[["qc_1", "qc_2"]].to_numpy() - data[["q_1", "q_2"]].to_numpy()).ravel()
+    slope = np.linalg.lstsq(np.c_[torque, np.ones_like(torque)], droop, rcond=None)[0][0]
+    assert abs(1 / (slope * servo.p_gain) / 0.1 - 1) > 0.05  # 8.6 % here
+
+
+def test_what_the_servos_cannot_tell_is_named_and_left_nominal(campaign_dataset):
+    data = campaign_dataset[2]
+    passive = ServoFit("vsl").fit(data.assign(qc_1=np.nan, qc_2=np.nan))
+    assert not passive.values_ and set(passive.not_identifiable_) == {SERVO_STIFFNESS, BACKLASH}
+    assert "passive recording" in passive.not_identifiable_[BACKLASH]
+    blind = ServoFit("vsl").fit(data.drop(columns=["i_0", "i_1"]))
+    assert "no joint currents" in blind.not_identifiable_[SERVO_STIFFNESS] and not blind.values_
+    still = data[data["payload_kg"] == 0].iloc[:12].assign(i_0=0.061, i_1=-0.061)  # no torque to speak of
+    assert "encoder count" in ServoFit("vsl").fit(still).not_identifiable_[SERVO_STIFFNESS]
+    fit = VslStaticFit("vsl").fit(data.assign(qc_1=np.nan, qc_2=np.nan))  # the static fit goes on without
+    assert "passive recording" in fit.not_identifiable_[BACKLASH] and "l2_m" in fit.values_
 
 
 NO_LOOP = """\
