@@ -208,7 +208,6 @@ def run(
         record_plan,
     )
     from acquisition.recorder.recorder import Recorder
-    from pipeline.in_loop import learned_compensators
     from twin.rig_process import rig_controls, session_devices
 
     local_lab("run")
@@ -218,7 +217,11 @@ def run(
     try:
         the_plan, desc = choose_plan(experiment, plan, overrides)
         device_rates = _rates(rate, desc)
-        learned = None if model is None else learned_compensators({"hybrid": model}, desc)
+        learned = None
+        if model is not None:  # torch and the baselines load only for a learned command (seconds)
+            from pipeline.in_loop import learned_compensators
+
+            learned = learned_compensators({"hybrid": model}, desc)
         compensator = ready_plan(the_plan, desc, learned, refused)
         session_id = _session_id(session, time.strftime("%Y%m%d-%H%M%S-") + the_plan.name.replace("/", "-"))
         console.print(f"{the_plan.name}: {the_plan.duration_s:.1f} s on {desc.name}")
