@@ -51,9 +51,13 @@ pytestmark = pytest.mark.real_time
 INERTIA = 0.0358  # the twin's link 2 about its virtual hinge (tests/test_popup_analysis.py)
 PRESSURES_KPA = (10, 50)
 IMPACT = ["taps=2", "record_s=1.2", "settle_s=1.0"]
-# one repetition of the default loads (4 of them below M_w at 10 kPa): over seeds 1-6 of the simulated test
-# the mean static k of the two pressures was within 2.7 % of the configured link (k̂ rests on that mean)
-STATIC = ["repetitions=1", "pressure_settle_s=1.0", "settle_s=1.2", "hold_s=2.0"]
+# one repetition of 5 loads up to 0.45 M_c, all below M_w (the loading branch below M_w is what k reads),
+# settled 1 s and held 1 s: over seeds 1-10 of the simulated test the mean static k of the two pressures
+# came within 1.9 % of the configured link, each pressure's within 3.2 % (k̂ rests on that mean), in 19 s of
+# real time a pressure; the default 7 loads up to 0.8 M_c settled 1.2 s and held 2 s (seeds 1-6): 2.9 % and
+# 5.1 %, in 42.6 s
+STATIC = ["repetitions=1", "pressure_settle_s=1.0", "settle_s=1.0", "hold_s=1.0", "load_steps=4",
+          "max_collapse_fraction=0.45"]  # fmt: skip
 
 
 # the module's real-time sessions: name → (experiment, plan number, --set settings)
@@ -115,19 +119,37 @@ def _finish(lab, session: str, run: subprocess.Popen, watch: StealWatch):
     return lab / "sessions" / session
 
 
+# one rig at a time: two at once (each emulating the CAN bus and its 1 kHz IMU) starved the host's CAN
+# reading on a slow 2-core machine, alone in the real-time run (a drive's heartbeat missed for 0.33 s); the
+# static tests likewise: side by side with a busy process on each core, two rigs read k̂ 6 % low
+
+
+def _configured_link2(pressure_kpa) -> tuple[np.ndarray, np.ndarray]:
+    """(k, c) of the twin's link 2 at these pressures."""
+    link = load_robot("popup").link_table("link2")
+    p = np.asarray(pressure_kpa, float) * 1e3
+    return (np.interp(p, link.pressure_pa, link.stiffness_nm_per_rad),
+            np.interp(p, link.pressure_pa, link.damping_nms_per_rad))  # fmt: skip
+
+
+@pytest.mark.slow
+def test_real_time_taps_ring_at_the_link_s_frequency_and_damping(recorded):
+    """The impact tests alone: each pressure's taps give the twin's f_s within 1 % and ζ within 5 %."""
+    taps = lt.impact_parameters([recorded(f"impact-{kpa}") for kpa in PRESSURES_KPA])
+    assert (taps["pressure_pa"] / 1e3).tolist() == list(PRESSURES_KPA) and (taps["taps"] == 2).all()
+    k, c = _configured_link2(taps["pressure_pa"] / 1e3)
+    np.testing.assert_allclose(taps["f_s_hz"], prbm.damped_frequency_hz(k, c, INERTIA), rtol=0.01)
+    np.testing.assert_allclose(taps["zeta"], prbm.damping_ratio(k, c, INERTIA), rtol=0.05)
+
+
 @pytest.mark.slow
 def test_table1_from_real_time_link_tests(recorded):
-    # one rig at a time: two at once (each emulating the CAN bus and its 1 kHz IMU) starved the host's CAN
-    # reading on a slow 2-core machine, alone in the real-time run (a drive's heartbeat missed for 0.33 s);
-    # the static tests likewise: side by side with a busy process on each core, two rigs read k̂ 6 % low
+    """The static tests with the taps (recorded for the test above): Table 1 as the twin's link 2."""
     impact = [recorded(f"impact-{kpa}") for kpa in PRESSURES_KPA]
     static = [recorded(f"static-{kpa}") for kpa in PRESSURES_KPA]
     table = pt.table1(lt.static_stiffness(lt.link_static_curves(static)), lt.impact_parameters(impact))
     assert table["pressure_kpa"].tolist() == list(PRESSURES_KPA)
-    link = load_robot("popup").link_table("link2")
-    p = table["pressure_kpa"].to_numpy() * 1e3
-    k = np.interp(p, link.pressure_pa, link.stiffness_nm_per_rad)
-    c = np.interp(p, link.pressure_pa, link.damping_nms_per_rad)
+    k, c = _configured_link2(table["pressure_kpa"])
     np.testing.assert_allclose(table["f_s_hz"], prbm.damped_frequency_hz(k, c, INERTIA), rtol=0.01)
     np.testing.assert_allclose(table["zeta"], prbm.damping_ratio(k, c, INERTIA), rtol=0.05)
     np.testing.assert_allclose(table["k_hat"], k, rtol=0.05)
