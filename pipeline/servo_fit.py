@@ -32,7 +32,7 @@ import pandas as pd
 from scipy.optimize import minimize, minimize_scalar
 from scipy.stats import norm
 
-from acquisition.codecs.dynamixel import RAD_PER_POSITION_COUNT
+from acquisition.devices.kinds import device_of, kind_of
 from models.estimator import Estimator
 from models.robot import RobotDescription, load_robot
 
@@ -61,15 +61,15 @@ class ServoFit(Estimator):
         self.nominal_ = {STIFFNESS: servo.stiffness_per_p_gain_nm_per_rad, BACKLASH: servo.backlash_rad}
         self.values_, self.stderr_, self.not_identifiable_ = {}, {}, {}
         self.band_rad_, self.n_points_, self.n_sessions_ = float("nan"), 0, 0
-        droop, torque, sessions, why = _droops(robot, points, self.torque_constant)
+        droop, torque, sessions, count, why = _droops(robot, points, self.torque_constant)
         if why:
             self.not_identifiable_ = dict.fromkeys(self.nominal_, why)
             return self
-        half_count = RAD_PER_POSITION_COUNT / 2
-        slope, edge = _band(droop, torque)
+        half_count = count / 2
+        slope, edge = _band(droop, torque, count)
         labels = np.unique(sessions)
         if len(labels) >= 2:  # the jackknife: each session left out in turn
-            each = np.array([_band(droop[sessions != g], torque[sessions != g]) for g in labels])
+            each = np.array([_band(droop[sessions != g], torque[sessions != g], count) for g in labels])
             g = len(labels)
             se_slope, se_edge = np.sqrt((g - 1) / g * ((each - each.mean(axis=0)) ** 2).sum(axis=0))
         else:
@@ -102,17 +102,21 @@ class ServoFit(Estimator):
 
 
 def _droops(robot: RobotDescription, points: pd.DataFrame, torque_constant: float | None):
-    """(qc − q, τ) per point and servo (n, S), the points' sessions, and why nothing can be fitted ("" when
-    it can): the rows where a servo's goal, encoder and current are all finite."""
+    """(qc − q, τ) per point and servo (n, S), the points' sessions, the step the goals and readings come in
+    (rad, the joints' device kind's), and why nothing can be fitted ("" when it can): the rows where a
+    servo's goal, encoder and current are all finite."""
+    nothing = (None, None, None, None)
     servos = [k for k, j in enumerate(robot.joints) if j.drive == "servo"]
-    if robot.servo is None or not servos:
-        return None, None, None, f"robot {robot.name!r} has no position-controlled servos"
+    joints = device_of(robot, "joints")
+    count = kind_of(robot, joints).resolution_rad if joints is not None else None
+    if robot.servo is None or not servos or count is None:
+        return *nothing, f"robot {robot.name!r} has no servos whose positions come in counts"
     goals, encoders = [f"qc_{j}" for j in servos], [f"q_{j}" for j in servos]
     currents = [f"i_{s}" for s in range(len(servos))]
     if not set(goals) <= set(points.columns) or not np.isfinite(points[goals].to_numpy(float)).any():
-        return None, None, None, "the dataset has no goals the servos were given (qc_*): a passive recording"
+        return *nothing, "the dataset has no goals the servos were given (qc_*): a passive recording"
     if not set(currents) <= set(points.columns):
-        return None, None, None, "the dataset has no joint currents (i_*): the torques the servos held"
+        return *nothing, "the dataset has no joint currents (i_*): the torques the servos held"
     droop = points[goals].to_numpy(float) - points[encoders].to_numpy(float)
     amps = points[currents].to_numpy(float)
     k_t = torque_constant or robot.servo.torque_constant_nm_per_a
@@ -121,12 +125,12 @@ def _droops(robot: RobotDescription, points: pd.DataFrame, torque_constant: floa
     droop[bad], torque[bad] = np.nan, np.nan
     keep = ~bad.all(axis=1)
     if keep.sum() < 10:
-        return None, None, None, f"{keep.sum()} settled points with a servo's goal, encoder and current"
+        return *nothing, f"{keep.sum()} settled points with a servo's goal, encoder and current"
     sessions = points["session"].to_numpy()[keep] if "session" in points else np.zeros(keep.sum())
-    return droop[keep], torque[keep], sessions, ""
+    return droop[keep], torque[keep], sessions, count, ""
 
 
-def _band(droop: np.ndarray, torque: np.ndarray) -> tuple[float, float]:
+def _band(droop: np.ndarray, torque: np.ndarray, count: float) -> tuple[float, float]:
     """(1/k, the band's edge) of every servo's finite points: the slope through the origin that makes the
     widest ``|droop − torque · slope|`` smallest (convex in the slope: a bounded scalar search), then the
     edge of those residuals, both signs pooled (:func:`_edge`)."""
@@ -139,7 +143,7 @@ def _band(droop: np.ndarray, torque: np.ndarray) -> tuple[float, float]:
     top = 10 * np.abs(d).max() / max(np.abs(t).max(), 1e-9)  # a slope no arm's droop asks for
     found = minimize_scalar(widest, bounds=(0.0, top), method="bounded", options={"xatol": 1e-9 * top})
     e = d - t * found.x
-    return float(found.x), _edge(np.concatenate([e, -e]), EDGE_WINDOW_COUNTS * RAD_PER_POSITION_COUNT)
+    return float(found.x), _edge(np.concatenate([e, -e]), EDGE_WINDOW_COUNTS * count)
 
 
 def _edge(values: np.ndarray, window: float) -> float:

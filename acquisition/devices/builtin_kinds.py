@@ -4,6 +4,7 @@ POPUP's (the CAN bus of CiA 402 drives, its main board and link boards). Registe
 
 from __future__ import annotations
 
+from acquisition.codecs import dynamixel as dx
 from acquisition.devices.kinds import DeviceKind
 from acquisition.schemas import topics as T
 from models.robot import DeviceSpec, RobotDescription
@@ -69,6 +70,7 @@ DYNAMIXEL = DeviceKind(
     polled=frozenset({T.SERVO_STATE}),
     emulator=f"{_TWIN}:servo_bus_emulator",
     ceiling="acquisition.devices.bus_budget:servo_bus_ceiling_hz",
+    resolution_rad=dx.RAD_PER_POSITION_COUNT,  # Present/Goal Position: 4096 counts a turn
     streams=((0, f"{_TWIN}:servo_streams"),),
     rows=((0, f"{_ROWS}:servo_rows"),),
 )

@@ -74,7 +74,9 @@ class DeviceKind:
     ``polled``: the topics the host polls (sampled on the host's clock); ``role``: what the device does for
     the robot ("joints", "pressure", "stepper", "tracker", "link"; None: nothing the models know of);
     ``ceiling``: ``"module:attribute"`` of ``(spec) → Hz``, the highest ``rate_hz`` the device's link
-    carries (:mod:`acquisition.devices.bus_budget`; None: no ceiling below the device's own rate).
+    carries (:mod:`acquisition.devices.bus_budget`; None: no ceiling below the device's own rate);
+    ``resolution_rad``: the step of the joint positions it reports and is given (rad per count; None: it
+    reports none), what a fit of its joints' goals against their readings rounds to.
     """
 
     name: str
@@ -89,6 +91,7 @@ class DeviceKind:
     rows: tuple[tuple[float, str], ...] = ()
     check: Callable[[RobotDescription, str, DeviceSpec], None] | None = None
     ceiling: str | None = None
+    resolution_rad: float | None = None
 
     def topics_of(self, robot: RobotDescription, name: str) -> dict[str, Any]:
         """The topics device ``name`` of ``robot`` writes (topic → message)."""
