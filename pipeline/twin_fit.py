@@ -242,12 +242,13 @@ class VslStaticFit(Estimator):
             free = [n for n in free if n not in dropped]
         # the servos' stiffness and backlash: their goals against their encoders (the drives' torque from
         # their currents, with the torque constant fitted here where it was)
-        servo = ServoFit(robot, values[TORQUE_CONSTANT] if TORQUE_CONSTANT in free else None).fit(rows)
+        servo = ServoFit(robot, values[TORQUE_CONSTANT] if TORQUE_CONSTANT in free else None)
+        servo = servo.fit(rows) if self.fit_parameters else None  # (a check fits the registration only)
         self.robot_ = robot
-        self.nominal_ = nominal | servo.nominal_
-        self.values_ = {n: float(values[n]) for n in free} | fixed | servo.values_
-        self.stderr_ = {n: float(se[n]) for n in free} | at_zero | servo.stderr_
-        self.not_identifiable_ = hidden | servo.not_identifiable_
+        self.nominal_ = nominal | (servo.nominal_ if servo else {})
+        self.values_ = {n: float(values[n]) for n in free} | fixed | (servo.values_ if servo else {})
+        self.stderr_ = {n: float(se[n]) for n in free} | at_zero | (servo.stderr_ if servo else {})
+        self.not_identifiable_ = hidden | (servo.not_identifiable_ if servo else {})
         self.correction_ = {
             "rotation_rad": [float(v) for v in rotvec],
             "translation_m": [float(v) for v in shift],
@@ -355,8 +356,10 @@ class VslStaticFit(Estimator):
             ],
             "servo": {
                 "torque_constant_nm_per_a": round(values[TORQUE_CONSTANT], 6),
-                "stiffness_per_p_gain_nm_per_rad": round(values[STIFFNESS], 6),
-                "backlash_rad": round(values[BACKLASH], 7),
+                "stiffness_per_p_gain_nm_per_rad": round(
+                    values.get(STIFFNESS, robot.servo.stiffness_per_p_gain_nm_per_rad), 6
+                ),
+                "backlash_rad": round(values.get(BACKLASH, robot.servo.backlash_rad), 7),
             },
             **_effects_block(robot, self.values_),
             "fitted": {

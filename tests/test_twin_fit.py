@@ -98,7 +98,7 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     )
 
     # a held-out campaign of the lab's arm and its repeat (the floor): the fitted twin predicts it within
-    # 1.3× the floor; the nominal twin, the papers' arm, about 3.5× off
+    # 1.3× the floor (measured: 0.97×); the nominal twin, the papers' arm, 4.3× off (500 points each)
     written = tmp_path / "fitted.yaml"
     written.write_text(yaml.safe_dump(fit.description("vsl_fitted", "vsl", "campaign", "test")))
     assert load_robot(written).effects.elongation.strain_per_bar == pytest.approx(
@@ -108,7 +108,7 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     for order in ("drawn", "shuffled"):
         sub = tmp_path / order
         simulate_experiment("campaign", SessionStore(sub / "sessions"), seed=7, benches=16,
-                            overrides={"points": 1000, "robot": str(tmp_path / "lab_robot.yaml"),
+                            overrides={"points": 500, "robot": str(tmp_path / "lab_robot.yaml"),
                                        "visit_order": order})  # fmt: skip
         built = build(sorted((sub / "sessions").iterdir()), Lab(sub), "campaign")
         held_out[order] = Lab(sub).datasets.load("campaign", built.version)[0]
@@ -117,7 +117,7 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     overall = table[table["pressure_bin"] == "all"].iloc[0]
     print(f"\nheld out: fitted {overall['fitted_mm_mean']:.3f} mm, nominal "
           f"{overall['nominal_mm_mean']:.3f} mm, floor {overall['floor_mm_mean']:.3f} mm")  # fmt: skip
-    assert overall["n"] == 1000 and len(table) == 16  # 3 pressure bins × 5 payloads, and all
+    assert overall["n"] == 500 and len(table) == 16  # 3 pressure bins × 5 payloads, and all
     assert overall["fitted_mm_mean"] <= 1.3 * overall["floor_mm_mean"], overall.to_dict()
     assert overall["nominal_mm_mean"] > 2 * overall["fitted_mm_mean"], overall.to_dict()
 
