@@ -31,12 +31,16 @@ def _true(arm, parameter: str) -> float:
     """The value of a fitted parameter's name (``pipeline.twin_fit``) in the description ``arm``."""
     from models.robot import load_robot
     from pipeline.arm_history import mass_bodies
-    from pipeline.twin_fit import OFFSETS, STRAIN, TORQUE_CONSTANT
+    from pipeline.twin_fit import OFFSETS, STRAIN
 
     if parameter == STRAIN:
         return arm.effects.elongation.strain_per_bar if arm.effects.elongation else 0.0
-    if parameter == TORQUE_CONSTANT:
-        return arm.servo.torque_constant_nm_per_a
+    if parameter.startswith("servo."):  # the torque constant, the servos' stiffness and backlash
+        return getattr(arm.servo, parameter.removeprefix("servo."))
+    if ".hose_" in parameter:  # a joint's hoses: none is 0
+        joint, _, field = parameter.partition(".hose_")
+        hoses = arm.effects.hoses.joints if arm.effects.hoses else {}
+        return getattr(hoses[joint], field) if joint in hoses else 0.0
     if parameter.endswith(".mass_scale"):  # the body's mass against the papers' arm's
         nominal = load_robot("vsl")
         body = mass_bodies(nominal, [nominal.link_of(v) for v in nominal.virtual_joints])[parameter[:-11]]

@@ -15,6 +15,8 @@ This is the static part of the VSL arm's fit (:class:`VslStaticFit`). From a dat
 - the masses each link carries beyond its hinge, scaled together (``<link>.mass_scale``: one by one they are
   not told apart by their moments) and, where the dataset has the servos' currents (``i_*``), their torque
   constant: the currents weigh the arm (each current residual weighted by its noise against the tip's),
+- and from those currents too, the tubes and cables across each servo's joint (``effects.hoses``: a torque
+  K (q − slack) the servo holds beside gravity's; none, K = 0, where the currents show none),
 
 beside a small rigid correction of the tracker registration (the dataset's registration was fitted with the
 nominal arm: a lab arm's other lengths move it a little). The tip model is the description's statics, the
@@ -36,7 +38,7 @@ treating them as independent would make the errors too small).
 
 The servos' stiffness and backlash come from their goals against their encoders (``pipeline.servo_fit``),
 with the torque constant fitted here. Not fitted yet (issue 33 asks for them): damping (a dynamic fit), the
-other unmodelled effects (creep, hose torques, the tracker's field distortion). The POPUP arm's link is
+other unmodelled effects (creep, the tracker's field distortion). The POPUP arm's link is
 fitted to its link tests by ``pipeline.popup_fit``.
 """
 
@@ -141,10 +143,19 @@ class VslStaticFit(Estimator):
         nominal |= {f"{body}.mass_scale": 1.0 for body in bodies}  # (one by one, the masses on a body are
         free += [f"{body}.mass_scale" for body in bodies]  # not told apart by its moments: 2–3× their values)
         nominal[TORQUE_CONSTANT] = robot.servo.torque_constant_nm_per_a
+        hoses = robot.effects.hoses.joints if robot.effects.hoses is not None else {}
+        held = [j.name for j in robot.joints if j.drive == "servo"]  # the joints whose currents are read
+        servo_columns = [[j.name for j in robot.joints].index(name) for name in held]  # their q columns
+        for joint in held:  # the tubes and cables across a joint: a torque K (q − slack) its servo holds
+            hose = hoses.get(joint)
+            k, slack = (hose.stiffness_nm_per_rad, hose.slack_rad) if hose is not None else (0.0, 0.0)
+            nominal |= {_hose(joint, "k"): k, _hose(joint, "slack"): slack, _hose(joint, "t0"): -k * slack}
         if amps is not None:
-            free.append(TORQUE_CONSTANT)
+            free += [TORQUE_CONSTANT, *(_hose(j, part) for j in held for part in ("k", "t0"))]
         else:
             hidden[TORQUE_CONSTANT] = "the dataset has no joint currents (i_*)"
+            hidden |= {_hose(j, part): "the dataset has no joint currents (i_*)" for j in held
+                       for part in ("k", "slack")}  # fmt: skip
         for link, table, pv in zip(links, tables, p.T, strict=True):
             if link.hysteresis is not None:  # the loop's half width: how far a point falls short of τ/k
                 nominal[f"{link.name}.delta_h_rad"] = link.hysteresis.delta_h_rad
@@ -171,11 +182,15 @@ class VslStaticFit(Estimator):
         last: dict[str, Any] = {}  # the last pass's solution (scaled): where the next one starts
         arms: dict[tuple, tuple] = {}  # the arm's tip, torques and drive torques at the last values asked for
 
+        covariance: list[pd.DataFrame] = []  # the last pass's, of ``free`` (a hose's slack is a ratio)
+
         def solve(free: list[str], fixed: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, dict]:
             """Values, registration rotation and shift, residuals (tip in mm, then the currents' in mA) and
             standard errors of ``free`` (the others nominal, or as ``fixed``)."""
             unit = {"_m": 1e-3, "_rad": 1e-4, "_bar": 1e-4}  # fitted in mm, 0.1 mrad, 0.01 %/bar and % of k
-            scale = np.array([unit.get(n[n.rfind("_") :], 0.01 * nominal[n]) for n in free])
+            unit |= {HOSE_K: 1e-3, HOSE_T0: 1e-3}  # a hose's mN·m/rad and mN·m
+            scale = np.array([unit.get(n[n.find(".hose") :] if ".hose" in n else n[n.rfind("_") :],
+                                       0.01 * nominal[n]) for n in free])  # fmt: skip
 
             def unpack(z: np.ndarray) -> tuple[dict[str, float], np.ndarray, np.ndarray]:
                 values = nominal | fixed
@@ -193,8 +208,8 @@ class VslStaticFit(Estimator):
                     states[key] = hysteresis_states(path, np.asarray(tau_y), order)
                 state = states[key]
                 arm_key = tuple(
-                    values.values()
-                )  # the registration's columns of the Jacobian leave the arm as is
+                    v for n, v in values.items() if ".hose" not in n
+                )  # the registration's and the hoses' columns of the Jacobian leave the arm as is
                 if arm_key not in arms:
                     arms.clear()
                     arms[arm_key] = self._tip(robot, links, tables, values, q, p, m, state)
@@ -203,7 +218,9 @@ class VslStaticFit(Estimator):
                 if amps is None:
                     return out
                 servo = robot.servo.model_copy(update={"torque_constant_nm_per_a": values[TORQUE_CONSTANT]})
-                wrong = (servo_current_a(servo, drive, 0.0) - amps) * 1e3  # mA
+                hose = np.stack([values[_hose(j, "k")] * q[:, c] + values[_hose(j, "t0")]
+                                 for j, c in zip(held, servo_columns, strict=True)], axis=1)  # fmt: skip
+                wrong = (servo_current_a(servo, drive + hose, 0.0) - amps) * 1e3  # mA
                 return np.concatenate([out, weight[0] * wrong.ravel()])
 
             start = np.array([last.get(n, 0.0) for n in free] + list(last.get("registration", np.zeros(6))))
@@ -214,7 +231,9 @@ class VslStaticFit(Estimator):
             if amps is not None:
                 groups = np.concatenate([groups, np.repeat(sessions, amps.shape[1])])
             cov = _clustered_covariance(fit.jac, fit.fun, groups)
-            se = np.sqrt(np.clip(np.diag(cov)[: len(free)], 0.0, None)) * scale
+            cov = cov[: len(free), : len(free)] * np.outer(scale, scale)
+            se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+            covariance[:] = [pd.DataFrame(cov, index=free, columns=free)]
             return *unpack(fit.x), fit.fun, dict(zip(free, se.tolist(), strict=True))
 
         # what the points cannot constrain, or a loop no link can hold, is named and the rest fitted again; a
@@ -235,6 +254,12 @@ class VslStaticFit(Estimator):
             if STRAIN in free and values[STRAIN] < 2 * se[STRAIN] and STRAIN not in dropped:
                 fixed[STRAIN], at_zero[STRAIN] = 0.0, se[STRAIN]  # the links do not lengthen: none
                 dropped[STRAIN] = ""
+            for joint in held:  # a hose whose torque the currents do not show (zero within 2 errors): none
+                k_name, t0 = _hose(joint, "k"), _hose(joint, "t0")
+                if k_name in free and values[k_name] < 2 * se[k_name] and k_name not in dropped:
+                    fixed[k_name], fixed[t0], at_zero[k_name] = 0.0, 0.0, se[k_name]
+                    dropped |= {k_name: "", t0: ""}
+                    hidden[_hose(joint, "slack")] = f"no hose torque shows on {joint}: none, so no slack"
             dropped |= _impossible_loops(links, tables, values, [n for n in free if n not in dropped], se)
             if not dropped:
                 break
@@ -245,9 +270,13 @@ class VslStaticFit(Estimator):
         servo = ServoFit(robot, values[TORQUE_CONSTANT] if TORQUE_CONSTANT in free else None)
         servo = servo.fit(rows) if self.fit_parameters else None  # (a check fits the registration only)
         self.robot_ = robot
-        self.nominal_ = nominal | (servo.nominal_ if servo else {})
-        self.values_ = {n: float(values[n]) for n in free} | fixed | (servo.values_ if servo else {})
-        self.stderr_ = {n: float(se[n]) for n in free} | at_zero | (servo.stderr_ if servo else {})
+        self.nominal_ = {n: v for n, v in nominal.items() if not n.endswith(HOSE_T0)}
+        self.nominal_ |= servo.nominal_ if servo else {}
+        values, se = _hose_slacks(held, free, values, se, covariance[0] if covariance else None)
+        shown = [n.replace(HOSE_T0, HOSE_SLACK) for n in free]  # a hose's slack where its t0 was fitted
+        fixed = {n: v for n, v in fixed.items() if not n.endswith(HOSE_T0)}
+        self.values_ = {n: float(values[n]) for n in shown} | fixed | (servo.values_ if servo else {})
+        self.stderr_ = {n: float(se[n]) for n in shown} | at_zero | (servo.stderr_ if servo else {})
         self.not_identifiable_ = hidden | (servo.not_identifiable_ if servo else {})
         self.correction_ = {
             "rotation_rad": [float(v) for v in rotvec],
@@ -390,12 +419,23 @@ def _currents(robot: RobotDescription, rows: pd.DataFrame) -> np.ndarray | None:
 
 def _effects_block(robot: RobotDescription, values: dict) -> dict:
     """The fitted description's ``effects`` where the fit says other than the nominal description: the links'
-    lengthening with pressure (``null``: none, where the nominal one has it)."""
+    lengthening with pressure and the hoses across the joints (``null``: none, where the nominal one has
+    it)."""
+    out: dict[str, Any] = {}
     strain = values.get(STRAIN)
     nominal = robot.effects.elongation
-    if strain is None or strain == (nominal.strain_per_bar if nominal else 0.0):
-        return {}
-    return {"effects": {"elongation": {"strain_per_bar": float(strain)} if strain > 0 else None}}
+    if strain is not None and strain != (nominal.strain_per_bar if nominal else 0.0):
+        out["elongation"] = {"strain_per_bar": float(strain)} if strain > 0 else None
+    fitted = {name.removesuffix(HOSE_K): k for name, k in values.items() if name.endswith(HOSE_K)}
+    if fitted:
+        known = robot.effects.hoses.joints if robot.effects.hoses is not None else {}
+        hoses = {joint: {"stiffness_nm_per_rad": float(k),
+                         "slack_rad": float(values.get(_hose(joint, "slack"),
+                                                       known[joint].slack_rad if joint in known else 0.0))}
+                 for joint, k in fitted.items() if k > 0}  # fmt: skip
+        if hoses or robot.effects.hoses is not None:
+            out["hoses"] = {"joints": hoses} if hoses else None
+    return {"effects": out} if out else {}
 
 
 def _check(robot: RobotDescription, points: pd.DataFrame, same_name: bool = True) -> list:
@@ -427,11 +467,38 @@ LOOSEST_OFFSET_RAD = np.radians(0.5)  # a joint offset known no better than this
 LOOSEST_STRAIN_PER_BAR = 1e-3  # nor a lengthening known no better than 0.25 mm per bar of a 0.25 m link
 
 
+HOSE_K = ".hose_stiffness_nm_per_rad"  # effects.hoses.joints.<joint>.stiffness_nm_per_rad
+HOSE_SLACK = ".hose_slack_rad"  # … .slack_rad
+HOSE_T0 = ".hose_torque_at_zero_nm"  # what the fit solves for beside K (−K · slack: linear, never degenerate)
+
+
+def _hose(joint: str, part: str) -> str:
+    """The name of a joint's hose stiffness (``part`` "k"), slack ("slack") or torque at q = 0 ("t0")."""
+    return joint + {"k": HOSE_K, "slack": HOSE_SLACK, "t0": HOSE_T0}[part]
+
+
+def _hose_slacks(held: list[str], free: list[str], values: dict, se: dict, cov: pd.DataFrame | None):
+    """``values`` and ``se`` with each fitted hose's slack = −t0/K and its standard error (first order, from
+    the covariance of K and t0)."""
+    values, se = dict(values), dict(se)
+    for joint in held:
+        k, t0 = _hose(joint, "k"), _hose(joint, "t0")
+        if k in free and t0 in free and cov is not None:
+            slack = -values[t0] / values[k]
+            gradient = np.array([slack / values[k], -1 / values[k]])  # ∂slack/∂K, ∂slack/∂t0
+            part = cov.loc[[k, t0], [k, t0]].to_numpy()
+            values[_hose(joint, "slack")] = slack
+            se[_hose(joint, "slack")] = float(np.sqrt(max(gradient @ part @ gradient, 0.0)))
+    return values, se
+
+
 def _loosest(name: str, nominal: float) -> float:
     """The largest standard error a fitted value may have: half its nominal value; for those nominally zero,
     half a degree (a joint offset) or 0.1 % per bar (the links' lengthening)."""
     if name.endswith(".offset_rad"):
         return LOOSEST_OFFSET_RAD
+    if name.endswith((HOSE_K, HOSE_T0)):
+        return np.inf  # a hose's: zero within two errors makes it none (below)
     return LOOSEST_STRAIN_PER_BAR if name == STRAIN and not nominal else 0.5 * abs(nominal)
 
 

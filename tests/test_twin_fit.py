@@ -1,11 +1,11 @@
 """The twin of the lab's own robot (issue 33, its static part): `vslab twin fit` and ``pipeline.twin_fit``.
 
 A lab robot the fit is not told about (`bench/lab_arm.yaml`: upper link ×0.8, lower ×1.25, l2 +2 mm,
-l3 −2 mm, joint offsets ±0.3°, links that lengthen 0.1 % per bar, masses ×1.15, the servos' torque constant
-×0.95, their stiffness ×0.8 and backlash ×2, the lower link's hysteresis slower) is simulated, built and
-fitted from the nominal description; the fit finds it within its standard errors. The command writes a
-description that extends the nominal one and the twin loads; what it is handed wrong ends in one `error:`
-line and exit status 2.
+l3 −2 mm, joint offsets ±0.3°, links that lengthen 0.1 % per bar, hoses across q2 and q3, masses ×1.15, the
+servos' torque constant ×0.95, their stiffness ×0.8 and backlash ×2, the lower link's hysteresis slower) is
+simulated, built and fitted from the nominal description; the fit finds it within its standard errors. The
+command writes a description that extends the nominal one and the twin loads; what it is handed wrong ends
+in one `error:` line and exit status 2.
 """
 
 from __future__ import annotations
@@ -34,13 +34,13 @@ LAB_ROBOT = (Path(__file__).resolve().parents[1] / "bench" / "lab_arm.yaml").rea
 def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     """3,000 settled points of the lab's arm: the lengths within 0.3 mm, the offsets within 0.1°, the upper
     link's stiffness within 3 %, the masses within 1 %, the torque constant within 0.5 %, the servos'
-    stiffness within 3 % and backlash within 5 %, each of those and the lengthening within 3 standard errors
-    of the truth, the servos' two within 2 (measured: every one of them within 2; the servos' 0.2 % and 0.4
-    errors off). The hysteresis loops and the lower link's stiffness (stiffer, less loaded, its loop a sixth
-    of its bending) within 5 errors: measured, the upper loop's δ_h and τ_y 10–11 % low (1.8 and 2.0 errors),
-    the lower link's δ_h 45 % low (3.8 errors) beside its τ_y, which the points do not constrain (named, left
-    nominal), and its 1.5 bar stiffness 15 % high (1.8 errors): the fit's path of the loads between points is
-    not yet the twin's (a gap of issue 33, open)."""
+    stiffness within 3 % and backlash within 5 %, the hoses' stiffness within 5 % and slack within 0.02 rad,
+    each of those and the lengthening within 3 standard errors of the truth, the servos' and the hoses'
+    within 2 (measured: every one of them within 1.4). The hysteresis loops and the lower link's stiffness
+    (stiffer, less loaded, its loop a sixth of its bending) within 5 errors: measured, the upper loop's δ_h
+    and τ_y 13–15 % low (3.2 errors), the lower link's 17–27 % low (0.7–1.3 errors; on other draws of the
+    lab arm its τ_y was not constrained: named, left nominal) and its 2 bar stiffness 13 % low (1.4
+    errors): the fit's path of the loads between points is not yet the twin's (a gap of issue 33, open)."""
     from acquisition.recorder.sessions import SessionStore
     from pipeline.build import build
     from pipeline.lab import Lab
@@ -58,7 +58,8 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     true = {"l2_m": 0.252, "l3_m": 0.248, "q2.offset_rad": 0.005236, "q3.offset_rad": -0.005236,
             "elongation.strain_per_bar": 0.001, "upper_vsl.mass_scale": 1.15, "lower_vsl.mass_scale": 1.15,
             "servo.torque_constant_nm_per_a": 1.71, "servo.stiffness_per_p_gain_nm_per_rad": 0.08,
-            "servo.backlash_rad": 0.00872}  # fmt: skip
+            "servo.backlash_rad": 0.00872, "q2.hose_stiffness_nm_per_rad": 0.05, "q2.hose_slack_rad": 0.8,
+            "q3.hose_stiffness_nm_per_rad": 0.05, "q3.hose_slack_rad": -1.2}  # fmt: skip
     for link in truth.links:
         table = truth.link_table(link.name)
         true |= {
@@ -69,12 +70,12 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
             f"{link.name}.delta_h_rad": link.hysteresis.delta_h_rad,
             f"{link.name}.tau_y_nm": link.hysteresis.tau_y_nm,
         }
-    assert len(fit.values_) + len(fit.not_identifiable_) == 28 and not set(fit.values_) & set(
+    assert len(fit.values_) + len(fit.not_identifiable_) == 32 and not set(fit.values_) & set(
         fit.not_identifiable_
-    )  # l1-l3, 3 offsets, lengthening, 2 masses, K_t, the servos' 2; 6 stiffness and 2 loop values a link
+    )  # l1-l3, 3 offsets, lengthening, 2 masses, K_t, the servos' 2, 2 hoses' 2; 6 stiffness, 2 loop a link
     for name, value in fit.values_.items():
         loose = name.startswith("lower_vsl.") or name.endswith(("delta_h_rad", "tau_y_nm"))
-        errors = 5 if loose else 2 if name in (SERVO_STIFFNESS, BACKLASH) else 3
+        errors = 5 if loose else 2 if name in (SERVO_STIFFNESS, BACKLASH) or ".hose_" in name else 3
         within = errors * fit.stderr_[name]
         assert abs(value - true[name]) <= within, (name, value, true[name], fit.stderr_[name])
     for body in ("upper_vsl", "lower_vsl"):
@@ -82,6 +83,9 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     assert abs(fit.values_["servo.torque_constant_nm_per_a"] / 1.71 - 1) < 0.005
     assert abs(fit.values_["servo.stiffness_per_p_gain_nm_per_rad"] / 0.08 - 1) < 0.03
     assert abs(fit.values_["servo.backlash_rad"] / 0.00872 - 1) < 0.05
+    for joint in ("q2", "q3"):  # the hoses: their stiffness within 5 %, where they hang slack within 0.02 rad
+        assert abs(fit.values_[f"{joint}.hose_stiffness_nm_per_rad"] / 0.05 - 1) < 0.05
+        assert abs(fit.values_[f"{joint}.hose_slack_rad"] - true[f"{joint}.hose_slack_rad"]) < 0.02
     assert abs(fit.values_["l2_m"] - 0.252) < 0.3e-3 and abs(fit.values_["l3_m"] - 0.248) < 0.3e-3
     for joint in ("q2", "q3"):  # the encoders' zeros, within 0.1°
         assert abs(fit.values_[f"{joint}.offset_rad"] - true[f"{joint}.offset_rad"]) < np.radians(0.1)
@@ -104,6 +108,8 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     assert load_robot(written).effects.elongation.strain_per_bar == pytest.approx(
         fit.values_["elongation.strain_per_bar"]
     )  # the twin of the fitted description lengthens its links as the lab's arm does
+    hoses = load_robot(written).effects.hoses.joints  # and its hoses pull as the lab's do
+    assert hoses["q3"].slack_rad == pytest.approx(fit.values_["q3.hose_slack_rad"])
     held_out = {}
     for order in ("drawn", "shuffled"):
         sub = tmp_path / order
@@ -155,6 +161,8 @@ def test_the_command_writes_a_description_the_twin_loads(lab):
     assert robot.masses[0].mass_kg == pytest.approx(0.1 * scale, abs=1e-6) and robot.masses[0].frame == "d2"
     assert all(np.isfinite(v.stderr) and v.stderr > 0 for v in fitted.values())
     assert robot.servo.backlash_rad == pytest.approx(fitted[BACKLASH].value, abs=1e-7)
+    assert "no hose torque shows on q2" in robot.fitted.not_identifiable["q2.hose_slack_rad"]
+    assert robot.effects.hoses is None and fitted["q3.hose_stiffness_nm_per_rad"].value == 0.0
     assert robot.servo.stiffness_per_p_gain_nm_per_rad == pytest.approx(
         fitted[SERVO_STIFFNESS].value, abs=1e-6
     )
