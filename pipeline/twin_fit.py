@@ -146,10 +146,12 @@ class VslStaticFit(Estimator):
         hoses = robot.effects.hoses.joints if robot.effects.hoses is not None else {}
         held = [j.name for j in robot.joints if j.drive == "servo"]  # the joints whose currents are read
         servo_columns = [[j.name for j in robot.joints].index(name) for name in held]  # their q columns
+        middle = dict(zip(held, q[:, servo_columns].mean(axis=0), strict=True))  # each joint's mean angle
         for joint in held:  # the tubes and cables across a joint: a torque K (q − slack) its servo holds
             hose = hoses.get(joint)
             k, slack = (hose.stiffness_nm_per_rad, hose.slack_rad) if hose is not None else (0.0, 0.0)
-            nominal |= {_hose(joint, "k"): k, _hose(joint, "slack"): slack, _hose(joint, "t0"): -k * slack}
+            nominal |= {_hose(joint, "k"): k, _hose(joint, "slack"): slack,
+                        _hose(joint, "t0"): k * (middle[joint] - slack)}  # fmt: skip
         if amps is not None:
             free += [TORQUE_CONSTANT, *(_hose(j, part) for j in held for part in ("k", "t0"))]
         else:
@@ -218,7 +220,7 @@ class VslStaticFit(Estimator):
                 if amps is None:
                     return out
                 servo = robot.servo.model_copy(update={"torque_constant_nm_per_a": values[TORQUE_CONSTANT]})
-                hose = np.stack([values[_hose(j, "k")] * q[:, c] + values[_hose(j, "t0")]
+                hose = np.stack([values[_hose(j, "k")] * (q[:, c] - middle[j]) + values[_hose(j, "t0")]
                                  for j, c in zip(held, servo_columns, strict=True)], axis=1)  # fmt: skip
                 wrong = (servo_current_a(servo, drive + hose, 0.0) - amps) * 1e3  # mA
                 return np.concatenate([out, weight[0] * wrong.ravel()])
@@ -272,7 +274,7 @@ class VslStaticFit(Estimator):
         self.robot_ = robot
         self.nominal_ = {n: v for n, v in nominal.items() if not n.endswith(HOSE_T0)}
         self.nominal_ |= servo.nominal_ if servo else {}
-        values, se = _hose_slacks(held, free, values, se, covariance[0] if covariance else None)
+        values, se = _hose_slacks(middle, free, values, se, covariance[0] if covariance else None)
         shown = [n.replace(HOSE_T0, HOSE_SLACK) for n in free]  # a hose's slack where its t0 was fitted
         fixed = {n: v for n, v in fixed.items() if not n.endswith(HOSE_T0)}
         self.values_ = {n: float(values[n]) for n in shown} | fixed | (servo.values_ if servo else {})
@@ -469,23 +471,25 @@ LOOSEST_STRAIN_PER_BAR = 1e-3  # nor a lengthening known no better than 0.25 mm 
 
 HOSE_K = ".hose_stiffness_nm_per_rad"  # effects.hoses.joints.<joint>.stiffness_nm_per_rad
 HOSE_SLACK = ".hose_slack_rad"  # … .slack_rad
-HOSE_T0 = ".hose_torque_at_zero_nm"  # what the fit solves for beside K (−K · slack: linear, never degenerate)
+HOSE_T0 = ".hose_torque_mid_nm"  # what the fit solves for beside K: the torque at the joint's mean angle
+# (linear, never degenerate where a hose is nominally absent, and apart from K: q − its mean)
 
 
 def _hose(joint: str, part: str) -> str:
-    """The name of a joint's hose stiffness (``part`` "k"), slack ("slack") or torque at q = 0 ("t0")."""
+    """The name of a joint's hose stiffness (``part`` "k"), slack ("slack") or torque at its mean angle
+    ("t0")."""
     return joint + {"k": HOSE_K, "slack": HOSE_SLACK, "t0": HOSE_T0}[part]
 
 
-def _hose_slacks(held: list[str], free: list[str], values: dict, se: dict, cov: pd.DataFrame | None):
-    """``values`` and ``se`` with each fitted hose's slack = −t0/K and its standard error (first order, from
-    the covariance of K and t0)."""
+def _hose_slacks(middle: dict, free: list[str], values: dict, se: dict, cov: pd.DataFrame | None):
+    """``values`` and ``se`` with each fitted hose's slack = q̄ − t0/K (q̄ its joint's mean angle, ``middle``)
+    and its standard error (first order, from the covariance of K and t0)."""
     values, se = dict(values), dict(se)
-    for joint in held:
+    for joint, mean in middle.items():
         k, t0 = _hose(joint, "k"), _hose(joint, "t0")
         if k in free and t0 in free and cov is not None:
-            slack = -values[t0] / values[k]
-            gradient = np.array([slack / values[k], -1 / values[k]])  # ∂slack/∂K, ∂slack/∂t0
+            slack = mean - values[t0] / values[k]
+            gradient = np.array([values[t0] / values[k] ** 2, -1 / values[k]])  # ∂slack/∂K, ∂slack/∂t0
             part = cov.loc[[k, t0], [k, t0]].to_numpy()
             values[_hose(joint, "slack")] = slack
             se[_hose(joint, "slack")] = float(np.sqrt(max(gradient @ part @ gradient, 0.0)))
