@@ -58,7 +58,11 @@ class ServoFit(Estimator):
     def fit(self, points: pd.DataFrame) -> ServoFit:
         robot = load_robot(self.robot) if isinstance(self.robot, str) else self.robot
         servo = robot.servo
-        self.nominal_ = {STIFFNESS: servo.stiffness_per_p_gain_nm_per_rad, BACKLASH: servo.backlash_rad}
+        self.nominal_ = (
+            {STIFFNESS: servo.stiffness_per_p_gain_nm_per_rad, BACKLASH: servo.backlash_rad}
+            if servo is not None
+            else {STIFFNESS: float("nan"), BACKLASH: float("nan")}  # a robot of steppers: nothing to fit
+        )
         self.values_, self.stderr_, self.not_identifiable_ = {}, {}, {}
         self.band_rad_, self.n_points_, self.n_sessions_ = float("nan"), 0, 0
         droop, torque, sessions, count, why = _droops(robot, points, self.torque_constant)

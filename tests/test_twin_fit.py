@@ -238,6 +238,8 @@ def test_what_the_servos_cannot_tell_is_named_and_left_nominal(campaign_dataset)
     assert "passive recording" in passive.not_identifiable_[BACKLASH]
     blind = ServoFit("vsl").fit(data.drop(columns=["i_0", "i_1"]))
     assert "no joint currents" in blind.not_identifiable_[SERVO_STIFFNESS] and not blind.values_
+    steppers = load_robot("vsl").model_copy(update={"servo": None})  # no servo at all: named, no traceback
+    assert "no servos" in ServoFit(steppers).fit(data).not_identifiable_[BACKLASH]
     still = data[data["payload_kg"] == 0].iloc[:12].assign(i_0=0.061, i_1=-0.061)  # no torque to speak of
     assert "encoder count" in ServoFit("vsl").fit(still).not_identifiable_[SERVO_STIFFNESS]
     fit = VslStaticFit("vsl").fit(data.assign(qc_1=np.nan, qc_2=np.nan))  # the static fit goes on without
