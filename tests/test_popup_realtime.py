@@ -74,6 +74,9 @@ BURST_MS: dict[str, float] = {}  # per session: the most it took within any STAL
 STALL_WINDOW_S = 0.5
 
 
+# one rig at a time: two at once (each emulating the CAN bus and its 1 kHz IMU) starved the host's CAN
+# reading on a slow 2-core machine, alone in the real-time run (a drive's heartbeat missed for 0.33 s); the
+# static tests likewise: side by side with a busy process on each core, two rigs read k̂ 6 % low
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
     """``recorded(name)``: the session of :data:`SESSIONS` run with ``vslab run … --rig`` into the module's
@@ -117,11 +120,6 @@ def _finish(lab, session: str, run: subprocess.Popen, watch: StealWatch):
     STOLEN_MS[session] = watch.total_ms  # said with a failure of the datasets test
     BURST_MS[session] = watch.burst_ms(STALL_WINDOW_S)
     return lab / "sessions" / session
-
-
-# one rig at a time: two at once (each emulating the CAN bus and its 1 kHz IMU) starved the host's CAN
-# reading on a slow 2-core machine, alone in the real-time run (a drive's heartbeat missed for 0.33 s); the
-# static tests likewise: side by side with a busy process on each core, two rigs read k̂ 6 % low
 
 
 def _configured_link2(pressure_kpa) -> tuple[np.ndarray, np.ndarray]:
