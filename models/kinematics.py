@@ -189,6 +189,9 @@ def dh_chain_from_table(rows_mm: Sequence[tuple[float, float, float, str]]) -> D
     return DHChain([DHRow(a * 1e-3, alpha, d * 1e-3, joint) for a, alpha, d, joint in rows_mm])
 
 
+BATCHED_POINTS = 128  # from this many points on, DHChain.frames composes column by column (see there)
+
+
 def _dh_transforms(a: Array, alpha: Array, d: Array, theta: Array) -> Array:
     """Per-row transforms (..., R, 4, 4) for broadcast row parameters and θ (..., R)."""
     ct, st = np.cos(theta), np.sin(theta)
@@ -215,6 +218,7 @@ class DHChain:
         self._virtual = tuple(r.joint for r in rows if not r.actuated)
         self._a = np.array([r.a for r in rows])
         self._alpha = np.array([r.alpha for r in rows])
+        self._cos_alpha, self._sin_alpha = np.cos(self._alpha), np.sin(self._alpha)
         self._d = np.array([r.d for r in rows])
         self._offset = np.array([r.offset for r in rows])
         self._is_actuated = np.array([r.actuated for r in rows])
@@ -259,13 +263,40 @@ class DHChain:
     def frames(self, q: ArrayLike, delta: ArrayLike | None = None, a: ArrayLike | None = None) -> Array:
         """Cumulative transforms (..., R + 1, 4, 4): index 0 is the base, i + 1 the frame after row i. ``a``:
         the rows' lengths (..., R) where they are not the chain's (links that lengthen with pressure)."""
+        theta = self.theta(q, delta)
         lengths = self._a if a is None else np.asarray(a, dtype=float)
-        local = _dh_transforms(lengths, self._alpha, self._d, self.theta(q, delta))
+        if theta.size >= BATCHED_POINTS * theta.shape[-1]:
+            return self._batched_frames(theta, np.broadcast_to(lengths, theta.shape))
+        local = _dh_transforms(lengths, self._alpha, self._d, theta)
         out = np.empty((*local.shape[:-3], local.shape[-3] + 1, 4, 4))
         out[..., 0, :, :] = np.eye(4)
         for i in range(local.shape[-3]):
             out[..., i + 1, :, :] = out[..., i, :, :] @ local[..., i, :, :]
         return out
+
+    def _batched_frames(self, theta: Array, lengths: Array) -> Array:
+        """:meth:`frames` of many points, each row's Rz(θ)·Tz(d)·Tx(a)·Rx(α) applied to the frame before it
+        column by column (x' = cθ x + sθ y; y' = cα (cθ y − sθ x) + sα z; z' = cα z − sα (cθ y − sθ x);
+        p' = p + a x' + d z) over contiguous points: the 4 × 4 products' numbers to a bit or two, in a third
+        of their time at 17,568 points (a twin fit's campaign); the products take fewer numpy calls, and less
+        time, below ~150 points. A view whose points vary slowest in memory."""
+        batch = theta.shape[:-1]
+        cos, sin = np.cos(np.moveaxis(theta, -1, 0)), np.sin(np.moveaxis(theta, -1, 0))
+        lengths = np.moveaxis(lengths, -1, 0)
+        out = np.zeros((theta.shape[-1] + 1, 4, 4, *batch))
+        out[:, 3, 3] = 1.0
+        out[0, 0, 0] = out[0, 1, 1] = out[0, 2, 2] = 1.0
+        x, y, z = out[0, :3, 0], out[0, :3, 1], out[0, :3, 2]
+        p = out[0, :3, 3]
+        for i, (ca, sa, d) in enumerate(zip(self._cos_alpha, self._sin_alpha, self._d, strict=True)):
+            ct, st = cos[i], sin[i]
+            turned = ct * y - st * x  # y after Rz(θ)
+            x = ct * x + st * y
+            p = p + lengths[i] * x + d * z
+            y, z = ca * turned + sa * z, ca * z - sa * turned
+            frame = out[i + 1, :3]
+            frame[:, 0], frame[:, 1], frame[:, 2], frame[:, 3] = x, y, z, p
+        return np.moveaxis(out, (0, 1, 2), (-3, -2, -1))
 
     def fk(self, q: ArrayLike, delta: ArrayLike | None = None, a: ArrayLike | None = None) -> Array:
         """End-effector transform (..., 4, 4) (``a``: as :meth:`frames`)."""

@@ -39,21 +39,26 @@ def gravity_moments(robot: RobotDescription, q: ArrayLike, delta: ArrayLike | No
     mass_row, mass_pos, mass_kg = _mass_table(robot)
     tip = frames[..., -1, :, :]
     tool = tip[..., :3, :3] @ np.asarray(robot.tool_offset_m, float) + tip[..., :3, 3]
-    # base-frame positions of the masses (..., M, 3) and of the payload
+    # base-frame positions of the masses (..., M, 3)
     owner = np.where(mass_row < 0, n_rows, mass_row + 1)
     f = frames[..., owner, :, :]
-    world = np.einsum("...mij,mj->...mi", f[..., :3, :3], mass_pos) + f[..., :3, 3]
+    world = (f[..., :3, :3] @ mass_pos[:, :, None])[..., 0] + f[..., :3, 3]
     payload = np.broadcast_to(np.asarray(payload_kg, float), q.shape[:-1])
     gravity = np.asarray(robot.gravity_m_s2, float)
-    distal_of = np.where(mass_row < 0, n_rows, mass_row)  # a mass is distal to row i when its row ≥ i
-    out = np.empty((*q.shape[:-1], n_rows))
-    for i in range(n_rows):
-        z, origin = frames[..., i, :3, 2], frames[..., i, :3, 3]
-        force = mass_kg[distal_of >= i, None] * gravity  # (m, 3)
-        r = world[..., distal_of >= i, :] - origin[..., None, :]
-        moment = _cross(r, force).sum(axis=-2) + _cross(tool - origin, payload[..., None] * gravity)
-        out[..., i] = np.einsum("...k,...k->...", moment, z)
-    return out
+    # The masses distal to row i (a mass is when its row ≥ i; the tool's are distal to every row) and the
+    # payload pull with Σ m g from their centre: M_i = (Σ m x − (Σ m) o_i) × g, projected on the row's axis.
+    # One sum per row of what the masses weigh, not one cross product per mass and row (the twin fit asks for
+    # these moments at every point hundreds of times).
+    distal_of = np.where(mass_row < 0, n_rows, mass_row)
+    distal = (distal_of[None, :] >= np.arange(n_rows)[:, None]).astype(float)  # (R, M)
+    points = int(np.prod(world.shape[:-2], dtype=int)) * 3
+    first = mass_kg[:, None] * np.moveaxis(world, -2, 0).reshape(len(mass_kg), points)  # (M, … · 3)
+    weighed = np.moveaxis((distal @ first).reshape(n_rows, *world.shape[:-2], 3), 0, -2)  # (..., R, 3)
+    weighed = weighed + payload[..., None, None] * tool[..., None, :]
+    weight = distal @ mass_kg + payload[..., None]  # (..., R)
+    origin, z = frames[..., :n_rows, :3, 3], frames[..., :n_rows, :3, 2]
+    arm = weighed - weight[..., None] * origin  # Σ m (x − o_i), payload included
+    return np.einsum("...k,...k->...", _cross(arm, np.broadcast_to(gravity, arm.shape)), z)
 
 
 def _cross(a: Array, b: Array) -> Array:

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from models.kinematics import (
+    BATCHED_POINTS,
     POPUP_TABLE2_MM,
     ArmLengths,
     DHChain,
@@ -122,6 +123,27 @@ def test_popup_chain_with_zero_deflection_matches_the_rigid_model():
     np.testing.assert_allclose(chain.fk(q), chain.rigid().fk(q), atol=1e-12)
     np.testing.assert_allclose(chain.fk(q, np.zeros(4)), chain.fk(q), atol=0)
     assert np.abs(chain.fk(q, np.full(4, 0.01)) - chain.fk(q)).max() > 1e-3  # δ does change the pose
+
+
+@pytest.mark.parametrize("batch", [(BATCHED_POINTS,), (3, BATCHED_POINTS), (BATCHED_POINTS - 1,)])
+def test_a_batch_of_frames_is_each_point_s_frames(batch):
+    """Many points' frames (composed column by column from ``BATCHED_POINTS`` on, 4 × 4 products below) are
+    each point's own, alone, to a few bits, with the rows' lengths given per point too."""
+    chain = dh_chain_from_table(POPUP_TABLE2_MM)
+    rng = np.random.default_rng(7)
+    q, delta = rng.uniform(-3, 3, (*batch, 3)), rng.normal(0, 0.2, (*batch, 4))
+    lengths = np.array([row.a for row in chain.rows]) * rng.uniform(0.9, 1.1, (*batch, len(chain.rows)))
+    frames = chain.frames(q, delta, lengths)
+    assert frames.shape == (*batch, len(chain.rows) + 1, 4, 4)
+    alone = np.array([chain.frames(q[i], delta[i], lengths[i]) for i in np.ndindex(batch)])
+    np.testing.assert_allclose(frames.reshape(alone.shape), alone, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(
+        frames[..., 3, :], np.broadcast_to([0.0, 0.0, 0.0, 1.0], frames[..., 3, :].shape)
+    )
+    rotations = frames[..., :3, :3]  # orthonormal
+    np.testing.assert_allclose(
+        rotations @ np.swapaxes(rotations, -1, -2), np.broadcast_to(np.eye(3), rotations.shape), atol=1e-14
+    )
 
 
 def test_dh_chain_rejects_bad_shapes():
