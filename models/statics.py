@@ -98,14 +98,16 @@ def _virtual_stiffness(robot: RobotDescription, batch: tuple[int, ...], pressure
     return out
 
 
-def servo_current_a(servo, torque: ArrayLike, qd: ArrayLike) -> Array:
+def servo_current_a(servo, torque: ArrayLike, qd: ArrayLike, direction: ArrayLike | None = None) -> Array:
     """The drive current (A, no noise) of servos (a ``ServoSpec``) holding ``torque`` (N·m) at speed ``qd``
     (rad/s): torque / K_t + idle · sign(torque) + friction · sign(speed) (smoothed). The twin's current
-    registers read it; the twin fit weighs the arm with it."""
+    registers read it; the twin fit weighs the arm with it. ``direction``: the sign the idle current takes
+    where it is held fixed, not the torque's (a fit's solve: sign(τ) jumps at τ = 0, and a finite difference
+    across the jump is no derivative)."""
     torque = np.asarray(torque, float)
     return (
         torque / servo.torque_constant_nm_per_a
-        + servo.idle_current_a * np.sign(torque)
+        + servo.idle_current_a * (np.sign(torque) if direction is None else direction)
         + servo.friction_current_a * np.tanh(np.asarray(qd, float) / 0.02)
     )
 

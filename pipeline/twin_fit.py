@@ -185,6 +185,13 @@ class VslStaticFit(Estimator):
         arms: dict[tuple, tuple] = {}  # the arm's tip, torques and drive torques at the last values asked for
 
         covariance: list[pd.DataFrame] = []  # the last pass's, of ``free`` (a hose's slack is a ratio)
+        # The idle current flows the way the held torque turns: a step at τ = 0 that a finite-difference
+        # Jacobian read as a derivative of ~10⁷ where a point's torque sat at zero (a solution is drawn to
+        # such kinks): the standard errors came out hundreds of times too small and the lower link 3–6 %
+        # soft. The directions are the measured currents' instead (|i| ≥ the idle current, 60 mA on the
+        # VSL's servos, where the noise is ~19 mA: the current says which way its servo holds), fixed for
+        # every solve.
+        idle = np.sign(amps) if amps is not None else None
 
         def solve(free: list[str], fixed: dict) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, dict]:
             """Values, registration rotation and shift, residuals (tip in mm, then the currents' in mA) and
@@ -222,7 +229,7 @@ class VslStaticFit(Estimator):
                 servo = robot.servo.model_copy(update={"torque_constant_nm_per_a": values[TORQUE_CONSTANT]})
                 hose = np.stack([values[_hose(j, "k")] * (q[:, c] - middle[j]) + values[_hose(j, "t0")]
                                  for j, c in zip(held, servo_columns, strict=True)], axis=1)  # fmt: skip
-                wrong = (servo_current_a(servo, drive + hose, 0.0) - amps) * 1e3  # mA
+                wrong = (servo_current_a(servo, drive + hose, 0.0, idle) - amps) * 1e3  # mA
                 return np.concatenate([out, weight[0] * wrong.ravel()])
 
             start = np.array([last.get(n, 0.0) for n in free] + list(last.get("registration", np.zeros(6))))

@@ -54,3 +54,17 @@ def test_an_arm_without_masses_feels_only_its_payload():
     for i in (0, 99, 199):
         np.testing.assert_allclose(moments[i], _by_definition(robot, q[i], None, 0.1), rtol=1e-12, atol=1e-14)
     np.testing.assert_array_equal(gravity_moments(robot, q, None, 0.0), 0.0)
+
+
+def test_a_held_idle_direction_makes_the_current_continuous_through_zero_torque():
+    """The twin's servo current jumps by twice the idle current where the torque changes sign; with the
+    direction held (a fit's solve, from the measured currents) it is a straight line through τ = 0."""
+    from models.statics import servo_current_a
+
+    servo = load_robot("vsl").servo
+    torque = np.array([-1e-9, 0.0, 1e-9])
+    free = servo_current_a(servo, torque, 0.0)
+    assert free[2] - free[0] == pytest.approx(2 * servo.idle_current_a)
+    held = servo_current_a(servo, torque, 0.0, direction=np.ones(3))
+    np.testing.assert_allclose(np.diff(held), 1e-9 / servo.torque_constant_nm_per_a, rtol=1e-6)
+    assert held[1] == pytest.approx(servo.idle_current_a)
