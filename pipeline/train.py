@@ -138,9 +138,11 @@ def _torch_settings(threads: int):
 
 
 def _descend(net: HybridNet, config: TrainConfig, tr: pd.DataFrame, va: pd.DataFrame,
-             result: TrainResult, robot: Robot = None) -> list[float]:  # fmt: skip
+             result: TrainResult, robot: Robot = None, from_start: bool = False) -> list[float]:  # fmt: skip
     """Adam epochs over ``tr`` in a seeded order until ``val`` stops improving for ``config.patience``
-    epochs; the net ends with its best weights, ``result`` with the curves. Returns each epoch's time (s)."""
+    epochs; the net ends with its best weights, ``result`` with the curves. Returns each epoch's time (s).
+    ``from_start``: the weights it starts from (a pretrained net's) are a candidate too, the curves' first
+    entry (no step taken): fine-tuning that only makes ``val`` worse keeps them."""
     device = net.in_mean.device
     cols = config.net
 
@@ -155,7 +157,28 @@ def _descend(net: HybridNet, config: TrainConfig, tr: pd.DataFrame, va: pd.DataF
     # CPU (a paper net's epoch 1.18 → 1.08 s); fused would be faster still but is not bit-identical
     opt = torch.optim.Adam(net.parameters(), lr=config.lr, weight_decay=config.weight_decay, foreach=True)
     best, best_state, epoch_times = float("inf"), None, []
-    for epoch in range(config.max_epochs):
+
+    def judged(train_loss: float) -> bool:  # the weights now: their curves kept, True when patience ran out
+        nonlocal best, best_state
+        net.eval()
+        with torch.no_grad():
+            val_loss = float((net.members_z(xs_va).mean(0) - ys_va).square().mean())
+            pred = net(xv).cpu().numpy()
+        epoch = len(result.val_loss)
+        result.train_loss.append(train_loss)
+        result.val_loss.append(val_loss)
+        errors = _errors(cols.direction, pred, va, cols.targets, robot)
+        result.val_error_mm.append(float(errors["tip_mm"].mean()))
+        if val_loss < best:
+            best, result.best_epoch = val_loss, epoch
+            best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
+            return False
+        return epoch - result.best_epoch >= config.patience
+
+    if from_start:
+        with torch.no_grad():
+            judged(float((net.members_z(xs_tr) - ys_tr).square().mean()))
+    for _ in range(config.max_epochs):
         t0 = time.perf_counter()
         net.train()
         order = torch.randperm(len(xs_tr), generator=gen).to(device)
@@ -166,19 +189,9 @@ def _descend(net: HybridNet, config: TrainConfig, tr: pd.DataFrame, va: pd.DataF
             loss.backward()
             opt.step()
             total += float(loss.detach()) * len(idx)
-        net.eval()
-        with torch.no_grad():
-            val_loss = float((net.members_z(xs_va).mean(0) - ys_va).square().mean())
-            pred = net(xv).cpu().numpy()
+        patience_ran_out = judged(total / len(xs_tr))
         epoch_times.append(time.perf_counter() - t0)
-        result.train_loss.append(total / len(xs_tr))
-        result.val_loss.append(val_loss)
-        errors = _errors(cols.direction, pred, va, cols.targets, robot)
-        result.val_error_mm.append(float(errors["tip_mm"].mean()))
-        if val_loss < best:
-            best, result.best_epoch = val_loss, epoch
-            best_state = {k: v.detach().clone() for k, v in net.state_dict().items()}
-        elif epoch - result.best_epoch >= config.patience:
+        if patience_ran_out:
             break
     net.load_state_dict(best_state)
     return epoch_times
@@ -231,7 +244,7 @@ class HybridRegressor(Estimator):
             else:
                 x_tr, y_tr = (tr[list(c)].to_numpy(float) for c in (config.net.inputs, config.net.targets))
                 net = HybridNet(config.net).fit_scaler(x_tr, y_tr).to(device)
-            epoch_times = _descend(net, config, tr, va, result, self.robot)
+            epoch_times = _descend(net, config, tr, va, result, self.robot, self.pretrained is not None)
         net.eval()
         result.model = net
         result.train_time_s = time.perf_counter() - start

@@ -67,6 +67,24 @@ def test_fine_tuning_starts_from_the_pretrained_net_and_leaves_it_as_it_was(camp
         HybridRegressor(TrainConfig(preset("inverse", "paper")), pretrained=pretrained).fit(data)
 
 
+def test_fine_tuning_that_only_makes_val_worse_keeps_the_pretrained_weights(campaign_dataset):
+    """The weights fine-tuning starts from are a candidate for early stopping (the curves' first entry, no
+    step taken): a step far too large makes every epoch worse, and the pretrained net comes back as it was.
+    A net trained from scratch has no such entry."""
+    data = campaign_dataset[2]
+    config = TrainConfig(preset("inverse", "small-residual"), max_epochs=20, seed=1)
+    pretrained = HybridRegressor(config, threads=1).fit(data).net_
+    wild = TrainConfig(preset("inverse", "small-residual"), max_epochs=4, patience=2, lr=10.0, seed=5)
+    tuned = HybridRegressor(wild, threads=1, pretrained=pretrained).fit(data)
+    history = tuned.history_
+    assert history.best_epoch == 0 and len(history.val_loss) == 1 + wild.patience  # the start, then 2 worse
+    assert min(history.val_loss[1:]) > history.val_loss[0]
+    for name, tensor in pretrained.state_dict().items():
+        assert torch.equal(tuned.net_.state_dict()[name], tensor)
+    fresh = HybridRegressor(wild, threads=1).fit(data).history_
+    assert len(fresh.val_loss) == len(fresh.train_loss) <= wild.max_epochs  # an entry an epoch, none before
+
+
 def test_the_verdict_reads_ten_percent_against_all():
     import pandas as pd
 
