@@ -149,6 +149,21 @@ def advance(params: KernelParams, state: KernelState, cmd: KernelCommands, n: in
     """Step every robot ``n`` times (mutates ``state``) and return the true trace."""
     b, a = state.out_pos.shape
     trace = allocate_trace(b, n, a, state.delta.shape[1], state.p_link.shape[1])
+    threads = numba.get_num_threads()
+    if b >= threads:
+        _advance_all(params, state, cmd, n, trace)
+    else:  # a thread without a robot would only wait at the parallel loop's end: on a busy machine one
+        numba.set_num_threads(max(b, 1))  # robot's step(1) took 16 ms on 2 threads, 25 µs on one
+        try:
+            _advance_all(params, state, cmd, n, trace)
+        finally:
+            numba.set_num_threads(threads)
+    trace.t[:] = state.t + params.dt * np.arange(1, n + 1)
+    state.t = float(trace.t[-1]) if n else state.t
+    return trace
+
+
+def _advance_all(params: KernelParams, state: KernelState, cmd: KernelCommands, n: int, trace: Trace) -> None:
     p = params
     state.buf_idx = _advance(
         n, p.dt, p.gravity, p.row_a, p.row_alpha_cs, p.row_d, p.row_offset, p.row_virtual, p.row_var,
@@ -164,9 +179,6 @@ def advance(params: KernelParams, state: KernelState, cmd: KernelCommands, n: in
         cmd.goal, cmd.profile_vel, cmd.profile_acc, cmd.pressure_set, cmd.valve_open, cmd.payload_kg,
         trace.q, trace.qd, trace.torque, trace.delta, trace.pressure, trace.tip_pos,
     )  # fmt: skip
-    trace.t[:] = state.t + p.dt * np.arange(1, n + 1)
-    state.t = float(trace.t[-1]) if n else state.t
-    return trace
 
 
 def link_end_states(params: KernelParams, q, delta, tip, steps: range, frame: int, rotations, forces) -> None:
