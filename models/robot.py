@@ -597,6 +597,16 @@ def _description_data(path: Path, extending: tuple[Path, ...]) -> dict:
     return _merged(_description_data(base_path, chain), data)
 
 
+def extended(base: RobotDescription, data: dict) -> RobotDescription:
+    """``base`` with ``data``'s fields merged in key by key, as a file that ``extends:`` it would be (its own
+    ``extends`` is ``base``): the description a fit writes, without writing it."""
+    over = {key: value for key, value in data.items() if key != "extends"}
+    try:
+        return RobotDescription.model_validate(_merged(base.model_dump(mode="json"), over))
+    except ValidationError as exc:
+        raise RobotDescriptionError(_format_errors(Path(f"{base.name} (extended)"), exc)) from None
+
+
 def _merged(base: object, over: object) -> object:
     if isinstance(base, dict) and isinstance(over, dict):
         return {**base, **{key: _merged(base.get(key), value) for key, value in over.items()}}

@@ -50,12 +50,14 @@ def session_order(sessions: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 
 def path_parts(robot: RobotDescription, links, q: np.ndarray, m: np.ndarray, order: np.ndarray,
-                substeps: int) -> dict[str, np.ndarray]:  # fmt: skip
+                substeps: int, moves: tuple | None = None) -> dict[str, np.ndarray]:  # fmt: skip
     """(n, substeps, links) the links' torques along the move into each point from the one before it in its
     session (joint angles interpolated in a straight line, the rigid arm's moments; the point's own last): the
-    hysteresis follows the path, which need not be monotone between two points. In parts, which the torque
-    is linear in: the payload's (``payload``), each bending link's body's masses at their nominal values (by
-    link name: the fit scales them) and the other masses' (``fixed``)."""
+    hysteresis follows the path, which need not be monotone between two points. With ``moves`` (the joint
+    angles and bending where each link's load turns along the arm's own move,
+    ``pipeline.move_paths.simulated_moves``), at those instead (then ``substeps`` is theirs). In parts, which
+    the torque is linear in: the payload's (``payload``), each bending link's body's masses at their nominal
+    values (by link name: the fit scales them) and the other masses' (``fixed``)."""
     before = np.arange(len(q))
     for row in order:
         row = row[row >= 0]
@@ -63,10 +65,15 @@ def path_parts(robot: RobotDescription, links, q: np.ndarray, m: np.ndarray, ord
     virtual = [i for i, r in enumerate(robot.dh_rows()) if not r.joint.startswith("q")]
 
     def part(masses: list, payload) -> np.ndarray:
-        out = np.zeros((len(q), substeps, len(virtual)))
+        out = np.zeros((len(q), substeps if moves is None else moves[0].shape[1], len(virtual)))
         if not masses and not np.any(payload):
             return out
         arm = robot.model_copy(update={"masses": masses})
+        if moves is not None:
+            for s in range(moves[0].shape[1]):
+                for k, row in enumerate(virtual):
+                    out[:, s, k] = gravity_moments(arm, moves[0][:, s, k], moves[1][:, s, k], payload)[:, row]
+            return out
         for s in range(1, substeps + 1):
             between = q[before] + (q - q[before]) * (s / substeps)
             out[:, s - 1] = gravity_moments(arm, between, None, payload)[:, virtual]

@@ -32,16 +32,16 @@ LAB_ROBOT = (Path(__file__).resolve().parents[1] / "bench" / "lab_arm.yaml").rea
 
 @pytest.mark.slow
 def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
-    """3,000 settled points of the lab's arm: the lengths within 0.3 mm, the offsets within 0.1°, the upper
-    link's stiffness within 3 %, the masses within 1 %, the torque constant within 0.5 %, the servos'
-    stiffness within 3 % and backlash within 5 %, the hoses' stiffness within 5 % and slack within 0.02 rad,
-    each of those and the lengthening within 3 standard errors of the truth, the servos' and the hoses'
-    within 2 (measured: every one of them within 1.4). The hysteresis loops and the lower link's stiffness
-    (stiffer, less loaded, its loop a sixth of its bending) within 5 errors: measured, the upper loop's δ_h
-    and τ_y 13–15 % low (3.2 errors), the lower link's 17–27 % low (0.7–1.3 errors; on other draws of the
-    lab arm its τ_y was not constrained: named, left nominal) and its 2 bar stiffness 13 % low (1.4
-    errors): the fit's path of the loads between points is not yet the twin's (a gap of issue 33, open: the
-    moves' acceleration torques; the same points moved at 0.2 rad/s give the upper loop within 1 error)."""
+    """3,000 settled points of the lab's arm: every fitted value within 2 standard errors of the truth
+    (measured: every one within 1.31), the lengths within 0.3 mm, the offsets within 0.1°, the upper link's
+    stiffness within 3 %, the masses within 1 %, the torque constant within 0.5 %, the servos' stiffness
+    within
+    3 % and backlash within 5 %, the hoses' stiffness within 5 % and slack within 0.02 rad. The hysteresis is
+    followed through the arm's own moves (``pipeline.move_paths``): along straight lines between the points
+    the upper loop's δ_h and τ_y came out 13–15 % low (3.2 errors); through the moves, 5–6 % (1.2 errors).
+    The lower link (stiffer, and carrying only the forearm, the tool and the payload) is within its errors
+    but not within 3 %: measured 1.4–10 % low at 0.9–1.3 errors, its standard error at 3,000 points 6–11 %
+    (at 17,568 points, `bench/twin_fit.py`, it is within 2 %)."""
     from acquisition.recorder.sessions import SessionStore
     from pipeline.build import build
     from pipeline.lab import Lab
@@ -75,10 +75,8 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
         fit.not_identifiable_
     )  # l1-l3, 3 offsets, lengthening, 2 masses, K_t, the servos' 2, 2 hoses' 2; 6 stiffness, 2 loop a link
     for name, value in fit.values_.items():
-        loose = name.startswith("lower_vsl.") or name.endswith(("delta_h_rad", "tau_y_nm"))
-        errors = 5 if loose else 2 if name in (SERVO_STIFFNESS, BACKLASH) or ".hose_" in name else 3
-        within = errors * fit.stderr_[name]
-        assert abs(value - true[name]) <= within, (name, value, true[name], fit.stderr_[name])
+        assert abs(value - true[name]) <= 2 * fit.stderr_[name], (name, value, true[name], fit.stderr_[name])
+    assert fit.move_speed_rad_s_ == pytest.approx(1.0, rel=0.02)  # the campaign's, read from its times
     for body in ("upper_vsl", "lower_vsl"):
         assert abs(fit.values_[f"{body}.mass_scale"] / 1.15 - 1) < 0.01
     assert abs(fit.values_["servo.torque_constant_nm_per_a"] / 1.71 - 1) < 0.005
@@ -145,6 +143,7 @@ def test_the_command_writes_a_description_the_twin_loads(lab):
     written = path / "twin" / "vsl_fitted.yaml"
     assert f"written: {written}" in result.output.replace("\n", "")
     assert "not identifiable, left nominal: l1_m" in result.output
+    assert "the loops followed through the arm's moves on its twin at" in result.output.replace("\n", " ")
     data = yaml.safe_load(written.read_text())
     assert data["extends"] == "vsl" and data["fitted"]["dataset"] == f"campaign@{version}"
     robot = load_robot(written)

@@ -95,6 +95,11 @@ def twin_fit(
         if vsl:
             console.print(f"tip residual {fit.residual_rms_mm_:.3f} mm per axis over {fit.n_points_} points "
                           f"of {fit.n_sessions_} sessions")  # fmt: skip
+            speed = fit.move_speed_rad_s_
+            console.print("the loops followed through the arm's moves on its twin at "
+                          f"{speed:.3g} rad/s (read from the points' times)" if speed else
+                          "the loops followed along straight lines between the points (their times give no "
+                          "move speed)", highlight=False)  # fmt: skip
         else:
             console.print(f"{fit.n_holds_} static holds and {fit.n_taps_} taps of {len(fit.sessions_)} "
                           "sessions")  # fmt: skip
