@@ -191,8 +191,18 @@ class VslStaticFit(Estimator):
         order = session_order(sessions, t)
         path = {"parts": path_parts(robot, links, q, m, order, self.substeps)}  # straight moves, at first
         moving = self._moving(rows, q, order, t)  # (goals, pressures by channel, speed) or None: straight
+        begin: dict[str, Any] = {}  # where the solves start (nominal, unless a first pass says better)
         if moving is not None:  # through the moves of the arm (a check: of the description checked)
-            arm = self._first_pass(robot, rows, sessions) if self.fit_parameters else robot
+            arm = robot
+            if self.fit_parameters:
+                arm, first = self._first_pass(robot, rows, sessions)
+                begin = {n: v for n, v in first.values_.items() if n in nominal}
+                for joint in held:  # a hose's torque at the joint's mean angle, from its K and slack
+                    k, slack = first.values_.get(_hose(joint, "k")), first.values_.get(_hose(joint, "slack"))
+                    if k is not None and slack is not None:
+                        begin[_hose(joint, "t0")] = k * (middle[joint] - slack)
+                turn, shift = first.correction_["rotation_rad"], first.correction_["translation_m"]
+                begin["registration"] = np.array([*turn, *shift]) * 1e3  # mrad, mm
             moves = simulated_moves(arm, *moving[:2], m, order, moving[2])
             path["parts"] = path_parts(robot, links, q, m, order, 0, moves)
 
@@ -251,7 +261,10 @@ class VslStaticFit(Estimator):
                 wrong = (servo_current_a(servo, drive + hose, 0.0, idle) - amps) * 1e3  # mA
                 return np.concatenate([out, weight[0] * wrong.ravel()])
 
-            start = np.array([last.get(n, 0.0) for n in free] + list(last.get("registration", np.zeros(6))))
+            seed = {n: (begin[n] - nominal[n]) / size for n, size in zip(free, scale, strict=True)
+                    if n in begin}  # fmt: skip
+            turned = last.get("registration", begin.get("registration", np.zeros(6)))
+            start = np.array([last.get(n, seed.get(n, 0.0)) for n in free] + list(turned))
             fit = least_squares(residual, start, method="trf", x_scale=1.0)
             last.clear()  # the next pass starts where this one ended
             last.update(zip(free, fit.x[: len(free)], strict=True), registration=fit.x[len(free) :])
@@ -333,18 +346,16 @@ class VslStaticFit(Estimator):
         self.move_speed_rad_s_ = moving[2] if moving is not None else None
         return self
 
-    def _first_pass(
-        self, robot: RobotDescription, rows: pd.DataFrame, sessions: np.ndarray
-    ) -> RobotDescription:
-        """The arm whose moves the fit follows: fitted along straight lines to every k-th session (about
-        ``FIRST_PASS_POINTS`` points; a third pass through the moves of the arm fitted through its moves
-        changed no value by more than 0.1 %)."""
+    def _first_pass(self, robot: RobotDescription, rows: pd.DataFrame, sessions: np.ndarray) -> tuple:
+        """The arm whose moves the fit follows, and its fit (where the solves start): fitted along straight
+        lines to every k-th session (about ``FIRST_PASS_POINTS`` points; a third pass through the moves of
+        the arm fitted through its moves changed no value by more than 0.1 %)."""
         share = max(1, round(len(rows) / FIRST_PASS_POINTS))
         keep = np.isin(sessions, pd.unique(sessions)[::share])
         first = VslStaticFit(robot, self.min_weight / share, self.iterations, self.substeps, moves="straight")
         data = first.fit(rows.loc[keep]).description("moves", robot.name, "", "")
         data.pop("fitted")
-        return extended(robot, data)
+        return extended(robot, data), first
 
     def _moving(self, rows: pd.DataFrame, q: np.ndarray, order: np.ndarray, t: np.ndarray) -> tuple | None:
         """What the arm's moves are simulated from (``pipeline.move_paths``): each point's goals (the
