@@ -33,6 +33,10 @@ def _true(arm, parameter: str) -> float:
     from pipeline.arm_history import mass_bodies
     from pipeline.twin_fit import OFFSETS, STRAIN
 
+    if parameter.startswith("creep.fraction@"):  # a creep element's fraction, by its time constant
+        creep = arm.effects.creep
+        times = dict(zip(creep.time_constants_s, creep.fractions, strict=True)) if creep else {}
+        return times.get(float(parameter.removeprefix("creep.fraction@").removesuffix("s")), 0.0)
     if parameter == STRAIN:
         return arm.effects.elongation.strain_per_bar if arm.effects.elongation else 0.0
     if parameter.startswith("servo."):  # the torque constant, the servos' stiffness and backlash

@@ -122,3 +122,31 @@ def _step_sessions(path, tau_y, order, z):
                     state = _bouc_wen_step(state, path[row, sub, link] - prev, tau_y[link])
                     prev = path[row, sub, link]
                 z[row, link] = state
+
+
+def creep_states(elastic: np.ndarray, t: np.ndarray, order: np.ndarray, time_constant_s: float) -> np.ndarray:
+    """(n, links) each point's state of a creep element with time constant ``time_constant_s``, per unit of
+    its fraction (``effects.creep``: τᵢ ẋᵢ = aᵢ δ_el − xᵢ): the first-order lag of the links' elastic bending
+    ``elastic`` (n, links; τ/k at each point) through each session's points in time ``order``, each point's
+    load held from the point before it: x_j = δ_j + (x_{j−1} − δ_j) e^{−(t_j − t_{j−1})/τᵢ}. A session starts
+    with its links at rest under its first point's load (held long before it, as the twin starts them)."""
+    out = np.zeros_like(elastic)
+    _lag_sessions(np.ascontiguousarray(elastic, float), np.asarray(t, float), order.astype(np.int64),
+                  float(time_constant_s), out)  # fmt: skip
+    return out
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _lag_sessions(elastic, t, order, time_constant, out):
+    for s in range(order.shape[0]):
+        first = order[s, 0]
+        for link in range(elastic.shape[1]):
+            state, since = elastic[first, link], t[first]
+            for row in order[s]:
+                if row < 0:
+                    continue
+                state = elastic[row, link] + (state - elastic[row, link]) * np.exp(
+                    -(t[row] - since) / time_constant
+                )
+                since = t[row]
+                out[row, link] = state

@@ -56,7 +56,8 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     data, _ = Lab(lab).datasets.load("campaign", report.version)
 
     fit = VslStaticFit("vsl").fit(data)
-    true = {"l2_m": 0.252, "l3_m": 0.248, "q2.offset_rad": 0.005236, "q3.offset_rad": -0.005236,
+    true = {"creep.fraction@2s": 0.0, "creep.fraction@60s": 0.0,  # the lab arm does not creep
+            "l2_m": 0.252, "l3_m": 0.248, "q2.offset_rad": 0.005236, "q3.offset_rad": -0.005236,
             "elongation.strain_per_bar": 0.001, "upper_vsl.mass_scale": 1.15, "lower_vsl.mass_scale": 1.15,
             "servo.torque_constant_nm_per_a": 1.71, "servo.stiffness_per_p_gain_nm_per_rad": 0.08,
             "servo.backlash_rad": 0.00872, "q2.hose_stiffness_nm_per_rad": 0.05, "q2.hose_slack_rad": 0.8,
@@ -71,9 +72,10 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
             f"{link.name}.delta_h_rad": link.hysteresis.delta_h_rad,
             f"{link.name}.tau_y_nm": link.hysteresis.tau_y_nm,
         }
-    assert len(fit.values_) + len(fit.not_identifiable_) == 32 and not set(fit.values_) & set(
-        fit.not_identifiable_
-    )  # l1-l3, 3 offsets, lengthening, 2 masses, K_t, the servos' 2, 2 hoses' 2; 6 stiffness, 2 loop a link
+    # l1-l3, 3 offsets, lengthening, creep's 2, 2 masses, K_t, the servos' 2, 2 hoses' 2; 6 stiffness and 2
+    # loop values a link
+    assert len(fit.values_) + len(fit.not_identifiable_) == 34
+    assert not set(fit.values_) & set(fit.not_identifiable_)
     for name, value in fit.values_.items():
         assert abs(value - true[name]) <= 2 * fit.stderr_[name], (name, value, true[name], fit.stderr_[name])
     assert fit.move_speed_rad_s_ == pytest.approx(1.0, rel=0.02)  # the campaign's, read from its times
@@ -309,3 +311,51 @@ def test_the_compiled_hysteresis_steps_each_session_as_the_links_bouc_wen_law_do
     got = hysteresis_states(path, tau_y, order)
     assert np.abs(got).max() > 0.5  # the loops were driven well into their saturation
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)  # expm1: the C library's, not numpy's
+
+
+CREEPING = """\
+extends: vsl
+name: vsl
+description: the papers' arm whose links creep (unmodelled-effects.md's placeholder sizes)
+effects:
+  creep: {fractions: [0.03, 0.05], time_constants_s: [2.0, 60.0]}
+"""
+
+
+@pytest.mark.slow
+def test_links_that_creep_are_fitted_with_their_creep(tmp_path):
+    """The papers' arm whose links creep (3 % of their bending with τ = 2 s, 5 % with 60 s), 3,000 points:
+    with creep left out of the fit the links' stiffness came out 3–7 % soft (2–4.5 errors off;
+    `bench/twin_fit.py`'s draw); fitted beside it at those time constants (the description's, or
+    unmodelled-effects.md's where it has none), both fractions within 2 errors (measured 4.8 ± 1.1 % and
+    5.3 ± 0.7 %), the upper link's stiffness within 3 % (+1.7 to +2.4 %: 1.1–2.5 errors) and the lower
+    link's within 2 errors (−0.2 to −8.6 %, up to 1.6), and written into the description the twin runs."""
+    from pipeline.build import build
+    from pipeline.lab import Lab
+    from twin.runner import simulate_experiment
+
+    (tmp_path / "arm.yaml").write_text(CREEPING)
+    lab = Lab(tmp_path / "lab")
+    simulate_experiment("campaign", lab.sessions, seed=3, benches=16, overrides={"points": 3000,
+                        "robot": str(tmp_path / "arm.yaml")})  # fmt: skip
+    report = build(sorted((tmp_path / "lab" / "sessions").iterdir()), lab, "campaign")
+    fit = VslStaticFit("vsl").fit(lab.datasets.load("campaign", report.version)[0])
+    for time, fraction in ((2, 0.03), (60, 0.05)):
+        name = f"creep.fraction@{time}s"
+        assert abs(fit.values_[name] - fraction) <= 2 * fit.stderr_[name], (name, fit.values_[name])
+    for p in (
+        0.5,
+        1,
+        1.5,
+        2,
+    ):  # the upper link's stiffness within 3 %, the lower (less loaded) within 2 errors
+        upper, lower = fit.values_[f"upper_vsl.k@{p:g}bar"], fit.values_[f"lower_vsl.k@{p:g}bar"]
+        assert abs(upper / (80.0 * p) - 1) < 0.03, (p, upper)
+        assert abs(lower - 80.0 * p) <= 2 * fit.stderr_[f"lower_vsl.k@{p:g}bar"], (p, lower)
+    written = tmp_path / "fitted.yaml"
+    written.write_text(yaml.safe_dump(fit.description("vsl_fitted", "vsl", "campaign", "test")))
+    creep = load_robot(written).effects.creep
+    assert creep.time_constants_s == (2.0, 60.0)
+    assert creep.fractions == pytest.approx(
+        (fit.values_["creep.fraction@2s"], fit.values_["creep.fraction@60s"])
+    )
