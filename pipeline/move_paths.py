@@ -7,7 +7,7 @@ the stop, every swing turning its gravity moment back and forth (the moment is t
 lab arm's campaign (``bench/lab_arm.yaml``, 1 rad/s moves, 16 benches × 60 points) the states a straight line
 gives were 0.047 (upper link) and 0.025 (lower) rms off the twin's own, where their mean size is 0.50 and
 0.16, and 3–4 % too large (the ring's swings relax each loop toward its middle): the fit took the upper
-loop's δ_h and τ_y 13–15 % low. The moves simulated here, on the same arm, leave 0.0017 and 0.0018; on the
+loop's δ_h and τ_y 13–15 % low. The moves simulated here, on the same arm, leave 0.002–0.003; on the
 nominal arm instead of the lab's, 0.010 and 0.006.
 
 So the moves are the twin's (:class:`twin.world.World`, every session one robot of a batch): each point's
@@ -17,8 +17,8 @@ campaign commands them (every joint at the speed that brings it to its goal with
 The move speed is read from the points' times: within a session the time between two points grows by
 |Δq|/v with their largest joint step (the plan waits that long, then settles and holds for a fixed time).
 The Bouc–Wen step is exact for any monotone stretch of load (``models.prbm.bouc_wen_step``), so each link's
-load along a move is kept only at its turning points (and its end): a few per move where the twin steps a
-thousand times a second.
+load along a move (the kernel's own, ``twin.kernel.Trace.load``) is kept only at its turning points (and
+its end): a few per move where the twin steps a thousand times a second.
 """
 
 from __future__ import annotations
@@ -27,11 +27,9 @@ import numba
 import numpy as np
 
 from models.robot import RobotDescription
-from models.statics import gravity_moments
 
 TURNS = 16  # turning points of a link's load kept per move (the ring's later swings turn it by less)
-EVERY = 5  # of the twin's 1 ms steps: the load sampled at 200 Hz (the links ring at 5–15 Hz)
-RING_S = 0.5  # s after a move's planned end: the ring has died down to what turns a loop by < 1 %
+RING_S = 0.3  # s after a move's planned end: the ring has died down to what turns a loop by < 1 %
 TOLERANCE_NM = 1e-4  # a swing of the load smaller than this is not a turn (τ_y is 0.1–0.3 N·m)
 
 
@@ -84,7 +82,7 @@ def simulated_moves(robot: RobotDescription, goals: np.ndarray, pressures: np.nd
     out_q = np.empty((n, turns, links, joints))
     out_d = np.empty((n, turns, links, world.state.delta.shape[1]))
     q_prev, d_prev = world.state.out_pos.copy(), world.state.delta.copy()
-    load_prev = gravity_moments(robot, q_prev, d_prev, payload[first])[:, rows]
+    load_prev = world.state.vj_torque.copy()  # the kernel's load on each link, settled
     for k in range(held.shape[1]):
         at, real = held[:, k], order[:, k] >= 0
         step = goals[at] - world.commands.goal
@@ -92,24 +90,19 @@ def simulated_moves(robot: RobotDescription, goals: np.ndarray, pressures: np.nd
         world.set_payload(payload[at])
         world.command_joints(goals[at], profile_vel=np.stack([together(s, speed_rad_s) for s in step]))
         trace = world.run_for(float(np.abs(step).max()) / speed_rad_s + ring_s)
-        steps = trace.q.shape[1]
-        keep = np.unique(np.r_[np.arange(EVERY - 1, steps, EVERY), steps - 1])
-        # the path: where the last move ended (its payload now hung on it), then the samples of this one
-        q = np.concatenate([q_prev[:, None], trace.q[:, keep]], axis=1)
-        d = np.concatenate([d_prev[:, None], trace.delta[:, keep]], axis=1)
-        samples = q.shape[1]
-        load = gravity_moments(robot, q.reshape(-1, joints), d.reshape(-1, d.shape[2]),
-                               np.repeat(payload[at], samples))[:, rows]  # fmt: skip
-        load = load.reshape(len(held), samples, links)
+        # the kernel's own load on each link, each step's from the configuration the step began in (its
+        # first with this point's payload hung on where the last move ended)
+        q = np.concatenate([q_prev[:, None], trace.q[:, :-1]], axis=1)
+        d = np.concatenate([d_prev[:, None], trace.delta[:, :-1]], axis=1)
         # turning points of [the last move's final load, this path]: indices ≥ 1, so into the path at −1
         which = np.empty((len(held), turns, links), np.int64)
-        _turning_points(np.concatenate([load_prev[:, None], load], axis=1), TOLERANCE_NM, which)
+        _turning_points(np.concatenate([load_prev[:, None], trace.load], axis=1), TOLERANCE_NM, which)
         which -= 1
         for link in range(links):
             pick = which[:, :, link]
             out_q[at[real], :, link] = np.take_along_axis(q, pick[:, :, None], axis=1)[real]
             out_d[at[real], :, link] = np.take_along_axis(d, pick[:, :, None], axis=1)[real]
-        q_prev, d_prev, load_prev = q[:, -1], d[:, -1], load[:, -1]
+        q_prev, d_prev, load_prev = trace.q[:, -1], trace.delta[:, -1], trace.load[:, -1]
     return out_q, out_d
 
 

@@ -92,7 +92,7 @@ STRAIN = "elongation.strain_per_bar"  # the links' lengthening with pressure (ef
 Q1_CONFOUNDED = (
     "turns the arm about the base's vertical axis exactly as the tracker registration's rotation does"
 )
-FIRST_PASS_POINTS = 3000  # about as many points of a share of the sessions place the moves (see _first_pass)
+FIRST_PASS_POINTS = 2000  # about as many points of a share of the sessions place the moves (see _first_pass)
 OFFSETS = ("q1", "q2", "q3")  # the anthropomorphic arm's joints, in order (its kinematics' joint_offsets_rad)
 
 

@@ -44,7 +44,7 @@ def test_the_simulated_moves_give_the_links_the_twin_s_own_hysteresis_states():
     campaign's box at 1 rad/s, settled 1.5 s as the campaign does, its true Bouc–Wen states read from the
     twin:
     the states followed through the moves ``simulated_moves`` makes agree with them 20× better than along
-    straight lines (measured: 0.0017 and 0.0018 rms against 0.047 and 0.025; the states are 0.50 and 0.16 in
+    straight lines (measured: 0.0019 and 0.0026 rms against 0.049 and 0.034; the states are 0.50 and 0.16 in
     size); along straight lines the states come out larger than the twin's (the ring's swings relax each loop
     toward its middle: the bias that took the fitted loops 13–15 % low)."""
     from models import kinematics

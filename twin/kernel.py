@@ -130,6 +130,7 @@ class Trace:
     delta: np.ndarray  # (B, n, V)
     pressure: np.ndarray  # (B, n, C) link pressures
     tip_pos: np.ndarray  # (B, n, 3) base frame (orientation: models.kinematics of q and δ, when needed)
+    load: np.ndarray  # (B, n, V) static moment (gravity, payload) on each virtual joint: what drives its loop
 
 
 def allocate_trace(batch: int, n: int, a: int, v: int, c: int) -> Trace:
@@ -142,6 +143,7 @@ def allocate_trace(batch: int, n: int, a: int, v: int, c: int) -> Trace:
         delta=np.empty((batch, n, v)),
         pressure=np.empty((batch, n, c)),
         tip_pos=np.empty((batch, n, 3)),
+        load=np.empty((batch, n, v)),
     )
 
 
@@ -177,7 +179,7 @@ def _advance_all(params: KernelParams, state: KernelState, cmd: KernelCommands, 
         state.out_vel, state.torque, state.delta, state.delta_dot, state.hyst_z, state.creep, state.vj_torque,
         state.reg_buf, state.buf_idx, state.reg_out, state.p_link,
         cmd.goal, cmd.profile_vel, cmd.profile_acc, cmd.pressure_set, cmd.valve_open, cmd.payload_kg,
-        trace.q, trace.qd, trace.torque, trace.delta, trace.pressure, trace.tip_pos,
+        trace.q, trace.qd, trace.torque, trace.delta, trace.pressure, trace.tip_pos, trace.load,
     )  # fmt: skip
 
 
@@ -320,7 +322,7 @@ def _advance(
     ref_pos, ref_vel, loop_pos, loop_vel, loop_acc, out_pos, out_vel, torque, delta, delta_dot, hyst_z,
     creep, vj_torque, reg_buf, buf_idx, reg_out, p_link,
     goal, prof_vel, prof_acc, p_set, valve_open, payload,
-    tr_q, tr_qd, tr_torque, tr_delta, tr_p, tr_tip,
+    tr_q, tr_qd, tr_torque, tr_delta, tr_p, tr_tip, tr_load,
 ):  # fmt: skip
     nb, na = out_pos.shape
     nv = delta.shape[1]
@@ -425,6 +427,7 @@ def _advance(
                     vj_delta_h[v], vj_tau_y[v], m_w, dt,
                 )  # fmt: skip
                 vj_torque[b, v] = loads[0]
+                tr_load[b, s, v] = loads[0]
             # --- record the true state (tip pose from this step's kinematics)
             _row_lengths(row_a0, row_channel, row_strain, p_link[b], row_a)
             _frames(out_pos[b], delta[b], row_a, row_alpha_cs, row_d, row_offset, row_virtual, row_var, tool,
