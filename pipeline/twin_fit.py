@@ -202,9 +202,9 @@ class VslStaticFit(Estimator):
         # each point's hysteresis state follows the arm's torques along each session's moves
         t = rows["t"].to_numpy(float) if "t" in rows else np.arange(len(rows), dtype=float)
         order = session_order(sessions, t)
-        path = {"parts": path_parts(robot, links, q, m, order, self.substeps)}  # straight moves, at first
         moving = self._moving(rows, q, order, t)  # (goals, pressures by channel, speed) or None: straight
         begin: dict[str, Any] = {}  # where the solves start (nominal, unless a first pass says better)
+        moves = None  # straight lines between the points, unless the arm's own moves are simulated
         if moving is not None:  # through the moves of the arm (a check: of the description checked)
             arm = robot
             if self.fit_parameters:
@@ -217,7 +217,7 @@ class VslStaticFit(Estimator):
                 turn, shift = first.correction_["rotation_rad"], first.correction_["translation_m"]
                 begin["registration"] = np.array([*turn, *shift]) * 1e3  # mrad, mm
             moves = simulated_moves(arm, *moving[:2], m, order, moving[2])
-            path["parts"] = path_parts(robot, links, q, m, order, 0, moves)
+        parts = path_parts(robot, links, q, m, order, self.substeps, moves)
 
         weight = [CURRENT_WEIGHT_MM_PER_MA]  # a current residual's worth in tip millimetres, then measured
         states: dict[tuple, np.ndarray] = {}  # the loops' states of the last few loads and τ_y asked for
@@ -249,11 +249,9 @@ class VslStaticFit(Estimator):
             def residual(z: np.ndarray) -> np.ndarray:
                 values, rotvec, shift = unpack(z)
                 tau_y = tuple(values.get(f"{link.name}.tau_y_nm", 1.0) for link in links)
-                loads = tuple(values.get(f"{body}.mass_scale", 1.0) for body in path["parts"])
+                loads = tuple(values.get(f"{body}.mass_scale", 1.0) for body in parts)
                 if (key := (tau_y, loads)) not in states:  # most of the Jacobian's columns change neither
-                    torques = path_torques(
-                        path["parts"], values
-                    )  # the fitted masses load the links on the moves
+                    torques = path_torques(parts, values)  # the fitted masses load the links along the moves
                     if len(states) > 8:
                         states.pop(next(iter(states)))  # the oldest
                     states[key] = hysteresis_states(torques, np.asarray(tau_y), order)
@@ -294,50 +292,36 @@ class VslStaticFit(Estimator):
         # loop the points do not show is none (δ_h = 0), and the rest fitted again
         fixed: dict[str, float] = {}
         at_zero: dict[str, float] = {}  # δ_h fitted at 0: its standard error where it was last free
-
-        def converge() -> tuple:
-            """Solve, name what the points cannot tell, solve again without it, until nothing is named."""
-            nonlocal free, hidden
-            while True:  # ends: each pass that does not end it takes at least one name out of ``free``
-                values, rotvec, shift, r, se = solve(free, fixed)
-                if (
-                    amps is not None and weight[0] == CURRENT_WEIGHT_MM_PER_MA
-                ):  # each residual by its own noise
-                    tip_rms, amp_rms = np.std(r[: 3 * len(q)]), np.std(r[3 * len(q) :]) / weight[0]
-                    weight[0] = tip_rms / max(amp_rms, 1e-6)
-                    continue
-                loose = {n for n, e in se.items() if not np.isfinite(e) or e > _loosest(n, nominal[n])}
-                dropped = {n: f"the points do not constrain it (standard error {se[n]:.3g})" for n in loose}
-                for name, why in _absent_loops(links, values, free, se).items():
-                    fixed[name], at_zero[name] = 0.0, se[name]
-                    dropped |= {name: "", name.replace("delta_h_rad", "tau_y_nm"): why}
-                # a lengthening zero within 2 errors is none; a creep element within 3: on the lab arm, which
-                # does not creep, a draw put its 60 s element at 1.05 % (2.65 errors; the errors are too small
-                # at 3,000 points: across five draws 15 % of its values fell beyond 2 errors, not 5 %)
-                for name in (STRAIN, *(n for n in free if n.startswith(CREEP))):
-                    if (
-                        name in free
-                        and values[name] < (3 if name != STRAIN else 2) * se[name]
-                        and name not in dropped
-                    ):
-                        fixed[name], at_zero[name] = 0.0, se[name]  # the links do not lengthen (creep): none
-                        dropped[name] = ""
-                for (
-                    joint
-                ) in held:  # a hose whose torque the currents do not show (zero within 2 errors): none
-                    k_name, t0 = _hose(joint, "k"), _hose(joint, "t0")
-                    if k_name in free and values[k_name] < 2 * se[k_name] and k_name not in dropped:
-                        fixed[k_name], fixed[t0], at_zero[k_name] = 0.0, 0.0, se[k_name]
-                        dropped |= {k_name: "", t0: ""}
-                        hidden[_hose(joint, "slack")] = f"no hose torque shows on {joint}: none, so no slack"
-                dropped |= _impossible_loops(links, tables, values, [n for n in free if n not in dropped], se)
-                if not dropped:
-                    break
-                hidden |= {n: why for n, why in dropped.items() if why}
-                free = [n for n in free if n not in dropped]
-            return values, rotvec, shift, r, se
-
-        values, rotvec, shift, r, se = converge()
+        while True:  # ends: each pass that does not end it takes at least one name out of ``free``
+            values, rotvec, shift, r, se = solve(free, fixed)
+            if amps is not None and weight[0] == CURRENT_WEIGHT_MM_PER_MA:  # each residual by its own noise
+                tip_rms, amp_rms = np.std(r[: 3 * len(q)]), np.std(r[3 * len(q) :]) / weight[0]
+                weight[0] = tip_rms / max(amp_rms, 1e-6)
+                continue
+            loose = {n for n, e in se.items() if not np.isfinite(e) or e > _loosest(n, nominal[n])}
+            dropped = {n: f"the points do not constrain it (standard error {se[n]:.3g})" for n in loose}
+            for name, why in _absent_loops(links, values, free, se).items():
+                fixed[name], at_zero[name] = 0.0, se[name]
+                dropped |= {name: "", name.replace("delta_h_rad", "tau_y_nm"): why}
+            # a lengthening zero within 2 errors is none; a creep element within 3: on the lab arm, which
+            # does not creep, a draw put its 60 s element at 1.05 % (2.65 errors; the errors are too small
+            # at 3,000 points: across five draws 15 % of its values fell beyond 2 errors, not 5 %)
+            for name in (STRAIN, *(n for n in free if n.startswith(CREEP))):
+                errors = 2 if name == STRAIN else 3
+                if name in free and values[name] < errors * se[name] and name not in dropped:
+                    fixed[name], at_zero[name] = 0.0, se[name]  # the links do not lengthen (creep): none
+                    dropped[name] = ""
+            for joint in held:  # a hose whose torque the currents do not show (zero within 2 errors): none
+                k_name, t0 = _hose(joint, "k"), _hose(joint, "t0")
+                if k_name in free and values[k_name] < 2 * se[k_name] and k_name not in dropped:
+                    fixed[k_name], fixed[t0], at_zero[k_name] = 0.0, 0.0, se[k_name]
+                    dropped |= {k_name: "", t0: ""}
+                    hidden[_hose(joint, "slack")] = f"no hose torque shows on {joint}: none, so no slack"
+            dropped |= _impossible_loops(links, tables, values, [n for n in free if n not in dropped], se)
+            if not dropped:
+                break
+            hidden |= {n: why for n, why in dropped.items() if why}
+            free = [n for n in free if n not in dropped]
         # the servos' stiffness and backlash: their goals against their encoders (the drives' torque from
         # their currents, with the torque constant fitted here where it was)
         servo = ServoFit(robot, values[TORQUE_CONSTANT] if TORQUE_CONSTANT in free else None)
