@@ -305,7 +305,7 @@ class VslStaticFit(Estimator):
                 dropped |= {name: "", name.replace("delta_h_rad", "tau_y_nm"): why}
             # a lengthening zero within 2 errors is none; a creep element within 3: on the lab arm, which
             # does not creep, a draw put its 60 s element at 1.05 % (2.65 errors; the errors are too small
-            # at 3,000 points: across five draws 15 % of its values fell beyond 2 errors, not 5 %)
+            # at 3,000 points: across four draws 15 % of its values fell beyond 2 errors, not 5 %)
             for name in (STRAIN, *(n for n in free if n.startswith(CREEP))):
                 errors = 2 if name == STRAIN else 3
                 if name in free and values[name] < errors * se[name] and name not in dropped:
