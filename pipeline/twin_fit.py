@@ -202,7 +202,7 @@ class VslStaticFit(Estimator):
         # each point's hysteresis state follows the arm's torques along each session's moves
         t = rows["t"].to_numpy(float) if "t" in rows else np.arange(len(rows), dtype=float)
         order = session_order(sessions, t)
-        moving = self._moving(rows, q, order, t)  # (goals, pressures by channel, speed) or None: straight
+        moving = self._moving(robot, links, rows, q, order, t)  # (goals, pressures, speed) or None: straight
         begin: dict[str, Any] = {}  # where the solves start (nominal, unless a first pass says better)
         moves = None  # straight lines between the points, unless the arm's own moves are simulated
         if moving is not None:  # through the moves of the arm (a check: of the description checked)
@@ -362,7 +362,8 @@ class VslStaticFit(Estimator):
         data.pop("fitted")
         return extended(robot, data), first
 
-    def _moving(self, rows: pd.DataFrame, q: np.ndarray, order: np.ndarray, t: np.ndarray) -> tuple | None:
+    def _moving(self, robot: RobotDescription, links, rows: pd.DataFrame, q: np.ndarray, order: np.ndarray,
+                t: np.ndarray) -> tuple | None:  # fmt: skip
         """What the arm's moves are simulated from (``pipeline.move_paths``): each point's goals (the
         encoders' angles where the recording has none), its pressures by channel and the move speed; None
         where the moves are taken as straight lines (``moves="straight"``, or no speed given or readable
@@ -379,8 +380,6 @@ class VslStaticFit(Estimator):
         speed = self.move_speed_rad_s or move_speed(t, goals, order)
         if speed is None:
             return None
-        robot = load_robot(self.robot) if isinstance(self.robot, str) else self.robot
-        links = [robot.link_of(v) for v in robot.virtual_joints]
         pressures = np.zeros((len(rows), robot.pneumatics.channels))
         for link in links:
             channel = link.pressure_channel or 0
