@@ -39,12 +39,21 @@ from models.description_part import Part, PositiveFloat
 class TrackerDistortion(Part):
     """A smooth bias of the tracker's reported position, a function of where the coil is in the field
     generator's frame: a stationary random field (``features`` random Fourier features, drawn once from
-    ``seed``) whose bias vector has RMS ``rms_m`` and changes over ``length_scale_m``."""
+    ``seed``) whose bias vector has RMS ``rms_m`` and changes over ``length_scale_m``. ``weights_m``: the
+    features' weights (one bias vector each, m) where a lab's field was fitted (``vslab twin fit``) instead
+    of drawn; the features' frequencies and phases are still drawn from ``seed``."""
 
     rms_m: PositiveFloat
     length_scale_m: PositiveFloat
     features: int = Field(default=64, ge=8, le=1024)
     seed: int = 0
+    weights_m: tuple[tuple[float, float, float], ...] | None = None
+
+    @model_validator(mode="after")
+    def _one_weight_a_feature(self) -> TrackerDistortion:
+        if self.weights_m is not None and len(self.weights_m) != self.features:
+            raise ValueError(f"weights_m has {len(self.weights_m)} rows for {self.features} features")
+        return self
 
 
 class Creep(Part):
@@ -106,14 +115,24 @@ class EffectsSpec(Part):
 
 
 # ------------------------------------------------------------------------------------ tracker distortion
+def random_features(seed: int, features: int, length_scale_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The frequencies (N, 3) (rad/m) and phases (N,) of a field's random Fourier features, drawn from
+    ``seed``: cos(x·ωᵢ + φᵢ) sum to a squared-exponential correlation over ``length_scale_m``."""
+    rng = np.random.default_rng(seed)
+    omega = rng.normal(0.0, 1.0 / length_scale_m, (features, 3))
+    return omega, rng.uniform(0.0, 2 * np.pi, features)
+
+
 @functools.lru_cache(maxsize=16)
 def _field(spec: TrackerDistortion) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Frequencies (N, 3) (rad/m), phases (N,) and weights (N, 3) (m) of the distortion's random field."""
     rng = np.random.default_rng(spec.seed)
     n = spec.features
     omega = rng.normal(0.0, 1.0 / spec.length_scale_m, (n, 3))  # a squared-exponential correlation
-    phase = rng.uniform(0.0, 2 * np.pi, n)
+    phase = rng.uniform(0.0, 2 * np.pi, n)  # (the draws of ``random_features``, in its order)
     weight = rng.normal(0.0, 1.0, (n, 3)) * spec.rms_m * np.sqrt(2.0 / (3 * n))  # E|b|² = rms²
+    if spec.weights_m is not None:  # a lab's field, fitted
+        weight = np.array(spec.weights_m, float)
     for a in (omega, phase, weight):
         a.flags.writeable = False
     return omega, phase, weight
