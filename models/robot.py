@@ -348,10 +348,20 @@ class FittedValue(Part):
     nominal: float
 
 
+class FittedTrackerField(Part):
+    """The tracker's field distortion a fit found in its residuals (``pipeline.tracker_field``): its size per
+    axis, the distance it changes over and the noise beside it."""
+
+    rms_mm: NonNegFloat
+    length_scale_mm: NonNegFloat
+    noise_mm: NonNegFloat
+
+
 class FittedBlock(Part):
     """What `vslab twin fit` fitted into this description (``pipeline.twin_fit``): from which dataset, with
-    which code, how well (the tracked tip's residual per axis), each value with its standard error, and what
-    the data could not identify, with why (left at the nominal value)."""
+    which code, how well (the tracked tip's residual per axis), the tracker field's distortion it found
+    (None: none), each value with its standard error, and what the data could not identify, with why (left at
+    the nominal value)."""
 
     dataset: str
     code_version: str
@@ -359,6 +369,7 @@ class FittedBlock(Part):
     sessions: int = Field(ge=0)
     residual_rms_mm: NonNegFloat
     registration_correction: dict[str, list[float]]  # the tracker registration's rotation vector and shift
+    tracker_field: FittedTrackerField | None = None
     parameters: dict[str, FittedValue]
     not_identifiable: dict[str, str]
 

@@ -45,9 +45,11 @@ from the Jacobian at the solution, clustered by session (a session's points shar
 treating them as independent would make the errors too small).
 
 The servos' stiffness and backlash come from their goals against their encoders (``pipeline.servo_fit``),
-with the torque constant fitted here. Not fitted yet (issue 33 asks for them): damping (a dynamic fit), the
-tracker's field distortion (with it on, the fit is wrong: the stiffness ×0.5 to ×1.7). The POPUP arm's link is
-fitted to its link tests by ``pipeline.popup_fit``.
+with the torque constant fitted here. Where the residuals show the tracker's field distortion (a smooth bias
+repeating at each place: ``pipeline.tracker_field``; left out, it took the stiffness ×0.45 to ×1.5), it is
+fitted beside the arm as a Gaussian process profiled out of every residual, and the lengths and offsets it
+cannot be told from are named not identifiable. Not fitted yet (issue 33 asks for it): damping (a dynamic
+fit). The POPUP arm's link is fitted to its link tests by ``pipeline.popup_fit``.
 """
 
 from __future__ import annotations
@@ -59,6 +61,7 @@ import pandas as pd
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from models.effects import TrackerDistortion
 from models.estimator import Estimator
 from models.prbm import interp_table
 from models.robot import AnthropomorphicKinematics, RobotDescription, extended, load_robot
@@ -75,6 +78,7 @@ from pipeline.arm_history import (
 from pipeline.errors import PipelineError
 from pipeline.move_paths import move_speed, simulated_moves
 from pipeline.servo_fit import BACKLASH, STIFFNESS, ServoFit
+from pipeline.tracker_field import FieldBasis, described_bias_m, field_prior, fitted_distortion, placement
 
 MEASURED_Q = ("q_0", "q_1", "q_2")
 TIP = ("x_0", "x_1", "x_2")
@@ -204,11 +208,22 @@ class VslStaticFit(Estimator):
         order = session_order(sessions, t)
         moving = self._moving(robot, links, rows, q, order, t)  # (goals, pressures, speed) or None: straight
         begin: dict[str, Any] = {}  # where the solves start (nominal, unless a first pass says better)
+        field: list = [None]  # the tracker's field distortion: a FieldBasis where the residuals show one,
+        # False where they show none, None until they have been read (once: by the first pass, where one ran)
+        tracker = placement(robot)  # (R, t): the tracker's frame, the field's
+        at = x @ tracker[0].T + tracker[1]  # where the points are in it
+        # a check predicts what the description's tracker reports: its field's bias too (a fit reads the
+        # lab's field from the points: a description's drawn field is not the lab's)
+        reported = self.fit_parameters or robot.effects.tracker_distortion is None
         moves = None  # straight lines between the points, unless the arm's own moves are simulated
         if moving is not None:  # through the moves of the arm (a check: of the description checked)
             arm = robot
             if self.fit_parameters:
                 arm, first = self._first_pass(robot, rows, sessions)
+                field[:] = [FieldBasis(at, first.field_) if first.field_ is not None else False]
+                if field[0]:  # what the first pass found the field hides (below) is not fitted again
+                    hidden |= {n: first.not_identifiable_[n] for n in KINEMATICS if n in free}
+                    free = [n for n in free if n not in KINEMATICS]
                 begin = {n: v for n, v in first.values_.items() if n in nominal}
                 for joint in held:  # a hose's torque at the joint's mean angle, from its K and slack
                     k, slack = first.values_.get(_hose(joint, "k")), first.values_.get(_hose(joint, "slack"))
@@ -225,6 +240,7 @@ class VslStaticFit(Estimator):
         arms: dict[tuple, tuple] = {}  # the arm's tip, torques and drive torques at the last values asked for
 
         covariance: list[pd.DataFrame] = []  # the last pass's, of ``free`` (a hose's slack is a ratio)
+        n_tip = 3 * len(q)
         # The idle current flows the way the held torque turns: a step at τ = 0 that a finite-difference
         # Jacobian read as a derivative of ~10⁷ where a point's torque sat at zero (a solution is drawn to
         # such kinks): the standard errors came out hundreds of times too small and the lower link 3–6 %
@@ -262,15 +278,22 @@ class VslStaticFit(Estimator):
                 if arm_key not in arms:
                     arms.clear()
                     arms[arm_key] = self._tip(robot, links, tables, values, q, p, m, state, (order, t))
+                    if not reported:
+                        tip, torque, drive = arms[arm_key]
+                        arms[arm_key] = (tip + described_bias_m(robot, tip), torque, drive)
                 tip, _, drive = arms[arm_key]
-                out = ((Rotation.from_rotvec(rotvec).apply(tip) + shift - x) * 1e3).ravel()  # mm
+                out = (Rotation.from_rotvec(rotvec).apply(tip) + shift - x) * 1e3  # mm
+                penalty = np.zeros((0, 3))
+                if field[0]:  # the field's weights profiled out: what it leaves, and its prior
+                    out, penalty = field[0].project(out)
+                out, penalty = out.ravel(), penalty.ravel()
                 if amps is None:
-                    return out
+                    return np.concatenate([out, penalty])
                 servo = robot.servo.model_copy(update={"torque_constant_nm_per_a": values[TORQUE_CONSTANT]})
                 hose = np.stack([values[_hose(j, "k")] * (q[:, c] - middle[j]) + values[_hose(j, "t0")]
                                  for j, c in zip(held, servo_columns, strict=True)], axis=1)  # fmt: skip
                 wrong = (servo_current_a(servo, drive + hose, 0.0, idle) - amps) * 1e3  # mA
-                return np.concatenate([out, weight[0] * wrong.ravel()])
+                return np.concatenate([out, weight[0] * wrong.ravel(), penalty])
 
             seed = {n: (begin[n] - nominal[n]) / size for n, size in zip(free, scale, strict=True)
                     if n in begin}  # fmt: skip
@@ -282,6 +305,9 @@ class VslStaticFit(Estimator):
             groups = np.repeat(sessions, 3)
             if amps is not None:
                 groups = np.concatenate([groups, np.repeat(sessions, amps.shape[1])])
+            if field[0]:  # each prior row on its own
+                priors = [f"\0field{k}" for k in range(3 * field[0].phi.shape[1])]
+                groups = np.concatenate([groups.astype(str), priors])
             cov = _clustered_covariance(fit.jac, fit.fun, groups)
             cov = cov[: len(free), : len(free)] * np.outer(scale, scale)
             se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
@@ -295,8 +321,17 @@ class VslStaticFit(Estimator):
         while True:  # ends: each pass that does not end it takes at least one name out of ``free``
             values, rotvec, shift, r, se = solve(free, fixed)
             if amps is not None and weight[0] == CURRENT_WEIGHT_MM_PER_MA:  # each residual by its own noise
-                tip_rms, amp_rms = np.std(r[: 3 * len(q)]), np.std(r[3 * len(q) :]) / weight[0]
+                tip_rms, amp_rms = np.std(r[:n_tip]), np.std(r[n_tip : n_tip + amps.size]) / weight[0]
                 weight[0] = tip_rms / max(amp_rms, 1e-6)
+                continue
+            if self.fit_parameters and field == [None]:  # a field the residuals show: fitted beside the rest
+                prior = field_prior(at, r[:n_tip].reshape(-1, 3))
+                field[:] = [FieldBasis(at, prior) if prior is not None else False]
+            if field[0] and (shown := [n for n in KINEMATICS if n in free]):
+                prior = field[0].prior  # the arm's lengths and offsets move the tip through it as it does
+                why = FIELD_CONFOUNDED.format(rms=prior.rms_mm, length=prior.length_scale_m * 1e3)
+                hidden |= dict.fromkeys(shown, why)
+                free = [n for n in free if n not in shown]
                 continue
             loose = {n for n, e in se.items() if not np.isfinite(e) or e > _loosest(n, nominal[n])}
             dropped = {n: f"the points do not constrain it (standard error {se[n]:.3g})" for n in loose}
@@ -339,11 +374,19 @@ class VslStaticFit(Estimator):
             "rotation_rad": [float(v) for v in rotvec],
             "translation_m": [float(v) for v in shift],
         }
-        tip_r = r[: 3 * len(q)]
+        tip_r = r[:n_tip]
         self.residual_rms_mm_ = float(np.sqrt(np.mean(tip_r**2)))
         self.current_rms_ma_ = (
-            float(np.sqrt(np.mean((r[3 * len(q) :] / weight[0]) ** 2))) if amps is not None else None
+            float(np.sqrt(np.mean((r[n_tip : n_tip + amps.size] / weight[0]) ** 2)))
+            if amps is not None
+            else None
         )
+        self.field_ = field[0].prior if field[0] else None  # the field distortion the residuals showed
+        self.distortion_ = None  # and the map of it fitted (the description's ``effects.tracker_distortion``)
+        if field[0]:
+            tail = r[len(r) - 3 * field[0].phi.shape[1] :]  # the prior's rows: √(σ²/s²)·the weights
+            fitted = tail.reshape(-1, 3) / np.sqrt(field[0].ridge)
+            self.distortion_ = fitted_distortion(field[0], fitted, tracker[0])
         self.errors_mm_ = np.full(len(points), np.nan)
         self.errors_mm_[ok] = np.linalg.norm(tip_r.reshape(-1, 3), axis=1)
         self.n_points_ = len(rows)
@@ -488,13 +531,22 @@ class VslStaticFit(Estimator):
                 ),
                 "backlash_rad": round(values.get(BACKLASH, robot.servo.backlash_rad), 7),
             },
-            **_effects_block(robot, self.values_),
+            **_effects_block(robot, self.values_, self.distortion_),
             "fitted": {
                 "dataset": dataset,
                 "code_version": code_version,
                 "points": self.n_points_,
                 "sessions": self.n_sessions_,
                 "residual_rms_mm": round(self.residual_rms_mm_, 4),
+                "tracker_field": (
+                    {
+                        "rms_mm": round(self.field_.rms_mm, 4),
+                        "length_scale_mm": round(self.field_.length_scale_m * 1e3, 1),
+                        "noise_mm": round(self.field_.noise_mm, 4),
+                    }
+                    if self.field_ is not None
+                    else None
+                ),
                 "registration_correction": self.correction_,
                 "parameters": {
                     n: {"value": self.values_[n], "stderr": self.stderr_[n], "nominal": self.nominal_[n]}
@@ -515,10 +567,10 @@ def _currents(robot: RobotDescription, rows: pd.DataFrame) -> np.ndarray | None:
     return amps if np.isfinite(amps).all() else None
 
 
-def _effects_block(robot: RobotDescription, values: dict) -> dict:
+def _effects_block(robot: RobotDescription, values: dict, distortion: TrackerDistortion | None) -> dict:
     """The fitted description's ``effects`` where the fit says other than the nominal description: the links'
-    lengthening with pressure and the hoses across the joints (``null``: none, where the nominal one has
-    it)."""
+    lengthening with pressure, the hoses across the joints, their creep and the tracker's field (``null``:
+    none, where the nominal one has it)."""
     out: dict[str, Any] = {}
     creep = {float(n[len(CREEP) : -1]): a for n, a in values.items() if n.startswith(CREEP)}
     if creep:  # the elements the data shows (none: no creep)
@@ -542,6 +594,10 @@ def _effects_block(robot: RobotDescription, values: dict) -> dict:
                  for joint, k in fitted.items() if k > 0}  # fmt: skip
         if hoses or robot.effects.hoses is not None:
             out["hoses"] = {"joints": hoses} if hoses else None
+    if distortion is not None:  # the lab's tracker field, fitted (none: the points show none)
+        out["tracker_distortion"] = distortion.model_dump(mode="json")
+    elif robot.effects.tracker_distortion is not None:
+        out["tracker_distortion"] = None
     return {"effects": out} if out else {}
 
 
@@ -570,6 +626,14 @@ def _check(robot: RobotDescription, points: pd.DataFrame, same_name: bool = True
     return links
 
 
+KINEMATICS = ("l2_m", "l3_m", "q2.offset_rad", "q3.offset_rad")  # what a distorted field hides (below)
+FIELD_CONFOUNDED = (
+    "the tracker's field is distorted ({rms:.2g} mm per axis, over {length:.0f} mm): the links' lengths and "
+    "the joints' offsets move the tip smoothly through the field, as its bias does, and the points cannot "
+    "tell them apart (on a lab arm with a 0.7 mm field they came 1-2.5 mm and 0.4° off, 3-5 standard "
+    "errors): "
+    "calibrate the tracker's field, or fit them from a session with an undistorted one"
+)
 LOOSEST_OFFSET_RAD = np.radians(0.5)  # a joint offset known no better than this is not identified
 LOOSEST_CREEP = 0.05  # nor a creep fraction known no better than 5 % of the elastic bending
 CREEP = "creep.fraction@"  # a creep element's fraction, by its time constant: creep.fraction@2s

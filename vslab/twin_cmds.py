@@ -100,6 +100,12 @@ def twin_fit(
                           f"{speed:.3g} rad/s (read from the points' times)" if speed else
                           "the loops followed along straight lines between the points (their times give no "
                           "move speed)", highlight=False)  # fmt: skip
+            field = fit.field_
+            console.print(f"the tracker's field is distorted: {field.rms_mm:.2g} mm per axis over "
+                          f"{field.length_scale_m * 1e3:.0f} mm (noise {field.noise_mm:.2g} mm), fitted "
+                          "beside the arm" if field is not None else
+                          "the tracker's field shows no distortion",
+                          highlight=False)  # fmt: skip
         else:
             console.print(f"{fit.n_holds_} static holds and {fit.n_taps_} taps of {len(fit.sessions_)} "
                           "sessions")  # fmt: skip
