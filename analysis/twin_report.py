@@ -29,6 +29,10 @@ def twin_against_robot(lab: Lab, res, out: Path) -> None:
             words = [f"`{name}` ({fitted['file']}) was fitted to {fitted['points']:,} settled points of "
                      f"{fitted['sessions']} sessions of {fitted['dataset']}; the tracked tip's residual is "
                      f"{fitted['residual_rms_mm']:.3f} mm per axis."]  # fmt: skip
+            if field := fitted.get("tracker_field"):  # the tracker's field distortion, fitted beside the arm
+                words.append(f"The tracker's field is distorted: {field['rms_mm']:.2g} mm per axis over "
+                             f"{field['length_scale_mm']:.0f} mm, fitted beside the arm; its map is in the "
+                             "description.")  # fmt: skip
         else:  # the POPUP arm: fitted to its link tests
             res.versions[f"link tests fitted, {name}"] = fitted["link_tests"]
             words = [f"`{name}` ({fitted['file']}) was fitted to {fitted['static_holds']:,} static holds and "

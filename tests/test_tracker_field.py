@@ -47,3 +47,26 @@ def test_the_field_is_profiled_out_and_its_weights_penalised():
     weights = np.random.default_rng(5).normal(0.0, 0.4, (FEATURES, 3))
     left, penalty = basis.project(basis.phi @ weights)
     assert np.sum(left**2) + np.sum(penalty**2) <= np.sum((np.sqrt(basis.ridge) * weights) ** 2) + 1e-9
+
+
+def test_the_report_says_the_field_a_fit_found(tmp_path):
+    """The report's twin section says a fitted field's size beside the tip's residual."""
+    import json
+
+    from analysis.lab_figures import Results
+    from analysis.twin_report import twin_against_robot
+    from pipeline.lab import Lab
+
+    lab = Lab(tmp_path / "lab")
+    record = {"name": "vsl_fitted", "file": "vsl_fitted.yaml", "dataset": "campaign@v1", "code_version": "t",
+              "points": 3000, "sessions": 16, "residual_rms_mm": 0.12, "registration_correction": {},
+              "tracker_field": {"rms_mm": 0.84, "length_scale_mm": 66.2, "noise_mm": 0.14},
+              "parameters": {"upper_vsl.k@1bar": {"value": 64.7, "stderr": 0.8, "nominal": 80.0}},
+              "not_identifiable": {"l2_m": "the tracker's field is distorted"}}  # fmt: skip
+    path = lab.twin.fit("vsl_fitted")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(record))
+    res = Results()
+    twin_against_robot(lab, res, tmp_path / "figures")
+    words = res.texts["your twin: vsl_fitted, fitted beside nominal"]
+    assert "field is distorted: 0.84 mm per axis over 66 mm" in words and res.missing == {}
