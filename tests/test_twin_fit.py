@@ -30,6 +30,44 @@ runner = CliRunner()
 LAB_ROBOT = (Path(__file__).resolve().parents[1] / "bench" / "lab_arm.yaml").read_text()
 
 
+def _campaign(lab: Path, robot: Path, seed: int, points: int, **overrides):
+    """The settled points of a 16-bench campaign of the description at ``robot``, simulated and built in
+    ``lab``."""
+    from acquisition.recorder.sessions import SessionStore
+    from pipeline.build import build
+    from pipeline.lab import Lab
+    from twin.runner import simulate_experiment
+
+    simulate_experiment("campaign", SessionStore(lab / "sessions"), seed=seed, benches=16,
+                        overrides={"points": points, "robot": str(robot), **overrides})  # fmt: skip
+    report = build(sorted((lab / "sessions").iterdir()), Lab(lab), "campaign")
+    return Lab(lab).datasets.load("campaign", report.version)[0]
+
+
+def _links_truth(truth) -> dict[str, float]:
+    """Each link's stiffness at its table's pressures and its loop, by the fit's names, in ``truth``."""
+    true = {}
+    for link in truth.links:
+        table = truth.link_table(link.name)
+        true |= {
+            f"{link.name}.k@{p / 1e5:g}bar": k
+            for p, k in zip(table.pressure_pa, table.stiffness_nm_per_rad, strict=True)
+        }
+        true |= {
+            f"{link.name}.delta_h_rad": link.hysteresis.delta_h_rad,
+            f"{link.name}.tau_y_nm": link.hysteresis.tau_y_nm,
+        }
+    return true
+
+
+def _held_out(tmp_path: Path, robot: Path, written: Path):
+    """`twin check`'s table (per cell, and "all") for the nominal and the ``written`` (fitted) descriptions
+    on a held-out 500-point campaign of the arm at ``robot`` and its shuffled repeat (the floor)."""
+    drawn, shuffled = (_campaign(tmp_path / order, robot, seed=7, points=500, visit_order=order)
+                       for order in ("drawn", "shuffled"))  # fmt: skip
+    return twin_check({"nominal": load_robot("vsl"), "fitted": load_robot(written)}, drawn, shuffled)
+
+
 @pytest.mark.slow
 def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     """3,000 settled points of the lab's arm: every fitted value within 2 standard errors of the truth
@@ -42,18 +80,9 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     The lower link (stiffer, and carrying only the forearm, the tool and the payload) is within its errors
     but not within 3 %: measured 1.4–10 % low at 0.9–1.3 errors, its standard error at 3,000 points 6–11 %
     (at 17,568 points, `bench/twin_fit.py`, it is within 2 %)."""
-    from acquisition.recorder.sessions import SessionStore
-    from pipeline.build import build
-    from pipeline.lab import Lab
-    from twin.runner import simulate_experiment
-
     (tmp_path / "lab_robot.yaml").write_text(LAB_ROBOT)
     truth = load_robot(tmp_path / "lab_robot.yaml")
-    lab = tmp_path / "lab"
-    simulate_experiment("campaign", SessionStore(lab / "sessions"), seed=3, benches=16,
-                        overrides={"points": 3000, "robot": str(tmp_path / "lab_robot.yaml")})  # fmt: skip
-    report = build(sorted((lab / "sessions").iterdir()), Lab(lab), "campaign")
-    data, _ = Lab(lab).datasets.load("campaign", report.version)
+    data = _campaign(tmp_path / "lab", tmp_path / "lab_robot.yaml", seed=3, points=3000)
 
     fit = VslStaticFit("vsl").fit(data)
     true = {"creep.fraction@2s": 0.0, "creep.fraction@60s": 0.0,  # the lab arm does not creep
@@ -62,16 +91,7 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
             "servo.torque_constant_nm_per_a": 1.71, "servo.stiffness_per_p_gain_nm_per_rad": 0.08,
             "servo.backlash_rad": 0.00872, "q2.hose_stiffness_nm_per_rad": 0.05, "q2.hose_slack_rad": 0.8,
             "q3.hose_stiffness_nm_per_rad": 0.05, "q3.hose_slack_rad": -1.2}  # fmt: skip
-    for link in truth.links:
-        table = truth.link_table(link.name)
-        true |= {
-            f"{link.name}.k@{p / 1e5:g}bar": k
-            for p, k in zip(table.pressure_pa, table.stiffness_nm_per_rad, strict=True)
-        }
-        true |= {
-            f"{link.name}.delta_h_rad": link.hysteresis.delta_h_rad,
-            f"{link.name}.tau_y_nm": link.hysteresis.tau_y_nm,
-        }
+    true |= _links_truth(truth)
     # l1-l3, 3 offsets, lengthening, creep's 2, 2 masses, K_t, the servos' 2, 2 hoses' 2; 6 stiffness and 2
     # loop values a link
     assert len(fit.values_) + len(fit.not_identifiable_) == 34
@@ -112,16 +132,7 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     )  # the twin of the fitted description lengthens its links as the lab's arm does
     hoses = load_robot(written).effects.hoses.joints  # and its hoses pull as the lab's do
     assert hoses["q3"].slack_rad == pytest.approx(fit.values_["q3.hose_slack_rad"])
-    held_out = {}
-    for order in ("drawn", "shuffled"):
-        sub = tmp_path / order
-        simulate_experiment("campaign", SessionStore(sub / "sessions"), seed=7, benches=16,
-                            overrides={"points": 500, "robot": str(tmp_path / "lab_robot.yaml"),
-                                       "visit_order": order})  # fmt: skip
-        built = build(sorted((sub / "sessions").iterdir()), Lab(sub), "campaign")
-        held_out[order] = Lab(sub).datasets.load("campaign", built.version)[0]
-    table = twin_check({"nominal": load_robot("vsl"), "fitted": load_robot(written)}, held_out["drawn"],
-                       held_out["shuffled"])  # fmt: skip
+    table = _held_out(tmp_path, tmp_path / "lab_robot.yaml", written)
     overall = table[table["pressure_bin"] == "all"].iloc[0]
     print(f"\nheld out: fitted {overall['fitted_mm_mean']:.3f} mm, nominal "
           f"{overall['nominal_mm_mean']:.3f} mm, floor {overall['floor_mm_mean']:.3f} mm")  # fmt: skip
@@ -373,22 +384,13 @@ def test_a_distorted_tracker_field_is_fitted_beside_the_arm(tmp_path):
     loop, hose and lengthening within 2 errors. Not within 2 errors: the lower link's mass (−1.4 %, 5.8
     errors) and the torque constant (+0.3 %, 4.1): the currents weigh the arm with the nominal lengths'
     moment arms."""
-    from acquisition.recorder.sessions import SessionStore
-    from pipeline.build import build
-    from pipeline.lab import Lab
-    from twin.runner import simulate_experiment
-
     distorted = LAB_ROBOT.replace(
         "effects:\n", "effects:\n  tracker_distortion: {rms_m: 0.0007, length_scale_m: 0.05, seed: 0}\n"
     )
     assert distorted != LAB_ROBOT
     (tmp_path / "lab_robot.yaml").write_text(distorted)
     truth = load_robot(tmp_path / "lab_robot.yaml")
-    lab = tmp_path / "lab"
-    simulate_experiment("campaign", SessionStore(lab / "sessions"), seed=3, benches=16,
-                        overrides={"points": 3000, "robot": str(tmp_path / "lab_robot.yaml")})  # fmt: skip
-    report = build(sorted((lab / "sessions").iterdir()), Lab(lab), "campaign")
-    data, _ = Lab(lab).datasets.load("campaign", report.version)
+    data = _campaign(tmp_path / "lab", tmp_path / "lab_robot.yaml", seed=3, points=3000)
 
     fit = VslStaticFit("vsl").fit(data)
     assert fit.field_ is not None
@@ -402,16 +404,7 @@ def test_a_distorted_tracker_field_is_fitted_beside_the_arm(tmp_path):
     true = {"elongation.strain_per_bar": 0.001, "q2.hose_stiffness_nm_per_rad": 0.05,
             "q2.hose_slack_rad": 0.8, "q3.hose_stiffness_nm_per_rad": 0.05,
             "q3.hose_slack_rad": -1.2}  # fmt: skip
-    for link in truth.links:
-        table = truth.link_table(link.name)
-        true |= {
-            f"{link.name}.k@{p / 1e5:g}bar": k
-            for p, k in zip(table.pressure_pa, table.stiffness_nm_per_rad, strict=True)
-        }
-        true |= {
-            f"{link.name}.delta_h_rad": link.hysteresis.delta_h_rad,
-            f"{link.name}.tau_y_nm": link.hysteresis.tau_y_nm,
-        }
+    true |= _links_truth(truth)
     fitted = {name: value for name, value in fit.values_.items() if name in true}
     assert len(fitted) >= 17  # 8 stiffness, 4 loop values, the lengthening, 2 hoses' 2
     for name, value in fitted.items():
@@ -428,16 +421,7 @@ def test_a_distorted_tracker_field_is_fitted_beside_the_arm(tmp_path):
     written.write_text(yaml.safe_dump(fit.description("vsl_fitted", "vsl", "campaign", "test")))
     field = load_robot(written).effects.tracker_distortion
     assert field is not None and len(field.weights_m) == field.features
-    held_out = {}
-    for order in ("drawn", "shuffled"):
-        sub = tmp_path / order
-        simulate_experiment("campaign", SessionStore(sub / "sessions"), seed=7, benches=16,
-                            overrides={"points": 500, "robot": str(tmp_path / "lab_robot.yaml"),
-                                       "visit_order": order})  # fmt: skip
-        built = build(sorted((sub / "sessions").iterdir()), Lab(sub), "campaign")
-        held_out[order] = Lab(sub).datasets.load("campaign", built.version)[0]
-    table = twin_check({"nominal": load_robot("vsl"), "fitted": load_robot(written)}, held_out["drawn"],
-                       held_out["shuffled"])  # fmt: skip
+    table = _held_out(tmp_path, tmp_path / "lab_robot.yaml", written)
     overall = table[table["pressure_bin"] == "all"].iloc[0]
     assert overall["fitted_mm_mean"] <= 1.3 * overall["floor_mm_mean"], overall.to_dict()
     assert overall["nominal_mm_mean"] > 3 * overall["fitted_mm_mean"], overall.to_dict()
