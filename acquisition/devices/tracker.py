@@ -14,6 +14,7 @@ Use the frame number, not the host clock, to time samples (fit host ≈ a + b·f
 from __future__ import annotations
 
 import logging
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -77,12 +78,20 @@ class Tracker(Device):
         from sksurgerynditracker.nditracker import NDITracker  # imports ndicapy: only when a tracker is used
 
         config = {"tracker type": "aurora", "serial port": self.port, "use quaternions": True}
-        try:
-            self._ndi = NDITracker(config)
-        except (OSError, ValueError, KeyError) as exc:
-            raise DeviceNotFoundError(
-                f"{self.kind} on {self.port}: no tracker answered ({_first_line(exc)})"
-            ) from exc
+        # ndicapi's probe gives the device 0.2 s to answer its first INIT before it falls back to a serial
+        # break; a port that exists is probed once more (seen once in ~16 CI runs: the rig's emulator on a
+        # busy VM answered late), which costs a port without a tracker at most ~5 s more
+        for attempt in range(2):
+            try:
+                self._ndi = NDITracker(config)
+                break
+            except (OSError, ValueError, KeyError) as exc:
+                if attempt or not os.path.exists(self.port):
+                    raise DeviceNotFoundError(
+                        f"{self.kind} on {self.port}: no tracker answered ({_first_line(exc)})"
+                    ) from exc
+                log.warning("%s on %s: the probe went unanswered (%s); probing once more", self.kind,
+                            self.port, _first_line(exc))  # fmt: skip
         self._handles, _ = self._ndi.get_tool_descriptions()
         if not self._handles:
             raise DeviceNotFoundError(
