@@ -191,10 +191,10 @@ class _Port:
     def deliver(self, now_s: float) -> float | None:
         """Write the queued output due by ``now_s``; when the next is due (None: nothing queued)."""
         while self.queue and self.queue[0][0] <= now_s:
-            self.write(self.queue.popleft()[1])
+            self.write(self.queue.popleft()[1], now_s)
         return self.queue[0][0] if self.queue else None
 
-    def write(self, data: bytes) -> None:
+    def write(self, data: bytes, now_s: float) -> None:
         if not data or self.master < 0:
             return
         if self.watch is not None and self.clients == 0:
@@ -205,12 +205,13 @@ class _Port:
         # a device whose host does not read drops whole replies (its output buffer overflows), never the
         # end of one: what a full pty took in part is finished before anything newer goes out
         if self._unsent:
-            if not self._send(self._unsent):
+            if not self._send(self._unsent, now_s):
                 log.warning("%s: host not reading, %d bytes dropped", self.name, len(data))
+                self.emulator.output_refused(data, now_s)
                 return
-        self._send(data, whole=True)
+        self._send(data, now_s, whole=True)
 
-    def _send(self, data: bytes, whole: bool = False) -> bool:
+    def _send(self, data: bytes, now_s: float, whole: bool = False) -> bool:
         """Write ``data``; keep what did not fit of a reply begun (``_unsent``); whether it all went out.
         A reply not begun at all (``whole``) is dropped."""
         try:
@@ -223,6 +224,7 @@ class _Port:
             return False
         if whole and n == 0:
             log.warning("%s: host not reading, %d bytes dropped", self.name, len(data))
+            self.emulator.output_refused(data, now_s)
         self._unsent = data[n:] if n > 0 else (b"" if whole else data)
         return not self._unsent
 

@@ -55,6 +55,10 @@ class Emulator:
     def port_opened(self, now_s: float) -> None:
         """The first client opened the port (called only where ``resets_on_open``; default: nothing)."""
 
+    def output_refused(self, data: bytes, now_s: float) -> None:
+        """The host did not read: ``data`` (whole replies or streamed output) found its port full and was
+        lost, as a device's output buffer overflows (default: nothing; a device that counts it overrides)."""
+
     def reset_link(self) -> None:
         """The host reopened the port after an unplug: drop half-received input (default: nothing)."""
 

@@ -10,12 +10,15 @@ a mismatched adapter sees only errors, so it passes nothing either way (as a rea
 The adapter queues the host's frames for the bus in order (``TX_QUEUE`` frames, as the CANable 2.0
 firmware's transmit ring buffer): on a bus too loaded to take them a frame waits there, and one sent while
 the queue is full is refused (BEL, ASSUMED: what the firmware answers a frame it cannot queue; python-can
-ignores it) and counted. Received frames wait in a receive FIFO until they go to the host; more than
-``RX_FIFO`` between two deliveries overrun it. ``F`` reads the Lawicel status flags latched since the last
-``F`` (and clears them, as the SJA1000's interrupt register behind the Lawicel CANUSB does): ``counters``
-keeps the totals. python-can never sends ``F`` (its slcan interface reads no status), so the bits are the
-Lawicel manual's, for a tool or a lab that asks. The serial side is USB CDC: no baud limits it, each
-received frame costs ``bus_budget.slcan_line_bytes`` characters there.
+ignores it) and counted. Received frames wait in a receive FIFO for the next USB transfer (every
+millisecond; a 1 Mbit/s bus carries at most ~21 frames in one, so the FIFO never fills while the host reads).
+It fills when the host stops reading: the port's buffer full, the frames that found no room are lost, counted
+as overrun (``output_refused``). The twin itself answering late (its process not scheduled for a while) is
+not the host failing to read: the frames of that while are all passed on. ``F`` reads the Lawicel status
+flags latched since the last ``F`` (and clears them, as the SJA1000's interrupt register behind the Lawicel
+CANUSB does): ``counters`` keeps the totals. python-can never sends ``F`` (its slcan interface reads no
+status), so the bits are the Lawicel manual's, for a tool or a lab that asks. The serial side is USB CDC:
+no baud limits it, each received frame costs ``bus_budget.slcan_line_bytes`` characters there.
 """
 
 from __future__ import annotations
@@ -35,7 +38,6 @@ VERSION = b"V1013"  # hardware 1.0, software 1.3 (Lawicel format)
 SERIAL = b"NVSL1"
 MAX_LINE = 64  # longer input without a CR is dropped (an adapter's command buffer)
 TX_QUEUE = 64  # frames: the CANable 2.0 firmware's transmit buffer (canable2-fw inc/can.h, TXQUEUE_LEN)
-RX_FIFO = 64  # frames received and not yet sent to the host (ASSUMED: the same size as the transmit side)
 
 # Lawicel status flags (``F``; CANUSB manual): bit 0 receive FIFO full, 1 transmit FIFO full, 2 error
 # warning, 3 data overrun, 5 error passive, 6 arbitration lost, 7 bus error
@@ -69,12 +71,14 @@ class _HostPort(CanNode):
     def receive(self, frame: CanFrame, t: float) -> list[tuple[float, CanFrame]]:
         if not self.listening:  # closed, or at another bit rate: its controller takes nothing
             return []
-        if len(self.inbox) >= RX_FIFO:
-            self.counters.rx_overrun += 1
-            self.flags |= RX_FULL | DATA_OVERRUN
-            return []
         self.inbox.append(frame)
         return []
+
+    def overrun(self, frames: int) -> None:
+        """``frames`` received that the host never took: lost from the receive FIFO, latched in the flags."""
+        if frames > 0:
+            self.counters.rx_overrun += frames
+            self.flags |= RX_FULL | DATA_OVERRUN
 
     def tx_dropped(self, frame: CanFrame, t: float) -> None:
         self.counters.tx_dropped += 1
@@ -177,6 +181,12 @@ class SlcanAdapter(Emulator):
         if not (self.open and self._rate_matches()):
             return b""
         return b"".join(slcan.encode_frame(f) for f in frames)
+
+    def output_refused(self, data: bytes, now_s: float) -> None:
+        """The host stopped reading and the port is full: the frame lines in ``data`` are lost (what a
+        reply line, ``z``, CR or BEL, would have said is lost with them, uncounted: not a received frame)."""
+        lines = data.split(slcan.CR)
+        self.port.overrun(sum(1 for line in lines if line.lstrip(slcan.BEL)[:1] in (b"t", b"T", b"r", b"R")))
 
     def reset_link(self) -> None:
         """Unplugged and plugged back: the adapter powered up again, closed, with no bit rate."""
