@@ -20,12 +20,22 @@ noise (τ read from them): the widest ``|e|`` alone lands that noise's largest d
 on a lab arm), so the edge is fitted by likelihood to the points within a fifth of a count of the widest:
 a density that ends at the edge, smoothed by a normal spread (both fitted).
 
-Standard errors: delete-one-session jackknife (a session's points share its bench). Identifiable: each
+Standard errors: a delete-half jackknife over the sessions (a session's points share its bench): the
+spread of the fit over ``HALVES`` draws of half the sessions (every half where there are fewer), times
+r/d (r sessions kept, d left out; Shao and Wu 1989, whose delete-d jackknife stays consistent for estimates
+set by a few extreme points, as a band's edge and slope are, where deleting one session does not: the
+points that set the slope lie in a few sessions, and leaving out any other changes nothing. On twelve
+3,000-point campaigns of the lab arm (bench/lab_arm.yaml; some with the sensors' noise off) the delete-one
+errors put the stiffness 14 errors from its truth once, rms 5.6; these: rms 1.4, the largest 2.7, the
+estimate 0.2 % low on average). Identifiable: each
 value whose error is at most half its nominal value; nothing without goals (a passive recording) or
 currents, and the stiffness not where the torques the drives held span too little to tell it.
 """
 
 from __future__ import annotations
+
+import itertools
+import math
 
 import numpy as np
 import pandas as pd
@@ -39,6 +49,7 @@ from models.robot import RobotDescription, load_robot
 STIFFNESS = "servo.stiffness_per_p_gain_nm_per_rad"  # k / P: the description's field
 BACKLASH = "servo.backlash_rad"  # b, the play's whole width
 EDGE_WINDOW_COUNTS = 0.2  # the band's edge is fitted to the points this near the widest (encoder counts)
+HALVES = 100  # draws of half the sessions for the errors (the spread's own error ~7 %)
 SQRT_2PI = np.sqrt(2 * np.pi)  # the normal density's denominator, as scipy.stats.norm writes it
 
 
@@ -73,10 +84,10 @@ class ServoFit(Estimator):
         half_count = count / 2
         slope, edge = _band(droop, torque, count)
         labels = np.unique(sessions)
-        if len(labels) >= 2:  # the jackknife: each session left out in turn
-            each = np.array([_band(droop[sessions != g], torque[sessions != g], count) for g in labels])
-            g = len(labels)
-            se_slope, se_edge = np.sqrt((g - 1) / g * ((each - each.mean(axis=0)) ** 2).sum(axis=0))
+        if len(labels) >= 2:
+            each = np.array([_band(droop[keep], torque[keep], count) for keep in _halves(sessions, labels)])
+            kept = len(labels) // 2
+            se_slope, se_edge = np.sqrt(kept / (len(labels) - kept) * each.var(axis=0))
         else:
             se_slope = se_edge = float("inf")
         p_gain = servo.p_gain
@@ -133,6 +144,22 @@ def _droops(robot: RobotDescription, points: pd.DataFrame, torque_constant: floa
         return *nothing, f"{keep.sum()} settled points with a servo's goal, encoder and current"
     sessions = points["session"].to_numpy()[keep] if "session" in points else np.zeros(keep.sum())
     return droop[keep], torque[keep], sessions, count, ""
+
+
+def _halves(sessions: np.ndarray, labels: np.ndarray) -> list[np.ndarray]:
+    """The points' masks of ``HALVES`` sets of half the sessions (⌊g/2⌋ of g), drawn without repeats by a
+    fixed seed, or every such set where there are at most that many."""
+    kept = len(labels) // 2
+    if math.comb(len(labels), kept) <= HALVES:
+        picks = [list(c) for c in itertools.combinations(labels, kept)]
+    else:
+        rng, seen, picks = np.random.default_rng(0), set(), []
+        while len(picks) < HALVES:
+            pick = tuple(sorted(rng.choice(len(labels), kept, replace=False)))
+            if pick not in seen:
+                seen.add(pick)
+                picks.append(labels[list(pick)])
+    return [np.isin(sessions, pick) for pick in picks]
 
 
 def _band(droop: np.ndarray, torque: np.ndarray, count: float) -> tuple[float, float]:
