@@ -126,10 +126,15 @@ def test_from_factory_devices_to_a_recorded_session(factory_rig, real_time):
     rec = _vslab(lab, "record", "--robot", str(robot), "--ports", str(ports), "--duration", "3",
                  "--session", "first")  # fmt: skip
     assert rec.exit_code == 0, rec.output
+    counters = json.loads((lab / "sessions" / "first" / "session.json").read_text())["counters"]
+    for topic in RATES_HZ:  # however long the hypervisor stalled the machine, the account adds up
+        c = counters[topic]
+        assert c["expected"] == c["written"] + c["lost"] + c["dropped"], (topic, c)
+    # judged only where the hypervisor left the machine its CPU (a CI run whose recordings lost 0.5–3.5 s to
+    # it lost 153 of this servo bus's polls: a guard called after this check failed instead of skipping)
+    real_time()
     for topic in ("/servo/state", "/pressure/measured", "/stepper/state", "/tracker/pose"):
         assert f"{topic}: " not in rec.output, rec.output  # a "lost" line names its topic
-    counters = json.loads((lab / "sessions" / "first" / "session.json").read_text())["counters"]
-    real_time()
     for topic, rate in RATES_HZ.items():
         c = counters[topic]
         assert c["lost"] == 0 and c["gaps"] == 0 and c["expected"] == c["written"], (topic, c)
