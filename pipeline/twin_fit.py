@@ -312,9 +312,10 @@ class VslStaticFit(Estimator):
                 return assemble(*parts)[:, 0]
 
             def jacobian(z: np.ndarray) -> np.ndarray:
-                """The residual's forward differences (scipy's ``2-point`` steps), the field's share taken of
-                all columns at once: it is linear, and one product over the columns reads its features once
-                where one per column read them ~50 times (the distorted paper-size fit: 76 s)."""
+                """The residual's forward differences (scipy's ``2-point`` steps: without a field, its
+                Jacobian bit for bit), the field's share taken of all columns at once: it is linear, and one
+                product over the columns reads its features once where one per column read them ~50 times
+                (the distorted paper-size fit: 76 s)."""
                 out0, cur0 = evaluated.get(z.tobytes()) or raw(z)
                 steps = np.finfo(float).eps ** 0.5 * np.where(z >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(z))
                 steps = (z + steps) - z
@@ -329,8 +330,7 @@ class VslStaticFit(Estimator):
                     if n in begin}  # fmt: skip
             turned = last.get("registration", begin.get("registration", np.zeros(6)))
             start = np.array([last.get(n, seed.get(n, 0.0)) for n in free] + list(turned))
-            fit = least_squares(residual, start, jac=jacobian if field[0] else "2-point", method="trf",
-                                x_scale=1.0)  # fmt: skip
+            fit = least_squares(residual, start, jac=jacobian, method="trf", x_scale=1.0)
             last.clear()  # the next pass starts where this one ended
             last.update(zip(free, fit.x[: len(free)], strict=True), registration=fit.x[len(free) :])
             groups = np.repeat(sessions, 3)
