@@ -42,7 +42,9 @@ nominal value is 0: half a degree). A link whose loop the points do not show (δ
 has none: δ_h = 0, and its τ_y named (left in place, the nominal loop took the stiffness of an arm without
 hysteresis 6–21 % low). Standard errors come
 from the Jacobian at the solution, clustered by session (a session's points share its bench and its drift:
-treating them as independent would make the errors too small).
+treating them as independent would make the errors too small). A value fixed because the points could not
+constrain it (or fixed at zero: a loop, a lengthening, a creep or a hose they do not show) leaves the others'
+errors as they were while it was free: fixing it tells nothing more about them.
 
 The servos' stiffness and backlash come from their goals against their encoders (``pipeline.servo_fit``),
 with the torque constant fitted here. Where the residuals show the tracker's field distortion (a smooth bias
@@ -349,6 +351,12 @@ class VslStaticFit(Estimator):
         # loop the points do not show is none (δ_h = 0), and the rest fitted again
         fixed: dict[str, float] = {}
         at_zero: dict[str, float] = {}  # δ_h fitted at 0: its standard error where it was last free
+        # Each value's standard error where what was dropped was still free: fixing what the points could not
+        # constrain (at its nominal value, or at zero) tells nothing more about the rest, so their errors do
+        # not shrink by it. (On the lab arm, a draw whose lower loop's τ_y was too loose to fit fixed it at
+        # the papers' 0.18 N·m, where the arm's is 0.3: δ_h then came out 0.00038 ± 0.00007 rad, 7 errors
+        # from its 0.00087; with τ_y free its error had been 0.00025.)
+        floor: dict[str, float] = {}
         while True:  # ends: each pass that does not end it takes at least one name out of ``free``
             values, rotvec, shift, r, se = solve(free, fixed)
             if amps is not None and weight[0] == CURRENT_WEIGHT_MM_PER_MA:  # each residual by its own noise
@@ -386,6 +394,7 @@ class VslStaticFit(Estimator):
             dropped |= _impossible_loops(links, tables, values, [n for n in free if n not in dropped], se)
             if not dropped:
                 break
+            floor |= {n: max(se[n], floor.get(n, 0.0)) for n in free if n not in dropped}
             hidden |= {n: why for n, why in dropped.items() if why}
             free = [n for n in free if n not in dropped]
         # the servos' stiffness and backlash: their goals against their encoders (the drives' torque from
@@ -395,6 +404,10 @@ class VslStaticFit(Estimator):
         self.robot_ = robot
         self.nominal_ = {n: v for n, v in nominal.items() if not n.endswith(HOSE_T0)}
         self.nominal_ |= servo.nominal_ if servo else {}
+        if covariance:  # the errors (and the covariance, its correlations kept) at least their floor
+            widen = np.array([max(1.0, floor.get(n, 0.0) / se[n]) if se[n] > 0 else 1.0 for n in free])
+            covariance[0] = covariance[0] * np.outer(widen, widen)
+            se = {n: se[n] * w for n, w in zip(free, widen, strict=True)}
         values, se = _hose_slacks(middle, free, values, se, covariance[0] if covariance else None)
         shown = [n.replace(HOSE_T0, HOSE_SLACK) for n in free]  # a hose's slack where its t0 was fitted
         fixed = {n: v for n, v in fixed.items() if not n.endswith(HOSE_T0)}

@@ -45,6 +45,15 @@ def _campaign(lab: Path, robot: Path, seed: int, points: int, **overrides):
     return Lab(lab).datasets.load("campaign", report.version)[0]
 
 
+# the lab arm's values (bench/lab_arm.yaml) by the fit's names, but its links'
+LAB_TRUTH = {"creep.fraction@2s": 0.0, "creep.fraction@60s": 0.0,  # the lab arm does not creep
+             "l2_m": 0.252, "l3_m": 0.248, "q2.offset_rad": 0.005236, "q3.offset_rad": -0.005236,
+             "elongation.strain_per_bar": 0.001, "upper_vsl.mass_scale": 1.15, "lower_vsl.mass_scale": 1.15,
+             "servo.torque_constant_nm_per_a": 1.71, "servo.stiffness_per_p_gain_nm_per_rad": 0.08,
+             "servo.backlash_rad": 0.00872, "q2.hose_stiffness_nm_per_rad": 0.05, "q2.hose_slack_rad": 0.8,
+             "q3.hose_stiffness_nm_per_rad": 0.05, "q3.hose_slack_rad": -1.2}  # fmt: skip
+
+
 def _links_truth(truth) -> dict[str, float]:
     """Each link's stiffness at its table's pressures and its loop, by the fit's names, in ``truth``."""
     true = {}
@@ -86,13 +95,7 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     data = _campaign(tmp_path / "lab", tmp_path / "lab_robot.yaml", seed=3, points=3000)
 
     fit = VslStaticFit("vsl").fit(data)
-    true = {"creep.fraction@2s": 0.0, "creep.fraction@60s": 0.0,  # the lab arm does not creep
-            "l2_m": 0.252, "l3_m": 0.248, "q2.offset_rad": 0.005236, "q3.offset_rad": -0.005236,
-            "elongation.strain_per_bar": 0.001, "upper_vsl.mass_scale": 1.15, "lower_vsl.mass_scale": 1.15,
-            "servo.torque_constant_nm_per_a": 1.71, "servo.stiffness_per_p_gain_nm_per_rad": 0.08,
-            "servo.backlash_rad": 0.00872, "q2.hose_stiffness_nm_per_rad": 0.05, "q2.hose_slack_rad": 0.8,
-            "q3.hose_stiffness_nm_per_rad": 0.05, "q3.hose_slack_rad": -1.2}  # fmt: skip
-    true |= _links_truth(truth)
+    true = LAB_TRUTH | _links_truth(truth)
     # l1-l3, 3 offsets, lengthening, creep's 2, 2 masses, K_t, the servos' 2, 2 hoses' 2; 6 stiffness and 2
     # loop values a link
     assert len(fit.values_) + len(fit.not_identifiable_) == 34
@@ -140,6 +143,24 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     assert overall["n"] == 500 and len(table) == 16  # 3 pressure bins × 5 payloads, and all
     assert overall["fitted_mm_mean"] <= 1.3 * overall["floor_mm_mean"], overall.to_dict()
     assert overall["nominal_mm_mean"] > 2 * overall["fitted_mm_mean"], overall.to_dict()
+
+
+@pytest.mark.slow
+def test_fixing_what_the_points_cannot_tell_does_not_shrink_the_others_errors(tmp_path):
+    """A draw of the lab arm's campaign whose points do not show the lower link's loop (the arm has one,
+    0.00087 rad): the fit names it and fits the rest without it. Their errors are those of the solve that
+    still had the loop free, not of the one that fixed it: fixing a value the points cannot tell adds no
+    information. (With the errors of the fixed solve, q3's offset fell 4.3 errors from the truth and the
+    lower link's stiffness 3.0 and 3.3 at 1 and 1.5 bar; across six draws 15 % of all values fell beyond 2
+    errors, now 10 %.) Measured here: every value within 1.8 errors."""
+    (tmp_path / "lab_robot.yaml").write_text(LAB_ROBOT)
+    truth = load_robot(tmp_path / "lab_robot.yaml")
+    data = _campaign(tmp_path / "lab", tmp_path / "lab_robot.yaml", seed=9, points=3000)
+    fit = VslStaticFit("vsl").fit(data)
+    assert {"lower_vsl.delta_h_rad", "lower_vsl.tau_y_nm"} <= set(fit.not_identifiable_)
+    true = LAB_TRUTH | _links_truth(truth)
+    for name, value in fit.values_.items():
+        assert abs(value - true[name]) <= 2 * fit.stderr_[name], (name, value, true[name], fit.stderr_[name])
 
 
 @pytest.fixture(scope="module")
