@@ -46,12 +46,13 @@ treating them as independent would make the errors too small). A value fixed bec
 constrain it (or fixed at zero: a loop, a lengthening, a creep or a hose they do not show) leaves the others'
 errors as they were while it was free: fixing it tells nothing more about them.
 
-The servos' stiffness and backlash come from their goals against their encoders (``pipeline.servo_fit``),
-with the torque constant fitted here. Where the residuals show the tracker's field distortion (a smooth bias
+The servos' stiffness and backlash come from their goals against their encoders (``pipeline.servo_fit``), with
+the torque constant fitted here. Where the residuals show the tracker's field distortion (a smooth bias
 repeating at each place: ``pipeline.tracker_field``; left out, it took the stiffness ×0.45 to ×1.5), it is
 fitted beside the arm as a Gaussian process profiled out of every residual, and the lengths and offsets it
 cannot be told from are named not identifiable. Not fitted yet (issue 33 asks for it): damping (a dynamic
-fit). The POPUP arm's link is fitted to its link tests by ``pipeline.popup_fit``.
+fit); each link's is named not identifiable, as settled points cannot tell it. The POPUP arm's link is fitted
+to its link tests by ``pipeline.popup_fit``.
 """
 
 from __future__ import annotations
@@ -97,6 +98,10 @@ CURRENT_WEIGHT_MM_PER_MA = (
 STRAIN = "elongation.strain_per_bar"  # the links' lengthening with pressure (effects.elongation)
 Q1_CONFOUNDED = (
     "turns the arm about the base's vertical axis exactly as the tracker registration's rotation does"
+)
+UNDAMPED = (  # why each link's damping table is left nominal
+    "settled points hold no motion to damp: this fit reads the arm's statics (a dynamic fit, from the links' "
+    "swings after each move, is not built yet)"
 )
 FIRST_PASS_POINTS = 2000  # about as many points of a share of the sessions place the moves (see _first_pass)
 OFFSETS = ("q1", "q2", "q3")  # the anthropomorphic arm's joints, in order (its kinematics' joint_offsets_rad)
@@ -397,6 +402,8 @@ class VslStaticFit(Estimator):
             floor |= {n: max(se[n], floor.get(n, 0.0)) for n in free if n not in dropped}
             hidden |= {n: why for n, why in dropped.items() if why}
             free = [n for n in free if n not in dropped]
+        if self.fit_parameters:
+            hidden |= {f"{link.name}.damping_nms_per_rad": UNDAMPED for link in links}
         # the servos' stiffness and backlash: their goals against their encoders (the drives' torque from
         # their currents, with the torque constant fitted here where it was)
         servo = ServoFit(robot, values[TORQUE_CONSTANT] if TORQUE_CONSTANT in free else None)

@@ -96,9 +96,9 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
 
     fit = VslStaticFit("vsl").fit(data)
     true = LAB_TRUTH | _links_truth(truth)
-    # l1-l3, 3 offsets, lengthening, creep's 2, 2 masses, K_t, the servos' 2, 2 hoses' 2; 6 stiffness and 2
-    # loop values a link
-    assert len(fit.values_) + len(fit.not_identifiable_) == 34
+    # l1-l3, 3 offsets, lengthening, creep's 2, 2 masses, K_t, the servos' 2, 2 hoses' 2; 6 stiffness, 2
+    # loop values and the damping a link
+    assert len(fit.values_) + len(fit.not_identifiable_) == 36
     assert not set(fit.values_) & set(fit.not_identifiable_)
     for name, value in fit.values_.items():
         assert abs(value - true[name]) <= 2 * fit.stderr_[name], (name, value, true[name], fit.stderr_[name])
@@ -118,10 +118,12 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     for p, k in zip((0.5, 1, 1.5, 2), (32.0, 64.0, 96.0, 128.0), strict=True):
         assert abs(fit.values_[f"upper_vsl.k@{p:g}bar"] / k - 1) < 0.03
     # what 0.5-2 bar points cannot tell: the table's ends, and l1 (the registration's vertical offset); the
-    # lower (less loaded) link's loop may be too small to time (its τ_y)
+    # lower (less loaded) link's loop may be too small to time (its τ_y); what no settled point can: damping
+    links = ("upper", "lower")
     assert set(fit.not_identifiable_) - {"lower_vsl.tau_y_nm"} == {"l1_m", "q1.offset_rad"} | {
-        f"{k}_vsl.k@{p}bar" for k in ("upper", "lower") for p in ("0.1", "2.5")
-    }
+        f"{k}_vsl.k@{p}bar" for k in links for p in ("0.1", "2.5")
+    } | {f"{k}_vsl.damping_nms_per_rad" for k in links}
+    assert "no motion to damp" in fit.not_identifiable_["upper_vsl.damping_nms_per_rad"]
     assert (
         "registration" in fit.not_identifiable_["l1_m"]
         and "2.5 bar" in fit.not_identifiable_["upper_vsl.k@2.5bar"]
