@@ -9,8 +9,7 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
-import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -25,10 +24,10 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 
 import numpy as np
 import pytest
+from machine_stalls import RealTimeCheck
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from acquisition.recorder.daemon import MAX_LAG_S
 from acquisition.recorder.sessions import SessionStore
 from acquisition.schemas.fast_read import read_fixed_topics
 from models.robot import load_robot
@@ -183,53 +182,6 @@ def popup():
     return load_robot("popup")
 
 
-def cpu_stolen_s() -> float:
-    """Seconds of this machine's CPU the hypervisor has taken since boot (``steal`` in /proc/stat; 0 where
-    there is none to read)."""
-    try:
-        with open("/proc/stat") as f:
-            return int(f.readline().split()[8]) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return 0.0
-
-
-class StealWatch:
-    """What the hypervisor takes of the CPUs (:func:`cpu_stolen_s`), sampled every ``every_s`` in a thread
-    from ``start()`` to ``stop()``: ``total_ms`` in all, ``burst_ms(window_s)`` the most within any window of
-    that length (one stall, which a real-time loop meets, not the same time spread thin)."""
-
-    def __init__(self, every_s: float = 0.02) -> None:
-        self.every_s = every_s
-        self._samples: list[tuple[float, float]] = []
-        self._stopped = threading.Event()
-        self._thread = threading.Thread(target=self._sample, daemon=True)
-
-    def start(self) -> StealWatch:
-        self._thread.start()
-        return self
-
-    def stop(self) -> StealWatch:
-        self._stopped.set()
-        self._thread.join()
-        return self
-
-    def _sample(self) -> None:
-        while True:
-            self._samples.append((time.monotonic(), cpu_stolen_s()))
-            if self._stopped.wait(self.every_s):
-                self._samples.append((time.monotonic(), cpu_stolen_s()))
-                return
-
-    @property
-    def total_ms(self) -> float:
-        return (self._samples[-1][1] - self._samples[0][1]) * 1e3
-
-    def burst_ms(self, window_s: float) -> float:
-        t, stolen = np.array(self._samples).T
-        end = np.searchsorted(t, t + window_s, side="right") - 1
-        return float((stolen[end] - stolen).max() * 1e3)
-
-
 def pytest_configure() -> None:
     """Where PYTHONDONTWRITEBYTECODE is set (as on this project's machines), pytest would rewrite the asserts
     of every test module again in every process: 3.7 of the 12 s each worker took to collect the fast tier.
@@ -267,30 +219,19 @@ TUTORIALS_GROUP = "tutorials"
 
 
 @pytest.fixture
-def real_time() -> RealTimeCheck:
+def real_time() -> Iterator[RealTimeCheck]:
     """Call it after a real-time recording, before asserting its rates: it skips the test, saying so, when
     the hypervisor took this machine's CPUs for as long as a polled daemon may fall behind and catch up
     (``MAX_LAG_S``, 50 ms) meanwhile: one such pause, all at once, loses samples whatever the code does.
     Load on the machine is the tests' to hold; CPUs that are not there are no computer a lab records on
     (measured: 26-39 % stolen on a contended host, when the 1 kHz servo stream fell behind in every run;
     a lone 51 ms stall with 40-50 ms stolen when the host was quiet). The recording is taken to start with
-    the test; a test that does other work first calls ``real_time.recording()`` as it starts."""
-    return RealTimeCheck()
-
-
-class RealTimeCheck:
-    def __init__(self) -> None:
-        self.start_s = cpu_stolen_s()
-
-    def recording(self) -> None:
-        """The recording starts now: what was stolen before it is not counted."""
-        self.start_s = cpu_stolen_s()
-
-    def __call__(self) -> None:
-        stolen = cpu_stolen_s() - self.start_s
-        if stolen >= MAX_LAG_S:
-            pytest.skip(f"the hypervisor took {stolen * 1e3:.0f} ms of this machine's CPU during the "
-                        "recording (steal in /proc/stat)")  # fmt: skip
+    the test; a test that does other work first calls ``real_time.recording()`` as it starts. Besides the
+    steal it asks a stall watch (``tests/machine_stalls.py``): a process at real-time priority that waited
+    as long to be woken means no CPU ran at all, which steal under-counts on some hosts."""
+    check = RealTimeCheck()
+    yield check
+    check.close()
 
 
 # ------------------------------------------------------------------------------- the tutorials, run once

@@ -12,7 +12,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import cpu_stolen_s
+from machine_stalls import cpu_stolen_s
 
 from acquisition.codecs import popup_boards as pb
 from acquisition.codecs.can import CanFrame
