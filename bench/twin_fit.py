@@ -37,6 +37,12 @@ def _true(arm, parameter: str) -> float:
         creep = arm.effects.creep
         times = dict(zip(creep.time_constants_s, creep.fractions, strict=True)) if creep else {}
         return times.get(float(parameter.removeprefix("creep.fraction@").removesuffix("s")), 0.0)
+    if parameter.endswith(".damping_scale"):  # the link's damping table against the papers' arm's
+        link = parameter.removesuffix(".damping_scale")
+        return (
+            arm.link_table(link).damping_nms_per_rad[0]
+            / load_robot("vsl").link_table(link).damping_nms_per_rad[0]
+        )
     if parameter == STRAIN:
         return arm.effects.elongation.strain_per_bar if arm.effects.elongation else 0.0
     if parameter.startswith("servo."):  # the torque constant, the servos' stiffness and backlash
@@ -94,9 +100,13 @@ def main() -> int:
             report = build(sorted((where / "sessions").iterdir()), lab, "campaign")
             data, _ = lab.datasets.load("campaign", report.version)
             print(f"campaign simulated and built: {time.perf_counter() - start:.1f} s", flush=True)
+        try:  # the moves into the points: the links' damping (a dataset built before they were kept has none)
+            moves = lab.datasets.load("campaign", table="moves")[0]
+        except FileNotFoundError:
+            moves = None
         start = time.perf_counter()
         nominal = load_robot("vsl")  # under the simulated arm's name: the lab records under its own
-        fit = VslStaticFit(nominal.model_copy(update={"name": load_robot(args.arm).name})).fit(data)
+        fit = VslStaticFit(nominal.model_copy(update={"name": load_robot(args.arm).name})).fit(data, moves)
         took = time.perf_counter() - start
     table = fit.table()
     table["true"] = [_true(load_robot(args.arm), name) for name in table["parameter"]]
@@ -105,6 +115,11 @@ def main() -> int:
     print(table.drop(columns="why").to_string(index=False, float_format=lambda v: f"{v:.6g}"))
     print(f"not identifiable: {', '.join(fit.not_identifiable_)}")
     verdict = "ok" if took < TARGET_S else "MISSED"
+    damping = fit.damping_
+    if damping is not None and damping.n_moves_:
+        print(f"damping from {damping.n_moves_} moves: {damping.seconds_:.1f} s of the fit; the swings left "
+              f"{damping.residual_rms_mm_:.3f} mm per axis; stiffness from their frequency "
+              + ", ".join(f"{k} ×{f:.4f} ± {e:.4f}" for k, (f, e) in damping.stiffness_.items()))  # fmt: skip
     print(f"\nfit of {fit.n_points_:,} points ({fit.n_sessions_} sessions): {took:.1f} s   "
           f"target < {TARGET_S:.0f} s {verdict}   (load {_load()}; tip residual "
           f"{fit.residual_rms_mm_:.3f} mm per axis)")  # fmt: skip

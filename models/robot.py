@@ -357,11 +357,29 @@ class FittedTrackerField(Part):
     noise_mm: NonNegFloat
 
 
+class FittedFactor(Part):
+    """A factor on a fitted table and its standard error."""
+
+    factor: PositiveFloat
+    stderr: NonNegFloat
+
+
+class FittedDamping(Part):
+    """How the links' damping was fitted to their swings after each move (``pipeline.damping_fit``): over how
+    many moves, what the swings left (per axis), how far the tracker lagged the goals' stamps, and what the
+    swings' frequency says of each link's fitted stiffness table (a factor on it; a check, not written)."""
+
+    moves: int = Field(ge=0)
+    swing_residual_rms_mm: NonNegFloat
+    tracker_lag_s: float
+    stiffness_from_swings: dict[str, FittedFactor] = Field(default_factory=dict)
+
+
 class FittedBlock(Part):
     """What `vslab twin fit` fitted into this description (``pipeline.twin_fit``): from which dataset, with
     which code, how well (the tracked tip's residual per axis), the tracker field's distortion it found
-    (None: none), each value with its standard error, and what the data could not identify, with why (left at
-    the nominal value)."""
+    (None: none), the links' damping fit (None: not fitted), each value with its standard error, and what the
+    data could not identify, with why (left at the nominal value)."""
 
     dataset: str
     code_version: str
@@ -370,6 +388,7 @@ class FittedBlock(Part):
     residual_rms_mm: NonNegFloat
     registration_correction: dict[str, list[float]]  # the tracker registration's rotation vector and shift
     tracker_field: FittedTrackerField | None = None
+    damping: FittedDamping | None = None
     parameters: dict[str, FittedValue]
     not_identifiable: dict[str, str]
 

@@ -154,10 +154,11 @@ def process_session(directory: LabPath, parameters: dict, cache: StageCache) -> 
 
 def _session_stages(directory: Path, parameters: dict, cache: StageCache) -> dict:
     """ingest → clean → sync → segment of the local session ``directory``, cached by its content."""
+    from acquisition.schemas import topics
     from acquisition.schemas.session_card import readable_parts
     from pipeline.clean import clean
     from pipeline.ingest import DAMAGED_CHUNKS, IngestError, content_hash, ingest_session
-    from pipeline.segment import Stillness, repetitions, static_points
+    from pipeline.segment import Stillness, move_windows, repetitions, static_points
     from pipeline.sync import sync
 
     parts = readable_parts(directory)
@@ -178,10 +179,13 @@ def _session_stages(directory: Path, parameters: dict, cache: StageCache) -> dic
     points = static_points(timeline, s.events, s.t0_ns, stillness=still, report=s.report)
     timeline = timeline.assign(repetition=repetitions(timeline, s.events, s.t0_ns))
     trajectory = timeline[timeline["repetition"] >= 0]
+    goals = s.streams.get(topics.SERVO_GOAL)  # the moves into the points, where goals were recorded
+    moves = (move_windows(timeline, s.events, s.t0_ns, goals["t"].to_numpy(float)) if len(points) and
+             goals is not None and "t" in goals.columns else timeline.iloc[:0])  # fmt: skip
     record = {"session": directory.name, "robot": s.robot.name, "content_hash": content,
               "robot_description": s.robot.model_dump_json(), "report": s.report.as_dict(),
               "metadata": {k: v for k, v in s.metadata.items() if k != "robot_description"}}  # fmt: skip
-    cache.store("session", key, {"static": points, "trajectory": trajectory}, record)
+    cache.store("session", key, {"static": points, "trajectory": trajectory, "moves": moves}, record)
     damaged = s.report.values.get(DAMAGED_CHUNKS, [])
     return done | {"cached": False, "damaged": damaged}
 
@@ -243,17 +247,21 @@ def build(
         raise BuildError(failed)
     with cf.ThreadPoolExecutor(LOADERS) as pool:  # a store answers many requests at once, not one by one
         loaded = list(pool.map(lambda r: (r, *cache.load("session", r["key"])), good))
-    tables, card_sessions, registrations = {"data": [], "trajectories": []}, {}, {}
+    tables, card_sessions, registrations = {"data": [], "trajectories": [], "moves": []}, {}, {}
     for robot_name in sorted({rec["robot"] for _, _, rec in loaded}):
         mine = [(r, t, rec) for r, t, rec in loaded if rec["robot"] == robot_name]
         robot = RobotDescription.model_validate_json(mine[0][2]["robot_description"])
         static = _tagged([(rec, t["static"]) for _, t, rec in mine])
         trajectory = _tagged([(rec, t["trajectory"]) for _, t, rec in mine])
+        moves = _tagged([(rec, t["moves"]) for _, t, rec in mine if "moves" in t])
         registration = _fit_registration(static, robot, params["registration"], borrowed)
         registrations[robot_name] = registration
-        for table, rows in (("data", static), ("trajectories", trajectory)):
+        for table, rows in (("data", static), ("trajectories", trajectory), ("moves", moves)):
             if len(rows):
-                tables[table].append(datasets.assemble(_in_base_frame(rows, registration), robot))
+                assembled = datasets.assemble(_in_base_frame(rows, registration), robot)
+                if table == "moves":  # each row's move: the time its goal was commanded
+                    assembled["t_command"] = rows["t_command"].to_numpy(float)
+                tables[table].append(assembled)
         card_sessions |= {rec["session"]: _session_card(rec) for _, _, rec in mine}
     trajectories = pd.concat(tables["trajectories"], ignore_index=True) if tables["trajectories"] else None
     # D is the static points; sessions of trajectories only (Experiment 1/2) give D of their samples
@@ -262,6 +270,8 @@ def build(
         raise ValueError("the sessions have neither settled points nor trajectory repetitions")
     data = datasets.add_splits(pd.concat(rows, ignore_index=True), **params["splits"])
     out = {"data": data} | ({"trajectories": trajectories} if trajectories is not None else {})
+    if tables["moves"]:  # the moves into the settled points: their links' swings (pipeline.damping_fit)
+        out["moves"] = pd.concat(tables["moves"], ignore_index=True)
     card = {
         "made_from": made_from, "failed": failed, "parameters": params,
         "code_version": stage_version("dataset"), "sessions": card_sessions,

@@ -1,9 +1,10 @@
 """The lab's datasets: ``<lab>/datasets/<name>/<version>/``, each version written once, whole.
 
 A version folder holds ``<table>.parquet`` for each table (``data`` is D; ``trajectories`` where the sessions
-ran them) and ``card.json`` (what made it: sessions, parameters, code version, the tracker registration it
-fitted). The version is the hash of those inputs (``pipeline.datasets.dataset_version``), so building the
-same inputs again finds it. The Lab makes the store (``lab.datasets``); this module is what it does.
+ran them; ``moves``, the moves into the settled points, where they have some) and ``card.json`` (what made
+it: sessions, parameters, code version, the tracker registration it fitted). The version is the hash of
+those inputs (``pipeline.datasets.dataset_version``), so building the same inputs again finds it. The Lab
+makes the store (``lab.datasets``); this module is what it does.
 """
 
 from __future__ import annotations
@@ -82,8 +83,8 @@ class DatasetStore:
 
     def load(self, name: str, version: str | None = None, table: str | None = "data"):
         """(table or None, card) of ``name`` (the newest version when none is named); ``data`` is D,
-        ``trajectories`` the repetitions, None only the card. ``DatasetError`` where it is not there or its
-        card cannot be read."""
+        ``trajectories`` the repetitions, ``moves`` the moves into the points, None only the card.
+        ``DatasetError`` where it is not there or its card cannot be read."""
         name, version = self.resolve(f"{name}@{version}" if version else name)
         path = self.path(name, version)
         try:

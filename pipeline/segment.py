@@ -183,3 +183,39 @@ def repetitions(timeline: pd.DataFrame, events: pd.DataFrame, t0_ns: int) -> pd.
         k >= 0, reps["repetition"].to_numpy(np.int64)[np.clip(k, 0, None)] if len(reps) else -1, -1
     )
     return pd.Series(labels.astype(np.int64), index=timeline.index, name="repetition")
+
+
+def move_windows(
+    timeline: pd.DataFrame, events: pd.DataFrame, t0_ns: int, goal_t: np.ndarray
+) -> pd.DataFrame:
+    """The timeline's rows while the arm moves into each settled point and rings after the move: from the
+    last servo goal commanded before the point's SETTLED window (``goal_t``: the goal stream's times, s) to
+    that window's start, tagged ``point`` and ``t_command`` (the goal's time, s) and ``payload_kg`` (the
+    latest PAYLOAD event before the row). The links' swings after a move are what their damping shapes
+    (``pipeline.damping_fit``); settled points hold none of it. A point with no goal since the window
+    before it (a hold without a move) has no rows."""
+    settled = _event_times(events, EventKind.SETTLED, t0_ns)
+    settled = settled[~(settled["value"] <= 0)]
+    starts = settled["t"].to_numpy(float)
+    ends = starts + np.nan_to_num(settled["value"].to_numpy(float), nan=0.0)
+    goal_t = np.sort(np.asarray(goal_t, float))
+    k = np.searchsorted(goal_t, starts, side="left") - 1  # the last goal before each window
+    command = np.where(k >= 0, goal_t[np.clip(k, 0, None)] if len(goal_t) else np.nan, np.nan)
+    previous_end = np.concatenate([[-np.inf], ends[:-1]])
+    moved = np.isfinite(command) & (command >= previous_end)
+    t = timeline["t"].to_numpy(float)
+    group = _window_of(t, command[moved], starts[moved])  # goals in time order: the windows do not overlap
+    inside = group >= 0
+    g = group[inside]
+    payload = _event_times(events, EventKind.PAYLOAD, t0_ns)
+    pt, pv = payload["t"].to_numpy(float), payload["value"].to_numpy(float)
+    at = np.searchsorted(pt, t[inside], side="right") - 1
+    return (
+        timeline[inside]
+        .assign(
+            point=settled["index"].to_numpy(np.int64)[moved][g],
+            t_command=command[moved][g],
+            payload_kg=np.where(at >= 0, pv[np.clip(at, 0, None)] if len(pv) else np.nan, np.nan),
+        )
+        .reset_index(drop=True)
+    )

@@ -1,7 +1,8 @@
 """The twin of the lab's own robot (issue 33): a robot description's identifiable parameters fitted to a lab's
 dataset, each with its standard error, written back as a description that ``extends:`` the nominal one.
 
-This is the static part of the VSL arm's fit (:class:`VslStaticFit`). From a dataset's settled points
+This is the VSL arm's fit (:class:`VslStaticFit`, its statics and, from the moves, its damping). From a
+dataset's settled points
 (``x_*``: the tracked tip in the base frame, ``q_*``: the encoders, ``p_*``: the link pressures,
 ``payload_kg``: the plan's payload, ``t`` and ``session``: their order) it fits
 
@@ -50,9 +51,10 @@ The servos' stiffness and backlash come from their goals against their encoders 
 the torque constant fitted here. Where the residuals show the tracker's field distortion (a smooth bias
 repeating at each place: ``pipeline.tracker_field``; left out, it took the stiffness ×0.45 to ×1.5), it is
 fitted beside the arm as a Gaussian process profiled out of every residual, and the lengths and offsets it
-cannot be told from are named not identifiable. Not fitted yet (issue 33 asks for it): damping (a dynamic
-fit); each link's is named not identifiable, as settled points cannot tell it. The POPUP arm's link is fitted
-to its link tests by ``pipeline.popup_fit``.
+cannot be told from are named not identifiable. Settled points cannot tell damping: where the dataset keeps
+the moves into its points (``moves``), each link's damping comes from its swings after them, made again on
+the twin of the arm just fitted (``pipeline.damping_fit``); where it keeps none, it is named not
+identifiable. The POPUP arm's link is fitted to its link tests by ``pipeline.popup_fit``.
 """
 
 from __future__ import annotations
@@ -78,6 +80,7 @@ from pipeline.arm_history import (
     scaled_masses,
     session_order,
 )
+from pipeline.damping_fit import VslDampingFit, clustered_covariance, scale_name
 from pipeline.errors import PipelineError
 from pipeline.move_paths import move_speed, simulated_moves
 from pipeline.servo_fit import BACKLASH, STIFFNESS, ServoFit
@@ -99,11 +102,14 @@ STRAIN = "elongation.strain_per_bar"  # the links' lengthening with pressure (ef
 Q1_CONFOUNDED = (
     "turns the arm about the base's vertical axis exactly as the tracker registration's rotation does"
 )
-UNDAMPED = (  # why each link's damping table is left nominal
-    "settled points hold no motion to damp: this fit reads the arm's statics (a dynamic fit, from the links' "
-    "swings after each move, is not built yet)"
+UNDAMPED = (  # why each link's damping table is left nominal where the dataset has no moves
+    "settled points hold no motion to damp, and the dataset keeps no moves into them (built before vslab "
+    "kept them, or its sessions recorded no servo goals): its links' swings after each move are what tell it"
 )
 FIRST_PASS_POINTS = 2000  # about as many points of a share of the sessions place the moves (see _first_pass)
+# beside the tables, the fitted values that shape the links' swings (their errors are the damping's too)
+SWINGING = ("l2_m", "l3_m", ".mass_scale", ".delta_h_rad", ".tau_y_nm", "stiffness_per_p_gain_nm_per_rad",
+            "backlash_rad")  # fmt: skip
 OFFSETS = ("q1", "q2", "q3")  # the anthropomorphic arm's joints, in order (its kinematics' joint_offsets_rad)
 
 
@@ -127,8 +133,10 @@ class VslStaticFit(Estimator):
     value, standard error, nominal value; lengths in m, stiffness in N·m/rad), ``not_identifiable_``
     (parameter → why), ``correction_`` (the registration's rotation vector in rad and translation in m),
     ``residual_rms_mm_`` (of the fitted tip, per axis), ``errors_mm_`` (each point's distance from the fitted
-    tip, NaN where a point could not be used), ``n_points_``, ``n_sessions_`` and ``move_speed_rad_s_`` (the
-    speed the moves were simulated at; None where they were taken as straight lines).
+    tip, NaN where a point could not be used), ``n_points_``, ``n_sessions_``, ``move_speed_rad_s_`` (the
+    speed the moves were simulated at; None where they were taken as straight lines) and ``damping_`` (the
+    links' damping fit, :class:`pipeline.damping_fit.VslDampingFit`, where ``fit`` was given the moves; its
+    scales are among ``values_``).
     """
 
     def __init__(self, robot: RobotDescription | str = "vsl", min_weight: float = 20.0,
@@ -143,7 +151,29 @@ class VslStaticFit(Estimator):
         self.move_speed_rad_s = move_speed_rad_s
 
     # ------------------------------------------------------------------------------------------ fit
-    def fit(self, points: pd.DataFrame) -> VslStaticFit:
+    def fit(self, points: pd.DataFrame, moves: pd.DataFrame | None = None) -> VslStaticFit:
+        """Fit to a dataset's settled points (``data``) and, where given, the moves into them (its ``moves``
+        table): each link's damping from the swings after each move (``pipeline.damping_fit``)."""
+        self._fit_statics(points)
+        self.damping_ = None  # the damping fit, where it ran
+        if self.fit_parameters:
+            names = [scale_name(link.name) for link in self.robot_.links if link.virtual_joints]
+            damping = None
+            if moves is not None and len(moves):
+                moved = [{n: self.values_[n] + self.stderr_[n]} for n in self.values_ if n.endswith(SWINGING)]
+                arm, *within = (self._arm(change) for change in [{}, *moved])
+                damping = VslDampingFit(arm, self.move_speed_rad_s_ or 1.0, within_errors=tuple(within))
+                damping = damping.fit(moves, points)
+            self.nominal_ |= dict.fromkeys(names, 1.0)
+            self.not_identifiable_ |= dict.fromkeys(names, UNDAMPED) if damping is None else {}
+            if damping is not None:
+                self.values_ |= damping.values_
+                self.stderr_ |= damping.stderr_
+                self.not_identifiable_ |= damping.not_identifiable_
+                self.damping_ = damping
+        return self
+
+    def _fit_statics(self, points: pd.DataFrame) -> None:
         robot = load_robot(self.robot) if isinstance(self.robot, str) else self.robot
         links = _check(robot, points, same_name=self.fit_parameters)
         channels = [f"p_{link.pressure_channel or 0}" for link in links]
@@ -346,7 +376,7 @@ class VslStaticFit(Estimator):
             if field[0]:  # each prior row on its own
                 priors = [f"\0field{k}" for k in range(3 * field[0].phi.shape[1])]
                 groups = np.concatenate([groups.astype(str), priors])
-            cov = _clustered_covariance(fit.jac, fit.fun, groups)
+            cov = clustered_covariance(fit.jac, fit.fun, groups)
             cov = cov[: len(free), : len(free)] * np.outer(scale, scale)
             se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
             covariance[:] = [pd.DataFrame(cov, index=free, columns=free)]
@@ -406,8 +436,6 @@ class VslStaticFit(Estimator):
             floor |= {n: max(se[n], floor.get(n, 0.0)) for n in free if n not in dropped}
             hidden |= {n: why for n, why in dropped.items() if why}
             free = [n for n in free if n not in dropped]
-        if self.fit_parameters:
-            hidden |= {f"{link.name}.damping_nms_per_rad": UNDAMPED for link in links}
         # the servos' stiffness and backlash: their goals against their encoders (the drives' torque from
         # their currents, with the torque constant fitted here where it was)
         servo = ServoFit(robot, values[TORQUE_CONSTANT] if TORQUE_CONSTANT in free else None)
@@ -447,7 +475,12 @@ class VslStaticFit(Estimator):
         self.n_points_ = len(rows)
         self.n_sessions_ = len(set(sessions.tolist()))
         self.move_speed_rad_s_ = moving[2] if moving is not None else None
-        return self
+
+    def _arm(self, moved: dict[str, float]) -> RobotDescription:
+        """The fitted arm (``moved``: with these values in place of the fitted ones)."""
+        data = self.description("statics", self.robot_.name, "", "", moved)
+        data.pop("fitted")
+        return extended(self.robot_, data)
 
     def _first_pass(self, robot: RobotDescription, rows: pd.DataFrame, sessions: np.ndarray) -> tuple:
         """The arm whose moves the fit follows, and its fit (where the solves start): fitted along straight
@@ -537,13 +570,16 @@ class VslStaticFit(Estimator):
         ]  # fmt: skip
         return pd.DataFrame(rows)
 
-    def description(self, name: str, extends: str, dataset: str, code_version: str) -> dict[str, Any]:
+    def description(self, name: str, extends: str, dataset: str, code_version: str,
+                    moved: dict[str, float] | None = None) -> dict[str, Any]:  # fmt: skip
         """The fitted description as YAML data: ``extends`` the nominal one, says the fitted lengths and every
         link's table (the fitted pressures; the others as they were), and carries a ``fitted`` block (the
         dataset, the residual, the code version, each value with its standard error and nominal value, and
-        what could not be identified, with why)."""
+        what could not be identified, with why). ``moved``: values in place of the fitted ones (the damping
+        fit moves each static value by its error to carry its uncertainty)."""
         self.check_fitted()
-        robot, values = self.robot_, {**self.nominal_, **self.values_}
+        fitted = {**self.values_, **(moved or {})}
+        robot, values = self.robot_, {**self.nominal_, **fitted}
         links = []
         for link in robot.links:
             data = link.model_dump(mode="json", exclude_none=True)
@@ -554,7 +590,10 @@ class VslStaticFit(Estimator):
                     "stiffness_nm_per_rad": [
                         round(values[_knot(link.name, pk)], 4) for pk in table.pressure_pa
                     ],
-                    "damping_nms_per_rad": list(table.damping_nms_per_rad),
+                    "damping_nms_per_rad": [  # scaled as a whole where the swings told it
+                        round(c * values.get(scale_name(link.name), 1.0), 5)
+                        for c in table.damping_nms_per_rad
+                    ],
                 }
             if link.hysteresis is not None:
                 loop = {
@@ -586,7 +625,7 @@ class VslStaticFit(Estimator):
                 ),
                 "backlash_rad": round(values.get(BACKLASH, robot.servo.backlash_rad), 7),
             },
-            **_effects_block(robot, self.values_, self.distortion_),
+            **_effects_block(robot, fitted, self.distortion_),
             "fitted": {
                 "dataset": dataset,
                 "code_version": code_version,
@@ -603,9 +642,22 @@ class VslStaticFit(Estimator):
                     else None
                 ),
                 "registration_correction": self.correction_,
+                "damping": (
+                    {
+                        "moves": self.damping_.n_moves_,
+                        "swing_residual_rms_mm": round(self.damping_.residual_rms_mm_, 4),
+                        "tracker_lag_s": round(self.damping_.lag_s_, 5),
+                        "stiffness_from_swings": {  # what their frequency says of the fitted tables (a check)
+                            link: {"factor": round(float(f), 4), "stderr": round(float(e), 4)}
+                            for link, (f, e) in self.damping_.stiffness_.items()
+                        },
+                    }
+                    if getattr(self, "damping_", None) is not None and self.damping_.n_moves_
+                    else None
+                ),
                 "parameters": {
-                    n: {"value": self.values_[n], "stderr": self.stderr_[n], "nominal": self.nominal_[n]}
-                    for n in self.values_
+                    n: {"value": fitted[n], "stderr": self.stderr_[n], "nominal": self.nominal_[n]}
+                    for n in fitted
                 },
                 "not_identifiable": dict(self.not_identifiable_),
             },
@@ -751,22 +803,6 @@ def _hat(p: np.ndarray, knots: list[float], j: int) -> np.ndarray:
     basis = np.zeros(len(knots))
     basis[j] = 1.0
     return interp_table(p, knots, basis)
-
-
-def _clustered_covariance(jac: np.ndarray, r: np.ndarray, groups: np.ndarray) -> np.ndarray:
-    """The least-squares estimate's covariance with residuals correlated within each group (the sandwich
-    (JᵀJ)⁻¹ (Σ_g J_gᵀ r_g r_gᵀ J_g) (JᵀJ)⁻¹ with the usual small-sample factor); the plain s² (JᵀJ)⁻¹ when
-    there are under 10 groups, too few to estimate the middle from."""
-    n, k = jac.shape
-    bread = np.linalg.pinv(jac.T @ jac)
-    labels, index = np.unique(groups, return_inverse=True)
-    if len(labels) < 10:
-        return bread * float(r @ r) / max(n - k, 1)
-    scores = np.zeros((len(labels), k))
-    np.add.at(scores, index, jac * r[:, None])
-    g = len(labels)
-    meat = scores.T @ scores * (g / (g - 1)) * ((n - 1) / max(n - k, 1))
-    return bread @ meat @ bread
 
 
 def _absent_loops(links, values: dict, free: list[str], se: dict, loose: set[str]) -> dict[str, str]:

@@ -32,6 +32,7 @@ from models.hybrid import HybridNet, preset
 from models.robot import load_robot
 from pipeline import baselines as B
 from pipeline.clock import ClockFitter
+from pipeline.damping_fit import VslDampingFit
 from pipeline.popup_fit import PopupLinkFit
 from pipeline.registration import FixedRegistration, RigidTransform, TrackerRegistration, model_tip
 from pipeline.servo_fit import ServoFit
@@ -134,6 +135,11 @@ CASES = {
     "twin-fit-vsl": Case(
         lambda: VslStaticFit("vsl"), lambda d: (d,), lambda e, d: e.table()["value"].dropna().to_numpy()
     ),
+    "twin-fit-damping": Case(  # 40 of the small campaign's moves made again on the papers' arm
+        lambda: VslDampingFit(load_robot("vsl"), max_moves=40),
+        lambda d: (MOVES[0], d),
+        lambda e, d: e.table()[["value", "stderr"]].to_numpy(),
+    ),
     "twin-fit-servos": Case(
         lambda: ServoFit("vsl"), lambda d: (d,), lambda e, d: e.table()[["value", "stderr"]].to_numpy()
     ),
@@ -166,9 +172,16 @@ CASES = {
 }
 
 
+MOVES: list[pd.DataFrame] = []  # the small campaign's moves into its points (its dataset's moves table)
+
+
 @pytest.fixture(scope="module")
 def data(campaign_dataset):
-    return campaign_dataset[2]
+    from pipeline.dataset_store import DatasetStore
+
+    lab, version, d = campaign_dataset
+    MOVES[:] = [DatasetStore(lab / "datasets").load("campaign", version, table="moves")[0]]
+    return d
 
 
 @pytest.fixture(params=sorted(CASES), scope="module")

@@ -119,3 +119,28 @@ def test_repetitions_label_rows_inside_complete_repetitions():
     assert labels.tolist() == expected.tolist() and labels.index.equals(tl.index)
     table = repetition_table(ev, 5)
     assert table["repetition"].tolist() == [0, 1] and set(table["label"]) == {"curve"}
+
+
+def test_move_windows_run_from_each_goal_to_its_settled_window():
+    """The rows of each move: from the last goal before a SETTLED window (and after the window before) to
+    that window's start, tagged with the point, the goal's time and the payload hung then; a hold without a
+    goal since the last window has none."""
+    from pipeline.segment import move_windows
+
+    t = np.arange(0.0, 10.0, 0.025)  # a 40 Hz timeline
+    line = pd.DataFrame({"t": t, "tracker_position_0": np.sin(t)})
+    events = _events([
+        (0.5, EventKind.PAYLOAD, 0, 0.025, ""),
+        (2.0, EventKind.SETTLED, 4, 0.5, ""),  # point 4: its goal at 1.0
+        (4.0, EventKind.PAYLOAD, 0, 0.05, ""),
+        (5.0, EventKind.SETTLED, 9, 0.5, ""),  # point 9: goals at 3.0 and 4.5, the last counts
+        (8.0, EventKind.SETTLED, 2, 0.5, ""),  # point 2: no goal since 5.5, a hold without a move
+    ])  # fmt: skip
+    moves = move_windows(line, events, 0, np.array([1.0, 3.0, 4.5]))
+    assert sorted(set(moves["point"])) == [4, 9]
+    four, nine = moves[moves["point"] == 4], moves[moves["point"] == 9]
+    assert four["t"].min() >= 1.0 and four["t"].max() < 2.0 and len(four) == 40
+    assert (four["t_command"] == 1.0).all() and (four["payload_kg"] == 0.025).all()
+    assert nine["t"].min() >= 4.5 and nine["t"].max() < 5.0 and (nine["t_command"] == 4.5).all()
+    assert (nine["payload_kg"] == 0.05).all()
+    assert move_windows(line, events, 0, np.array([])).empty  # no goals recorded: no moves

@@ -45,6 +45,13 @@ def _campaign(lab: Path, robot: Path, seed: int, points: int, **overrides):
     return Lab(lab).datasets.load("campaign", report.version)[0]
 
 
+def _moves(lab: Path):
+    """The moves into the points of the campaign ``_campaign`` built in ``lab`` (the links' swings)."""
+    from pipeline.lab import Lab
+
+    return Lab(lab).datasets.load("campaign", table="moves")[0]
+
+
 # the lab arm's values (bench/lab_arm.yaml) by the fit's names, but its links'
 LAB_TRUTH = {"creep.fraction@2s": 0.0, "creep.fraction@60s": 0.0,  # the lab arm does not creep
              "l2_m": 0.252, "l3_m": 0.248, "q2.offset_rad": 0.005236, "q3.offset_rad": -0.005236,
@@ -94,10 +101,13 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     truth = load_robot(tmp_path / "lab_robot.yaml")
     data = _campaign(tmp_path / "lab", tmp_path / "lab_robot.yaml", seed=3, points=3000)
 
-    fit = VslStaticFit("vsl").fit(data)
-    true = LAB_TRUTH | _links_truth(truth)
+    fit = VslStaticFit("vsl").fit(data, _moves(tmp_path / "lab"))
+    # the lab arm's damping: the upper link's the papers', the lower's ×1.5625 (its table is the lab's upper
+    # table ×1.5625, damping and stiffness alike)
+    damping = {"upper_vsl.damping_scale": 1.0, "lower_vsl.damping_scale": 1.5625}
+    true = LAB_TRUTH | _links_truth(truth) | damping
     # l1-l3, 3 offsets, lengthening, creep's 2, 2 masses, K_t, the servos' 2, 2 hoses' 2; 6 stiffness, 2
-    # loop values and the damping a link
+    # loop values and the damping a link (its table scaled as a whole, from the swings after the moves)
     assert len(fit.values_) + len(fit.not_identifiable_) == 36
     assert not set(fit.values_) & set(fit.not_identifiable_)
     for name, value in fit.values_.items():
@@ -118,12 +128,16 @@ def test_a_lab_robot_the_fit_is_not_told_about(tmp_path):
     for p, k in zip((0.5, 1, 1.5, 2), (32.0, 64.0, 96.0, 128.0), strict=True):
         assert abs(fit.values_[f"upper_vsl.k@{p:g}bar"] / k - 1) < 0.03
     # what 0.5-2 bar points cannot tell: the table's ends, and l1 (the registration's vertical offset); the
-    # lower (less loaded) link's loop may be too small to time (its τ_y); what no settled point can: damping
+    # lower (less loaded) link's loop may be too small to time (its τ_y)
     links = ("upper", "lower")
     assert set(fit.not_identifiable_) - {"lower_vsl.tau_y_nm"} == {"l1_m", "q1.offset_rad"} | {
         f"{k}_vsl.k@{p}bar" for k in links for p in ("0.1", "2.5")
-    } | {f"{k}_vsl.damping_nms_per_rad" for k in links}
-    assert "no motion to damp" in fit.not_identifiable_["upper_vsl.damping_nms_per_rad"]
+    }
+    # the damping from 300 moves' swings (measured: the upper link's 1.0015 ± 0.0033, the lower's 1.559 ±
+    # 0.039): within 1 % and 5 %; the swings leave the tracker's noise (0.25 mm per axis)
+    assert abs(fit.values_["upper_vsl.damping_scale"] - 1) < 0.01
+    assert abs(fit.values_["lower_vsl.damping_scale"] / 1.5625 - 1) < 0.05
+    assert fit.damping_.n_moves_ >= 290 and fit.damping_.residual_rms_mm_ < 0.28
     assert (
         "registration" in fit.not_identifiable_["l1_m"]
         and "2.5 bar" in fit.not_identifiable_["upper_vsl.k@2.5bar"]
@@ -208,6 +222,7 @@ def test_the_command_writes_a_description_the_twin_loads(lab):
     assert f"written: {written}" in result.output.replace("\n", "")
     assert "not identifiable, left nominal: l1_m" in result.output
     assert "the loops followed through the arm's moves on its twin at" in result.output.replace("\n", " ")
+    assert "the links' damping from their swings after" in result.output.replace("\n", " ")
     data = yaml.safe_load(written.read_text())
     assert data["extends"] == "vsl" and data["fitted"]["dataset"] == f"campaign@{version}"
     robot = load_robot(written)
@@ -339,6 +354,50 @@ def test_what_the_servos_cannot_tell_is_named_and_left_nominal(campaign_dataset)
     assert "encoder count" in ServoFit("vsl").fit(still).not_identifiable_[SERVO_STIFFNESS]
     fit = VslStaticFit("vsl").fit(data.assign(qc_1=np.nan, qc_2=np.nan))  # the static fit goes on without
     assert "passive recording" in fit.not_identifiable_[BACKLASH] and "l2_m" in fit.values_
+    # without the moves into the points (a dataset built before vslab kept them), no damping: named
+    assert "keeps no moves" in fit.not_identifiable_["upper_vsl.damping_scale"] and fit.damping_ is None
+
+
+def test_damping_the_moves_cannot_tell_is_named_not_guessed(campaign_dataset):
+    """Too few moves (a dataset of a few points), moves without their points, or nonsense settings: the
+    damping is named not identifiable, with why, or the settings are refused; never a number."""
+    from pipeline.damping_fit import DampingFitError, VslDampingFit
+    from pipeline.dataset_store import DatasetStore
+
+    lab, version, data = campaign_dataset
+    moves, _ = DatasetStore(lab / "datasets").load("campaign", version, table="moves")
+    arm = load_robot("vsl")
+    few = data[data["point"] < 15]  # the first 15 points: fewer moves than the fit needs (20)
+    fit = VslDampingFit(arm).fit(moves, few)
+    assert not fit.values_ and "moves with their swings recorded (the fit needs 20)" in (
+        fit.not_identifiable_["upper_vsl.damping_scale"])  # fmt: skip
+    elsewhere = VslDampingFit(arm).fit(moves.assign(session="another"), data)  # no point of theirs
+    assert not elsewhere.values_ and set(elsewhere.not_identifiable_) == {
+        "upper_vsl.damping_scale", "lower_vsl.damping_scale"}  # fmt: skip
+    assert not VslDampingFit(arm).fit(moves.drop(columns="t_command"), data).values_
+    for bad in ({"move_speed_rad_s": 0.0}, {"ring_s": -1.0}, {"max_moves": 0}):
+        with pytest.raises(DampingFitError, match="must be positive"):
+            VslDampingFit(arm, **bad).fit(moves, data)
+
+
+def test_a_campaign_dataset_keeps_the_moves_into_its_points(campaign_dataset):
+    """Each point's move: the timeline's rows from its goal's command to its settled window, in the base
+    frame; the tip swings there (it travels between the points and rings after), where it holds still in
+    the settled window."""
+    from pipeline.dataset_store import DatasetStore
+
+    lab, version, data = campaign_dataset
+    moves, _ = DatasetStore(lab / "datasets").load("campaign", version, table="moves")
+    assert {"t", "t_command", "session", "point", "x_0", "qc_1", "p_0", "payload_kg"} <= set(moves.columns)
+    assert (moves["t"] >= moves["t_command"]).all()
+    settled = data.set_index(["session", "point"])["t"]
+    ends = settled.reindex(pd.MultiIndex.from_frame(moves[["session", "point"]])).to_numpy()
+    assert np.isfinite(ends).mean() > 0.95 and (moves["t"].to_numpy() < np.nan_to_num(ends, nan=np.inf)).all()
+    per_move = moves.groupby(["session", "point"]).size()
+    assert len(per_move) >= 0.95 * len(data) and per_move.min() >= 35  # about 1 s to settle, at 40 Hz
+    last = moves.groupby(["session", "point"])[["x_0", "x_1", "x_2"]].last()
+    here = data.set_index(["session", "point"]).loc[last.index, ["x_0", "x_1", "x_2"]]
+    assert np.median(np.linalg.norm(last.to_numpy() - here.to_numpy(), axis=1)) < 1e-3  # arrived
 
 
 NO_LOOP = """\

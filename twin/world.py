@@ -120,7 +120,8 @@ class World:
 
     Commands are per robot (arrays with a leading batch axis, or scalars broadcast to all). ``step(n)``
     returns the true trace of those steps; ``state`` is the latest true state. ``benches``: the benches'
-    names, by which each draws its noise (the simulated runner names them by their sessions).
+    names, by which each draws its noise (the simulated runner names them by their sessions). ``devices``
+    False: the physics alone, without the devices' clocks (nothing to read; a fit making moves again).
     """
 
     def __init__(
@@ -133,6 +134,7 @@ class World:
         pressure_pa: float | np.ndarray | None = None,
         payload_kg: float | np.ndarray = 0.0,
         benches: Sequence[str] | None = None,
+        devices: bool = True,
     ) -> None:
         if batch < 1:
             raise ValueError(f"batch must be ≥ 1, got {batch}")
@@ -184,9 +186,9 @@ class World:
             self.commands.profile_vel[:, steppers] = robot.stepper.max_speed_rad_s
             self.commands.profile_acc[:, steppers] = robot.stepper.acceleration_rad_s2
         self._start_at_rest()
-        self.clocks = {
+        self.clocks = {  # devices=False: the physics alone, nothing to read (a fit making moves again)
             name: SimulatedClocks(_clock_spec(dev.clock), batch, self.noise(name).per_bench())
-            for name, dev in robot.devices.items()
+            for name, dev in (robot.devices.items() if devices else ())
         }
         self.tip_tail: tuple[float, np.ndarray] | None = None  # (time, last two tip positions) of a read
 
@@ -206,6 +208,17 @@ class World:
         st.creep[:] = creep_rest(self.robot.effects.creep, st.vj_torque / self._link_stiffness())
         st.delta += st.creep.sum(axis=2)
         st.t = 0.0
+
+    def rest_links(self, iterations: int = 6) -> None:
+        """Put every link at rest where its load bends it now (δ = τ/k by a few fixed-point steps, δ̇ = 0),
+        instead of letting it fall from straight and ring down (about a second at the VSL links' damping)."""
+        st = self.state
+        for _ in range(iterations):
+            clock = st.t
+            self.step(1)
+            st.delta[:] = st.vj_torque / self._link_stiffness() + st.creep.sum(axis=2)
+            st.delta_dot[:] = 0.0
+            st.t = clock
 
     def _link_stiffness(self) -> np.ndarray:
         """(B, V) each virtual joint's stiffness k(p) at its link's pressure now."""

@@ -57,8 +57,9 @@ def twin_fit(
                "popup_impact sessions), not to a dataset")  # fmt: skip
     if vsl:
         data, reference = load_dataset("--dataset", dataset)
+        moves = _moves(lab, reference)
         try:
-            fit = VslStaticFit(nominal).fit(data)
+            fit = VslStaticFit(nominal).fit(data, moves)
         except TwinFitError as exc:
             _error(f"--dataset {reference}: {exc}")
         made = fit.description, "pipeline.twin_fit"
@@ -100,6 +101,12 @@ def twin_fit(
                           f"{speed:.3g} rad/s (read from the points' times)" if speed else
                           "the loops followed along straight lines between the points (their times give no "
                           "move speed)", highlight=False)  # fmt: skip
+            damping = fit.damping_
+            if damping is not None and damping.values_:
+                lag_ms = damping.lag_s_ * 1e3
+                console.print(f"the links' damping from their swings after {damping.n_moves_} moves: "
+                              f"{damping.residual_rms_mm_:.3f} mm per axis left, the tracker "
+                              f"{lag_ms:.1f} ms behind the goals' stamps", highlight=False)  # fmt: skip
             field = fit.field_
             console.print(f"the tracker's field is distorted: {field.rms_mm:.2g} mm per axis over "
                           f"{field.length_scale_m * 1e3:.0f} mm (noise {field.noise_mm:.2g} mm), fitted "
@@ -110,6 +117,20 @@ def twin_fit(
             console.print(f"{fit.n_holds_} static holds and {fit.n_taps_} taps of {len(fit.sessions_)} "
                           "sessions")  # fmt: skip
         console.print(f"written: {target}")
+
+
+def _moves(lab: Lab, reference: str):
+    """The dataset's moves into its points (their swings tell the links' damping), or None where it keeps
+    none (built before vslab kept them, or its sessions recorded no servo goals)."""
+    name, _, version = reference.partition("@")
+    path = lab.datasets.path(name, version) / "moves.parquet"
+    if not path.exists():
+        return None
+    try:
+        return lab.datasets.load(name, version, table="moves")[0]
+    except (OSError, ValueError) as exc:
+        _error(f"--dataset {reference}: its moves cannot be read ({type(exc).__name__}: {exc}); build it "
+               "again")  # fmt: skip
 
 
 def _popup_fit(nominal: RobotDescription, lab: Lab) -> tuple[PopupLinkFit, str]:

@@ -107,7 +107,8 @@ def dataset_columns() -> str:
     names = list(dict.fromkeys(c for r in ROBOTS for c in synthetic_d(r).columns))
     found = _matching(names, COLUMNS, "dataset columns")
     out = ["# Dataset columns", "", "The columns of D (`datasets/<name>/<version>/data.parquet`, and "
-           "`trajectories.parquet` where the sessions ran trajectories), as `pipeline.datasets` assembles "
+           "`trajectories.parquet` where the sessions ran trajectories, `moves.parquet` with `t_command` "
+           "where they have settled points), as `pipeline.datasets` assembles "
            "them "
            "(SI units; `<k>` counts from 0 in the robot's order).", "",
            "| Column | Unit | Meaning |", "|---|---|---|"]  # fmt: skip
