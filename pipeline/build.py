@@ -53,6 +53,7 @@ DEFAULTS: dict = {
 }
 
 
+MOVE_COLUMNS = ("x_", "q_", "p_")  # what a dataset keeps of the moves into its points (beside their ids)
 LOADERS = 8  # threads reading the sessions' cached stage outputs for registration and D
 
 
@@ -259,8 +260,11 @@ def build(
         for table, rows in (("data", static), ("trajectories", trajectory), ("moves", moves)):
             if len(rows):
                 assembled = datasets.assemble(_in_base_frame(rows, registration), robot)
-                if table == "moves":  # each row's move: the time its goal was commanded
-                    assembled["t_command"] = rows["t_command"].to_numpy(float)
+                if table == "moves":  # each move's tip, joints and pressures, and when its goal was sent
+                    # (D's other columns, 3× the size, tell nothing of a move: 20 MB at 3,000 points)
+                    kept = [c for c in assembled.columns if c.startswith(MOVE_COLUMNS)]
+                    assembled = assembled[[*kept, "session", "point", "t"]].assign(
+                        t_command=rows["t_command"].to_numpy(float))  # fmt: skip
                 tables[table].append(assembled)
         card_sessions |= {rec["session"]: _session_card(rec) for _, _, rec in mine}
     trajectories = pd.concat(tables["trajectories"], ignore_index=True) if tables["trajectories"] else None

@@ -388,7 +388,8 @@ def test_a_campaign_dataset_keeps_the_moves_into_its_points(campaign_dataset):
 
     lab, version, data = campaign_dataset
     moves, _ = DatasetStore(lab / "datasets").load("campaign", version, table="moves")
-    assert {"t", "t_command", "session", "point", "x_0", "qc_1", "p_0", "payload_kg"} <= set(moves.columns)
+    assert set(moves.columns) == {"t", "t_command", "session", "point", "x_0", "x_1", "x_2", "q_0", "q_1",
+                                  "q_2", "p_0", "p_1"}  # fmt: skip
     assert (moves["t"] >= moves["t_command"]).all()
     settled = data.set_index(["session", "point"])["t"]
     ends = settled.reindex(pd.MultiIndex.from_frame(moves[["session", "point"]])).to_numpy()
