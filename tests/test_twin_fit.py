@@ -279,6 +279,18 @@ def test_what_the_command_cannot_use_is_one_error_line(lab, args, says):
     assert lines[0].startswith("error:") and says in result.output and "Traceback" not in result.output
 
 
+def test_moves_that_cannot_be_read_are_one_error_line_before_any_fit(lab, tmp_path):
+    path, version = lab
+    broken = tmp_path / "lab"
+    shutil.copytree(path / "datasets", broken / "datasets")
+    (broken / "datasets" / "campaign" / version / "moves.parquet").write_bytes(b"not parquet")
+    result = runner.invoke(app, ["--lab", str(broken), "twin", "fit", "--dataset", "campaign"])
+    assert result.exit_code == 2, result.output
+    assert result.output.startswith("error: --dataset campaign@")
+    assert "its moves cannot be read" in result.output
+    assert "Traceback" not in result.output and not (broken / "twin").exists()
+
+
 def test_data_a_fit_cannot_use_is_refused_with_why(campaign_dataset):
     data = campaign_dataset[2]
     with pytest.raises(TwinFitError, match="no settled points"):
