@@ -53,7 +53,8 @@ DEFAULTS: dict = {
 }
 
 
-MOVE_COLUMNS = ("x_", "q_", "p_")  # what a dataset keeps of the moves into its points (beside their ids)
+# what a dataset's moves are made of (``pipeline.datasets.move_rows``): the cache keeps no more of them
+MOVED = ("tracker_position_", "servo_position_", "stepper_position_", "pressure_")
 LOADERS = 8  # threads reading the sessions' cached stage outputs for registration and D
 
 
@@ -183,6 +184,7 @@ def _session_stages(directory: Path, parameters: dict, cache: StageCache) -> dic
     goals = s.streams.get(topics.SERVO_GOAL)  # the moves into the points, where goals were recorded
     moves = (move_windows(timeline, s.events, s.t0_ns, goals["t"].to_numpy(float)) if len(points) and
              goals is not None and "t" in goals.columns else timeline.iloc[:0])  # fmt: skip
+    moves = moves[[c for c in moves.columns if c.startswith(MOVED) or c in ("t", "point", "t_command")]]
     record = {"session": directory.name, "robot": s.robot.name, "content_hash": content,
               "robot_description": s.robot.model_dump_json(), "report": s.report.as_dict(),
               "metadata": {k: v for k, v in s.metadata.items() if k != "robot_description"}}  # fmt: skip
@@ -259,13 +261,8 @@ def build(
         registrations[robot_name] = registration
         for table, rows in (("data", static), ("trajectories", trajectory), ("moves", moves)):
             if len(rows):
-                assembled = datasets.assemble(_in_base_frame(rows, registration), robot)
-                if table == "moves":  # each move's tip, joints and pressures, and when its goal was sent
-                    # (D's other columns, 3× the size, tell nothing of a move: 20 MB at 3,000 points)
-                    kept = [c for c in assembled.columns if c.startswith(MOVE_COLUMNS)]
-                    assembled = assembled[[*kept, "session", "point", "t"]].assign(
-                        t_command=rows["t_command"].to_numpy(float))  # fmt: skip
-                tables[table].append(assembled)
+                shape = datasets.move_rows if table == "moves" else datasets.assemble
+                tables[table].append(shape(_in_base_frame(rows, registration), robot))
         card_sessions |= {rec["session"]: _session_card(rec) for _, _, rec in mine}
     trajectories = pd.concat(tables["trajectories"], ignore_index=True) if tables["trajectories"] else None
     # D is the static points; sessions of trajectories only (Experiment 1/2) give D of their samples
