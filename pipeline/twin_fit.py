@@ -158,14 +158,16 @@ class VslStaticFit(Estimator):
         self.damping_ = None  # the damping fit, where it ran
         if self.fit_parameters:
             names = [scale_name(link.name) for link in self.robot_.links if link.virtual_joints]
-            damping = None
-            if moves is not None and len(moves):
+            damping, why = None, UNDAMPED
+            if moves is not None and len(moves) and self.move_speed_rad_s_ is None:  # no speed to remake them
+                why = "the points' times give no move speed: the moves into them cannot be made again"
+            elif moves is not None and len(moves):
                 moved = [{n: self.values_[n] + self.stderr_[n]} for n in self.values_ if n.endswith(SWINGING)]
                 arm, *within = (self._arm(change) for change in [{}, *moved])
-                damping = VslDampingFit(arm, self.move_speed_rad_s_ or 1.0, within_errors=tuple(within))
+                damping = VslDampingFit(arm, self.move_speed_rad_s_, within_errors=tuple(within))
                 damping = damping.fit(moves, points)
             self.nominal_ |= dict.fromkeys(names, 1.0)
-            self.not_identifiable_ |= dict.fromkeys(names, UNDAMPED) if damping is None else {}
+            self.not_identifiable_ |= dict.fromkeys(names, why) if damping is None else {}
             if damping is not None:
                 self.values_ |= damping.values_
                 self.stderr_ |= damping.stderr_

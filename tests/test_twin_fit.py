@@ -387,6 +387,9 @@ def test_damping_the_moves_cannot_tell_is_named_not_guessed(campaign_dataset):
     assert not elsewhere.values_ and set(elsewhere.not_identifiable_) == {
         "upper_vsl.damping_scale", "lower_vsl.damping_scale"}  # fmt: skip
     assert not VslDampingFit(arm).fit(moves.drop(columns="t_command"), data).values_
+    straight = VslStaticFit("vsl", moves="straight").fit(data, moves)  # no move speed read: none assumed
+    assert straight.damping_ is None
+    assert "no move speed" in straight.not_identifiable_["lower_vsl.damping_scale"]
     for bad in ({"move_speed_rad_s": 0.0}, {"ring_s": -1.0}, {"max_moves": 0}):
         with pytest.raises(DampingFitError, match="must be positive"):
             VslDampingFit(arm, **bad).fit(moves, data)
