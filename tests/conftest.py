@@ -219,17 +219,17 @@ TUTORIALS_GROUP = "tutorials"
 
 
 @pytest.fixture
-def real_time() -> Iterator[RealTimeCheck]:
+def real_time(request: pytest.FixtureRequest) -> Iterator[RealTimeCheck]:
     """Call it after a real-time recording, before asserting its rates: it skips the test, saying so, when
-    the hypervisor took this machine's CPUs for as long as a polled daemon may fall behind and catch up
-    (``MAX_LAG_S``, 50 ms) meanwhile: one such pause, all at once, loses samples whatever the code does.
-    Load on the machine is the tests' to hold; CPUs that are not there are no computer a lab records on
-    (measured: 26-39 % stolen on a contended host, when the 1 kHz servo stream fell behind in every run;
-    a lone 51 ms stall with 40-50 ms stolen when the host was quiet). The recording is taken to start with
-    the test; a test that does other work first calls ``real_time.recording()`` as it starts. Besides the
-    steal it asks a stall watch (``tests/machine_stalls.py``): a process at real-time priority that waited
-    as long to be woken means no CPU ran at all, which steal under-counts on some hosts."""
-    check = RealTimeCheck()
+    the machine itself stopped for nearly as long as a polled daemon may fall behind and catch up
+    (``MAX_LAG_S``, 50 ms): one such pause, all at once, loses samples whatever the code does. Load on the
+    machine is the tests' to hold; CPUs that are not there are no computer a lab records on. The witness is
+    a stall watch on each CPU (``tests/machine_stalls.py``): a process held there at real-time priority that
+    waited ``STALL_S`` (40 ms) to be woken means that CPU ran nothing. The recording is taken to start with
+    the test; a test that does other work first calls ``real_time.recording()`` as it starts. Given the
+    recorder (``real_time(rec)``), what it saw goes into the test's report with how far each daemon fell
+    behind: a failure says whether the machine or the code lost the samples."""
+    check = RealTimeCheck(request.node)
     yield check
     check.close()
 

@@ -215,7 +215,7 @@ def test_a_recording_shown_live_keeps_the_file_whole(host_factory, tmp_path, rob
     by_time = dict(zip(servo.log_time.tolist(), servo.message.canonical_bytes(servo.rows), strict=True))
     for _, t, payload in got:
         assert payload == by_time[t].tobytes()  # the file's bytes
-    real_time()
+    real_time(rec)
     # the file is never decimated: every poll of the servo bus is in it (its rate, less a device clock's drift
     # and a few polls a busy host may miss; at exactly the rate, 1,398 samples in 3.495 s failed it in CI)
     assert len(servo) > 0.95 * robot.devices["servo_bus"].rate_hz * seconds

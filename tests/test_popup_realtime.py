@@ -21,7 +21,7 @@ import sys
 import numpy as np
 import pandas as pd
 import pytest
-from machine_stalls import StallWatch, StealWatch
+from machine_stalls import StallWatches, StealWatch
 from scipy.spatial.transform import Rotation
 
 from acquisition.plans.popup_experiments import pressure_checks, verify_pressure_checks
@@ -104,23 +104,23 @@ def recorded(tmp_path_factory):
     return session
 
 
-def _start(lab, session: str) -> tuple[subprocess.Popen, tuple[StealWatch, StallWatch]]:
+def _start(lab, session: str) -> tuple[subprocess.Popen, tuple[StealWatch, StallWatches]]:
     experiment, plan, settings = SESSIONS[session]
     cli = [sys.executable, "-m", "vslab.cli", "--lab", str(lab), "--quiet"]
     tests = ("popup_static", "popup_impact")
     pressures = [f"pressures_kpa=[{', '.join(map(str, PRESSURES_KPA))}]"] if experiment in tests else []
     sets = [arg for s in (*pressures, *settings) for arg in ("--set", s)]
     command = [*cli, "run", experiment, "--plan", str(plan), *sets, "--rig", "--session", session]
-    watches = StealWatch().start(), StallWatch()
+    watches = StealWatch().start(), StallWatches()
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True), watches
 
 
-def _finish(lab, session: str, run: subprocess.Popen, watch: StealWatch, stalls: StallWatch):
+def _finish(lab, session: str, run: subprocess.Popen, watch: StealWatch, stalls: StallWatches):
     try:
         out, err = run.communicate(timeout=300)
     finally:
         watch.stop()
-        longest = stalls.longest_ms() if stalls.real_time else None
+        longest = max(stalls.longest_ms().values()) if stalls.real_time else None
         stalls.close()
     stolen, burst = watch.total_ms, watch.burst_ms(STALL_WINDOW_S)
     said = f"the hypervisor took {stolen:.0f} ms of CPU, {burst:.0f} within {STALL_WINDOW_S} s" + (

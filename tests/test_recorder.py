@@ -36,9 +36,10 @@ DEVICE = {
     T.TRACKER: "tracker",
 }
 SLOT_NUMBERED = {T.SERVO_STATE}  # numbered by poll slot: the numbers go on across a gap
-# the servo bus at the description's 400 Hz (it was 1 kHz, more than a real 1 Mbaud bus behind a 1 ms
-# latency timer carries: its ceiling is 588 Hz, and the rig now keeps the wire's timing)
-RATES = {T.SERVO_STATE: 400.0, T.PRESSURE: 250.0, T.STEPPER: 100.0, T.TRACKER: 40.0}
+# the servo bus at the description's 300 Hz (1 kHz once, more than a real 1 Mbaud bus behind a 1 ms latency
+# timer carries: its wire's ceiling is 588 Hz, and the rig keeps the wire's timing; then 400 Hz, which left
+# the host 4 % of each slot and lost samples in every recording: configs/robots/vsl.yaml)
+RATES = {T.SERVO_STATE: 300.0, T.PRESSURE: 250.0, T.STEPPER: 100.0, T.TRACKER: 40.0}
 
 
 def file_account(parts: list[Path], robot) -> dict[str, dict]:
@@ -86,7 +87,7 @@ def _events(directory: Path) -> list[tuple[int, Event]]:
 def test_a_session_meets_its_rates_loses_nothing_and_its_file_agrees(
     host_factory, tmp_path, vsl, ros2_agrees, real_time
 ):
-    """Servo 400 Hz, pressure 250 Hz, stepper 100 Hz, tracker 40 Hz: every sample expected is received and
+    """Servo 300 Hz, pressure 250 Hz, stepper 100 Hz, tracker 40 Hz: every sample expected is received and
     written; the account computed from the file with the mcap reader equals session.json's; the generic
     ROS 2 decoder reads every message as the fast path does. VSLAB_RECORD_S sets the length (default 8 s)."""
     seconds = float(os.environ.get("VSLAB_RECORD_S", "8"))
@@ -94,7 +95,7 @@ def test_a_session_meets_its_rates_loses_nothing_and_its_file_agrees(
         time.sleep(seconds)
     card = _card(tmp_path / "s")
     assert card["status"] == "complete" and rec.write_error is None
-    real_time()
+    real_time(rec)
     account = file_account(readable_parts(tmp_path / "s"), vsl)
     for topic, rate in RATES.items():
         c, f = card["counters"][topic], account[topic]
@@ -113,14 +114,14 @@ def test_a_session_meets_its_rates_loses_nothing_and_its_file_agrees(
 @pytest.mark.slow
 def test_rate_override_sets_the_servo_poll_rate(host_factory, tmp_path, vsl, real_time):
     """``rates=`` (``vslab record --rate servo_bus=250``) polls the bus at that rate, not the description's
-    400 Hz. (How fast the bus can be polled is bench/bus.py's to measure. 500 Hz, asked here while the rig
+    300 Hz. (How fast the bus can be polled is bench/bus.py's to measure. 500 Hz, asked here while the rig
     answered at once, is now 85 % of the wire's ceiling at 1 Mbaud behind a 1 ms latency timer, and the
     host's own time per read on a busy 2-core machine pushes it past its slot: 250 Hz, below the
     description's rate as the override's point is a rate other than it.)"""
     with host_factory(**RIG) as ports:
         with Recorder(vsl, ports, tmp_path / "s", "slow", rates={"servo_bus": 250}) as rec:
             time.sleep(3.0)
-    real_time()
+    real_time(rec)
     c = rec.final[T.SERVO_STATE]
     assert c["lost"] == 0 and c["expected"] == c["written"]
     assert file_account(readable_parts(tmp_path / "s"), vsl)[T.SERVO_STATE]["rate_hz"] == pytest.approx(
@@ -150,7 +151,7 @@ def test_an_unplugged_device_is_a_marked_gap_counted_lost_and_the_others_keep_re
             time.sleep(1.5)
             _plug_pressure_board_back(run_dir, rec)
     kinds = [(e.kind, e.label) for _, e in _events(tmp_path / "s")]
-    real_time()
+    real_time(rec)
     assert (EventKind.DEVICE_GAP_START, "pressure_board") in kinds
     assert (EventKind.DEVICE_GAP_END, "pressure_board") in kinds
     account = file_account(readable_parts(tmp_path / "s"), vsl)
@@ -176,7 +177,7 @@ def test_a_device_absent_when_the_recording_starts_counts_its_wait_as_lost(
         with Recorder(vsl, ports, tmp_path / "s", "late") as rec:
             time.sleep(1.5)
             _plug_pressure_board_back(run_dir, rec)
-    real_time()
+    real_time(rec)
     pressure = _card(tmp_path / "s")["counters"][T.PRESSURE]
     assert pressure["gaps"] == 1 and pressure["lost"] > 1.5 * 250, pressure  # > 1.5 s at 250 Hz
     assert pressure["expected"] == pressure["received"] + pressure["lost"]
@@ -192,7 +193,7 @@ def test_corrupted_replies_are_retried_in_place(host_factory, tmp_path, vsl, rea
         time.sleep(1.0)
     c = rec.final[T.SERVO_STATE]
     assert c["expected"] == c["received"] + c["lost"]  # the account adds up whatever the host did
-    real_time()  # CI lost 158 samples here with seconds of CPU stolen: the budget below is the code's
+    real_time(rec)  # CI lost 158 samples here with seconds of CPU stolen: the budget below is the code's
     assert c["gaps"] == 0 and c["lost"] <= 3, c
     assert not [e for _, e in _events(tmp_path / "s") if e.kind == EventKind.DEVICE_GAP_START]
 
@@ -201,30 +202,43 @@ def test_corrupted_replies_are_retried_in_place(host_factory, tmp_path, vsl, rea
 def test_a_killed_daemon_is_restarted_within_a_second_and_only_its_stream_has_a_gap(
     host_factory, tmp_path, vsl, real_time
 ):
+    """The spare daemon takes over: the first sample ≤ 0.5 s after the kill (a daemon started from nothing
+    took 0.65–0.9 s to import on this 2-core machine, 1.2 s once in the real-time tier); a new spare waits
+    for the next death, and takes over the same way when the new daemon is killed too. (The boards' daemons
+    come back as fast, but an Uno resets when its port opens again: 1.4 s of boot, counted lost.)"""
+    kills = []
     with host_factory(**RIG) as ports, Recorder(vsl, ports, tmp_path / "s", "kill") as rec:
         time.sleep(1.5)
-        pid = rec._children["servo_bus"].proc.pid
-        killed = time.monotonic_ns()
-        os.kill(pid, signal.SIGKILL)
-        time.sleep(3.0)
-    real_time()
-    assert rec.restarts == {"servo_bus": 1}
+        for _ in range(2):
+            assert rec.spare_ready(timeout_s=10.0)  # started up (imports: 0.5–0.9 s, more under load)
+            pid, spare = rec._children["servo_bus"].proc.pid, rec._spare.proc.pid
+            kills.append(time.monotonic_ns())
+            os.kill(pid, signal.SIGKILL)
+            time.sleep(2.0)
+            assert rec._children["servo_bus"].proc.pid == spare  # the spare became the servo bus's daemon
+            assert rec._spare.proc.pid not in (pid, spare)  # and a new one waits
+        last_spare = rec._spare.proc
+    assert rec._spare is None and last_spare.returncode == 0  # it ended with the recording, told nothing
+    real_time(rec)
+    assert rec.restarts == {"servo_bus": 2}
     events = _events(tmp_path / "s")
     starts = [(t, e) for t, e in events if e.kind == EventKind.DEVICE_GAP_START and e.label == "servo_bus"]
     ends = [(t, e) for t, e in events if e.kind == EventKind.DEVICE_GAP_END and e.label == "servo_bus"]
-    assert len(starts) == 1 and "SIGKILL" in starts[0][1].text and len(ends) == 1
-    assert ends[0][1].value < 1.0, "back within a second"
+    assert len(starts) == 2 and all("SIGKILL" in e.text for _, e in starts) and len(ends) == 2
+    assert all(e.value < 0.5 for _, e in ends), "back within half a second"
     data = read_fixed_topics(readable_parts(tmp_path / "s")[0])
     servo_t = data[T.SERVO_STATE].log_time
     offset = time.time_ns() - time.monotonic_ns()
-    after = servo_t[servo_t > killed + offset]
-    assert len(after) and (after[0] - (killed + offset)) / 1e9 < 1.0
+    for killed in kills:
+        after = servo_t[servo_t > killed + offset]
+        assert len(after) and (after[0] - (killed + offset)) / 1e9 < 0.5
     c = rec.final[T.SERVO_STATE]
-    assert c["gaps"] == 1 and 0 < c["lost"] < 1000 and c["expected"] == c["received"] + c["lost"]
+    assert c["gaps"] == 2 and 0 < c["lost"] < 2 * 0.5 * RATES[T.SERVO_STATE], c
+    assert c["expected"] == c["received"] + c["lost"]
     account = file_account(readable_parts(tmp_path / "s"), vsl)
     assert account[T.SERVO_STATE]["expected"] == c["expected"]
     # no other stream loses a sample, or waits longer than three periods or 40 ms (a 2-core machine is busy
-    # while the new daemon starts and reconnects; measured up to 25 ms)
+    # while the new daemon connects; measured up to 25 ms)
     for topic in (T.PRESSURE, T.STEPPER, T.TRACKER):
         assert account[topic]["longest_gap_s"] <= max(3.0 / RATES[topic], 0.040), topic
         assert rec.final[topic]["lost"] == 0, topic
@@ -249,7 +263,7 @@ def test_a_killed_writer_is_restarted_and_loses_at_most_a_fifth_of_a_second(
         assert c["written"] + c["dropped"] == c["received"], (topic, c)
         assert c["dropped"] <= 0.2 * rate + 1, (topic, c)  # what the killed writer had not made durable
         assert accounts[topic]["messages"] == c["written"], topic
-    real_time()  # the devices' samples were all taken (the writer's death costs the daemons nothing)
+    real_time(rec)  # the devices' samples were all taken (the writer's death costs the daemons nothing)
     for topic, rate in RATES.items():
         assert rec.final[topic]["lost"] == 0, (topic, rec.final[topic])
         assert accounts[topic]["longest_gap_s"] <= 0.2 + 2 / rate, topic
@@ -273,7 +287,8 @@ def test_a_killed_supervisor_leaves_no_process_and_a_whole_file(tmp_path, vsl):
         time.sleep(0.1)
     time.sleep(3.0)
     children = psutil.Process(proc.pid).children(recursive=True)
-    assert len(children) >= 6  # the rig, four daemons, the writer
+    assert len(children) >= 7  # the rig, four daemons, the writer, the spare daemon
+    assert any("--spare" in p.cmdline() for p in children)
     kill_ns = time.time_ns()
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
@@ -302,5 +317,5 @@ def test_a_failing_live_view_never_stops_the_recording(host_factory, tmp_path, v
     assert rec.write_error is None and rec.live_errors > 1
     assert sum("live view failed" in r.message for r in caplog.records) == 1  # logged once
     assert session_info(tmp_path / "s").status == "complete"
-    real_time()
+    real_time(rec)
     assert rec.final[T.SERVO_STATE]["lost"] == 0

@@ -80,7 +80,7 @@ def test_plan_runs_on_the_rig_and_is_recorded_as_sent(host_factory, tmp_path, vs
     assert EventKind.SAFETY_STOP not in kinds
     checked = ros2_agrees(part)  # the command topics decode with the reference ROS 2 decoder too
     assert checked[T.SERVO_GOAL] == len(plan.goal_t) and checked[T.PRESSURE_COMMAND] == len(plan.pressure_t)
-    real_time()  # a runner the hypervisor stopped sends late (measured: one goal 109 ms late, 2-3 s stolen)
+    real_time(rec)  # a runner the machine stopped sends late (measured: one goal 109 ms late, 2-3 s stolen)
     # goal log times follow the plan's clock (first goal at the start), which stood still while the first
     # payload was hung at 1 s (the rig's answer took up to 80 ms on a busy machine)
     start = data[T.SERVO_GOAL].log_time[0]
@@ -107,7 +107,7 @@ def test_watchdog_stops_the_plan_and_holds_the_arm(host_factory, tmp_path, vsl, 
     stops = [(t, e) for t, e in read_events(part) if e.kind == EventKind.SAFETY_STOP]
     assert len(stops) == 1 and stops[0][1].label == "workspace"
     assert len(data[T.SERVO_GOAL]) < len(plan.goal_t)
-    real_time()  # a runner the hypervisor stopped holds late: a fresh clone's J2 still moved 28 mrad 0.5 s on
+    real_time(rec)  # a runner the machine stopped holds late: a fresh clone's J2 still moved 28 mrad 0.5 s on
     servo = data[T.SERVO_STATE]
     after = servo.log_time > stops[0][0] + 0.5e9
     held = servo.rows["position"][after]

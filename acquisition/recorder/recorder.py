@@ -60,6 +60,7 @@ RING_SECONDS = 30.0  # each ring holds this much of its stream: the writer may s
 
 
 WATCH_S = 0.05  # the supervisor looks at its children this often
+SPARE = "spare"  # the waiting daemon's name (its log, before it is told its device)
 HANG_S = 2.0  # a daemon whose heartbeat is older than this (while not connecting) is killed and restarted
 CONNECT_S = 30.0  # a first connection (the tracker's handshake takes seconds) may take this long
 WRITER_RESTARTS = 5  # a writer that keeps dying (disk full, …) is not restarted forever
@@ -92,6 +93,7 @@ class _Child:
     def __init__(self, name: str, proc: subprocess.Popen, commands: socket.socket | None) -> None:
         self.name, self.proc, self.commands = name, proc, commands
         self.started = time.monotonic()
+        self.ready = False  # a spare: it said it has started up
         self.lock = threading.Lock()
 
     def send(self, cmd: dict) -> bool:
@@ -170,7 +172,10 @@ class Recorder:
         self.restarts: dict[str, int] = {}
         self.final: dict[str, dict] | None = None
         self.silent: dict[str, str] = {}  # after stop: devices that never gave a sample, and why
+        self.behind_ms: dict[str, float] = {}  # after stop: the most each daemon fell behind its schedule
+        self.scheduling: dict[str, str] = {}  # after stop: the scheduling each daemon got
         self._children: dict[str, _Child] = {}
+        self._spare: _Child | None = None  # a daemon started up and waiting to replace one that dies
         self._rings: dict[str, Ring] = {}
         self._events: Ring | None = None
         self._statuses: dict[str, DaemonStatus] = {}
@@ -220,6 +225,7 @@ class Recorder:
             for name in layout.devices:
                 self._children[name] = self._spawn_daemon(name, restarted=False)
             self._wait_connected()
+            self._spare = self._spawn_spare()  # after the devices' start, which it would slow
         except BaseException:
             self.stop()
             raise
@@ -242,6 +248,7 @@ class Recorder:
             child.send({"op": "stop"})
         for child in daemons:
             _end(child.proc, 5.0)
+        self._end_spare()
         self.event(Event(EventKind.SESSION_END, label=self.session_id))
         writer = self._children.get("writer")
         if writer is not None:
@@ -262,6 +269,8 @@ class Recorder:
         for ring in [*self._rings.values(), self._events]:
             if ring is not None:
                 ring.close()
+        self.behind_ms = {name: s.behind_ms for name, s in self._statuses.items()}
+        self.scheduling = self.priorities()
         for status in self._statuses.values():
             status.close()
         shutil.rmtree(self.layout.run_dir, ignore_errors=True)
@@ -345,6 +354,47 @@ class Recorder:
         ours.settimeout(1.0)
         return _Child(name, proc, ours)
 
+    def spare_ready(self, timeout_s: float = 0.0) -> bool:
+        """Whether a spare daemon has started up and waits (within ``timeout_s``): a daemon that dies now
+        is replaced in the time its device takes to connect. A spare started a moment ago (the last one took
+        over) is still importing: a daemon that dies meanwhile waits for it."""
+        spare = self._spare
+        if spare is None or spare.proc.poll() is not None:
+            return False
+        if not spare.ready:
+            deadline = time.monotonic() + timeout_s
+            while not spare.ready:
+                left_s = max(0.0, deadline - time.monotonic())
+                readable, _, _ = select.select([spare.commands], [], [], left_s)
+                if not readable:
+                    return False
+                said = spare.commands.recv(64, socket.MSG_DONTWAIT)
+                if not said:
+                    return False
+                spare.ready = said.startswith(b"ready")
+        return True
+
+    def _spawn_spare(self) -> _Child:
+        ours, theirs = socket.socketpair()
+        cmd = [sys.executable, "-m", "acquisition.recorder.daemon", str(self._layout_path), "--spare",
+               "--commands", str(theirs.fileno())]  # fmt: skip
+        proc = self._popen(SPARE, cmd, pass_fds=(theirs.fileno(),))
+        theirs.close()
+        ours.settimeout(1.0)
+        return _Child(SPARE, proc, ours)
+
+    def _end_spare(self) -> None:
+        """End the spare (its socket closed, it exits); its log goes with it where it said nothing."""
+        spare, self._spare = self._spare, None
+        if spare is None:
+            return
+        spare.close()
+        _end(spare.proc, 5.0)
+        log_path = self.layout.log(SPARE)
+        with contextlib.suppress(OSError):
+            if log_path.stat().st_size == 0:
+                log_path.unlink()
+
     def _spawn_writer(self, restarted: bool) -> _Child:
         ours, theirs = socket.socketpair()
         cmd = [sys.executable, "-m", "acquisition.recorder.writer_process", str(self._layout_path),
@@ -407,7 +457,13 @@ class Recorder:
             for topic in entry.sampled:
                 self._rings[topic].restart_sequence()
         self._children[name].close()
-        self._children[name] = self._spawn_daemon(name, restarted=True)
+        spare, self._spare = self._spare, None
+        if spare is not None and spare.proc.poll() is None and spare.send({"op": "become", "device": name}):
+            spare.name, spare.started = name, time.monotonic()
+            self._children[name] = spare
+        else:  # none ready (another daemon took it a moment ago): one started from nothing
+            self._children[name] = self._spawn_daemon(name, restarted=True)
+        self._spare = self._spawn_spare()
 
     def _writer_failed(self, writer: _Child) -> bool:
         """True once the writer said it could not write (a full disk): the devices are then stopped (left

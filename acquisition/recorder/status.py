@@ -1,7 +1,8 @@
 """A daemon's status block: a few words in shared memory that the supervisor reads to watch it.
 
 The daemon writes its pid, a heartbeat (monotonic ns, every loop), its phase, whether its device answers,
-the scheduling it got and its last error; the supervisor only reads. A file on tmpfs like the rings, so it
+the scheduling it got, the most a polled device's schedule ever ran ahead of it, and its last error; the
+supervisor only reads. A file on tmpfs like the rings, so it
 outlives the daemon: the supervisor reads why a daemon died after it has gone.
 """
 
@@ -18,7 +19,7 @@ from acquisition.recorder.ring import map_file, unmap
 
 _WORDS = 8
 _TEXT = 512
-_PID, _HEARTBEAT, _PHASE, _CONNECTED, _STARTS, _REFUSED, _FAULTS = range(7)
+_PID, _HEARTBEAT, _PHASE, _CONNECTED, _STARTS, _REFUSED, _FAULTS, _BEHIND = range(8)
 _ERROR, _PRIORITY, _REFUSAL, _FAULT = 0, 1, 2, 3  # text fields
 _TEXTS = 4
 
@@ -120,6 +121,12 @@ class DaemonStatus:
         self._set(_FAULT, why)
         self.words[_FAULTS] += 1
 
+    def behind(self, late_ns: int) -> None:
+        """A poll was taken ``late_ns`` after its slot was due; the most is kept (µs)."""
+        late_us = late_ns // 1000
+        if late_us > self.words[_BEHIND]:
+            self.words[_BEHIND] = late_us
+
     @property
     def faults(self) -> tuple[int, str]:
         """How many faults the device reported, and the last one."""
@@ -130,6 +137,12 @@ class DaemonStatus:
     heartbeat_ns = _Word(_HEARTBEAT)
     connected = _Word(_CONNECTED, bool)
     starts = _Word(_STARTS)
+
+    @property
+    def behind_ms(self) -> float:
+        """The most a polled daemon's schedule ran ahead of it, of all its processes (ms): past
+        ``MAX_LAG_S`` it skipped slots, which count lost."""
+        return int(self.words[_BEHIND]) / 1e3
 
     def _get(self, k: int) -> str:
         raw = bytes(self._text[k])
