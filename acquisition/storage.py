@@ -156,15 +156,33 @@ def upload(folder: Path, final: LabPath, manifest: str) -> None:
         final.fs.put_file(str(path), final.joinpath(*path.relative_to(folder).parts).path)
 
 
+def write_parquet(df, path: Path) -> None:
+    """Write ``df`` (a DataFrame, without its index) as the Parquet file ``path``, each data page with its
+    CRC-32 (Parquet's page checksum, which pyarrow leaves out unless asked): :func:`read_parquet` then
+    refuses a file whose bytes changed after it was written, instead of reading other numbers."""
+    df.to_parquet(path, index=False, write_page_checksum=True)
+
+
 def read_parquet(path: LabPath, columns: list[str] | None = None):
     """A Parquet file of a local lab or a store as a DataFrame (pandas reads a local one by its path, a
-    store's from the open file)."""
+    store's from the open file). Each page's checksum is verified where the file has them
+    (:func:`write_parquet`): a damaged page is an ``OSError`` ("CRC checksum verification failed"), not
+    numbers read from flipped bits. (Files written before the checksums read as before, unverified.)"""
     import pandas as pd
 
     if is_local(path):
-        return pd.read_parquet(path, columns=columns)
+        return pd.read_parquet(path, columns=columns, page_checksum_verification=True)
     with path.open("rb") as f:
-        return pd.read_parquet(f, columns=columns)
+        return pd.read_parquet(f, columns=columns, page_checksum_verification=True)
+
+
+def remove(entry: LabPath) -> None:
+    """Remove the folder ``entry`` and all it holds (a local folder or a store's prefix); nothing where it
+    is not there."""
+    if is_local(entry):
+        shutil.rmtree(entry, ignore_errors=True)
+    elif entry.exists():
+        entry.fs.rm(entry.path, recursive=True)
 
 
 @contextmanager

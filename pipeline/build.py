@@ -201,6 +201,23 @@ def _reason(exc: BaseException) -> str:
     return text if isinstance(exc, IngestError) else f"{type(exc).__name__}: {text}"
 
 
+def _load_stages(done: dict, where: LabPath, params: dict, cache: StageCache) -> tuple[dict, dict, dict]:
+    """(``done``, tables, record) of a session's cached stages. An entry that cannot be read (a page whose
+    checksum fails: the cache's disk changed it) is discarded and made again from the session, saying so;
+    where that fails too, an ``OSError`` with the session's reason."""
+    try:
+        return (done, *cache.load("session", done["key"]))
+    except (OSError, ValueError) as exc:
+        log.warning("session %s: its cached stages cannot be read (%s); making them again", done["session"],
+                    _reason(exc))  # fmt: skip
+    cache.discard("session", done["key"])
+    again = process_session(where, params, cache)
+    if "error" in again:
+        raise OSError(f"session {done['session']}: its cached stages could not be read, and making them "
+                      f"again failed: {again['error']}")  # fmt: skip
+    return (done, *cache.load("session", again["key"]))
+
+
 def build(
     sessions: list[LabPath],
     lab: Lab,
@@ -248,8 +265,9 @@ def build(
         return report
     if not good:
         raise BuildError(failed)
+    where = {s.name: s for s in sessions}
     with cf.ThreadPoolExecutor(LOADERS) as pool:  # a store answers many requests at once, not one by one
-        loaded = list(pool.map(lambda r: (r, *cache.load("session", r["key"])), good))
+        loaded = list(pool.map(lambda r: _load_stages(r, where[r["session"]], params, cache), good))
     tables, card_sessions, registrations = {"data": [], "trajectories": [], "moves": []}, {}, {}
     for robot_name in sorted({rec["robot"] for _, _, rec in loaded}):
         mine = [(r, t, rec) for r, t, rec in loaded if rec["robot"] == robot_name]

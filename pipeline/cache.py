@@ -16,7 +16,7 @@ from pathlib import Path
 import pandas as pd
 
 from acquisition.code_version import PACKAGES, _normalised, _tree_version  # noqa: F401 (tests clear their caches)
-from acquisition.storage import LabPath, publish, read_parquet
+from acquisition.storage import LabPath, publish, read_parquet, remove, write_parquet
 
 ROOT = Path(__file__).resolve().parents[1]
 # What each stage's output is made by: its modules and, through their imports, everything they use.
@@ -80,6 +80,10 @@ class StageCache:
     def has(self, stage: str, key: str) -> bool:
         return (self.path(stage, key) / RECORD).is_file()
 
+    def discard(self, stage: str, key: str) -> None:
+        """Remove one entry (a damaged one, to be made again)."""
+        remove(self.path(stage, key))
+
     def load(self, stage: str, key: str) -> tuple[dict[str, pd.DataFrame], dict]:
         entry = self.path(stage, key)
         record = json.loads((entry / RECORD).read_text())
@@ -91,7 +95,7 @@ class StageCache:
 
         def fill(folder: Path) -> None:
             for name, df in tables.items():
-                df.to_parquet(folder / f"{name}.parquet", index=False)
+                write_parquet(df, folder / f"{name}.parquet")
             whole = {**record, "tables": sorted(tables)}
             (folder / RECORD).write_text(json.dumps(whole, indent=1, default=str))
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import TYPE_CHECKING
 
-from acquisition.storage import LabPath, publish, read_parquet
+from acquisition.storage import LabPath, publish, read_parquet, write_parquet
 from pipeline.errors import PipelineError
 
 if TYPE_CHECKING:  # imported where used: the Lab makes this store on every command, which needs neither
@@ -105,7 +105,7 @@ class DatasetStore:
 
         def fill(folder) -> None:
             for table, df in tables.items():
-                df.to_parquet(folder / f"{table}.parquet", index=False)
+                write_parquet(df, folder / f"{table}.parquet")
             data = tables["data"]
             split = data["split_random"]
             counts = {"rows": len(data)} | {f"rows_{s}": int((split == s).sum()) for s in SPLITS}

@@ -125,3 +125,33 @@ def test_trajectory_sessions_borrow_the_campaigns_registration(lab):
              for s, g in d.groupby("session")}  # fmt: skip
     ik, static = (error[s.name] for s in sessions)
     assert static < 0.5 * ik and static < 2e-3  # the registered tip shows the compensation working
+
+
+def _flip_a_byte(path) -> None:
+    """Change one bit in the middle of ``path`` (inside a column's pages), as a failing disk would."""
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0x10
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.slow
+def test_a_damaged_cache_entry_is_made_again_and_a_damaged_dataset_is_refused(lab, caplog):
+    """Every page of a cache entry's or a dataset's Parquet carries its CRC: a flipped bit is found on read.
+    A session's damaged stages are made again from the session (saying so), giving the same rows; a damaged
+    dataset is an error naming the check, never other numbers."""
+    sessions = sorted((lab / "sessions").iterdir())
+    first = build(sessions, Lab(lab), "campaign", {"splits": {"seed": 3}})
+    entries = [p for p in (Lab(lab).cache.root / "session").iterdir() if (p / "record.json").is_file()]
+    damaged = max(entries[0].glob("*.parquet"), key=lambda p: p.stat().st_size)
+    _flip_a_byte(damaged)
+    again = build(sessions, Lab(lab), "campaign", {"splits": {"seed": 4}})
+    assert again.built and not again.failed
+    assert any("cached stages cannot be read" in r.message and "making them again" in r.message
+               for r in caplog.records)  # fmt: skip
+    store = DatasetStore(lab / "datasets")
+    d1, d2 = store.load("campaign", first.version)[0], store.load("campaign", again.version)[0]
+    columns = [c for c in d1.columns if not c.startswith("split")]
+    assert d1[columns].equals(d2[columns])  # the stages made again are the same numbers
+    _flip_a_byte(store.path("campaign", again.version) / "data.parquet")
+    with pytest.raises(OSError, match="checksum"):
+        store.load("campaign", again.version)
