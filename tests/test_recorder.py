@@ -319,3 +319,15 @@ def test_a_failing_live_view_never_stops_the_recording(host_factory, tmp_path, v
     assert session_info(tmp_path / "s").status == "complete"
     real_time(rec)
     assert rec.final[T.SERVO_STATE]["lost"] == 0
+
+
+def test_a_device_short_of_time_is_named_where_its_polls_are_its_samples(tmp_path, vsl):
+    """After a recording, the servo bus (a sample a poll) is named once it fell more than half of MAX_LAG_S
+    behind (past it, missed polls are skipped and counted lost); the tracker, polled faster than its frames
+    and always some way behind, is not."""
+    ports = {name: "/dev/null" for name in vsl.devices}
+    rec = Recorder(vsl, ports, tmp_path / "s", "late")  # not started: the account set as a stopped one's
+    rec.behind_ms = {"servo_bus": 53.2, "tracker": 61.0, "pressure_board": 0.0, "stepper_board": 0.0}
+    assert rec.short_of_time() == {"servo_bus": 53.2}
+    rec.behind_ms["servo_bus"] = 13.0  # the 300 Hz it is described at: at most 13-22 ms
+    assert rec.short_of_time() == {}

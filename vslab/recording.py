@@ -120,6 +120,10 @@ def _finish(rec) -> None:
     for topic, c in lost.items():
         console.print(f"[yellow]{topic}: {c['lost']:,} samples lost in {c['gaps']} gap(s), "
                       f"{c['dropped']:,} dropped[/]")  # fmt: skip
+    for name, ms in rec.short_of_time().items():
+        console.print(f"[yellow]{name} fell {ms:.0f} ms behind its schedule at worst (past 50 ms it skips "
+                      "the polls it missed, counted lost): its reads fill most of each slot; record it at a "
+                      "lower --rate[/]")  # fmt: skip
     for name, n in rec.restarts.items():
         console.print(f"[yellow]{name} was restarted {n} time(s) (see /events)[/]")
     for name, why in rec.silent.items():

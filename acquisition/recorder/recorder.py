@@ -39,7 +39,7 @@ import numpy as np
 
 from acquisition.devices.bus_budget import rate_refusal
 from acquisition.errors import AcquisitionError
-from acquisition.recorder.daemon import EVENT_BYTES, push_event
+from acquisition.recorder.daemon import EVENT_BYTES, MAX_LAG_S, push_event
 from acquisition.recorder.layout import SUPERVISOR, DeviceEntry, Layout
 from acquisition.recorder.ring import Ring
 from acquisition.recorder.source_base import make_source, source_class
@@ -339,6 +339,15 @@ class Recorder:
                 counts["expected"], counts["lost"] = counts["received"], 0
             out[topic] = counts
         return out
+
+    def short_of_time(self) -> dict[str, float]:
+        """After the recording: the devices whose every poll is a sample (the servo bus) that fell more than
+        half of ``MAX_LAG_S`` behind their schedule, and how far (ms). Past ``MAX_LAG_S`` a daemon skips the
+        polls it missed, which count lost: its reads take most of each slot (its rate is near what the wire
+        and the host's own time per read allow: ``configs/robots/vsl.yaml``)."""
+        devices = self.layout.devices
+        sampled = {name for name, entry in devices.items() if source_class(entry.driver).slot_numbered}
+        return {name: ms for name, ms in self.behind_ms.items() if name in sampled and ms > 0.5e3 * MAX_LAG_S}
 
     def priorities(self) -> dict[str, str]:
         """The scheduling each daemon got (SCHED_FIFO, a nice value, or normal)."""
