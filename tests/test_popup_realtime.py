@@ -21,7 +21,7 @@ import sys
 import numpy as np
 import pandas as pd
 import pytest
-from machine_stalls import StallWatches, StealWatch
+from machine_stalls import STALL_S, StallWatches, StealWatch
 from scipy.spatial.transform import Rotation
 
 from acquisition.plans.popup_experiments import pressure_checks, verify_pressure_checks
@@ -71,6 +71,7 @@ SESSIONS = {
 
 STOLEN_MS: dict[str, float] = {}  # per session: CPU time the hypervisor took while it was recorded
 BURST_MS: dict[str, float] = {}  # per session: the most it took within any STALL_WINDOW_S meanwhile
+STOPPED_MS: dict[str, float | None] = {}  # per session: a CPU's longest stop (None: watches not real-time)
 STALL_WINDOW_S = 0.5
 
 
@@ -132,6 +133,7 @@ def _finish(lab, session: str, run: subprocess.Popen, watch: StealWatch, stalls:
     assert session_info(lab / "sessions" / session).status == "complete"
     STOLEN_MS[session] = watch.total_ms  # said with a failure of the datasets test
     BURST_MS[session] = watch.burst_ms(STALL_WINDOW_S)
+    STOPPED_MS[session] = longest
     return lab / "sessions" / session
 
 
@@ -255,7 +257,16 @@ def test_real_time_popup_sessions_build_into_datasets(recorded, popup):
     # depends on how late the busy host sent the last set-points: 30 mm under bench/load.py; 163 mm in a CI
     # run whose hypervisor took the CPUs: checked only when it did not stall it, taking MAX_LAG_S within any
     # STALL_WINDOW_S; 60-70 ms spread over the ~15 s of the command beside another test worker is no stall)
-    if BURST_MS["reach"] >= MAX_LAG_S * 1e3:
+    # A CPU's stall watch is the witness where it runs at real-time priority (the steal counts the machine's
+    # own wake-ups too: tests/machine_stalls.py), the steal where it does not.
+    stopped = STOPPED_MS["reach"]
+    if stopped is not None and stopped >= STALL_S * 1e3:
+        pytest.skip(f"a CPU ran nothing for {stopped:.0f} ms at once while the reach was recorded")
+    if stopped is None and BURST_MS["reach"] >= MAX_LAG_S * 1e3:
         pytest.skip(f"the hypervisor took {BURST_MS['reach']:.0f} ms of the CPUs within {STALL_WINDOW_S} s "
                     f"while the reach was recorded ({STOLEN_MS['reach']:.0f} ms in all)")  # fmt: skip
-    assert np.linalg.norm(tip[-1] - x[1]) < 0.1 * np.linalg.norm(tip[0] - x[1])
+    missed = np.linalg.norm(tip[-1] - x[1])
+    assert missed < 0.1 * np.linalg.norm(tip[0] - x[1]), (
+        f"{missed * 1e3:.0f} mm from the target at the path's end; while recorded: a CPU's longest stop "
+        f"{stopped} ms, steal {STOLEN_MS['reach']:.0f} ms ({BURST_MS['reach']:.0f} within {STALL_WINDOW_S} s)"
+    )
