@@ -303,6 +303,8 @@ class PtyHost:
         wake_r.setblocking(False)
         wake_w.setblocking(False)
         old_wakeup_fd = signal.set_wakeup_fd(wake_w.fileno(), warn_on_full_buffer=False)
+        if self.tick is not None:  # the first tick before the ports are listed: it loads (or compiles) what
+            self.tick(self.now())  # the physics runs on, which held a first ping past a driver's 3 tries
         self._publish()
         # select(2), not epoll: epoll_wait rounds its timeout up to whole milliseconds, which would hold
         # each reply up to 1 ms past its due time (a 1 Mbaud Sync Read takes 1.7 ms in all)
