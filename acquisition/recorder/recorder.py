@@ -225,7 +225,7 @@ class Recorder:
             for name in layout.devices:
                 self._children[name] = self._spawn_daemon(name, restarted=False)
             self._wait_connected()
-            self._spare = self._spawn_spare()  # after the devices' start, which it would slow
+            self._spare = self._spawn_daemon(SPARE, restarted=False)  # after the devices: it slows a start
         except BaseException:
             self.stop()
             raise
@@ -355,9 +355,11 @@ class Recorder:
 
     # -------------------------------------------------------------------------------- children
     def _spawn_daemon(self, name: str, restarted: bool) -> _Child:
+        """The daemon of device ``name``; ``name`` ``SPARE``: a spare, told its device later."""
         ours, theirs = socket.socketpair()
-        cmd = [sys.executable, "-m", "acquisition.recorder.daemon", str(self._layout_path), name,
-               "--commands", str(theirs.fileno())] + (["--restarted"] if restarted else [])  # fmt: skip
+        which = ["--spare"] if name == SPARE else [name] + (["--restarted"] if restarted else [])
+        cmd = [sys.executable, "-m", "acquisition.recorder.daemon", str(self._layout_path), *which,
+               "--commands", str(theirs.fileno())]  # fmt: skip
         proc = self._popen(name, cmd, pass_fds=(theirs.fileno(),))
         theirs.close()
         ours.settimeout(1.0)
@@ -382,15 +384,6 @@ class Recorder:
                     return False
                 spare.ready = said.startswith(b"ready")
         return True
-
-    def _spawn_spare(self) -> _Child:
-        ours, theirs = socket.socketpair()
-        cmd = [sys.executable, "-m", "acquisition.recorder.daemon", str(self._layout_path), "--spare",
-               "--commands", str(theirs.fileno())]  # fmt: skip
-        proc = self._popen(SPARE, cmd, pass_fds=(theirs.fileno(),))
-        theirs.close()
-        ours.settimeout(1.0)
-        return _Child(SPARE, proc, ours)
 
     def _end_spare(self) -> None:
         """End the spare (its socket closed, it exits); its log goes with it where it said nothing."""
@@ -472,7 +465,7 @@ class Recorder:
             self._children[name] = spare
         else:  # none ready (another daemon took it a moment ago): one started from nothing
             self._children[name] = self._spawn_daemon(name, restarted=True)
-        self._spare = self._spawn_spare()
+        self._spare = self._spawn_daemon(SPARE, restarted=False)
 
     def _writer_failed(self, writer: _Child) -> bool:
         """True once the writer said it could not write (a full disk): the devices are then stopped (left

@@ -1,9 +1,9 @@
 """A daemon's status block: a few words in shared memory that the supervisor reads to watch it.
 
 The daemon writes its pid, a heartbeat (monotonic ns, every loop), its phase, whether its device answers,
-the scheduling it got, the most a polled device's schedule ever ran ahead of it, and its last error; the
-supervisor only reads. A file on tmpfs like the rings, so it
-outlives the daemon: the supervisor reads why a daemon died after it has gone.
+the scheduling it got, how far it ever fell behind a polled device's schedule, and its last error; the
+supervisor only reads. A file on tmpfs like the rings, so it outlives the daemon: the supervisor reads why a
+daemon died after it has gone.
 """
 
 from __future__ import annotations
