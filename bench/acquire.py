@@ -14,7 +14,8 @@ people's programs that do not yield).
 
 Targets (issue "acquisition daemons"): the servo bus at the description's rate sustained (1000 Hz then; 400 Hz
 once the rig kept the wire's timing: 1 Mbaud behind a 1 ms latency timer carries 588 Sync Reads a second,
-issue 31; 300 Hz since the host's own time per read left 400 Hz 4 % of each slot), 0 lost samples in every
+issue 31; 300 Hz since the host's own time per read left 400 Hz 4 % of each slot; 250 Hz since 300 Hz lost
+samples where a hypervisor took a tenth of the CPUs), 0 lost samples in every
 stream, p99 period jitter < 1 ms, with ``--load train`` and ``--load none``; ``--rate servo_bus=HZ`` reports
 what a rate reaches (the recorder refuses one above the link's ceiling: ``bench/bus.py`` measures the ceiling
 itself).

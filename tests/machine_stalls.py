@@ -16,8 +16,12 @@ reported, not judged, where the watches run at real-time priority. On this proje
 cost of waking a virtual CPU as well as a stop: the two watches alone add 6–9 ms of steal a second, a whole
 recording 20–450 ms while no CPU stopped for more than 7 ms. Judged by it (skipped at 50 ms), half the
 real-time tests were skipped in every run, and among them the recordings that lost samples through a fault
-of the code (the servo bus polled at 96 % of what its reads allowed: ``configs/robots/vsl.yaml``). Where
-real-time priority is not allowed the watches wait on the load too, and only the steal is asked.
+of the code (the servo bus polled at 96 % of what its reads allowed: ``configs/robots/vsl.yaml``). It is
+judged by its share instead: a hypervisor can take a large part of each CPU in slices too short for a watch
+to call a stop (CI's host took 11–13 % so, and the servo bus fell 60–70 ms behind), and a recording during
+which the steal came to ``STEAL_SHARE`` of the CPUs (10 %, where the recorder is measured to hold its
+rates; this project's machines, wake-ups and all: 0.1–4.5 %) is skipped with that said. Where real-time
+priority is not allowed the watches wait on the load too, and only the steal is asked.
 
 Each check writes what it saw into the test's report (shown where the test fails): the steal, each CPU's
 longest stop, and, given the recorder, how far each daemon fell behind its schedule and the scheduling each
@@ -171,14 +175,20 @@ class StallWatches:
             watch.close()
 
 
-OWN_S = 0.010  # of MAX_LAG_S, what a daemon itself may take: a poll period (3.3 ms at 300 Hz) and an answer
+OWN_S = 0.010  # of MAX_LAG_S, what a daemon itself may take: a poll period (4 ms at 250 Hz) and an answer
 STALL_S = MAX_LAG_S - OWN_S  # a machine stopped this long at once leaves the code less than OWN_S
+# The share of the CPUs a hypervisor may take while a recording must still hold its rates: the recorder was
+# measured holding them with this much of each CPU taken in 3 ms slices (`bench/load.py --steal 0.1`, both
+# cores also busy), while the steal count of this project's machines, wake-ups and all, came to 0.1–4.5 % a
+# recording. CI's host once took 11–13 % in slices (no CPU stopped for more than 7 ms) and the servo bus fell
+# 60–70 ms behind: a machine that is not whole is said so, not judged.
+STEAL_SHARE = 0.10
 
 
 class RealTimeCheck:
     """Skips the test that calls it when the machine stopped during the recording: a CPU's stall watch
     waited ``STALL_S`` at once (or, where the watches cannot run at real-time priority, the hypervisor's
-    steal came to ``MAX_LAG_S``). What it saw goes into the test's report either way (``node``: the test's
+    steal came to ``MAX_LAG_S``), or the hypervisor took ``STEAL_SHARE`` of the CPUs. What it saw goes into the test's report either way (``node``: the test's
     item), with the recorder's daemons where given."""
 
     def __init__(self, node: pytest.Item | None = None) -> None:
@@ -190,6 +200,7 @@ class RealTimeCheck:
     def recording(self) -> None:
         """The recording starts now: what was stolen, or stalled, before it is not counted."""
         self.start_s = cpu_stolen_s()
+        self.start_wall_s = time.monotonic()
         self.stalls.reset()
         if self.steal is not None:
             self.steal.stop()
@@ -197,9 +208,13 @@ class RealTimeCheck:
 
     def __call__(self, recorder=None) -> None:
         stolen = cpu_stolen_s() - self.start_s
+        share = stolen / (len(self.stalls.watches) * max(time.monotonic() - self.start_wall_s, 1e-3))
         longest = self.stalls.longest_ms()
-        self._report(stolen, longest, recorder)
+        self._report(stolen, share, longest, recorder)
         cpu, worst = max(longest.items(), key=lambda kv: kv[1])
+        if share >= STEAL_SHARE:
+            pytest.skip(f"the hypervisor took {share:.0%} of this machine's CPUs during the recording (steal "
+                        f"in /proc/stat; the rates are held with {STEAL_SHARE:.0%} taken)")  # fmt: skip
         if not self.stalls.real_time:  # the watches wait on the load too: only the steal tells
             if stolen >= MAX_LAG_S:
                 pytest.skip(f"the hypervisor took {stolen * 1e3:.0f} ms of this machine's CPU during the "
@@ -208,12 +223,13 @@ class RealTimeCheck:
             pytest.skip(f"CPU {cpu} ran nothing for {worst:.0f} ms at once during the recording (a process "
                         "held there at real-time priority waited that long to be woken)")  # fmt: skip
 
-    def _report(self, stolen_s: float, longest_ms: dict, recorder) -> None:
+    def _report(self, stolen_s: float, share: float, longest_ms: dict, recorder) -> None:
         """What the machine did during the recording, into the test's report (shown where it fails)."""
         self.steal.stop()
         stops = ", ".join(f"cpu{c} {ms:.1f}" for c, ms in longest_ms.items())
         burst = self.steal.burst_ms(0.1)
-        lines = [f"steal: {stolen_s * 1e3:.0f} ms in all, {burst:.0f} ms at most within 0.1 s",
+        lines = [f"steal: {stolen_s * 1e3:.0f} ms in all ({share:.1%} of the CPUs), {burst:.0f} ms at most "
+                 "within 0.1 s",
                  f"longest stop of each CPU (ms): {stops}"
                  + ("" if self.stalls.real_time else " (ordinary priority: load counts too)")]  # fmt: skip
         if recorder is not None:

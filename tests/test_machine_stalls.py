@@ -45,3 +45,25 @@ def test_a_recording_the_machine_stopped_is_skipped_with_why():
         check()
     finally:
         check.close()
+
+
+def test_a_recording_during_which_the_hypervisor_took_a_tenth_of_the_cpus_is_skipped(monkeypatch):
+    """Steal in slices too short for a watch to call a stop is judged by its share of the CPUs: below
+    STEAL_SHARE the check passes, at it the recording is skipped, saying how much was taken."""
+    import machine_stalls
+
+    stolen = [100.0]  # s since boot, as /proc/stat counts it
+    monkeypatch.setattr(machine_stalls, "cpu_stolen_s", lambda: stolen[0])
+    check = RealTimeCheck()
+    try:
+        if not check.stalls.real_time:
+            pytest.skip("this machine does not allow real-time priority: the steal's 50 ms judges there")
+        time.sleep(0.5)
+        cpus = len(check.stalls.watches)
+        stolen[0] += 0.5 * machine_stalls.STEAL_SHARE * cpus * 0.5  # half the share in 0.5 s
+        check()
+        stolen[0] += 4 * machine_stalls.STEAL_SHARE * cpus * 0.5
+        with pytest.raises(pytest.skip.Exception, match=r"the hypervisor took \d+% of this machine's CPUs"):
+            check()
+    finally:
+        check.close()

@@ -250,3 +250,20 @@ def test_a_rig_that_dies_before_its_ports_says_so(tmp_path):
     proc.wait()
     with pytest.raises(RigError, match=r"the rig stopped \(exit status 3\) before it published its ports"):
         rig_ports(tmp_path, proc)
+
+
+def test_the_twin_s_tracker_answers_every_poll_within_a_frame_with_that_frame(vsl):
+    """The Aurora measures a frame at its 40 Hz and answers each poll with the latest: polls within one frame
+    get the same measurement (its noise too), the next frame a new one (the recorder keeps one of each)."""
+    from twin.rig import Rig
+
+    rig = Rig(vsl)
+    frame_s = vsl.devices["tracker"].clock.tick_s
+    t, start = 0.5, rig.coil(0.5).frame
+    while rig.coil(t).frame == start:  # to the start of the next frame (the clock's offset is its own)
+        t += frame_s / 50
+    first = rig.coil(t + 0.1 * frame_s)
+    again = rig.coil(t + 0.6 * frame_s)
+    later = rig.coil(t + 1.3 * frame_s)
+    assert again.frame == first.frame and np.array_equal(again.position_m, first.position_m)
+    assert later.frame == first.frame + 1 and not np.array_equal(later.position_m, first.position_m)

@@ -221,9 +221,19 @@ class TwinTrackerSource:
         self.tool = np.asarray(rig.robot.tool_offset_m)
         self.force_out = False
         self.counter = "tracker"  # the rig's device counter of the tracker (its frame number)
+        self._frame_key: tuple[int, bool] | None = None  # (frame number, force_out) of the frame held
+        self._frame: TrackerSample | None = None
 
     def __call__(self, now_s: float) -> TrackerSample:
+        """The frame the tracker holds at ``now_s``: measured once, when its first poll comes (as the Aurora
+        answers every poll within one frame with that frame's measurement, noise and all)."""
         self.rig.advance(now_s)
+        key = (self.rig.ticks(self.counter), self.force_out)
+        if key != self._frame_key:
+            self._frame, self._frame_key = self._measure(key[0]), key
+        return self._frame
+
+    def _measure(self, frame: int) -> TrackerSample:
         st = self.rig.world.state
         pose = self.chain.fk(st.out_pos[0], st.delta[0])
         tip = pose[:3, :3] @ self.tool + pose[:3, 3]
@@ -232,7 +242,7 @@ class TwinTrackerSource:
         rng = self.rig.world.device_rng(self.counter)
         reading = sensors.tracker_measurement(tip[None], pose[None, :3, :3], self.spec, rng)
         return TrackerSample(
-            frame=self.rig.ticks(self.counter),
+            frame=frame,
             position_m=reading.position_m[0],
             quaternion=reading.quaternion[0],
             rms_error=float(reading.rms_error[0]) * 1e-3,  # the sensor model reports mm
