@@ -1,6 +1,6 @@
 """Run a command while every core is busy: one CPU-bound process per core at the ordinary priority.
 
-    python bench/load.py [--per-core N] [--steal F] -- COMMAND ...   (make test-under-load: the suite this way)
+    python bench/load.py [--per-core N] [--steal F] -- COMMAND ...   (make test-under-load: the suite)
 
 The real-time code must hold on a busy lab computer, so its tests must pass under this load too. The load
 processes are plain busy loops (other people's programs that never yield), stopped when the command ends;

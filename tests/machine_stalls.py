@@ -188,8 +188,8 @@ STEAL_SHARE = 0.10
 class RealTimeCheck:
     """Skips the test that calls it when the machine stopped during the recording: a CPU's stall watch
     waited ``STALL_S`` at once (or, where the watches cannot run at real-time priority, the hypervisor's
-    steal came to ``MAX_LAG_S``), or the hypervisor took ``STEAL_SHARE`` of the CPUs. What it saw goes into the test's report either way (``node``: the test's
-    item), with the recorder's daemons where given."""
+    steal came to ``MAX_LAG_S``), or the hypervisor took ``STEAL_SHARE`` of the CPUs. What it saw goes into
+    the test's report either way (``node``: the test's item), with the recorder's daemons where given."""
 
     def __init__(self, node: pytest.Item | None = None) -> None:
         self.node = node
