@@ -86,6 +86,13 @@ def test_plan_runs_on_the_rig_and_is_recorded_as_sent(host_factory, tmp_path, vs
     start = data[T.SERVO_GOAL].log_time[0]
     expected = plan.goal_t + np.where(plan.goal_t > plan.payload_t[0], pauses[0], 0.0)
     np.testing.assert_allclose((data[T.SERVO_GOAL].log_time - start) / 1e9, expected, atol=0.05)
+    # the plan's events are stamped at their plan time on the host's clock, not when the loop came to them:
+    # the mark that starts the steps is no later than the first step's goal (a hold's window likewise ends
+    # before the goal after it, however late a busy machine ran the loop)
+    at = next(t for t, e in plan.events if e.kind == EventKind.REPETITION_START)
+    marked = next(t for t, e in read_events(part) if e.kind == EventKind.REPETITION_START)
+    first_step = data[T.SERVO_GOAL].log_time[int(np.searchsorted(plan.goal_t, at))]
+    assert 0 <= first_step - marked < 0.05e9
 
 
 @pytest.mark.slow

@@ -166,7 +166,12 @@ class RealTimeRunner:
                     cursor["tap"] = k
                     paused += self._operator(self.on_tap, float(plan.tap_impulse_nms[k]))
                 while cursor["event"] < len(plan.events) and plan.events[cursor["event"]][0] <= t:
-                    self.rec.event(plan.events[cursor["event"]][1])
+                    # stamped at its plan time on the host's clock, not when this loop came to it: a hold
+                    # (SETTLED, its length) then ends before the next goal goes out, however late the loop
+                    # ran (stamped on pushing, a loop held up on a busy machine put the start of the next
+                    # move inside the hold, and the build rejected it for motion)
+                    at, event = plan.events[cursor["event"]]
+                    self.rec.event(event, host_ns=round((start + paused + max(at, 0.0)) * 1e9))
                     cursor["event"] += 1
                 if now >= next_check:  # on the host's clock: the checks go on while the plan's stands
                     next_check = now + self.check_period
@@ -346,10 +351,14 @@ class RealTimeRunner:
         if faults > self._faults:
             return "device", f"fault: {fault}"
         q, pressure, _, oldest = self._measured()
-        if host_now_ns() - oldest > self.stale_ns:
+        now = host_now_ns()
+        if now - oldest > self.stale_ns:
             lost = [topic for topic in self._needed() if not self.rec.connected(topic)]
-            why = "; ".join(f"{topic} lost: {self.rec.error(topic)}" for topic in lost) or "devices silent"
-            return "device", f"no fresh samples for {(host_now_ns() - oldest) / 1e9:.2f} s ({why})"
+            silent = [topic for topic in self._needed() if topic not in lost
+                      and now - self.rec.latest(topic).host_ns > self.stale_ns]  # fmt: skip
+            why = "; ".join([*(f"{topic} lost: {self.rec.error(topic)}" for topic in lost),
+                             *(f"{topic} silent, its device connected" for topic in silent)])  # fmt: skip
+            return "device", f"no fresh samples for {(now - oldest) / 1e9:.2f} s ({why or 'devices silent'})"
         allow = bool(self.plan.parameters.get("allow_wrinkling"))
         violations = self.safety.check_state(
             np.array([t]), q[None], pressure[None], payload_kg, allow_wrinkling=allow,

@@ -276,11 +276,12 @@ class Recorder:
         shutil.rmtree(self.layout.run_dir, ignore_errors=True)
 
     # ------------------------------------------------------------------------------ for the runner
-    def event(self, event: Event) -> None:
-        """Mark something (plan step, payload change, note) at the current host time."""
+    def event(self, event: Event, host_ns: int | None = None) -> None:
+        """Mark something (plan step, payload change, note) at ``host_ns`` (the monotonic clock's ns, as
+        ``host_now_ns``; default now)."""
         if self._events is not None:
             with self._event_lock:
-                push_event(self._events, event)
+                push_event(self._events, event, host_ns)
 
     def has(self, topic: str) -> bool:
         """Whether a device of this recording writes (or takes commands on) ``topic``."""
