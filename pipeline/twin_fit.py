@@ -59,6 +59,9 @@ identifiable. The POPUP arm's link is fitted to its link tests by ``pipeline.pop
 
 from __future__ import annotations
 
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
@@ -277,6 +280,7 @@ class VslStaticFit(Estimator):
         states: dict[tuple, np.ndarray] = {}  # the loops' states of the last few loads and τ_y asked for
         last: dict[str, Any] = {}  # the last pass's solution (scaled): where the next one starts
         arms: dict[tuple, tuple] = {}  # the arm's tip, torques and drive torques at the last values asked for
+        cached = threading.Lock()  # over both caches
 
         covariance: list[pd.DataFrame] = []  # the last pass's, of ``free`` (a hose's slack is a ratio)
         n_tip = 3 * len(q)
@@ -307,22 +311,31 @@ class VslStaticFit(Estimator):
                 values, rotvec, shift = unpack(z)
                 tau_y = tuple(values.get(f"{link.name}.tau_y_nm", 1.0) for link in links)
                 loads = tuple(values.get(f"{body}.mass_scale", 1.0) for body in parts)
-                if (key := (tau_y, loads)) not in states:  # most of the Jacobian's columns change neither
+                key = (tau_y, loads)  # most of the Jacobian's columns change neither
+                with cached:  # the Jacobian's columns are computed in threads: the caches are shared
+                    state = states.get(key)
+                if state is None:
                     torques = path_torques(parts, values)  # the fitted masses load the links along the moves
-                    if len(states) > 8:
-                        states.pop(next(iter(states)))  # the oldest
-                    states[key] = hysteresis_states(torques, np.asarray(tau_y), order)
-                state = states[key]
+                    state = hysteresis_states(torques, np.asarray(tau_y), order)
+                    with cached:
+                        if len(states) > 8:
+                            states.pop(next(iter(states)))  # the oldest
+                        states[key] = state
                 arm_key = tuple(
                     v for n, v in values.items() if ".hose" not in n
                 )  # the registration's and the hoses' columns of the Jacobian leave the arm as is
-                if arm_key not in arms:
-                    arms.clear()
-                    arms[arm_key] = self._tip(robot, links, tables, values, q, p, m, state, (order, t))
+                with cached:
+                    arm = arms.get(arm_key)
+                if arm is None:
+                    arm = self._tip(robot, links, tables, values, q, p, m, state, (order, t))
                     if not reported:
-                        tip, torque, drive = arms[arm_key]
-                        arms[arm_key] = (tip + described_bias_m(robot, tip), torque, drive)
-                tip, _, drive = arms[arm_key]
+                        tip, torque, drive = arm
+                        arm = (tip + described_bias_m(robot, tip), torque, drive)
+                    with cached:
+                        if len(arms) > 2:
+                            arms.pop(next(iter(arms)))  # the oldest
+                        arms[arm_key] = arm
+                tip, _, drive = arm
                 out = (Rotation.from_rotvec(rotvec).apply(tip) + shift - x) * 1e3  # mm
                 if amps is None:
                     return out, np.zeros(0)
@@ -358,18 +371,21 @@ class VslStaticFit(Estimator):
                 out0, cur0 = evaluated.get(z.tobytes()) or raw(z)
                 steps = np.finfo(float).eps ** 0.5 * np.where(z >= 0, 1.0, -1.0) * np.maximum(1.0, np.abs(z))
                 steps = (z + steps) - z
-                outs, curs = [], []
-                for j, h in enumerate(steps):
-                    out, cur = raw(z + h * np.eye(len(z))[j])
-                    outs.append((out - out0) / h)
-                    curs.append((cur - cur0) / h)
+
+                def column(j: int) -> tuple[np.ndarray, np.ndarray]:
+                    out, cur = raw(z + steps[j] * np.eye(len(z))[j])
+                    return (out - out0) / steps[j], (cur - cur0) / steps[j]
+
+                # one column a CPU at once: the statics are numpy over every point, which lets go of the GIL
+                outs, curs = zip(*columns.map(column, range(len(z))), strict=True)
                 return assemble(np.stack(outs, axis=2).reshape(len(out0), -1), np.stack(curs, axis=1))
 
             seed = {n: (begin[n] - nominal[n]) / size for n, size in zip(free, scale, strict=True)
                     if n in begin}  # fmt: skip
             turned = last.get("registration", begin.get("registration", np.zeros(6)))
             start = np.array([last.get(n, seed.get(n, 0.0)) for n in free] + list(turned))
-            fit = least_squares(residual, start, jac=jacobian, method="trf", x_scale=1.0)
+            with ThreadPoolExecutor(max(1, len(os.sched_getaffinity(0)))) as columns:
+                fit = least_squares(residual, start, jac=jacobian, method="trf", x_scale=1.0)
             last.clear()  # the next pass starts where this one ended
             last.update(zip(free, fit.x[: len(free)], strict=True), registration=fit.x[len(free) :])
             groups = np.repeat(sessions, 3)

@@ -83,6 +83,12 @@ class StealWatch:
     def total_ms(self) -> float:
         return (self._samples[-1][1] - self._samples[0][1]) * 1e3
 
+    @property
+    def share(self) -> float:
+        """What was taken, as a share of the CPUs this process may use over the time watched."""
+        seconds = max(self._samples[-1][0] - self._samples[0][0], 1e-3)
+        return self.total_ms / 1e3 / (len(os.sched_getaffinity(0)) * seconds)
+
     def burst_ms(self, window_s: float) -> float:
         t, stolen = np.array(self._samples).T
         end = np.searchsorted(t, t + window_s, side="right") - 1

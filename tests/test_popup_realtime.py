@@ -21,7 +21,7 @@ import sys
 import numpy as np
 import pandas as pd
 import pytest
-from machine_stalls import STALL_S, StallWatches, StealWatch
+from machine_stalls import STALL_S, STEAL_SHARE, StallWatches, StealWatch
 from scipy.spatial.transform import Rotation
 
 from acquisition.plans.popup_experiments import pressure_checks, verify_pressure_checks
@@ -124,9 +124,13 @@ def _finish(lab, session: str, run: subprocess.Popen, watch: StealWatch, stalls:
         longest = max(stalls.longest_ms().values()) if stalls.real_time else None
         stalls.close()
     stolen, burst = watch.total_ms, watch.burst_ms(STALL_WINDOW_S)
-    said = f"the hypervisor took {stolen:.0f} ms of CPU, {burst:.0f} within {STALL_WINDOW_S} s" + (
+    said = (f"the hypervisor took {stolen:.0f} ms of CPU ({watch.share:.1%} of the CPUs), {burst:.0f} within "
+            f"{STALL_WINDOW_S} s") + (
         f"; the machine ran nothing for {longest:.0f} ms at once" if longest is not None else "")  # fmt: skip
-    if run.returncode != 0 and (burst >= MAX_LAG_S * 1e3 or (longest or 0.0) >= MAX_LAG_S * 1e3):
+    # judged as RealTimeCheck judges a recording: a CPU stopped, or a tenth of the machine taken (the steal's
+    # bursts are not: 50 ms within 0.5 s came with no CPU stopped, and hid a session's safe stop)
+    stopped = longest >= STALL_S * 1e3 if longest is not None else burst >= MAX_LAG_S * 1e3
+    if run.returncode != 0 and (stopped or watch.share >= STEAL_SHARE):
         last = (out + err).strip().splitlines() or [""]
         pytest.skip(f"session {session} stopped on a machine that stopped during it ({said}): {last[-1]}")
     assert run.returncode == 0, f"{out[-2000:]}{err[-2000:]}\n(meanwhile {said})"
