@@ -9,13 +9,14 @@ import re
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import serial
 
 from acquisition.codecs import board_lines as bp
 from acquisition.devices.boards import BoardReplyError, PressureBoard, StepperBoard
 from acquisition.errors import DeviceError, DeviceNotFoundError, DeviceProtocolError, DeviceReplyError
-from twin.emulators.board_firmware import PressureBoardEmulator, StepperBoardEmulator
+from twin.emulators.board_firmware import CATCH_UP_S, PressureBoardEmulator, StepperBoardEmulator
 from twin.emulators.board_hardware import SimplePressureHardware, SimpleStepperHardware
 
 PROTOCOL_MD = Path(__file__).resolve().parents[1] / "firmware" / "PROTOCOL.md"
@@ -154,12 +155,26 @@ def test_stream_rate_respected_on_the_board_clock():
     assert emu.poll(10.1) == b""
 
 
-def test_stream_never_faster_than_rate_with_coarse_polls():
+def test_stream_at_its_rate_however_coarsely_the_rig_polls():
+    """The board's loop is not late when the rig is: polled at 20 Hz, a 200 Hz stream gives every sample,
+    each stamped with the micros() it was due at, never more (one line a period)."""
     emu = StepperBoardEmulator(SimpleStepperHardware())
     emu.poll(0.0)
     _ask(emu, "1 STREAM 200")
-    lines = sum(emu.poll(0.05 * k).count(b"\n") for k in range(1, 41))  # 2 s polled at 20 Hz
-    assert lines == 40
+    lines = [bp.parse_message(bp.decode(line + b"\n")) for k in range(1, 41)  # 2 s polled at 20 Hz
+             for line in emu.poll(0.05 * k).splitlines()]  # fmt: skip
+    assert len(lines) == 401  # the first at the STREAM, then one every 5 ms to 2 s
+    assert [m.seq for m in lines] == list(range(401))
+    assert set(np.diff([m.micros for m in lines]).tolist()) == {5000}
+
+
+def test_a_rig_stopped_longer_than_its_recent_steps_skips_the_samples_older_than_that():
+    emu = StepperBoardEmulator(SimpleStepperHardware())
+    emu.poll(0.0)
+    _ask(emu, "1 STREAM 100")
+    emu.poll(0.0)
+    lines = emu.poll(1.0).splitlines()  # the samples of the last CATCH_UP_S come, numbered on
+    assert len(lines) - round(CATCH_UP_S * 100) in (0, 1) and emu.seq == len(lines) + 1  # (the edge's sample)
 
 
 def test_stepper_emulator_move():
@@ -181,7 +196,8 @@ def test_a_port_open_resets_the_pressure_board():
     _ask(emu, "2 VALVE 1 1", 1.0)
     _ask(emu, "3 STREAM 100", 1.0)
     assert bp.parse_message(bp.decode(emu.poll(1.0))).seq == 0
-    assert len(emu.poll(1.5).splitlines()) == 1 and emu.seq == 2
+    caught_up = round(CATCH_UP_S * 100) + 1  # not polled for 0.5 s: the samples of the last CATCH_UP_S
+    assert len(emu.poll(1.5).splitlines()) == caught_up and emu.seq == 1 + caught_up
     emu.port_opened(2.0)
     assert emu.resets == 1 and emu.booting(2.0) and emu.booting(2.0 + bp.BOOT_S - 1e-6)
     assert hw.setpoint_pa == [0.0, 0.0] and hw.valve_open == [False, False], "outputs fall at once"

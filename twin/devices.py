@@ -198,7 +198,11 @@ class TwinStepper(_BoardClock):
         self.rig.world.commands.goal[0, self.joint] = self.rig.world.state.out_pos[0, self.joint]
 
     def position(self, now_s: float) -> int:
+        """The motor's position (microsteps) at rig time ``now_s``: a late sample's from the step that held
+        then (``RecentSteps``)."""
         self.rig.advance(now_s)
+        if now_s < self.rig.world.t - self.rig.world.dt:
+            return round(float(self.rig.recent.at(now_s).q[self.joint]) / self.quantum)
         return round(float(self.rig.world.state.out_pos[0, self.joint]) / self.quantum)
 
     def moving(self, now_s: float) -> bool:
