@@ -3,7 +3,7 @@ stall of the computer from a fault of the code.
 
 The witness is a stall watch on each CPU (:class:`StallWatch`, :class:`StallWatches`): a process held on that
 CPU (``sched_setaffinity``) at real-time priority (SCHED_FIFO at the highest priority: above the device
-daemons', ``acquisition.processes``) that asks to be woken every millisecond and keeps the longest it waited.
+daemons', ``acquisition.processes``) that asks to be woken every 5 ms and keeps the longest it waited.
 Busy cores do not delay it (it runs before every other process the moment it is due: with both cores busy,
 ``bench/load.py``, its longest wait in each of 20 seconds was 0.0–1.5 ms), so a wait of tens of milliseconds
 means that CPU ran nothing at all: the hypervisor stopped it. One a CPU, because a hypervisor may stop one
@@ -95,10 +95,14 @@ class StealWatch:
         return float((stolen[end] - stolen).max() * 1e3)
 
 
-# The watch's own process: woken every millisecond by select's timeout, it keeps the longest it went without
-# running; on stdin, "r" starts afresh and "q" writes that longest wait (ms) beyond the millisecond asked.
+# The watch's own process: woken every WATCH_PERIOD_S by select's timeout, it keeps the longest it went
+# without running; on stdin, "r" starts afresh and "q" writes that longest wait (ms) beyond the period asked.
+# How often a watch asks to be woken. Every 1 ms, the watches themselves made the CAN drives miss SYNC answers
+# (4 of 960 cycles beside them, none of 960 without; at 5 ms none of 960); a stop of STALL_S is 8 periods.
+WATCH_PERIOD_S = 0.005
 _WATCH = r"""
 import os, select, sys, time
+PERIOD_S = float(os.environ["VSLAB_WATCH_PERIOD_S"])
 if len(sys.argv) > 1:
     os.sched_setaffinity(0, {int(sys.argv[1])})
 try:
@@ -108,7 +112,7 @@ except (AttributeError, OSError):
     os.write(1, b"ordinary\n")
 worst, last = 0.0, time.monotonic()
 while True:
-    ready = select.select([0], [], [], 0.001)[0]
+    ready = select.select([0], [], [], PERIOD_S)[0]
     now = time.monotonic()
     worst, last = max(worst, now - last), now
     if ready:
@@ -118,21 +122,25 @@ while True:
         if command == b"r":
             worst = 0.0
         elif command == b"q":
-            os.write(1, b"%.1f\n" % max((worst - 0.001) * 1e3, 0.0))
+            os.write(1, b"%.1f\n" % max((worst - PERIOD_S) * 1e3, 0.0))
         last = time.monotonic()
 """
 
 
+def _watch_env() -> dict[str, str]:
+    return {**os.environ, "VSLAB_WATCH_PERIOD_S": str(WATCH_PERIOD_S)}
+
+
 class StallWatch:
-    """The longest the watch waited past its millisecond since ``reset()`` (or the start): ``longest_ms()``.
-    Where it runs at real-time priority (``real_time``) that is the longest the machine ran no process at
-    all; where it could not take that priority, its waits count the load too."""
+    """The longest the watch waited past its period (``WATCH_PERIOD_S``) since ``reset()`` (or the start):
+    ``longest_ms()``. Where it runs at real-time priority (``real_time``) that is the longest the machine ran
+    no process at all; where it could not take that priority, its waits count the load too."""
 
     def __init__(self, cpu: int | None = None) -> None:
         self.cpu = cpu  # the CPU it is held on (None: wherever the scheduler puts it)
         where = [] if cpu is None else [str(cpu)]
         self._process = subprocess.Popen([sys.executable, "-c", _WATCH, *where], stdin=subprocess.PIPE,
-                                          stdout=subprocess.PIPE)  # fmt: skip
+                                         stdout=subprocess.PIPE, env=_watch_env())  # fmt: skip
         self.real_time = self._process.stdout.readline().strip() == b"fifo"
 
     def reset(self) -> None:
